@@ -1,0 +1,125 @@
+"""Static-equilibrium tensions by quadratic programming (paper section IV-A), and the healthy dataset.
+
+For each posture q:  f = argmin ||f - f_ref||^2  s.t.  -G(q)^T f = tau_bias(q),  0 <= f <= f_max,
+then ``l_motor = l_geo(q) - delta(f)`` (eq:muscle-elongation). Draws whose QP has no solution are
+re-drawn and counted.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import proxsuite
+
+from ..errors import BodySchemaInputError
+from .model import MusculoskeletalModel
+from .spring import SpringParams, elongation_from_tension
+
+EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint torque residual is below this
+_SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
+
+
+def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi):
+    """proxsuite's own dense API, one small QP per posture (~20 us each): the fast path."""
+    batch, n_muscles, n_joints = G.shape
+    qp = proxsuite.proxqp.dense.QP(n_muscles, n_joints, 0, box_constraints=True)
+    qp.settings.eps_abs = 1e-12
+    qp.settings.eps_rel = 0.0
+    qp.settings.max_iter = 2000
+    qp.settings.verbose = False
+    hessian = np.eye(n_muscles)
+    f = np.zeros((batch, n_muscles))
+    solved = np.zeros(batch, dtype=bool)
+    for b in range(batch):  # proxsuite solves one QP per call
+        qp.init(hessian, -f_ref[b], -G[b].T, tau_bias[b], None, None, None,
+                l_box=f_lo[b], u_box=f_hi[b])
+        qp.solve()
+        solved[b] = qp.results.info.status == _SOLVED
+        f[b] = qp.results.x  # copies: results.x is overwritten by the next solve
+    return f, solved
+
+
+def _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver):
+    """qpsolvers' unified interface, so a user can plug in any QP solver it knows."""
+    import qpsolvers
+
+    batch, n_muscles, _ = G.shape
+    f = np.zeros((batch, n_muscles))
+    solved = np.zeros(batch, dtype=bool)
+    for b in range(batch):
+        x = qpsolvers.solve_qp(np.eye(n_muscles), -f_ref[b], A=-G[b].T, b=tau_bias[b],
+                               lb=f_lo[b], ub=f_hi[b], solver=solver)
+        if x is not None:
+            f[b], solved[b] = x, True
+    return f, solved
+
+
+def check_qp_solver(solver: str) -> str:
+    """Refuse a QP solver name that qpsolvers does not have installed."""
+    if solver == "proxqp":
+        return solver
+    import qpsolvers
+
+    if solver not in qpsolvers.available_solvers:
+        raise BodySchemaInputError(
+            f"unknown QP solver {solver!r}; installed: {sorted(qpsolvers.available_solvers)}")
+    return solver
+
+
+def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "proxqp"):
+    """Tensions closest to ``f_ref`` that hold each posture in static equilibrium.
+
+    Args:
+        G: (B, M, N) muscle Jacobians; tau_bias: (B, N); f_ref: (B, M) [N];
+        f_max, f_min: scalars, (M,) or (B, M) tension bounds [N] (a per-case f_max of 0 models a cut).
+        solver: ``"proxqp"`` (proxsuite's own API, fast) or any qpsolvers solver name.
+
+    Returns:
+        ``f (B, M)`` clipped into the bounds, and ``ok (B,)``: solved and equilibrium residual
+        ``|-G^T f - tau_bias|`` below ``EQUILIBRIUM_TOL_NM`` on every joint.
+    """
+    batch, n_muscles, _ = G.shape
+    f_lo = np.broadcast_to(np.asarray(f_min, float), (batch, n_muscles))
+    f_hi = np.broadcast_to(np.asarray(f_max, float), (batch, n_muscles))
+    if check_qp_solver(solver) == "proxqp":
+        f, solved = _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi)
+    else:
+        f, solved = _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver)
+    f = np.clip(f, f_lo, f_hi)  # remove the solver's ~1e-12 excursions outside the box
+    residual = np.abs(np.einsum("bmn,bm->bn", -G, f) - tau_bias).max(axis=1)
+    return f, solved & (residual <= EQUILIBRIUM_TOL_NM)
+
+
+@dataclass
+class EquilibriumSamples:
+    """Healthy samples in SI units: postures [rad], motor lengths [m], tensions [N]."""
+
+    q: np.ndarray  # (n, N)
+    l_motor: np.ndarray  # (n, M)
+    f: np.ndarray  # (n, M)
+    n_redrawn: int  # infeasible draws that were replaced
+
+
+def generate_equilibrium_samples(model: MusculoskeletalModel, n: int, seed: int,
+                                 spring: SpringParams = SpringParams(), solver: str = "proxqp",
+                                 max_draw_factor: int = 20) -> EquilibriumSamples:
+    """Draw ``n`` healthy equilibrium samples: uniform q in the joint range, uniform f_ref in [0, f_max]."""
+    if int(n) != n or n <= 0:
+        raise BodySchemaInputError(f"dataset size n={n!r} must be a positive integer")
+    rng = np.random.default_rng(seed)
+    f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), (model.n_muscles,))
+    kept, n_drawn = [], 0
+    while sum(len(k[0]) for k in kept) < n:
+        if n_drawn >= max_draw_factor * n:
+            raise BodySchemaInputError(
+                f"only {sum(len(k[0]) for k in kept)} of {n_drawn} postures can be held in equilibrium "
+                f"with f_max={spring.f_max_n} N; the muscles are too weak for this model's gravity")
+        batch = n - sum(len(k[0]) for k in kept)
+        q = model.sample_q(rng, batch)
+        f_ref = f_max * rng.random((batch, model.n_muscles))
+        l_geo, G, tau_bias = model.kinematics(q)
+        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_max, solver=solver)
+        kept.append((q[ok], l_geo[ok] - elongation_from_tension(f[ok], spring), f[ok]))
+        n_drawn += batch
+    q, l_motor, f = (np.concatenate(parts)[:n] for parts in zip(*kept))
+    return EquilibriumSamples(q=q, l_motor=l_motor, f=f, n_redrawn=n_drawn - n)
