@@ -1,0 +1,111 @@
+"""``EquilibriumDataModule``: the healthy (q, l_motor, f) dataset of one robot, as Lightning data.
+
+The train split is served as ONE batch per epoch (all samples as tensors); the schema draws its
+minibatches from it inside the step. On this tiny dataset Lightning's per-batch machinery costs
+more than the maths (DESIGN §4/§7), so one loader step per epoch keeps Lightning's overhead small.
+"""
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from ..errors import BodySchemaInputError
+from ..sim import MusculoskeletalModel, SpringParams
+from .dataset import load_or_build_dataset
+from .normalizer import Normalizer
+
+
+class _WholeSplit(torch.utils.data.Dataset):
+    """A dataset of one item: the whole split (q (n, N), x (n, 2M)) in SI units."""
+
+    def __init__(self, q, x):
+        self.tensors = (q, x)
+
+    def __len__(self):
+        return 1
+
+    def __getitem__(self, i):
+        return self.tensors
+
+
+class EquilibriumDataModule(L.LightningDataModule):
+    """Healthy equilibrium samples of a musculoskeletal robot.
+
+    Args:
+        model: ``"paper_arm"`` or a path to an MJCF with spatial tendons.
+        n_samples: dataset size (paper: 800).
+        seed: seeds the postures, reference tensions and the split.
+        val_fraction: share held out for validation/test (paper: 0.2).
+        muscles: tendon names that are muscles (default: every spatial tendon).
+        k_n, alpha_per_m, f_max_n: spring constants (paper: 1000 N, 20 1/m, 150 N); scalar or per muscle.
+        gravity: optional gravity override [m/s^2].
+        qp_solver: ``"proxqp"`` or any qpsolvers solver name.
+        cache_dir: where generated datasets are cached by content hash (None: no cache).
+    """
+
+    def __init__(self, model: str = "paper_arm", n_samples: int = 800, seed: int = 0, val_fraction: float = 0.2,
+                 muscles: Optional[Sequence[str]] = None, k_n: float | list[float] = 1000.0,
+                 alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] = 150.0,
+                 gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
+                 cache_dir: Optional[str] = "data/cache"):
+        super().__init__()
+        if int(n_samples) != n_samples or n_samples < 10:
+            raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
+        if not 0.0 < val_fraction < 1.0:
+            raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
+        self.save_hyperparameters()
+        self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity)
+        self.spring = SpringParams(k_n, alpha_per_m, f_max_n)
+        self.normalizer = Normalizer(2 * self.robot_model.n_muscles, self.robot_model.n_joints)
+        self.arrays: dict[str, np.ndarray] | None = None
+
+    @property
+    def robot(self) -> dict:
+        """What a schema needs to rebuild the robot anywhere: XML text, muscles, spring, gravity."""
+        return {"model_xml": self.robot_model.xml, "muscles": self.robot_model.muscle_names,
+                "spring": self.spring.as_dict()}
+
+    def prepare_data(self):
+        self._load()
+
+    def _load(self):
+        if self.arrays is None:
+            hp = self.hparams
+            self.arrays = load_or_build_dataset(self.robot_model, hp.n_samples, hp.seed, self.spring,
+                                                hp.qp_solver, hp.cache_dir)
+        return self.arrays
+
+    def setup(self, stage: str | None = None):
+        arrays = self._load()
+        q = torch.as_tensor(arrays["q"], dtype=torch.float64)
+        x = torch.as_tensor(np.concatenate([arrays["l_motor"], arrays["f"]], axis=1), dtype=torch.float64)
+        order = torch.randperm(len(q), generator=torch.Generator().manual_seed(self.hparams.seed))
+        n_train = int(round(len(q) * (1.0 - self.hparams.val_fraction)))
+        self.train_idx, self.val_idx = order[:n_train], order[n_train:]
+        self.splits = {"train": (q[self.train_idx], x[self.train_idx]), "val": (q[self.val_idx], x[self.val_idx])}
+        self.normalizer.fit(self.splits["train"][1], self.robot_model.q_range)
+
+    def _loader(self, split):
+        return DataLoader(_WholeSplit(*self.splits[split]), batch_size=None, shuffle=False)
+
+    def train_dataloader(self):
+        return self._loader("train")
+
+    def val_dataloader(self):
+        return self._loader("val")
+
+    def test_dataloader(self):
+        return self._loader("val")  # the paper evaluates on its 20 % held-out split
+
+    def predict_dataloader(self):
+        return self._loader("val")
+
+    def state_dict(self):
+        return {"normalizer": self.normalizer.state_dict()}
+
+    def load_state_dict(self, state_dict):
+        self.normalizer.load_state_dict(state_dict["normalizer"])
