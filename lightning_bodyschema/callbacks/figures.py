@@ -1,0 +1,36 @@
+"""TensorBoard figure of predicted vs true healthy commands at validation postures."""
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.utilities import rank_zero_only
+
+from ..plots.reconstruction import reconstruction_figure
+
+
+class ReconstructionFigure(Callback):
+    """Every ``every_n_validations`` validations (and at the end of fit), log ``val/reconstruction``."""
+
+    def __init__(self, every_n_validations: int = 5):
+        self.every_n_validations = every_n_validations
+        self._count = 0
+
+    @rank_zero_only
+    def on_validation_epoch_end(self, trainer, pl_module):
+        self._count += 1
+        last = trainer.max_epochs is not None and trainer.current_epoch + 1 >= trainer.max_epochs
+        if trainer.sanity_checking or (self._count % self.every_n_validations and not last):
+            return
+        self.log_figure(trainer, pl_module)
+
+    def log_figure(self, trainer, pl_module):
+        experiment = getattr(trainer.logger, "experiment", None)
+        if not hasattr(experiment, "add_figure"):
+            return
+        q, x = trainer.datamodule.splits["val"]
+        l_motor, f = pl_module.infer(q)
+        m = pl_module.n_muscles
+        fig = reconstruction_figure(x[:, :m].numpy(), l_motor, x[:, m:].numpy(), f,
+                                    title=f"{type(pl_module).__name__}, epoch {trainer.current_epoch}")
+        experiment.add_figure("val/reconstruction", fig, global_step=trainer.current_epoch)
+        plt.close(fig)

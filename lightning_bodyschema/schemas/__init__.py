@@ -1,0 +1,7 @@
+"""Body schemas: one ``BodySchema`` interface, AE / VAE / diffusion implementations."""
+from .autoencoder import AutoEncoderSchema, VAESchema
+from .base import AdaptationResult, BodySchema
+from .diffusion import DiffusionSchema
+from .loading import load_schema
+
+__all__ = ["BodySchema", "AdaptationResult", "AutoEncoderSchema", "VAESchema", "DiffusionSchema", "load_schema"]

@@ -1,0 +1,109 @@
+"""Network sizes match the paper (section IV-A) and the wiring carries q, t and x where it should."""
+import pytest
+import torch
+from torch import nn
+
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.networks import MLP, Decoder, EpsMLP, VAEEncoder, build_autoencoder, count_parameters
+
+M, N = 6, 2  # paper arm: 6 muscles, 2 joints
+X_DIM = 2 * M  # x = [l_motor, f]
+PAPER_COUNTS = {("AE", 3): 10_000, ("AE", 10): 11_000, ("AE", 30): 14_000,
+                ("VAE", 3): 11_000, ("VAE", 10): 12_000, ("VAE", 30): 15_000}
+
+
+@pytest.mark.parametrize("kind,latent", list(PAPER_COUNTS))
+def test_autoencoder_parameter_count_matches_paper(kind, latent):
+    enc, dec = build_autoencoder(X_DIM, N, latent, variational=kind == "VAE")
+    n = count_parameters(enc) + count_parameters(dec)
+    paper = PAPER_COUNTS[(kind, latent)]
+    print(f"{kind}-{latent}: {n} parameters (paper ~{paper})")
+    assert abs(n - paper) <= 0.15 * paper
+
+
+def test_diffusion_parameter_count_matches_paper():
+    n = count_parameters(EpsMLP(X_DIM, N))
+    print(f"Diff: {n} parameters (paper ~11000)")
+    assert abs(n - 11_000) <= 0.15 * 11_000
+
+
+def test_counts_grow_with_latent_like_the_paper():
+    # the paper's ordering: AE < VAE at each size, and each grows with the latent size
+    def total(latent, vae):
+        return sum(count_parameters(m) for m in build_autoencoder(X_DIM, N, latent, variational=vae))
+    for vae in (False, True):
+        assert total(3, vae) < total(10, vae) < total(30, vae)
+    assert all(total(k, False) < total(k, True) for k in (3, 10, 30))
+
+
+def test_encoder_shapes():
+    x = torch.randn(5, X_DIM)
+    enc, _ = build_autoencoder(X_DIM, N, 10)
+    z_q, z_lat = enc(x)
+    assert z_q.shape == (5, N) and z_lat.shape == (5, 8)
+    venc, _ = build_autoencoder(X_DIM, N, 10, variational=True)
+    assert isinstance(venc, VAEEncoder)
+    assert [t.shape for t in venc(x)] == [(5, N), (5, 8), (5, 8)]
+
+
+def test_decoder_depends_on_both_joint_angles():
+    torch.manual_seed(0)
+    dec = Decoder(N, 8, X_DIM)
+    q = torch.empty(16, N).uniform_(-1.0, 1.0).requires_grad_(True)  # joint range [-1, 1] rad
+    z = torch.randn(16, 8)
+    x_hat = dec(q, z)
+    assert x_hat.shape == (16, X_DIM)
+    # d x_hat / d q for one sample has rank N: each joint angle moves the command in its own direction,
+    # so adapting z_latent with q fixed (eq:latent-opt) really conditions on the posture
+    jac = torch.autograd.functional.jacobian(lambda qq: dec(qq, z[:1]), q[:1].detach())  # (1, 2M, 1, N)
+    assert torch.linalg.matrix_rank(jac.reshape(X_DIM, N)) == N
+    # and for every sample in the batch, not just on average
+    grad_q, = torch.autograd.grad(x_hat.pow(2).sum(), q)
+    assert torch.all(grad_q.abs().sum(dim=1) > 1e-6)
+
+
+def test_eps_mlp_uses_x_t_and_q_and_t():
+    torch.manual_seed(0)
+    net = EpsMLP(X_DIM, N)
+    x, q = torch.randn(4, X_DIM), torch.randn(4, N)
+    base = net(x, 50, q)
+    assert base.shape == (4, X_DIM)
+    assert not torch.allclose(net(x, 150, q), base)
+    assert not torch.allclose(net(x, 50, q + 0.1), base)
+    assert not torch.allclose(net(x + 0.1, 50, q), base)
+    assert torch.equal(net(x, torch.full((4,), 50), q), base)  # int t == per-sample t
+
+
+@pytest.mark.parametrize("activation,n_hidden", [("silu", 2), ("tanh", 3), ("relu", 2)])
+@pytest.mark.parametrize("grad_mode", [True, False])
+def test_eps_and_vjp_matches_autograd(activation, n_hidden, grad_mode):
+    torch.manual_seed(0)
+    net = EpsMLP(X_DIM, N, n_hidden=n_hidden, activation=activation).double()
+    x, q, v = torch.randn(7, X_DIM, dtype=torch.float64), torch.randn(7, N, dtype=torch.float64), \
+        torch.randn(7, X_DIM, dtype=torch.float64)
+    t = torch.randint(0, 200, (7,))
+    x_req = x.clone().requires_grad_(True)
+    eps_ref = net(x_req, t, q)
+    vjp_ref, = torch.autograd.grad(eps_ref, x_req, v)
+    with torch.set_grad_enabled(grad_mode):
+        eps, vjp = net.eps_and_vjp(x, t, q)
+        got = vjp(v)
+    assert torch.allclose(eps, eps_ref, atol=1e-12) and torch.allclose(got, vjp_ref, atol=1e-12)
+    assert not eps.requires_grad and not got.requires_grad  # inference only: no graph kept alive
+
+
+@pytest.mark.parametrize("kwargs", [dict(in_dim=0, hidden=4, out_dim=2), dict(in_dim=3, hidden=4, out_dim=2.0),
+                                    dict(in_dim=3, hidden=4, out_dim=2, activation="swish!")])
+def test_bad_mlp_arguments_raise(kwargs):
+    with pytest.raises(BodySchemaInputError):
+        MLP(**kwargs)
+
+
+def test_latent_must_exceed_q_dim():
+    with pytest.raises(BodySchemaInputError, match="latent_dim=2"):
+        build_autoencoder(X_DIM, N, 2)
+
+
+def test_mlp_accepts_activation_class():
+    mlp = MLP(3, 4, 2, 2, nn.SiLU)
+    assert sum(isinstance(m, nn.SiLU) for m in mlp.modules()) == 2
