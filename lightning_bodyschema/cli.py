@@ -49,9 +49,23 @@ def main(args=None):
         BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
                       seed_everything_default=0, save_config_kwargs={"overwrite": True},
                       trainer_defaults=_trainer_defaults(), auto_configure_optimizers=False)
-    except BodySchemaInputError as err:
-        print(f"error: {err}", file=sys.stderr)
+    except Exception as err:  # jsonargparse wraps errors raised while instantiating classes
+        cause = _input_error_in_chain(err)
+        if cause is None:
+            raise
+        print(f"error: {cause}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def _input_error_in_chain(err: BaseException | None) -> BodySchemaInputError | None:
+    """The user-input error at the root of ``err``'s cause/context chain, if there is one."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, BodySchemaInputError):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
 
 
 if __name__ == "__main__":
