@@ -1,0 +1,248 @@
+"""Draw a tendon-driven arm and its muscle paths in the x-y plane, straight from MuJoCo's geometry.
+
+Everything drawn is what MuJoCo computes at each posture (``mj_forward``): link capsules from
+``geom_xpos``/``geom_xmat``, joint anchors from ``xanchor``, wrapping cylinders and spheres as circles,
+and each muscle from its wrap points (``wrap_xpos``, ``wrap_obj``, ``ten_wrapadr``, ``ten_wrapnum``),
+with the arc on a wrapping surface drawn in the sense the tendon arrives in. So the figure shows
+the routing the physics really uses, and a routing bug is visible.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import Sequence
+
+import mujoco
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+
+from ..errors import BodySchemaInputError
+from ..sim.model import MusculoskeletalModel
+
+_CYL, _SPHERE = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_SPHERE)
+_CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
+_PULLEY = -2
+_TAB10 = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
+
+
+def _wrap_geoms(m: mujoco.MjModel) -> set[int]:
+    """Geoms that some tendon wraps around (drawn as circles, not as links)."""
+    kinds = (int(mujoco.mjtWrap.mjWRAP_CYLINDER), int(mujoco.mjtWrap.mjWRAP_SPHERE))
+    return {int(g) for g, t in zip(m.wrap_objid, m.wrap_type) if int(t) in kinds}
+
+
+def _arc(center, axis, start, end, incoming, n: int = 24) -> np.ndarray:
+    """(n, 3) points on the wrapping surface from ``start`` to ``end``, turning the way the tendon arrives."""
+    r1, r2 = start - center, end - center
+    if axis is None:  # sphere: the geodesic lies in the plane of r1 and the incoming direction
+        axis = np.cross(r1, incoming)
+    axis = axis / (np.linalg.norm(axis) + 1e-300)
+    p1, p2 = r1 - axis * (r1 @ axis), r2 - axis * (r2 @ axis)
+    e1 = p1 / (np.linalg.norm(p1) + 1e-300)
+    e2 = np.cross(axis, e1)
+    theta = np.arctan2(p2 @ e2, p2 @ e1)
+    turn = axis @ np.cross(r1, incoming)
+    if abs(turn) > 1e-12:  # follow the incoming sense; else take the shorter way round
+        theta = theta % (2 * np.pi) if turn > 0 else theta % (2 * np.pi) - 2 * np.pi
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    ring = np.linalg.norm(p1) * (np.cos(s * theta) * e1 + np.sin(s * theta) * e2)
+    return center + ring + axis * ((1 - s) * (r1 @ axis) + s * (r2 @ axis))
+
+
+def _wrap_axis(m, d, geom: int):
+    """Cylinder axis in world frame; None for a sphere (its arc plane comes from the tendon)."""
+    return None if int(m.geom_type[geom]) == _SPHERE else d.geom_xmat[geom].reshape(3, 3)[:, 2].copy()
+
+
+def muscle_polylines(m: mujoco.MjModel, d: mujoco.MjData, tendon: int) -> list[np.ndarray]:
+    """World points (K, 3) [m] of one spatial tendon's path, one array per pulley branch."""
+    adr, num = int(d.ten_wrapadr[tendon]), int(d.ten_wrapnum[tendon])
+    pts, objs = d.wrap_xpos.reshape(-1, 3)[adr:adr + num], d.wrap_obj.reshape(-1)[adr:adr + num]
+    paths, path, k = [], [], 0
+    while k < num:
+        if objs[k] == _PULLEY:
+            if path:
+                paths.append(np.array(path))
+            path, k = [], k + 1
+            continue
+        if objs[k] >= 0 and k + 1 < num and objs[k + 1] == objs[k] and path:
+            g = int(objs[k])
+            path.extend(_arc(d.geom_xpos[g], _wrap_axis(m, d, g), pts[k], pts[k + 1], pts[k] - path[-1]))
+            k += 2
+            continue
+        path.append(pts[k])
+        k += 1
+    return paths + ([np.array(path)] if path else [])
+
+
+def _draw_links(ax: Axes, m, d, skip: set[int]):
+    """Capsule and cylinder geoms as thick grey lines; if a model has none, bodies joined origin to origin."""
+    segments = []
+    for g in range(m.ngeom):
+        if g not in skip and int(m.geom_type[g]) in (_CAPSULE, _CYL):
+            half = d.geom_xmat[g].reshape(3, 3)[:, 2] * m.geom_size[g, 1]
+            segments.append(np.stack([d.geom_xpos[g] - half, d.geom_xpos[g] + half]))
+    if not segments:
+        segments = [d.xpos[[m.body_parentid[b], b]] for b in range(1, m.nbody)]
+    for ends in segments:
+        ax.plot(ends[:, 0], ends[:, 1], color="0.6", lw=7, solid_capstyle="round", zorder=1)
+
+
+def _draw_wrap_surfaces(ax: Axes, m, d, wraps: set[int]):
+    for g in sorted(wraps):
+        ax.add_patch(Circle(d.geom_xpos[g, :2].copy(), m.geom_size[g, 0], facecolor=(0.3, 0.6, 0.9, 0.12),
+                            edgecolor=(0.2, 0.45, 0.75, 0.8), lw=0.8, zorder=2))
+
+
+def _draw_muscles(ax: Axes, model: MusculoskeletalModel, d, label: bool):
+    for k, (tendon, name) in enumerate(zip(model.muscle_ids, model.muscle_names)):
+        color = _TAB10[k % len(_TAB10)]
+        for j, path in enumerate(muscle_polylines(model.mj_model, d, int(tendon))):
+            ax.plot(path[:, 0], path[:, 1], color=color, lw=1.8, zorder=4,
+                    label=name if label and j == 0 else None)
+            ax.plot(path[[0, -1], 0], path[[0, -1], 1], "o", color=color, ms=3, zorder=5)
+
+
+def _draw_joints_and_site(ax: Axes, m, d, site: str):
+    ax.plot(d.xanchor[:, 0].copy(), d.xanchor[:, 1].copy(), "o", mfc="white", mec="black", ms=6, zorder=6)
+    sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
+    if sid >= 0:
+        xy = d.site_xpos[sid, :2].copy()
+        ax.plot(*xy, "s", color="black", ms=6, zorder=6)
+        ax.annotate(site, xy, xytext=(6, -10), textcoords="offset points", fontsize=8)
+
+
+def _draw_posture(ax: Axes, model: MusculoskeletalModel, d, site: str, label: bool):
+    """Everything at the posture currently in ``d`` (after mj_forward). Arrays are copied: d is reused."""
+    m = model.mj_model
+    wraps = _wrap_geoms(m)
+    _draw_links(ax, m, d, wraps)
+    _draw_wrap_surfaces(ax, m, d, wraps)
+    _draw_muscles(ax, model, d, label)
+    _draw_joints_and_site(ax, m, d, site)
+
+
+def _draw_gravity(ax: Axes, gravity: np.ndarray):
+    """Arrow in the upper right corner along gravity's in-plane direction."""
+    g_xy = np.asarray(gravity[:2], dtype=float)
+    norm = np.linalg.norm(g_xy)
+    if norm < 1e-9:
+        ax.text(0.97, 0.95, "g ⟂ x-y plane", transform=ax.transAxes, ha="right", va="top", fontsize=8)
+        return
+    tail, head = np.array([0.9, 0.92]), np.array([0.9, 0.92]) + 0.12 * g_xy / norm
+    ax.annotate("", xy=head, xytext=tail, xycoords="axes fraction",
+                arrowprops=dict(arrowstyle="-|>", color="black", lw=1.5))
+    ax.text(tail[0] - 0.03, (tail[1] + head[1]) / 2, f"g\n{np.linalg.norm(gravity):.2f} m/s²",
+            transform=ax.transAxes, ha="right", va="center", fontsize=8)
+
+
+def _check_postures(model: MusculoskeletalModel, qs) -> np.ndarray:
+    q = model.check_q(qs)
+    lo, hi = model.q_range.T
+    bad = np.flatnonzero(((q < lo - 1e-9) | (q > hi + 1e-9)).any(axis=1))
+    if bad.size:
+        raise BodySchemaInputError(
+            f"posture {q[bad[0]].tolist()} is outside the joint ranges {model.q_range.tolist()}")
+    return q
+
+
+def _new_grid(n_postures: int, n_zoom: int) -> tuple[Figure, np.ndarray]:
+    """Agg figure: row 0 the whole arm (shared limits), then one zoom row per joint; a column per posture."""
+    fig = Figure(figsize=(3.6 * n_postures, 4.2 + 2.6 * n_zoom), dpi=150, layout="constrained")
+    grid = fig.subplots(1 + n_zoom, n_postures, squeeze=False, height_ratios=[1.5] + [1.0] * n_zoom)
+    for a in grid[0, 1:]:
+        a.sharex(grid[0, 0])
+        a.sharey(grid[0, 0])
+    return fig, grid.T  # (posture, row)
+
+
+def _caller_grid(qs: np.ndarray, ax) -> np.ndarray:
+    axes = [ax] * len(qs) if isinstance(ax, Axes) else list(ax)
+    if len(axes) != len(qs):
+        raise BodySchemaInputError(f"got {len(axes)} axes for {len(qs)} postures; give one axes or one per posture")
+    return np.array(axes, dtype=object)[:, None]
+
+
+def save_figure_atomic(fig: Figure, path: str | os.PathLike):
+    """Write to a temporary file in the target folder, then rename: readers never see half a figure."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    suffix = os.path.splitext(path)[1] or ".png"
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            fig.savefig(handle, format=suffix[1:])
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes the file private; give it the usual mode
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None = None,
+             path: str | os.PathLike | None = None, site: str = "hand", zoom: bool = True) -> Figure:
+    """Draw the arm with its muscles at postures ``qs (B, N)`` [rad] and return the figure.
+
+    Default: a new figure with one column per posture, the whole arm on top and, if ``zoom``, one
+    close-up per joint below it so the wrapping is visible. ``ax``: draw into one Axes (postures
+    overlaid) or one Axes per posture instead. ``path``: also save the figure there (atomically).
+    """
+    qs = _check_postures(model, qs)
+    n_zoom = model.n_joints if zoom and ax is None else 0
+    fig, grid = _new_grid(len(qs), n_zoom) if ax is None else (None, _caller_grid(qs, ax))
+    m, d = model.mj_model, mujoco.MjData(model.mj_model)  # own data: never disturbs the model's
+    for i, (q, column) in enumerate(zip(qs, grid)):
+        d.qpos[:] = q
+        mujoco.mj_forward(m, d)
+        for row, a in enumerate(column):
+            _draw_posture(a, model, d, site, label=i == 0 and row == 0)
+        _style_whole(column[0], q, model.joint_names)
+        for j, a in enumerate(column[1:]):
+            _style_zoom(a, d.xanchor[j, :2].copy(), _zoom_half_width_m(m), model.joint_names[j])
+    _draw_gravity(grid[0][0], m.opt.gravity)
+    fig = fig or grid[0][0].figure
+    _legend(fig, grid[0][0], own_figure=ax is None)
+    if path is not None:
+        save_figure_atomic(fig, path)
+    return fig
+
+
+def _zoom_half_width_m(m: mujoco.MjModel) -> float:
+    """Half the side of a close-up: 2.5 wrapping radii, or 0.1 m when nothing wraps."""
+    radii = [m.geom_size[g, 0] for g in _wrap_geoms(m)]
+    return 2.5 * max(radii) if radii else 0.1
+
+
+def _style_whole(a: Axes, q: np.ndarray, joint_names: list[str]):
+    a.set_aspect("equal", adjustable="box")
+    a.grid(True, lw=0.3, alpha=0.5)
+    a.set_xlabel("x [m]")
+    a.set_ylabel("y [m]")
+    title = ", ".join(f"{n}={v:+.2f}" for n, v in zip(joint_names, q)) + " rad"
+    a.set_title(title if a.get_title() == "" else a.get_title() + "\n" + title, fontsize=9)
+
+
+def _style_zoom(a: Axes, center: np.ndarray, half_m: float, joint: str):
+    a.set_xlim(center[0] - half_m, center[0] + half_m)
+    a.set_ylim(center[1] - half_m, center[1] + half_m)
+    a.set_aspect("equal", adjustable="box")
+    a.grid(True, lw=0.3, alpha=0.5)
+    a.tick_params(labelsize=7)
+    a.set_title(f"close-up: {joint}", fontsize=8)
+
+
+def _legend(fig: Figure, first: Axes, own_figure: bool):
+    handles, labels = first.get_legend_handles_labels()
+    if own_figure:
+        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 3), fontsize=8, frameon=False)
+    else:
+        first.legend(handles, labels, fontsize=7, loc="lower left")
