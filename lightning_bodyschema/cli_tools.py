@@ -31,7 +31,7 @@ def exits_cleanly(main):
 @exits_cleanly
 def make_dataset_main(argv=None):
     from .data.dataset import build_dataset
-    from .data.npz import save_npz
+    from .npz import save_npz
     from .sim import MusculoskeletalModel, SpringParams
 
     parser = argparse.ArgumentParser(description="Generate a healthy static-equilibrium dataset (.npz, SI units).")

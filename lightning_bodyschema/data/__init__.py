@@ -2,6 +2,6 @@
 from .dataset import build_dataset, load_or_build_dataset
 from .datamodule import EquilibriumDataModule
 from .normalizer import Normalizer
-from .npz import load_npz, save_npz
+from ..npz import load_npz, save_npz
 
 __all__ = ["build_dataset", "load_or_build_dataset", "EquilibriumDataModule", "Normalizer", "load_npz", "save_npz"]

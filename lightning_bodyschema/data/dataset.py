@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sim import MusculoskeletalModel, SpringParams, generate_equilibrium_samples
-from .npz import load_npz, save_npz
+from ..npz import load_npz, save_npz
 
 DATASET_FORMAT_VERSION = 1  # bump when the generator changes what it draws
 

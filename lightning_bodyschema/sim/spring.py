@@ -7,12 +7,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
+import sys
 
-try:  # torch is a hard dependency of the package, but sim/ stays usable without it
-    import torch
-except ImportError:  # pragma: no cover
-    torch = None
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -41,7 +38,8 @@ class SpringParams:
 
 
 def _xp(x):
-    return torch if torch is not None and isinstance(x, torch.Tensor) else np
+    """numpy for arrays, torch for tensors, without importing torch here (evaluation stays light)."""
+    return sys.modules["torch"] if type(x).__module__.startswith("torch") else np
 
 
 def tension_from_elongation(delta_m, spring: SpringParams):

@@ -13,7 +13,7 @@ import zipfile
 
 import numpy as np
 
-from ..errors import BodySchemaInputError
+from .errors import BodySchemaInputError
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 

@@ -1,0 +1,15 @@
+"""Evaluation (paper section IV-B): fault cases, feasibility, the forward posture solver and metrics.
+
+Never imports Lightning; numpy in, numpy out, SI units (m, N, rad, N m).
+"""
+from .cases import CONDITIONS, FaultCases, make_fault_cases, validate_cases
+from .feasibility import check_feasible, oracle_commands, tension_bounds
+from .forward_solver import ForwardSolverParams, PostureResult, SolverStatus, solve_posture
+from .metrics import METRICS, cut_error, evaluate_commands, fix_error, summarize_metrics
+
+__all__ = [
+    "CONDITIONS", "FaultCases", "make_fault_cases", "validate_cases",
+    "check_feasible", "oracle_commands", "tension_bounds",
+    "ForwardSolverParams", "PostureResult", "SolverStatus", "solve_posture",
+    "METRICS", "cut_error", "evaluate_commands", "fix_error", "summarize_metrics",
+]
