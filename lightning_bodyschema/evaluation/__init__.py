@@ -6,10 +6,12 @@ from .cases import CONDITIONS, FaultCases, make_fault_cases, validate_cases
 from .feasibility import check_feasible, oracle_commands, tension_bounds
 from .forward_solver import ForwardSolverParams, PostureResult, SolverStatus, solve_posture
 from .metrics import METRICS, cut_error, evaluate_commands, fix_error, summarize_metrics
+from .benchmark import BenchmarkResult, run_fault_benchmark
 
 __all__ = [
     "CONDITIONS", "FaultCases", "make_fault_cases", "validate_cases",
     "check_feasible", "oracle_commands", "tension_bounds",
     "ForwardSolverParams", "PostureResult", "SolverStatus", "solve_posture",
     "METRICS", "cut_error", "evaluate_commands", "fix_error", "summarize_metrics",
+    "BenchmarkResult", "run_fault_benchmark",
 ]

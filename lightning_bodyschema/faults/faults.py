@@ -71,7 +71,7 @@ class Faults:
         """The torch constraints of this batch (tension bounds included), for the adaptation loss."""
         as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
         cut = torch.as_tensor(self.cut, device=device)
-        f_max = self.f_max_n if self.f_max_n is not None else np.broadcast_to(f_max_n, self.cut.shape)
+        f_max = self.f_max_n if self.f_max_n is not None else np.broadcast_to(f_max_n, self.cut.shape).copy()
         healthy = ~cut
         return [Rupture(cut), Jam(torch.as_tensor(self.fix, device=device), as_t(self.l_fixed_m)),
                 MinTension(healthy, as_t(np.zeros(self.cut.shape))), MaxTension(healthy, as_t(f_max))]

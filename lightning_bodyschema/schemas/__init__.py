@@ -2,6 +2,6 @@
 from .autoencoder import AutoEncoderSchema, VAESchema
 from .base import AdaptationResult, BodySchema
 from .diffusion import DiffusionSchema
-from .loading import load_schema
+from .loading import load_datamodule, load_schema
 
-__all__ = ["BodySchema", "AdaptationResult", "AutoEncoderSchema", "VAESchema", "DiffusionSchema", "load_schema"]
+__all__ = ["BodySchema", "AdaptationResult", "AutoEncoderSchema", "VAESchema", "DiffusionSchema", "load_schema", "load_datamodule"]

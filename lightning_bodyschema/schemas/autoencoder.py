@@ -6,6 +6,7 @@ from typing import Optional
 import torch
 
 from ..networks import build_autoencoder
+from ..samplers import LatentConfig, optimize_latent
 from .base import BodySchema
 
 
@@ -20,6 +21,9 @@ class AutoEncoderSchema(BodySchema):
     """
 
     variational = False
+    # eq:latent-opt settings per variant; see BodySchema.adapt and README "Design decisions"
+    ADAPT = {"literal": LatentConfig(lr=0.01, n_steps=200, optimizer="sgd"),
+             "default": LatentConfig(lr=0.05, n_steps=200, optimizer="sgd")}
 
     def __init__(self, latent_dim: int = 10, c_q: float = 2.0, hidden: int = 64, robot: Optional[dict] = None,
                  lr: float = 1e-3, lr_final: Optional[float] = 1e-5, batch_size: int = 64):
@@ -53,6 +57,14 @@ class AutoEncoderSchema(BodySchema):
 
     def generate(self, q_n):
         return self.decoder(q_n, self.z_latent_ref.expand(len(q_n), -1))
+
+    def adapt_normalized(self, q_n, loss_fn, variant, lr=None, n_steps=None, optimizer=None):
+        """Latent-space optimization (eq:ae-vae, eq:latent-opt) from z_ref, q fixed to q_ref."""
+        base = self.ADAPT[variant]
+        config = LatentConfig(lr=base.lr if lr is None else lr, n_steps=base.n_steps if n_steps is None else n_steps,
+                              optimizer=base.optimizer if optimizer is None else optimizer)
+        z = optimize_latent(self.decoder, q_n, self.z_latent_ref.expand(len(q_n), -1), loss_fn, config)
+        return self.decoder(q_n, z)
 
 
 class VAESchema(AutoEncoderSchema):

@@ -20,6 +20,7 @@ import torch
 
 from ..data.normalizer import Normalizer
 from ..errors import BodySchemaInputError
+from ..faults import AdaptWeights, adaptation_loss
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
 
 
@@ -77,9 +78,64 @@ class BodySchema(L.LightningModule):
     def generate(self, q_n: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
-    def adapt(self, q_ref, faults, variant: str = "default", **options) -> AdaptationResult:
-        """Adapt the command at postures ``q_ref (B, N)`` to ``faults`` (cut/jammed muscles per case)."""
+    def adapt_normalized(self, q_n: torch.Tensor, loss_fn, variant: str, **options) -> torch.Tensor:
+        """Adapted normalized x (B, D) minimizing ``loss_fn`` per case; what each architecture implements."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
+
+    # ------------------------------------------------------------------ adaptation (paper section III)
+    VARIANTS = ("default", "literal")
+
+    def adapt(self, q_ref, faults, variant: str = "default", **options) -> AdaptationResult:
+        """Commands at postures ``q_ref (B, N)`` [rad] that respect ``faults`` (a ``faults.Faults``, one row per case).
+
+        variant ``"literal"``: the paper's loss in SI units with its weights and learning rate.
+        variant ``"default"``: every residual measured in spreads of the healthy data (z-score units), unit
+        weights, and a step that is stable at every noise level (see the schema's ``ADAPT`` table).
+        ``options`` override the variant's settings (e.g. ``lr=``, ``n_steps=``).
+        Cases are adapted together in one batch; each case gets a status, and only ``ok`` rows hold a command.
+        """
+        if variant not in self.VARIANTS:
+            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
+        q = self.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref)
+        faults.validate(self.n_muscles)
+        if len(faults) != len(q):
+            raise BodySchemaInputError(f"{len(q)} postures but {len(faults)} fault rows; give one row per case")
+        dtype = next(self.parameters()).dtype
+        constraints = faults.constraints(self.spring.f_max_n, dtype=dtype, device=self.device)
+        loss_fn = self.adaptation_loss_fn(constraints, variant)
+        with torch.inference_mode(False), torch.no_grad():
+            x_n = self.adapt_normalized(self.encode_q(torch.as_tensor(q)), loss_fn, variant, **options)
+        return self._command(self.decode(x_n), faults, constraints)
+
+    def adaptation_loss_fn(self, constraints, variant: str):
+        """L_adapt on normalized x (eq:latent-opt): SI units (literal) or z-score units with unit weights."""
+        m = self.n_muscles
+        if variant == "literal":
+            weights, l_scale, f_scale = AdaptWeights(), 1.0, 1.0
+        else:
+            std = self.normalizer.x_std.to(next(self.parameters()).dtype)
+            weights, l_scale, f_scale = AdaptWeights(1.0, 1.0, 1.0, 1.0), std[:m], std[m:]
+
+        def loss_fn(x_n):
+            x = self.normalizer.decode_x(x_n)
+            return adaptation_loss(constraints, weights, x[:, :m], x[:, m:], l_scale, f_scale)
+
+        return loss_fn
+
+    def _command(self, x: torch.Tensor, faults, constraints) -> AdaptationResult:
+        """Safe command: non-finite rows become NaN with status ``non_finite``; f clipped into its bounds."""
+        l_motor, f = x[:, : self.n_muscles].cpu().numpy(), x[:, self.n_muscles:].cpu().numpy()
+        finite = np.isfinite(l_motor).all(1) & np.isfinite(f).all(1)
+        f_max = faults.f_max_n if faults.f_max_n is not None else np.broadcast_to(self.spring.f_max_n, f.shape)
+        f_safe = np.clip(np.nan_to_num(f), 0.0, f_max)
+        status = np.where(finite, "ok", "non_finite").astype("<U16")
+        diagnostics = {"f_clipped_n": np.where(finite, np.abs(f_safe - np.nan_to_num(f)).max(1), np.nan),
+                       "cut_violation_n": np.where(finite, (faults.cut * np.abs(f_safe)).max(1), np.nan),
+                       "jam_violation_m": np.where(finite, np.where(faults.fix, np.maximum(
+                           0.0, l_motor - np.nan_to_num(faults.l_fixed_m)), 0.0).max(1), np.nan)}
+        l_motor = np.where(finite[:, None], l_motor, np.nan)
+        f_safe = np.where(finite[:, None], f_safe, np.nan)
+        return AdaptationResult(l_motor, f_safe, status, diagnostics)
 
     # ------------------------------------------------------------------ Lightning plumbing
     def setup(self, stage: str):

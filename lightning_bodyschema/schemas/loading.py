@@ -58,3 +58,17 @@ def load_schema(path: str, expected_model_xml_sha256: str | None = None):
     if schema.robot_model.xml_hash != meta["model_xml_sha256"]:
         raise BodySchemaInputError(f"checkpoint {path!r}: its robot XML does not match its recorded hash")
     return schema.eval()
+
+
+def load_datamodule(path: str, cache_dir: str | None = None):
+    """The data module a checkpoint was trained with, rebuilt from the checkpoint alone (robot XML inside)."""
+    from ..data import EquilibriumDataModule
+
+    checkpoint = read_checkpoint(path)
+    robot = checkpoint["hyper_parameters"]["robot"]
+    hparams = {k: v for k, v in (checkpoint.get("datamodule_hyper_parameters") or {}).items() if not k.startswith("_")}
+    hparams.update(model=robot["model_xml"], muscles=robot["muscles"], gravity=None, cache_dir=cache_dir,
+                   **{k: v for k, v in robot["spring"].items()})
+    datamodule = EquilibriumDataModule(**hparams)
+    datamodule.setup("test")
+    return datamodule

@@ -1,0 +1,79 @@
+"""The paper's fault benchmark for one schema: adapt every case, solve for the realized posture, score.
+
+Takes the schema as two callables (``infer(q) -> (l_motor, f)``, ``adapt(q, faults) -> AdaptationResult``)
+so this module needs no Lightning. Metrics are computed twice:
+
+* ``paper``: the paper's definitions, where jammed muscles are excluded from the taut set, so their
+  tension does not enter E_tau (and hence E_q);
+* ``phys``: jammed muscles pull with the tension of their stretch, as a real wire does.
+
+Each is summarised over all cases and over the cases that are feasible under the same reading.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..sim import MusculoskeletalModel, SpringParams
+from .cases import FaultCases
+from .feasibility import check_feasible
+from .forward_solver import ForwardSolverParams
+from .metrics import METRICS, evaluate_commands
+
+READINGS = {"paper": False, "phys": True}  # reading -> jammed_tension_in_torque
+
+
+@dataclass
+class BenchmarkResult:
+    """Per-case arrays of one benchmark run; ``summary()`` gives the medians as plain floats."""
+
+    cases: FaultCases
+    feasible: dict  # reading -> (B,) bool
+    metrics: dict  # command kind ("adapted", "unadapted") -> reading -> metric -> (B,)
+    adapt_status: np.ndarray
+    seconds: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """{kind: {reading: {cond: {subset: {metric: median}}}}} with subsets "all" and "feasible"."""
+        out = {}
+        for kind, by_reading in self.metrics.items():
+            out[kind] = {reading: self._by_condition(values, self.feasible[reading])
+                         for reading, values in by_reading.items()}
+        return out
+
+    def _by_condition(self, values, feasible):
+        table = {}
+        for cond in dict.fromkeys(self.cases.cond.tolist()):
+            rows = self.cases.cond == cond
+            table[cond] = {subset: {m: _median(values[m][rows & mask]) for m in METRICS} | {"n": int((rows & mask).sum())}
+                           for subset, mask in (("all", np.ones_like(rows)), ("feasible", feasible))}
+        return table
+
+
+def _median(values) -> float | None:
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else None
+
+
+def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases: FaultCases, infer, adapt,
+                        params: ForwardSolverParams = ForwardSolverParams()) -> BenchmarkResult:
+    """Adapt and score every case; unadapted (healthy) commands are scored beside them as the baseline."""
+    seconds = {}
+    start = time.perf_counter()
+    result = adapt(cases.q_ref, cases.faults)
+    seconds["adapt"] = time.perf_counter() - start
+    start = time.perf_counter()
+    l_plain, f_plain = infer(cases.q_ref)
+    seconds["infer"] = time.perf_counter() - start
+    start = time.perf_counter()
+    feasible, metrics = {}, {"adapted": {}, "unadapted": {}}
+    for reading, jammed_pull in READINGS.items():
+        feasible[reading] = check_feasible(model, cases, spring, jammed_tension_in_torque=jammed_pull)[0]
+        reading_params = replace(params, jammed_tension_in_torque=jammed_pull)
+        metrics["adapted"][reading] = evaluate_commands(model, cases, result.l_motor_m, result.f_n, spring,
+                                                        reading_params)
+        metrics["unadapted"][reading] = evaluate_commands(model, cases, l_plain, f_plain, spring, reading_params)
+    seconds["evaluate"] = time.perf_counter() - start
+    return BenchmarkResult(cases, feasible, metrics, np.asarray(result.status), seconds)
