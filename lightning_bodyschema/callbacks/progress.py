@@ -8,9 +8,10 @@ from tqdm.auto import tqdm
 class EpochProgressBar(ProgressBar):
     """``Epoch 1234/10000 [00:12<01:30, loss=0.012, val=0.15 N m]`` — updated once per epoch."""
 
-    def __init__(self):
+    def __init__(self, enabled: bool = True):
+        """enabled: False keeps logs clean (e.g. training in a background process writing to a file)."""
         super().__init__()
-        self._enabled = True
+        self._enabled = enabled
         self.bar = None
 
     def disable(self):
