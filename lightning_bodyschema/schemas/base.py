@@ -206,6 +206,13 @@ class BodySchema(L.LightningModule):
     def on_save_checkpoint(self, checkpoint):
         checkpoint["bodyschema"] = {"class_path": f"{type(self).__module__}.{type(self).__qualname__}",
                                     "model_xml_sha256": self.robot_model.xml_hash}
+        # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue
+        # the same stream to end with the same weights as an uninterrupted one
+        checkpoint["torch_rng_state"] = torch.get_rng_state()
+
+    def on_load_checkpoint(self, checkpoint):
+        if "torch_rng_state" in checkpoint:
+            torch.set_rng_state(checkpoint["torch_rng_state"])
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()
