@@ -1,0 +1,387 @@
+"""Physical settle check: drop each command into a MuJoCo simulation and let the arm come to rest.
+
+The forward solver (``forward_solver.solve_posture``) finds the posture a command *should* realize by
+optimisation. This module asks the physics instead: start at ``q_ref`` with zero velocity, let every
+muscle pull as its command says, and simulate until the arm is at rest. The rest posture
+``q_settle`` and ``E_q_phys = ||q_settle - q_ref||`` [rad] are the physical counterpart of E_q.
+
+Force model (one case = one MuJoCo rollout), muscle i with tendon length ``l_geo_i(q)``:
+
+* ``mode="length"`` (default; a length-controlled motor, the paper's robot): the motor holds its
+  winch at the commanded ``l_motor_i`` and the muscle is the exponential spring
+  ``f_i = k (exp(alpha * max(0, l_geo_i - l_motor_i)) - 1)``. The command's ``f`` is *not* applied:
+  it is only what the schema expects the spring to produce. ``f`` is checked for NaN and otherwise unused.
+* ``mode="tension"``: a force-controlled motor; a healthy muscle pulls with the constant commanded
+  ``max(f_i, 0)`` whatever its length (the winch takes up any slack). Constant forces add no
+  stiffness, so only gravity restores the arm: small tension errors move it far and slowly.
+* cut muscles: absent (no force) in both modes.
+* jammed motors (default ``jam="one_way"``): the paper's constraint ``l_motor_j <= l_fixed_j`` read
+  as a ratchet: the wire can be taken in but not paid out past l_fixed, so the rest length is
+  ``min(l_motor_j, l_fixed_j)``. This is the reading of the adaptation loss and of
+  ``feasibility.check_feasible`` (``jam_model="one_sided"``): its oracle commands settle exactly at
+  q_ref. ``jam="held"``: the winch cannot move at all, rest length ``l_fixed_j`` whatever the command
+  says (then only ``jam_model="immobile"`` oracle commands settle at q_ref).
+
+Tensions act on the joints as ``qfrc_applied = -J_ten^T f`` with MuJoCo's own ``ten_length`` /
+``ten_J`` (sparse in MuJoCo 4, scattered into a dense (M, nv) buffer) of the current state:
+each step is ``mj_step1`` (positions, tendons, velocities), forces from that state, ``mj_step2``
+(acceleration, joint-limit constraints, integration). No global MuJoCo callback is installed.
+
+Integration and damping (the rest posture does not depend on damping; only how fast it is reached):
+
+* semi-implicit Euler (MuJoCo ``mjINT_EULER``, the model's timestep, 1 ms for the paper arm) on a
+  private copy of the model; the model's joint damping stays and is integrated implicitly by MuJoCo.
+* mass-proportional damping ``-a M(q) qdot`` with ``a = mass_damping_per_s`` (default 8 1/s):
+  critical for a 4 rad/s mode (the hanging paper arm's slowest pendulum mode); every faster mode
+  decays at least as ``exp(-a t / 2)``. For another robot take about twice its slowest frequency.
+* stiffness-proportional muscle damping (Kelvin-Voigt muscle): a taut spring adds
+  ``beta * dphi/ddelta * dl_geo/dt`` with ``beta = muscle_damping_s`` (default 0.01 s), which damps the
+  stiff muscle modes (20-60 rad/s) harder. The total tension is clipped at 0: a wire never pushes.
+* Both added dampers are explicit; at 1 ms they are far inside the stability limit
+  (``a dt << 2``, ``beta omega^2 dt << 2`` for omega up to ~400 rad/s). The stiffness of the spring
+  itself, ``alpha (f + k)``, is explicit too: a command that stretches a muscle by many centimetres
+  (tensions of thousands of newtons) can blow the integration up, reported as UNSTABLE.
+* joint limits: MuJoCo's soft limit constraints of the model (so a posture pressed into a limit may
+  sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N).
+
+Stopping: every ``check_every_steps`` steps, SETTLED when ``max|qvel| < qvel_tol_rad_s`` and
+``max|qacc| < qacc_tol_rad_s2`` (the acceleration test rejects the turning point of an oscillation,
+where the velocity is momentarily zero; with the defaults the rest posture is within ~3e-5 rad of the
+true equilibrium); UNSTABLE when a joint force exceeds ``max_torque_nm`` or is NaN (checked every step,
+before MuJoCo integrates it, so MuJoCo never prints its own blow-up warning), the state is non-finite,
+or ``max|qvel| > max_qvel_rad_s``; NOT_SETTLED when ``max_time_s`` runs out. A case at rest more than
+``limit_tol_rad`` outside the joint range is BEYOND_LIMIT: tensions far above f_max (a wire stretched by
+centimetres) overpower MuJoCo's soft limit, and that rest posture is not physical. An exact but
+unstable equilibrium at q_ref is reported as settled: the simulation starts without a perturbation.
+
+Batching: MuJoCo steps one MjData at a time and the tension law needs a per-step computation that
+``mujoco.rollout`` cannot express (it would need a global Python callback). So the cases of a chunk
+(``chunk_size``, one MjData each, reused across chunks) advance in lockstep: ``mj_step1`` per case,
+tensions and joint forces for the whole chunk in numpy, ``mj_step2`` per case; a case leaves the
+chunk when it stops. Cost ~15 us per case and step (about half of it MuJoCo's ``mj_step1``); on the
+paper arm 120 fault cases take ~2-4 s (most settle within 1-2 s of simulated time).
+
+numpy and MuJoCo only; never imports Lightning or torch.
+"""
+from __future__ import annotations
+
+import copy
+import enum
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from ..sim.model import MusculoskeletalModel
+from ..sim.spring import SpringParams
+from .cases import FaultCases
+
+MODES = ("length", "tension")
+JAM_MODES = ("held", "one_way")
+
+
+class SettleStatus(enum.IntEnum):
+    """How the simulation of one case ended (stored as ints in ``SettleResult.status``)."""
+
+    SETTLED = 0  # came to rest: |qvel| and |qacc| below their tolerances
+    NOT_SETTLED = 1  # still moving when max_time_s ran out
+    UNSTABLE = 2  # the state blew up (non-finite, MuJoCo bad qacc, or |qvel| > max_qvel_rad_s)
+    BEYOND_LIMIT = 3  # came to rest, but more than limit_tol_rad outside the joint range: not physical
+    NONFINITE_COMMAND = 4  # l_motor or f has NaN/inf: not simulated, q_settle is NaN
+
+
+@dataclass(frozen=True)
+class SettleParams:
+    """Simulation settings; see the module docstring for why these defaults."""
+
+    mode: str = "length"  # "length": motors hold l_motor (spring); "tension": constant commanded f
+    jam: str = "one_way"  # "one_way": jammed rest length min(l_motor, l_fixed) (paper); "held": l_fixed
+    max_time_s: float = 3.0  # simulated time limit per case [s]
+    timestep_s: float | None = None  # None: the model's timestep [s]
+    mass_damping_per_s: float = 8.0  # a in -a M qdot [1/s]
+    muscle_damping_s: float = 0.01  # beta in beta * dphi/ddelta * dl/dt [s]
+    qvel_tol_rad_s: float = 1e-4  # at rest when max|qvel| is below this [rad/s] ...
+    qacc_tol_rad_s2: float = 1e-3  # ... and max|qacc| below this [rad/s^2]
+    max_qvel_rad_s: float = 100.0  # faster than this counts as UNSTABLE [rad/s]
+    max_torque_nm: float = 1e6  # a larger muscle/damping joint force counts as UNSTABLE [N m]
+    check_every_steps: int = 10  # test for rest / blow-up every this many steps
+    limit_tol_rad: float = 0.02  # a rest posture further outside the joint range is BEYOND_LIMIT [rad]
+    chunk_size: int = 128  # cases stepped in lockstep (one MjData, ~0.5 MB, each)
+
+    def __post_init__(self):
+        if self.mode not in MODES:
+            raise BodySchemaInputError(f"SettleParams.mode={self.mode!r}; use one of {list(MODES)}")
+        if self.jam not in JAM_MODES:
+            raise BodySchemaInputError(f"SettleParams.jam={self.jam!r}; use one of {list(JAM_MODES)}")
+        positive = ["max_time_s", "qvel_tol_rad_s", "qacc_tol_rad_s2", "max_qvel_rad_s", "max_torque_nm",
+                    "check_every_steps", "limit_tol_rad", "chunk_size"]
+        positive += [] if self.timestep_s is None else ["timestep_s"]
+        for name in positive:
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise BodySchemaInputError(f"SettleParams.{name}={value!r} must be finite and > 0")
+        for name in ("mass_damping_per_s", "muscle_damping_s"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise BodySchemaInputError(f"SettleParams.{name}={value!r} must be finite and >= 0")
+        for name in ("check_every_steps", "chunk_size"):
+            if int(getattr(self, name)) != getattr(self, name):
+                raise BodySchemaInputError(f"SettleParams.{name}={getattr(self, name)!r} must be an integer")
+
+
+@dataclass
+class SettleResult:
+    """Batched settle output; prints nothing, like mujoco's ``minimize``.
+
+    q_settle (B, N) rest posture [rad]; E_q_phys (B,) ``||q_settle - q_ref||`` [rad]; status (B,)
+    ``SettleStatus`` ints; time_s (B,) simulated time when the case stopped [s]; qvel_rad_s (B, N)
+    final joint velocity; f_settle_n (B, M) muscle tensions in the final state [N] (0 for cut muscles).
+    Rows of NONFINITE_COMMAND cases are NaN (time_s 0). UNSTABLE rows hold the last state that passed a
+    check (q_ref at rest, f NaN, if the case blew up before its first check).
+    """
+
+    q_settle: np.ndarray
+    E_q_phys: np.ndarray
+    status: np.ndarray
+    time_s: np.ndarray
+    qvel_rad_s: np.ndarray
+    f_settle_n: np.ndarray
+
+    @property
+    def settled(self) -> np.ndarray:
+        """(B,) bool: the case came to rest."""
+        return self.status == SettleStatus.SETTLED
+
+    @property
+    def status_names(self) -> list[str]:
+        return [SettleStatus(int(s)).name for s in self.status]
+
+
+# ---------------------------------------------------------------------------- inputs
+def _unpack_faults(cases_or_q_ref, cut, fix, l_fixed):
+    """q_ref and fault masks from a ``FaultCases`` or from a q_ref array plus optional masks."""
+    if isinstance(cases_or_q_ref, FaultCases):
+        if cut is not None or fix is not None or l_fixed is not None:
+            raise BodySchemaInputError("give cut/fix/l_fixed either in the FaultCases or as arguments, not both")
+        c = cases_or_q_ref
+        return c.q_ref, c.cut, c.fix, c.l_fixed
+    return cases_or_q_ref, cut, fix, l_fixed
+
+
+def _as_batch(name, value, shape, default, dtype):
+    """``value`` as a (B, M) array of ``dtype`` (``default`` when None), refusing a wrong shape."""
+    if value is None and default is None:
+        raise BodySchemaInputError(f"{name} is required: a (B, M) = {shape} array")
+    a = np.full(shape, default, dtype) if value is None else np.asarray(value)
+    if a.shape != shape:
+        raise BodySchemaInputError(f"{name} has shape {a.shape}; expected {shape}")
+    if dtype is bool and a.dtype != bool:
+        raise BodySchemaInputError(f"{name} must be a bool array; got dtype {a.dtype}")
+    if dtype is float and not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise BodySchemaInputError(f"{name} must be a numeric array; got dtype {a.dtype}")
+    return a.astype(dtype)
+
+
+def _check_inputs(model, l_motor, f, cases_or_q_ref, cut, fix, l_fixed):
+    """Validated (q_ref, l_motor, f, cut, fix, l_fixed) and the (B,) finite-command mask."""
+    q_ref, cut, fix, l_fixed = _unpack_faults(cases_or_q_ref, cut, fix, l_fixed)
+    q_ref = model.check_q(q_ref)
+    shape = (q_ref.shape[0], model.n_muscles)
+    l_motor, f = _as_batch("l_motor", l_motor, shape, None, float), _as_batch("f", f, shape, None, float)
+    cut, fix = _as_batch("cut", cut, shape, False, bool), _as_batch("fix", fix, shape, False, bool)
+    l_fixed = _as_batch("l_fixed", l_fixed, shape, np.nan, float)
+    if np.any(cut & fix):
+        raise BodySchemaInputError(f"cases {np.flatnonzero(np.any(cut & fix, axis=1)).tolist()} have a muscle "
+                                   "both cut and jammed; cut and fix must not overlap")
+    if not np.all(np.isfinite(l_fixed[fix])):
+        raise BodySchemaInputError(f"l_fixed is NaN/inf for a jammed muscle in cases "
+                                   f"{np.flatnonzero(np.any(fix & ~np.isfinite(l_fixed), axis=1)).tolist()}")
+    finite = np.all(np.isfinite(l_motor) & np.isfinite(f), axis=1)
+    return q_ref, l_motor, f, cut, fix, l_fixed, finite
+
+
+class _Laws(NamedTuple):
+    """Per-muscle force laws (B, M): a spring with rest length ``rest_m`` where ``spring``, else ``f_const_n``."""
+
+    rest_m: np.ndarray  # spring rest length [m]
+    spring: np.ndarray  # bool: exponential spring (else a constant force)
+    f_const_n: np.ndarray  # constant tension where not a spring [N] (0 for cut muscles)
+
+    def take(self, idx):
+        return _Laws(*(a[idx] for a in self))
+
+
+def _force_laws(l_motor, f, cut, fix, l_fixed, params: SettleParams) -> _Laws:
+    """The force law of every muscle of every case (see the module docstring)."""
+    with np.errstate(invalid="ignore"):  # NaN commands are never simulated
+        jam_rest = l_fixed if params.jam == "held" else np.minimum(l_motor, l_fixed)
+        healthy = ~(cut | fix)
+        spring = fix | (healthy & (params.mode == "length"))
+        f_const = np.where(healthy & ~spring, np.maximum(f, 0.0), 0.0)
+    return _Laws(np.where(fix, jam_rest, l_motor), spring, f_const)
+
+
+# ---------------------------------------------------------------------------- simulation
+class _Final(NamedTuple):
+    """Per-case outcome of one lockstep run (arrays over the cases of the run)."""
+
+    q: np.ndarray  # (B, N) last finite posture seen at a check [rad]
+    qvel: np.ndarray  # (B, N) [rad/s]
+    f: np.ndarray  # (B, M) tensions of that state [N]
+    status: np.ndarray  # (B,) SettleStatus ints
+    time_s: np.ndarray  # (B,) simulated time at the stop [s]
+
+
+class _Simulator:
+    """A private copy of the model and the index arrays a step needs; runs cases in lockstep."""
+
+    def __init__(self, model: MusculoskeletalModel, spring: SpringParams, params: SettleParams):
+        self.m = copy.copy(model.mj_model)  # private: integrator, timestep and flags are ours to set
+        self.m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
+        self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # blow-ups stay visible
+        if params.timestep_s is not None:
+            self.m.opt.timestep = params.timestep_s
+        self.ids = np.asarray(model.muscle_ids)
+        self.k = np.broadcast_to(np.asarray(spring.k_n, float), (len(self.ids),)).copy()
+        self.alpha = np.broadcast_to(np.asarray(spring.alpha_per_m, float), (len(self.ids),)).copy()
+        self.params = params
+        self.pool: list[mujoco.MjData] = []
+        self._jacobian_index()
+
+    def _jacobian_index(self):
+        """Scatter indices from MuJoCo's sparse ``ten_J`` rows of the muscles into a dense (M, nv) block."""
+        m = self.m
+        rows = [np.full(m.ten_J_rownnz[t], i) for i, t in enumerate(self.ids)]
+        entries = [np.arange(m.ten_J_rowadr[t], m.ten_J_rowadr[t] + m.ten_J_rownnz[t]) for t in self.ids]
+        self.j_rows, self.j_entries = np.concatenate(rows), np.concatenate(entries)
+        self.j_cols = m.ten_J_colind[self.j_entries]
+
+    def tension(self, length, velocity, laws: _Laws) -> np.ndarray:
+        """Muscle tensions (B, M) [N] from tendon lengths [m] and velocities [m/s] (B, M)."""
+        delta = length - laws.rest_m
+        taut = delta > 0.0
+        with np.errstate(over="ignore", invalid="ignore"):  # a blow-up is reported as UNSTABLE, not warned
+            grow = np.exp(self.alpha * np.where(taut, delta, 0.0))
+            spring = self.k * (grow - 1.0)
+            if self.params.muscle_damping_s > 0:  # beta * dphi/ddelta * dl/dt while taut
+                spring += (self.params.muscle_damping_s * self.alpha * self.k) * (taut * grow) * velocity
+            return np.maximum(np.where(laws.spring, spring, laws.f_const_n), 0.0)
+
+    def _joint_forces(self, ten_j, f) -> np.ndarray:
+        """-J_ten^T f (B, nv) [N m] from the sparse ``ten_J`` values (B, nJ) of each data."""
+        jac = np.zeros((len(f), len(self.ids), self.m.nv))
+        jac[:, self.j_rows, self.j_cols] = ten_j[:, self.j_entries]
+        return -np.einsum("bmn,bm->bn", jac, f)
+
+    def step(self, datas, laws: _Laws) -> tuple[np.ndarray, np.ndarray]:
+        """One lockstep step: state -> tensions -> qfrc_applied -> integrate.
+
+        Returns the tensions (B, M) and a (B,) mask of blown-up cases (a joint force above
+        ``max_torque_nm`` or NaN), which are left unstepped so MuJoCo never sees (and prints) the blow-up.
+        """
+        m, damping = self.m, self.params.mass_damping_per_s
+        mass_v = np.zeros((len(datas), m.nv))
+        for d, mv in zip(datas, mass_v):
+            mujoco.mj_step1(m, d)  # positions, tendons, velocities of the current state
+            mujoco.mj_mulM(m, d, mv, d.qvel)
+        length = np.array([d.ten_length for d in datas])[:, self.ids]
+        velocity = np.array([d.ten_velocity for d in datas])[:, self.ids]
+        f = self.tension(length, velocity, laws)
+        qfrc = self._joint_forces(np.array([d.ten_J for d in datas]), f) - damping * mass_v
+        blown = ~np.all(np.abs(qfrc) <= self.params.max_torque_nm, axis=1)  # NaN counts as blown
+        for d, tau, skip in zip(datas, qfrc, blown):
+            if not skip:
+                d.qfrc_applied[:] = tau
+                mujoco.mj_step2(m, d)  # acceleration, limit constraints, Euler integration
+        return f, blown
+
+    def verdict(self, datas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(status (B,) with -1 = keep going, qpos (B, N), qvel (B, N)) of the current states."""
+        p, bad = self.params, int(mujoco.mjtWarning.mjWARN_BADQACC)
+        qpos, qvel = np.array([d.qpos for d in datas]), np.array([d.qvel for d in datas])
+        qacc = np.array([d.qacc for d in datas])
+        flagged = np.array([d.warning[bad].number > 0 for d in datas])
+        finite = np.all(np.isfinite(qpos) & np.isfinite(qvel), axis=1)
+        with np.errstate(invalid="ignore"):
+            speed, accel = np.max(np.abs(qvel), axis=1), np.max(np.abs(qacc), axis=1)
+            rest = (speed < p.qvel_tol_rad_s) & (accel < p.qacc_tol_rad_s2)
+            unstable = flagged | ~finite | ~(speed <= p.max_qvel_rad_s)
+        status = np.where(rest, int(SettleStatus.SETTLED), -1)
+        return np.where(unstable, int(SettleStatus.UNSTABLE), status), qpos, qvel
+
+    def _start(self, q_ref) -> list:
+        """One MjData per case (reused across chunks: a fresh MjData costs ~1 ms), reset to q_ref at rest."""
+        while len(self.pool) < len(q_ref):
+            self.pool.append(mujoco.MjData(self.m))
+        for d, q in zip(self.pool, q_ref):
+            mujoco.mj_resetData(self.m, d)
+            d.qpos[:] = q
+        return self.pool[:len(q_ref)]
+
+    def run(self, q_ref, laws: _Laws) -> _Final:
+        """Simulate the cases (rows of q_ref and laws) in lockstep, dropping each one when it stops."""
+        datas = self._start(q_ref)
+        out = _Final(q_ref.copy(), np.zeros_like(q_ref), np.full(laws.rest_m.shape, np.nan),
+                     np.full(len(q_ref), int(SettleStatus.NOT_SETTLED), np.int8), np.zeros(len(q_ref)))
+        active = np.arange(len(q_ref))
+        n_steps = max(1, int(round(self.params.max_time_s / self.m.opt.timestep)))
+        every, running = int(self.params.check_every_steps), (datas, laws)
+        for i in range(n_steps):
+            f, blown = self.step(*running)
+            if (i + 1) % every == 0 or i + 1 == n_steps or blown.any():
+                active = self._record(running[0], active, f, blown, out)
+                if active.size == 0:
+                    break
+                running = ([datas[b] for b in active], laws.take(active))
+        return out
+
+    def _record(self, datas, active, f, blown, out: _Final) -> np.ndarray:
+        """Store the state of the running cases (``datas`` = rows ``active``); returns those still running."""
+        status, qpos, qvel = self.verdict(datas)
+        status[blown] = SettleStatus.UNSTABLE
+        ok = status != SettleStatus.UNSTABLE  # an unstable case keeps its last finite state
+        out.q[active[ok]], out.qvel[active[ok]], out.f[active[ok]] = qpos[ok], qvel[ok], f[ok]
+        out.time_s[active] = [d.time for d in datas]
+        done = status >= 0
+        out.status[active[done]] = status[done]
+        return active[~done]
+
+
+def _mark_beyond_limits(out: SettleResult, q_range, tol_rad: float):
+    """SETTLED cases resting more than tol_rad outside the joint range become BEYOND_LIMIT."""
+    lo, hi = q_range[:, 0], q_range[:, 1]
+    with np.errstate(invalid="ignore"):
+        beyond = np.max(np.maximum(lo - out.q_settle, out.q_settle - hi), axis=1) > tol_rad
+    out.status[beyond & out.settled] = SettleStatus.BEYOND_LIMIT
+
+
+# ---------------------------------------------------------------------------- public API
+def settle(model: MusculoskeletalModel, l_motor, f, cases_or_q_ref, cut=None, fix=None, l_fixed=None,
+           spring: SpringParams = SpringParams(), params: SettleParams = SettleParams()) -> SettleResult:
+    """Simulate each command (l_motor [m], f [N]) (B, M) from q_ref at rest until the arm stops.
+
+    ``cases_or_q_ref`` is a ``FaultCases`` (its cut / fix / l_fixed are used) or q_ref (B, N) [rad]
+    with optional ``cut``, ``fix`` (B, M) bool and ``l_fixed`` (B, M) [m] (NaN where not jammed);
+    without them every muscle is healthy. Cases with a non-finite command are not simulated
+    (status NONFINITE_COMMAND, NaN rows). The others run in lockstep chunks of ``params.chunk_size``.
+    """
+    q_ref, l_motor, f, cut, fix, l_fixed, finite = _check_inputs(model, l_motor, f, cases_or_q_ref,
+                                                                  cut, fix, l_fixed)
+    batch, n_j, n_m = q_ref.shape[0], model.n_joints, model.n_muscles
+    out = SettleResult(np.full((batch, n_j), np.nan), np.full(batch, np.nan),
+                       np.full(batch, int(SettleStatus.NONFINITE_COMMAND), np.int8), np.zeros(batch),
+                       np.full((batch, n_j), np.nan), np.full((batch, n_m), np.nan))
+    laws = _force_laws(l_motor, f, cut, fix, l_fixed, params)
+    idx = np.flatnonzero(finite)
+    sim = _Simulator(model, spring, params) if idx.size else None
+    chunk = int(params.chunk_size)
+    for start in range(0, idx.size, chunk):
+        rows = idx[start:start + chunk]
+        res = sim.run(q_ref[rows], laws.take(rows))
+        out.q_settle[rows], out.qvel_rad_s[rows], out.f_settle_n[rows] = res.q, res.qvel, res.f
+        out.status[rows], out.time_s[rows] = res.status, res.time_s
+    out.E_q_phys = np.linalg.norm(out.q_settle - q_ref, axis=1)
+    _mark_beyond_limits(out, model.q_range, params.limit_tol_rad)
+    return out
