@@ -13,9 +13,10 @@ import sys
 import warnings
 
 import torch
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
-from .callbacks import EpochProgressBar, ReconstructionFigure
+from .callbacks import EpochProgressBar, FaultBenchmark, ReconstructionFigure
 from .data import EquilibriumDataModule
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
@@ -24,9 +25,13 @@ from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  
 class BodySchemaCLI(LightningCLI):
     def add_arguments_to_parser(self, parser):
         parser.link_arguments("data.robot", "model.init_args.robot", apply_on="instantiate")
-        # always-on callbacks, configurable as --progress.* and --figures.*
+        # always-on callbacks, configurable as --progress.*, --figures.* and --faults.*
         parser.add_lightning_class_args(EpochProgressBar, "progress")
         parser.add_lightning_class_args(ReconstructionFigure, "figures")
+        parser.add_lightning_class_args(FaultBenchmark, "faults")
+        # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
+        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.set_defaults({"checkpoint.save_last": True})
 
 
 def _trainer_defaults() -> dict:

@@ -1,7 +1,11 @@
 """Draw a model's arm and muscle routing at a few postures, e.g.
 
     python tools/draw_arm.py --model paper_arm --out docs/arm.png
+    python tools/draw_arm.py --model arm3_8 --out docs/arm3_8.png
     python tools/draw_arm.py --model my_robot.xml --q 0,0 --q 0.5,-0.3 --out /tmp/robot.png
+
+Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
+paper arm's [-1, 1] ranges: 0,0  0.8,0.6  -0.7,-0.9).
 
 Exit status 2 with one line on stderr for bad input (unknown model, posture out of range, ...).
 """
@@ -10,20 +14,23 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
 import torch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 
-DEFAULT_POSTURES = ("0,0", "0.8,0.6", "-0.7,-0.9")
+# default postures as fractions of each joint's half range around its midpoint, cycled over the joints
+DEFAULT_POSTURES_NORMALIZED = ((0.0,), (0.8, 0.6), (-0.7, -0.9))
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", default="paper_arm", help="'paper_arm' or a path to an MJCF file")
+    parser.add_argument("--model", default="paper_arm",
+                        help="a packaged model (paper_arm, arm3_8, opensim_like_arm) or a path to an MJCF file")
     parser.add_argument("--out", default="docs/arm.png", help="output image (png, pdf, svg)")
     parser.add_argument("--q", action="append", metavar="Q1,Q2,...",
                         help="a posture [rad], comma separated; repeat for more "
-                             f"(default {' '.join(DEFAULT_POSTURES)})")
+                             "(default: three postures spread over the model's joint ranges)")
     parser.add_argument("--site", default="hand", help="site to mark, e.g. the hand")
     return parser.parse_args(argv)
 
@@ -39,6 +46,12 @@ def parse_postures(texts) -> list[list[float]]:
     return qs
 
 
+def default_postures(q_range: np.ndarray) -> list[list[float]]:
+    """Mid-range and two bent postures inside the joint ranges ``q_range (N, 2)`` [rad]."""
+    mid, half = q_range.mean(axis=1), 0.5 * (q_range[:, 1] - q_range[:, 0])
+    return [(mid + half * np.resize(u, len(mid))).round(3).tolist() for u in DEFAULT_POSTURES_NORMALIZED]
+
+
 def main(argv=None) -> int:
     torch.set_num_threads(1)
     args = parse_args(argv)
@@ -47,7 +60,8 @@ def main(argv=None) -> int:
 
     try:
         model = MusculoskeletalModel(args.model)
-        draw_arm(model, parse_postures(args.q or DEFAULT_POSTURES), path=args.out, site=args.site)
+        qs = parse_postures(args.q) if args.q else default_postures(model.q_range)
+        draw_arm(model, qs, path=args.out, site=args.site)
     except BodySchemaInputError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

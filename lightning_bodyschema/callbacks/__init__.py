@@ -1,5 +1,6 @@
 """Lightning callbacks: progress, figures, fault benchmarks. They hold no maths (they call evaluation/)."""
+from .fault_benchmark import FaultBenchmark
 from .figures import ReconstructionFigure
 from .progress import EpochProgressBar
 
-__all__ = ["EpochProgressBar", "ReconstructionFigure"]
+__all__ = ["EpochProgressBar", "FaultBenchmark", "ReconstructionFigure"]

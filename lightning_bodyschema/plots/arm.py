@@ -1,15 +1,20 @@
-"""Draw a tendon-driven arm and its muscle paths in the x-y plane, straight from MuJoCo's geometry.
+"""Draw a tendon-driven arm and its muscle paths in its plane of motion, straight from MuJoCo's geometry.
 
 Everything drawn is what MuJoCo computes at each posture (``mj_forward``): link capsules from
 ``geom_xpos``/``geom_xmat``, joint anchors from ``xanchor``, wrapping cylinders and spheres as circles,
 and each muscle from its wrap points (``wrap_xpos``, ``wrap_obj``, ``ten_wrapadr``, ``ten_wrapnum``),
 with the arc on a wrapping surface drawn in the sense the tendon arrives in. So the figure shows
 the routing the physics really uses, and a routing bug is visible.
+
+The drawing plane is perpendicular to the first hinge axis (the x-y plane for the paper arm; the
+world x-z plane for a z-up model converted from OpenSim), oriented with "up" against gravity and
++q turning counter-clockwise. Points off that plane (3-D via sites, sphere wraps) are projected.
 """
 from __future__ import annotations
 
 import os
 import tempfile
+from dataclasses import dataclass
 from typing import Sequence
 
 import mujoco
@@ -17,6 +22,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
+from matplotlib.ticker import MaxNLocator
 
 from ..errors import BodySchemaInputError
 from ..sim.model import MusculoskeletalModel
@@ -25,6 +31,46 @@ _CYL, _SPHERE = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_S
 _CAPSULE = int(mujoco.mjtGeom.mjGEOM_CAPSULE)
 _PULLEY = -2
 _TAB10 = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf"]
+
+
+@dataclass(frozen=True)
+class ViewPlane:
+    """An orthonormal drawing basis: ``right``, ``up`` in the plane, ``normal`` = right x up (world)."""
+
+    right: np.ndarray
+    up: np.ndarray
+
+    @property
+    def normal(self) -> np.ndarray:
+        return np.cross(self.right, self.up)
+
+    def xy(self, points) -> np.ndarray:
+        """(..., 3) world points [m] -> (..., 2) drawing coordinates [m]."""
+        points = np.asarray(points, dtype=float)
+        return np.stack([points @ self.right, points @ self.up], axis=-1)
+
+    def label(self, axis: np.ndarray) -> str:
+        """'x [m]', '-y [m]', ... when the axis is a world axis, else 'in-plane [m]'."""
+        k = int(np.argmax(np.abs(axis)))
+        if abs(abs(axis[k]) - 1.0) > 1e-9:
+            return "in-plane [m]"
+        return f"{'-' if axis[k] < 0 else ''}{'xyz'[k]} [m]"
+
+
+def view_plane(m: mujoco.MjModel, d: mujoco.MjData) -> ViewPlane:
+    """The plane perpendicular to the first hinge axis, "up" against gravity (or along world z / y).
+
+    Needs ``mj_kinematics`` on ``d``. For a model without hinges (slide joints only) the x-y plane.
+    """
+    hinges = [j for j in range(m.njnt) if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_HINGE)]
+    normal = d.xaxis[hinges[0]].copy() if hinges else np.array([0.0, 0.0, 1.0])
+    normal /= np.linalg.norm(normal)
+    for candidate in (-np.asarray(m.opt.gravity, float), np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])):
+        up = candidate - normal * (candidate @ normal)
+        if np.linalg.norm(up) > 1e-6 * max(np.linalg.norm(candidate), 1e-300):
+            up /= np.linalg.norm(up)
+            return ViewPlane(right=np.cross(up, normal), up=up)
+    raise AssertionError("unreachable: y and z cannot both be parallel to one normal")
 
 
 def _wrap_geoms(m: mujoco.MjModel) -> set[int]:
@@ -77,7 +123,7 @@ def muscle_polylines(m: mujoco.MjModel, d: mujoco.MjData, tendon: int) -> list[n
     return paths + ([np.array(path)] if path else [])
 
 
-def _draw_links(ax: Axes, m, d, skip: set[int]):
+def _draw_links(ax: Axes, m, d, skip: set[int], plane: ViewPlane):
     """Capsule and cylinder geoms as thick grey lines; if a model has none, bodies joined origin to origin."""
     segments = []
     for g in range(m.ngeom):
@@ -87,49 +133,54 @@ def _draw_links(ax: Axes, m, d, skip: set[int]):
     if not segments:
         segments = [d.xpos[[m.body_parentid[b], b]] for b in range(1, m.nbody)]
     for ends in segments:
-        ax.plot(ends[:, 0], ends[:, 1], color="0.6", lw=7, solid_capstyle="round", zorder=1)
+        xy = plane.xy(ends)
+        ax.plot(xy[:, 0], xy[:, 1], color="0.6", lw=7, solid_capstyle="round", zorder=1)
 
 
-def _draw_wrap_surfaces(ax: Axes, m, d, wraps: set[int]):
+def _draw_wrap_surfaces(ax: Axes, m, d, wraps: set[int], plane: ViewPlane):
+    """Cylinders (seen along their axis) and spheres as circles; spheres dashed to tell them apart."""
     for g in sorted(wraps):
-        ax.add_patch(Circle(d.geom_xpos[g, :2].copy(), m.geom_size[g, 0], facecolor=(0.3, 0.6, 0.9, 0.12),
-                            edgecolor=(0.2, 0.45, 0.75, 0.8), lw=0.8, zorder=2))
+        sphere = int(m.geom_type[g]) == _SPHERE
+        ax.add_patch(Circle(plane.xy(d.geom_xpos[g]), m.geom_size[g, 0], facecolor=(0.3, 0.6, 0.9, 0.12),
+                            edgecolor=(0.2, 0.45, 0.75, 0.8), lw=0.8, ls="--" if sphere else "-", zorder=2))
 
 
-def _draw_muscles(ax: Axes, model: MusculoskeletalModel, d, label: bool):
+def _draw_muscles(ax: Axes, model: MusculoskeletalModel, d, label: bool, plane: ViewPlane):
     for k, (tendon, name) in enumerate(zip(model.muscle_ids, model.muscle_names)):
         color = _TAB10[k % len(_TAB10)]
         for j, path in enumerate(muscle_polylines(model.mj_model, d, int(tendon))):
-            ax.plot(path[:, 0], path[:, 1], color=color, lw=1.8, zorder=4,
+            xy = plane.xy(path)
+            ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.8, zorder=4,
                     label=name if label and j == 0 else None)
-            ax.plot(path[[0, -1], 0], path[[0, -1], 1], "o", color=color, ms=3, zorder=5)
+            ax.plot(xy[[0, -1], 0], xy[[0, -1], 1], "o", color=color, ms=3, zorder=5)
 
 
-def _draw_joints_and_site(ax: Axes, m, d, site: str):
-    ax.plot(d.xanchor[:, 0].copy(), d.xanchor[:, 1].copy(), "o", mfc="white", mec="black", ms=6, zorder=6)
+def _draw_joints_and_site(ax: Axes, m, d, site: str, plane: ViewPlane):
+    anchors = plane.xy(d.xanchor)
+    ax.plot(anchors[:, 0], anchors[:, 1], "o", mfc="white", mec="black", ms=6, zorder=6)
     sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
     if sid >= 0:
-        xy = d.site_xpos[sid, :2].copy()
+        xy = plane.xy(d.site_xpos[sid])
         ax.plot(*xy, "s", color="black", ms=6, zorder=6)
         ax.annotate(site, xy, xytext=(6, -10), textcoords="offset points", fontsize=8)
 
 
-def _draw_posture(ax: Axes, model: MusculoskeletalModel, d, site: str, label: bool):
+def _draw_posture(ax: Axes, model: MusculoskeletalModel, d, site: str, label: bool, plane: ViewPlane):
     """Everything at the posture currently in ``d`` (after mj_forward). Arrays are copied: d is reused."""
     m = model.mj_model
     wraps = _wrap_geoms(m)
-    _draw_links(ax, m, d, wraps)
-    _draw_wrap_surfaces(ax, m, d, wraps)
-    _draw_muscles(ax, model, d, label)
-    _draw_joints_and_site(ax, m, d, site)
+    _draw_links(ax, m, d, wraps, plane)
+    _draw_wrap_surfaces(ax, m, d, wraps, plane)
+    _draw_muscles(ax, model, d, label, plane)
+    _draw_joints_and_site(ax, m, d, site, plane)
 
 
-def _draw_gravity(ax: Axes, gravity: np.ndarray):
+def _draw_gravity(ax: Axes, gravity: np.ndarray, plane: ViewPlane):
     """Arrow in the upper right corner along gravity's in-plane direction."""
-    g_xy = np.asarray(gravity[:2], dtype=float)
+    g_xy = plane.xy(np.asarray(gravity, dtype=float))
     norm = np.linalg.norm(g_xy)
     if norm < 1e-9:
-        ax.text(0.97, 0.95, "g ⟂ x-y plane", transform=ax.transAxes, ha="right", va="top", fontsize=8)
+        ax.text(0.97, 0.95, "g ⟂ drawing plane", transform=ax.transAxes, ha="right", va="top", fontsize=8)
         return
     tail, head = np.array([0.9, 0.92]), np.array([0.9, 0.92]) + 0.12 * g_xy / norm
     ax.annotate("", xy=head, xytext=tail, xycoords="axes fraction",
@@ -200,15 +251,18 @@ def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None =
     n_zoom = model.n_joints if zoom and ax is None else 0
     fig, grid = _new_grid(len(qs), n_zoom) if ax is None else (None, _caller_grid(qs, ax))
     m, d = model.mj_model, mujoco.MjData(model.mj_model)  # own data: never disturbs the model's
+    mujoco.mj_kinematics(m, d)
+    plane = view_plane(m, d)  # hinge axes keep their world direction in a planar arm
     for i, (q, column) in enumerate(zip(qs, grid)):
         d.qpos[:] = q
         mujoco.mj_forward(m, d)
         for row, a in enumerate(column):
-            _draw_posture(a, model, d, site, label=i == 0 and row == 0)
-        _style_whole(column[0], q, model.joint_names)
+            _draw_posture(a, model, d, site, label=i == 0 and row == 0, plane=plane)
+        _style_whole(column[0], q, model.joint_names, plane)
         for j, a in enumerate(column[1:]):
-            _style_zoom(a, d.xanchor[j, :2].copy(), _zoom_half_width_m(m), model.joint_names[j])
-    _draw_gravity(grid[0][0], m.opt.gravity)
+            center = plane.xy(d.xanchor[j])
+            _style_zoom(a, center, _zoom_half_width_m(m, d, plane, center), model.joint_names[j])
+    _draw_gravity(grid[0][0], m.opt.gravity, plane)
     fig = fig or grid[0][0].figure
     _legend(fig, grid[0][0], own_figure=ax is None)
     if path is not None:
@@ -216,17 +270,20 @@ def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None =
     return fig
 
 
-def _zoom_half_width_m(m: mujoco.MjModel) -> float:
-    """Half the side of a close-up: 2.5 wrapping radii, or 0.1 m when nothing wraps."""
-    radii = [m.geom_size[g, 0] for g in _wrap_geoms(m)]
+def _zoom_half_width_m(m: mujoco.MjModel, d: mujoco.MjData, plane: ViewPlane, center: np.ndarray) -> float:
+    """Half the side of a joint's close-up: 2.5 radii of the largest wrap centred on that joint
+    (within 5 mm in the drawing), else of the largest wrap anywhere, or 0.1 m when nothing wraps."""
+    wraps = sorted(_wrap_geoms(m))
+    here = [m.geom_size[g, 0] for g in wraps if np.linalg.norm(plane.xy(d.geom_xpos[g]) - center) < 5e-3]
+    radii = here or [m.geom_size[g, 0] for g in wraps]
     return 2.5 * max(radii) if radii else 0.1
 
 
-def _style_whole(a: Axes, q: np.ndarray, joint_names: list[str]):
+def _style_whole(a: Axes, q: np.ndarray, joint_names: list[str], plane: ViewPlane):
     a.set_aspect("equal", adjustable="box")
     a.grid(True, lw=0.3, alpha=0.5)
-    a.set_xlabel("x [m]")
-    a.set_ylabel("y [m]")
+    a.set_xlabel(plane.label(plane.right))
+    a.set_ylabel(plane.label(plane.up))
     title = ", ".join(f"{n}={v:+.2f}" for n, v in zip(joint_names, q)) + " rad"
     a.set_title(title if a.get_title() == "" else a.get_title() + "\n" + title, fontsize=9)
 
@@ -237,6 +294,8 @@ def _style_zoom(a: Axes, center: np.ndarray, half_m: float, joint: str):
     a.set_aspect("equal", adjustable="box")
     a.grid(True, lw=0.3, alpha=0.5)
     a.tick_params(labelsize=7)
+    a.xaxis.set_major_locator(MaxNLocator(5))
+    a.yaxis.set_major_locator(MaxNLocator(5))
     a.set_title(f"close-up: {joint}", fontsize=8)
 
 

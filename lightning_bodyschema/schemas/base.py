@@ -85,6 +85,11 @@ class BodySchema(L.LightningModule):
     # ------------------------------------------------------------------ adaptation (paper section III)
     VARIANTS = ("default", "literal")
 
+    @property
+    def supports_adaptation(self) -> bool:
+        """True when the architecture implements ``adapt_normalized`` (a plain regressor need not)."""
+        return type(self).adapt_normalized is not BodySchema.adapt_normalized
+
     def adapt(self, q_ref, faults, variant: str = "default", **options) -> AdaptationResult:
         """Commands at postures ``q_ref (B, N)`` [rad] that respect ``faults`` (a ``faults.Faults``, one row per case).
 
@@ -101,9 +106,10 @@ class BodySchema(L.LightningModule):
         if len(faults) != len(q):
             raise BodySchemaInputError(f"{len(q)} postures but {len(faults)} fault rows; give one row per case")
         dtype = next(self.parameters()).dtype
-        constraints = faults.constraints(self.spring.f_max_n, dtype=dtype, device=self.device)
-        loss_fn = self.adaptation_loss_fn(constraints, variant)
+        # Lightning's val/test/predict loops run under inference_mode, whose tensors cannot enter autograd
         with torch.inference_mode(False), torch.no_grad():
+            constraints = faults.constraints(self.spring.f_max_n, dtype=dtype, device=self.device)
+            loss_fn = self.adaptation_loss_fn(constraints, variant)
             x_n = self.adapt_normalized(self.encode_q(torch.as_tensor(q)), loss_fn, variant, **options)
         return self._command(self.decode(x_n), faults, constraints)
 

@@ -18,17 +18,32 @@ import numpy as np
 from ..errors import BodySchemaInputError
 
 _SUPPORTED_JOINTS = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+UNLOADED_TAU_NM = 1e-9  # below this gravity torque at every probed posture, gravity does not load the joints
+
+
+def packaged_model_names() -> list[str]:
+    """Names of the MJCF models shipped in ``lightning_bodyschema/assets`` (e.g. ``paper_arm``)."""
+    files = resources.files("lightning_bodyschema.assets").iterdir()
+    return sorted(f.name[:-4] for f in files if f.name.endswith(".xml"))
+
+
+def packaged_model_xml(name: str) -> str:
+    """The MJCF text of a packaged model: ``paper_arm``, ``arm3_8``, ``opensim_like_arm``, ..."""
+    names = packaged_model_names()
+    if name not in names:
+        raise BodySchemaInputError(f"unknown packaged model {name!r}; packaged models are {names}")
+    return resources.files("lightning_bodyschema.assets").joinpath(f"{name}.xml").read_text()
 
 
 def paper_arm_xml() -> str:
     """The MJCF text of the paper's two-joint, six-muscle arm shipped with the package."""
-    return resources.files("lightning_bodyschema.assets").joinpath("paper_arm.xml").read_text()
+    return packaged_model_xml("paper_arm")
 
 
 def _load_spec(source: str) -> mujoco.MjSpec:
-    """Parse an MJCF given as the name ``paper_arm``, a file path, or XML text."""
-    if source == "paper_arm":
-        return mujoco.MjSpec.from_string(paper_arm_xml())
+    """Parse an MJCF given as a packaged model name, a file path, or XML text."""
+    if source in packaged_model_names():
+        return mujoco.MjSpec.from_string(packaged_model_xml(source))
     if source.lstrip().startswith("<"):
         try:
             return mujoco.MjSpec.from_string(source)
@@ -36,7 +51,8 @@ def _load_spec(source: str) -> mujoco.MjSpec:
             raise BodySchemaInputError(f"model XML does not parse: {str(err).strip()}") from None
     if not os.path.isfile(source):
         raise BodySchemaInputError(
-            f"model file {source!r} does not exist (give 'paper_arm', an MJCF path, or MJCF text)")
+            f"model {source!r} does not exist: it is neither a packaged model {packaged_model_names()} "
+            "nor an MJCF file (give a packaged name, an MJCF path, or MJCF text)")
     try:
         return mujoco.MjSpec.from_file(source)
     except Exception as err:
@@ -47,9 +63,15 @@ class MusculoskeletalModel:
     """A MuJoCo model whose spatial tendons are the robot's muscles.
 
     Args:
-        source: ``"paper_arm"``, a path to an MJCF file, or MJCF text.
-        muscles: names of the tendons that are muscles; default: every spatial tendon.
+        source: a packaged model name (``"paper_arm"``, ``"arm3_8"``, ``"opensim_like_arm"``; see
+            ``packaged_model_names()``), a path to an MJCF file, or MJCF text.
+        muscles: names of the tendons that are muscles; default: every spatial tendon
+            (fixed, i.e. joint, tendons are never muscles).
         gravity: optional override of the model's gravity vector [m/s^2].
+        allow_unloaded: accept a model whose gravity loads no joint (zero gravity, or gravity along
+            every hinge axis). Refused by default: the static equilibrium ``-G^T f = tau_bias`` is
+            then ``-G^T f = 0`` everywhere, i.e. pure co-contraction, which is almost always a
+            wrong gravity vector or a wrongly oriented model rather than the robot one meant.
 
     MuJoCo actuators are removed before compiling: the pipeline needs only tendons, and a
     ``<muscle>`` actuator whose length-range computation fails must not stop the model loading.
@@ -57,7 +79,7 @@ class MusculoskeletalModel:
     """
 
     def __init__(self, source: str = "paper_arm", muscles: Sequence[str] | None = None,
-                 gravity: Sequence[float] | None = None):
+                 gravity: Sequence[float] | None = None, allow_unloaded: bool = False):
         spec = _load_spec(source)
         for actuator in list(spec.actuators):
             spec.delete(actuator)
@@ -72,6 +94,8 @@ class MusculoskeletalModel:
         self.muscle_ids = self._select_muscles(muscles)
         self._data = mujoco.MjData(self.mj_model)
         self._dense_index = self._tendon_jacobian_index()
+        if not allow_unloaded:
+            self._check_gravity_loads()
 
     # ------------------------------------------------------------------ structure
     def _check_joints(self):
@@ -87,6 +111,23 @@ class MusculoskeletalModel:
         unlimited = [self._name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt) if not m.jnt_limited[j]]
         if unlimited:
             raise BodySchemaInputError(f"joints {unlimited} have no range; every joint needs range=\"lo hi\"")
+
+    def _check_gravity_loads(self, n_postures: int = 8):
+        """Refuse a model whose gravity torque vanishes at a few postures spread over the joint range.
+
+        Probes the range midpoint and ``n_postures`` seeded uniform postures; if every joint torque
+        is below ``UNLOADED_TAU_NM`` at all of them, gravity does not load the joints. A model where
+        only some joints are unloaded (e.g. a vertical-axis joint) is accepted.
+        """
+        q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(0), n_postures)])
+        tau_max_nm = float(np.abs(self.kinematics(q)[2]).max())
+        if tau_max_nm < UNLOADED_TAU_NM:
+            gravity = np.round(self.mj_model.opt.gravity, 6).tolist()
+            raise BodySchemaInputError(
+                f"gravity {gravity} m/s^2 does not load the joints: max |tau_bias| = {tau_max_nm:.3g} N m over "
+                f"{len(q)} postures (gravity is zero, or along every hinge axis), so equilibrium would be pure "
+                "co-contraction; give gravity with a component in the joints' plane of motion "
+                "(e.g. '0 -9.81 0' for hinges about z), or pass allow_unloaded=True if this is intended")
 
     def _select_muscles(self, muscles):
         m = self.mj_model
@@ -139,13 +180,24 @@ class MusculoskeletalModel:
         return hashlib.sha256(self.xml.encode()).hexdigest()
 
     # ------------------------------------------------------------------ physics
-    def check_q(self, q) -> np.ndarray:
-        """Return q as a (B, N) float64 array, refusing non-finite values and wrong widths."""
+    def check_q(self, q, within_range: bool = False) -> np.ndarray:
+        """Return q as a (B, N) float64 array, refusing non-finite values and wrong widths.
+
+        within_range: also refuse postures outside the joint ranges (``q_range``), naming the first one.
+        """
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))
         if q.ndim != 2 or q.shape[1] != self.n_joints:
             raise BodySchemaInputError(f"q has shape {q.shape}; expected (B, {self.n_joints})")
         if not np.all(np.isfinite(q)):
             raise BodySchemaInputError("q contains NaN or inf")
+        if within_range:
+            lo, hi = self.q_range.T
+            rows, joints = np.nonzero((q < lo) | (q > hi))
+            if rows.size:
+                b, j = int(rows[0]), int(joints[0])
+                raise BodySchemaInputError(
+                    f"q[{b}] of joint {self.joint_names[j]!r} is {q[b, j]:.6g}, outside its range "
+                    f"[{lo[j]:.6g}, {hi[j]:.6g}] ({np.unique(rows).size} posture(s) out of range)")
         return q
 
     def kinematics(self, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

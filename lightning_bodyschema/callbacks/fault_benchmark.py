@@ -1,0 +1,282 @@
+"""The paper's fault benchmark (section IV-B) as a Lightning callback: TensorBoard during fit, files at test.
+
+No maths here: the cases come from ``evaluation.make_fault_cases``, the scores from
+``evaluation.run_fault_benchmark``, the figure from ``plots.fault_boxplots``; this module only
+schedules, logs and writes.
+
+Logged during fit (step = epoch), medians over each condition's cases; units: E_cut [N],
+E_fix_mm [mm], E_tau [N m], E_q [rad]; ``{reading}`` is ``paper`` or ``phys`` (see
+``evaluation.benchmark``), ``{subset}`` is ``all`` or ``feasible``:
+
+    fault/{reading}/{cond}/{metric}_{subset}              adapted commands, e.g. fault/phys/CUT/E_cut_feasible
+    fault_unadapted/{reading}/{cond}/{metric}_{subset}    the healthy command at the same cases (baseline)
+    fault/{reading}/{cond}/n_feasible                     cases with a physical solution
+    fault/adapt_ok_fraction, fault/adapt_seconds, fault/infer_seconds, fault/evaluate_seconds
+    fault/boxplots                                        figure: phys reading, all cases, unadapted vs adapted
+
+A median over an empty set (E_fix under CUT, E_cut under FIX, no feasible case) is not logged.
+
+At test (``bodyschema test --config X --ckpt_path Y``) it writes ``fault_benchmark.json`` (summary,
+per-case arrays, cases, feasibility; deterministic: identical bytes on rerun) and ``fault_benchmark.md``
+(the median table, adapted vs unadapted, and the wall times, which are not in the JSON because they
+differ from run to run) to ``out_dir`` or the trainer's log folder.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from typing import Optional
+
+import numpy as np
+import torch
+from lightning.pytorch.callbacks import Callback
+from lightning.pytorch.trainer.states import TrainerFn
+from lightning.pytorch.utilities import rank_zero_info, rank_zero_only, rank_zero_warn
+
+from ..errors import BodySchemaInputError
+from ..evaluation import METRICS, BenchmarkResult, make_fault_cases, run_fault_benchmark
+from ..npz import atomic_write_bytes
+
+CONDITION_ORDER = ("CUT", "FIX", "BOTH")
+METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0)}
+METRIC_HEADERS = {"E_cut": "E_cut [N]", "E_fix": "E_fix [mm]", "E_tau": "E_tau [N m]", "E_q": "E_q [rad]"}
+JSON_NAME, MD_NAME = "fault_benchmark.json", "fault_benchmark.md"
+SIGNIFICANT_DIGITS = 9
+
+
+class FaultBenchmark(Callback):
+    """Adapt the schema to seeded fault cases, score the commands, log medians and box plots; write files at test.
+
+    Args:
+        every_n_epochs: during fit, benchmark at the first validation at or after every multiple of this many
+            epochs, and at the last validated epoch (0: never during fit, nor without a logger; test always
+            runs it). Default 2500: four
+            runs in the paper's 10000 epochs (about 1.5 s each for 120 cases on one CPU core).
+        n_per_condition: cases per condition (paper: 40), drawn from the validation (= test) split.
+        seed: seed of the case draw (the same cases at every run, so curves are comparable).
+        variant: adaptation variant passed to ``BodySchema.adapt`` (``"default"`` or ``"literal"``).
+        out_dir: where ``test`` writes ``fault_benchmark.json``/``.md`` (None: the trainer's log folder).
+    """
+
+    def __init__(self, every_n_epochs: int = 2500, n_per_condition: int = 40, seed: int = 0,
+                 variant: str = "default", out_dir: Optional[str] = None):
+        from ..schemas.base import BodySchema  # late: keeps `import callbacks` light for the CLI's parser
+
+        if int(every_n_epochs) != every_n_epochs or every_n_epochs < 0:
+            raise BodySchemaInputError(f"faults.every_n_epochs={every_n_epochs!r} must be an integer >= 0")
+        if int(n_per_condition) != n_per_condition or n_per_condition < 1:
+            raise BodySchemaInputError(f"faults.n_per_condition={n_per_condition!r} must be an integer >= 1")
+        if variant not in BodySchema.VARIANTS:
+            raise BodySchemaInputError(f"faults.variant={variant!r}; allowed: {list(BodySchema.VARIANTS)}")
+        self.every_n_epochs, self.n_per_condition, self.seed = int(every_n_epochs), int(n_per_condition), seed
+        self.variant, self.out_dir = variant, out_dir
+        self._cases, self._cases_key, self._warned = None, None, False
+        self._last_period = 0  # index of the last every_n_epochs period benchmarked during fit
+
+    # ------------------------------------------------------------------ Lightning hooks
+    def on_fit_start(self, trainer, pl_module):
+        # a resumed run continues the cadence from its epoch instead of benchmarking at once
+        self._last_period = trainer.current_epoch // self.every_n_epochs if self.every_n_epochs else 0
+
+    @rank_zero_only
+    def on_validation_epoch_end(self, trainer, pl_module):
+        if not self._due_in_fit(trainer):
+            return
+        result = self.run(trainer, pl_module)
+        if result is None:
+            return
+        self._last_period = (trainer.current_epoch + 1) // self.every_n_epochs
+        step = trainer.current_epoch
+        self._log_scalars(trainer, result, step)
+        self._log_figure(trainer, pl_module, result, step)
+
+    @rank_zero_only
+    def on_test_epoch_end(self, trainer, pl_module):
+        result = self.run(trainer, pl_module)
+        if result is None:
+            return
+        self._log_scalars(trainer, result, trainer.current_epoch)
+        folder = self.out_dir or trainer.log_dir or trainer.default_root_dir
+        json_path, md_path = self.write(result, folder, pl_module)
+        print(f"fault benchmark ({len(result.cases)} cases, {sum(result.seconds.values()):.2f} s): "
+              f"{json_path}\nfault benchmark table: {md_path}")
+
+    def _due_in_fit(self, trainer) -> bool:
+        if trainer.sanity_checking or trainer.state.fn != TrainerFn.FITTING or self.every_n_epochs == 0:
+            return False
+        if not trainer.loggers:  # nothing to log to (--trainer.logger=false): don't spend the time
+            return False
+        epoch = trainer.current_epoch + 1  # epochs completed
+        last = (trainer.max_epochs is not None and epoch >= trainer.max_epochs) or trainer.should_stop
+        # "at or after each multiple": works whatever check_val_every_n_epoch is
+        return last or epoch // self.every_n_epochs > self._last_period
+
+    # ------------------------------------------------------------------ the benchmark
+    def cases_for(self, trainer, pl_module):
+        """The seeded case set from the data module's validation split, drawn once per split."""
+        datamodule = getattr(trainer, "datamodule", None)
+        splits = getattr(datamodule, "splits", None)
+        if splits is None or "val" not in splits:
+            rank_zero_warn("FaultBenchmark: the data module has no `splits['val']`; fault benchmark skipped")
+            return None
+        q, x = (t.detach().cpu().numpy() if torch.is_tensor(t) else np.asarray(t) for t in splits["val"])
+        l_motor = x[:, : pl_module.n_muscles]
+        key = hashlib.sha256(q.tobytes() + l_motor.tobytes()).hexdigest()
+        if key != self._cases_key:
+            self._cases = make_fault_cases(q, l_motor, self.n_per_condition, self.seed)
+            self._cases_key = key
+        return self._cases
+
+    def run(self, trainer, pl_module) -> Optional[BenchmarkResult]:
+        """Run ``run_fault_benchmark`` on the schema, with gradients available and the RNG left untouched."""
+        if not getattr(pl_module, "supports_adaptation", False):
+            if not self._warned:
+                rank_zero_info(f"FaultBenchmark: {type(pl_module).__name__} implements no adaptation; skipped")
+                self._warned = True
+            return None
+        cases = self.cases_for(trainer, pl_module)
+        if cases is None:
+            return None
+
+        def adapt(q, faults):
+            return pl_module.adapt(q, faults, variant=self.variant)
+
+        was_training = pl_module.training
+        pl_module.eval()
+        # Lightning validates and tests under torch.inference_mode(); adaptation differentiates through the
+        # network (BodySchema.adapt leaves inference mode itself; this keeps infer's tensors normal too).
+        # fork_rng: the benchmark must not shift the training RNG stream (same run with or without it).
+        try:
+            with torch.inference_mode(False), torch.random.fork_rng(devices=[]):
+                torch.manual_seed(self.seed)
+                return run_fault_benchmark(pl_module.robot_model, pl_module.spring, cases, pl_module.infer, adapt)
+        finally:
+            pl_module.train(was_training)
+
+    # ------------------------------------------------------------------ logging
+    def _log_scalars(self, trainer, result: BenchmarkResult, step: int):
+        metrics = scalar_metrics(result)
+        for logger in trainer.loggers:
+            logger.log_metrics(metrics, step=step)
+
+    def _log_figure(self, trainer, pl_module, result: BenchmarkResult, step: int):
+        experiments = [getattr(lg, "experiment", None) for lg in trainer.loggers]
+        experiments = [e for e in experiments if hasattr(e, "add_figure")]
+        if not experiments:
+            return
+        from ..plots.boxplots import fault_boxplots
+
+        name = type(pl_module).__name__
+        fig = fault_boxplots({name: result}, reading="phys", subset="all", kind=("unadapted", "adapted"),
+                             title=f"{name}, epoch {step}: fault benchmark (phys reading, all cases)")
+        for experiment in experiments:
+            experiment.add_figure("fault/boxplots", fig, global_step=step, close=False)
+
+    # ------------------------------------------------------------------ files
+    def write(self, result: BenchmarkResult, folder: str, pl_module=None) -> tuple[str, str]:
+        """Write ``fault_benchmark.json`` and ``.md`` into ``folder`` atomically; return both paths."""
+        meta = {"model": type(pl_module).__name__ if pl_module is not None else None, "variant": self.variant,
+                "n_per_condition": self.n_per_condition, "seed": self.seed}
+        json_path, md_path = os.path.join(folder, JSON_NAME), os.path.join(folder, MD_NAME)
+        for path, text in ((json_path, benchmark_json(result, meta)), (md_path, benchmark_markdown(result, meta))):
+            atomic_write_bytes(path, text.encode())
+        return json_path, md_path
+
+
+# ---------------------------------------------------------------------------- formatting (pure functions)
+def scalar_metrics(result: BenchmarkResult) -> dict[str, float]:
+    """The flat {tag: value} dict logged during fit (see the module docstring for the keys)."""
+    out = {}
+    summary = result.summary()
+    for kind, prefix in (("adapted", "fault"), ("unadapted", "fault_unadapted")):
+        for reading, by_cond in summary[kind].items():
+            for cond, by_subset in by_cond.items():
+                for subset, values in by_subset.items():
+                    for metric in METRICS:
+                        key, factor = METRIC_KEYS[metric]
+                        if values[metric] is not None:
+                            out[f"{prefix}/{reading}/{cond}/{key}_{subset}"] = factor * values[metric]
+                if kind == "adapted":
+                    out[f"fault/{reading}/{cond}/n_feasible"] = float(by_subset["feasible"]["n"])
+    out["fault/adapt_ok_fraction"] = float(np.mean(result.adapt_status == "ok"))
+    for name, seconds in result.seconds.items():
+        out[f"fault/{name}_seconds"] = float(seconds)
+    return out
+
+
+def _round(value: float):
+    if not math.isfinite(value):
+        return None
+    return float(f"{value:.{SIGNIFICANT_DIGITS}g}")
+
+
+def _jsonable(obj):
+    """Plain JSON types: arrays -> lists, floats rounded to 9 significant digits, NaN/inf -> None."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return _round(float(obj))
+    if isinstance(obj, np.str_):
+        return str(obj)
+    return obj
+
+
+def benchmark_json(result: BenchmarkResult, meta: Optional[dict] = None) -> str:
+    """Deterministic JSON text of a benchmark: same result -> same bytes (wall times left out on purpose)."""
+    cases = result.cases
+    payload = {
+        "meta": dict(meta or {}) | {"units": {"E_cut": "N", "E_fix": "m", "E_tau": "N m", "E_q": "rad",
+                                              "q_ref": "rad", "l_fixed": "m"}},
+        "summary": result.summary(),
+        "per_case": result.metrics,  # kind -> reading -> E_*, q_hat, status, converged, n_iter, objective
+        "feasible": result.feasible,
+        "adapt_status": result.adapt_status,
+        "cases": {"q_ref": cases.q_ref, "cut": cases.cut, "fix": cases.fix, "l_fixed": cases.l_fixed,
+                  "cond": cases.cond},
+    }
+    return json.dumps(_jsonable(payload), sort_keys=True, indent=1, allow_nan=False) + "\n"
+
+
+def _cell(value, factor=1.0) -> str:
+    return "n/a" if value is None else f"{factor * value:.4g}"
+
+
+def benchmark_markdown(result: BenchmarkResult, meta: Optional[dict] = None) -> str:
+    """Markdown table of medians: rows condition x reading x subset; each metric adapted and unadapted."""
+    meta = meta or {}
+    summary = result.summary()
+    header = ["condition", "reading", "subset", "n"]
+    for metric in METRICS:
+        header += [f"{METRIC_HEADERS[metric]} adapted", f"{METRIC_HEADERS[metric]} unadapted"]
+    lines = [f"# Fault benchmark: {meta.get('model', 'schema')}", "",
+             f"{len(result.cases)} cases ({meta.get('n_per_condition', '?')} per condition, seed "
+             f"{meta.get('seed', '?')}), adaptation variant `{meta.get('variant', '?')}`; medians over the cases "
+             f"(NaN left out); adaptation ok: {int(np.sum(result.adapt_status == 'ok'))}/{len(result.cases)}.",
+             "Readings: `paper` = the paper's metric definitions (jammed muscles excluded from the torque); "
+             "`phys` = jammed muscles pull with their stretch. `feasible`: cases with a physical solution.", "",
+             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    conds = [c for c in CONDITION_ORDER if c in summary["adapted"]["phys"]]
+    conds += [c for c in summary["adapted"]["phys"] if c not in conds]
+    for cond in conds:
+        for reading in summary["adapted"]:
+            for subset in ("all", "feasible"):
+                adapted = summary["adapted"][reading][cond][subset]
+                plain = summary["unadapted"][reading][cond][subset]
+                row = [cond, reading, subset, str(adapted["n"])]
+                for metric in METRICS:
+                    factor = METRIC_KEYS[metric][1]
+                    row += [_cell(adapted[metric], factor), _cell(plain[metric], factor)]
+                lines.append("| " + " | ".join(row) + " |")
+    timing = ", ".join(f"{k} {v:.3f} s" for k, v in result.seconds.items())
+    lines += ["", f"Wall time (this run; not in the JSON, which is byte-identical across reruns): {timing}.", ""]
+    return "\n".join(lines)
