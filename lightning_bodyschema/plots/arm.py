@@ -12,8 +12,8 @@ world x-z plane for a z-up model converted from OpenSim), oriented with "up" aga
 """
 from __future__ import annotations
 
+import io
 import os
-import tempfile
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -25,6 +25,7 @@ from matplotlib.patches import Circle
 from matplotlib.ticker import MaxNLocator
 
 from ..errors import BodySchemaInputError
+from ..npz import atomic_write_bytes
 from ..sim.model import MusculoskeletalModel
 
 _CYL, _SPHERE = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_SPHERE)
@@ -217,26 +218,12 @@ def _caller_grid(qs: np.ndarray, ax) -> np.ndarray:
 
 
 def save_figure_atomic(fig: Figure, path: str | os.PathLike):
-    """Write to a temporary file in the target folder, then rename: readers never see half a figure."""
+    """Render into memory, then write via a temp file and rename: readers never see half a figure."""
     path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    suffix = os.path.splitext(path)[1] or ".png"
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            fig.savefig(handle, format=suffix[1:])
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes the file private; give it the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    fmt = (os.path.splitext(path)[1] or ".png")[1:]
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format=fmt)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None = None,
