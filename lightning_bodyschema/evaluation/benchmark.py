@@ -7,7 +7,8 @@ so this module needs no Lightning. Metrics are computed twice:
   tension does not enter E_tau (and hence E_q);
 * ``phys``: jammed muscles pull with the tension of their stretch, as a real wire does.
 
-Each is summarised over all cases and over the cases that are feasible under the same reading.
+Each is summarised over all cases, over the cases that are feasible under the same reading, and over the
+feasible cases whose healthy command breaks a fault constraint (``feasible_active``: adaptation has work to do).
 """
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from .forward_solver import ForwardSolverParams
 from .metrics import METRICS, evaluate_commands
 
 READINGS = {"paper": False, "phys": True}  # reading -> jammed_tension_in_torque
+ACTIVE_CUT_N, ACTIVE_FIX_M = 0.5, 1e-4  # a healthy command breaking a fault by more than this needs adapting
 
 
 @dataclass
@@ -43,12 +45,23 @@ class BenchmarkResult:
                          for reading, values in by_reading.items()}
         return out
 
+    @property
+    def active(self) -> np.ndarray:
+        """Cases whose healthy command breaks a fault constraint (cut tension > 0.5 N or jam excess > 0.1 mm).
+
+        Where the healthy command already complies, adaptation has nothing to fix and can only tie.
+        """
+        plain = self.metrics["unadapted"]["phys"]
+        return (np.nan_to_num(plain["E_cut"]) > ACTIVE_CUT_N) | (np.nan_to_num(plain["E_fix"]) > ACTIVE_FIX_M)
+
     def _by_condition(self, values, feasible):
         table = {}
+        subsets = (("all", np.ones(len(self.cases), bool)), ("feasible", feasible),
+                   ("feasible_active", feasible & self.active))
         for cond in dict.fromkeys(self.cases.cond.tolist()):
             rows = self.cases.cond == cond
             table[cond] = {subset: {m: _median(values[m][rows & mask]) for m in METRICS} | {"n": int((rows & mask).sum())}
-                           for subset, mask in (("all", np.ones_like(rows)), ("feasible", feasible))}
+                           for subset, mask in subsets}
         return table
 
 
