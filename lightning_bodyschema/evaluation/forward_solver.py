@@ -56,9 +56,11 @@ class SolverStatus(enum.IntEnum):
     NO_IMPROVEMENT = 2  # mu reached mu_max and no step lowered the objective: a kink (taut/slack switch)
     MAX_ITER = 3  # iteration budget used up
     NONFINITE_COMMAND = 4  # l_motor or f has NaN/inf: not solved, q_hat is NaN
+    F_TOL = 5  # the model predicts a decrease below floating-point resolution of the objective: converged
 
 
-CONVERGED = (SolverStatus.G_TOL, SolverStatus.DX_TOL)
+CONVERGED = (SolverStatus.G_TOL, SolverStatus.DX_TOL, SolverStatus.F_TOL)
+_F_RESOLUTION = 1e-12  # relative objective decrease that rounding can no longer show
 
 
 @dataclass(frozen=True)
@@ -354,7 +356,7 @@ def _run(model, cmd: _Command, idx, params: ForwardSolverParams, out: PostureRes
         trial = _evaluate(model, q_try, cmd, params)
         out.n_iter[idx] += 1
         p, mu, status = _accept(p, trial, H, g, mu, params)
-        for code in (SolverStatus.DX_TOL, SolverStatus.NO_IMPROVEMENT):
+        for code in (SolverStatus.DX_TOL, SolverStatus.F_TOL, SolverStatus.NO_IMPROVEMENT):
             _finish(out, idx, p, status == code, code)
         running = status < 0
         if not running.any():
@@ -375,9 +377,11 @@ def _accept(p: _Point, trial: _Point, H, g, mu, params: ForwardSolverParams):
     predicted = -(2.0 * np.einsum("bi,bi->b", g, step) + np.einsum("bi,bij,bj->b", step, H, step))
     ratio = (p.objective - trial.objective) / np.maximum(predicted, 1e-300)
     small = (better | (mu <= params.mu_min)) & (np.linalg.norm(step, axis=1) < params.xtol_rad)
+    # a rejected step whose predicted gain is below rounding: nothing measurable is left to gain
+    flat = ~better & ~small & (predicted <= _F_RESOLUTION * np.abs(p.objective))
     mu = np.where(better & (ratio > 0.75), np.maximum(mu / params.mu_factor, params.mu_min), mu)
     mu = np.where(~better | (ratio < 0.25), mu * params.mu_factor, mu)
     new = _Point(*(np.where(better.reshape((-1,) + (1,) * (a.ndim - 1)), t, a) for t, a in zip(trial, p)))
-    status = np.where(small, int(SolverStatus.DX_TOL), -1)
+    status = np.where(small, int(SolverStatus.DX_TOL), np.where(flat, int(SolverStatus.F_TOL), -1))
     status = np.where(~small & ~better & (mu > params.mu_max), int(SolverStatus.NO_IMPROVEMENT), status)
     return new, mu, status
