@@ -5,6 +5,10 @@ A case is a target posture ``q_ref`` plus the faulty muscles: ruptured (``cut``,
 BOTH = 1 + 1, out of 6 muscles; faulty muscles distinct and uniformly drawn. ``l_fixed`` is the motor
 length "at the moment of jamming": we take the motor lengths of a random *other* posture of the same
 pool, i.e. the arm was elsewhere when the motor jammed and must now reach q_ref.
+
+Beyond the paper, two optional arrays: ``f_max`` (B, M) a weakened muscle's own tension limit [N]
+(NaN where not weakened) and ``l_band`` (B, M, 2) a motor that can move only inside [lo, hi] [m] (NaN
+where free). Files without them load as before, and cases without them save the five arrays only.
 """
 from __future__ import annotations
 
@@ -16,10 +20,12 @@ import numpy as np
 from ..errors import BodySchemaInputError
 from ..npz import load_npz, save_npz
 
-CONDITIONS = ("CUT", "FIX", "BOTH", "NONE")  # NONE: healthy, for checks and baselines
+CONDITIONS = ("CUT", "FIX", "BOTH", "NONE", "WEAK", "BAND", "MIXED")  # NONE: healthy, for checks and baselines
+# WEAK / BAND: only weakened / only length-banded muscles; MIXED: any other mix with those (see ``condition_of``)
 DEFAULT_N_CUT = {"CUT": 2, "FIX": 0, "BOTH": 1}
 DEFAULT_N_FIX = {"CUT": 0, "FIX": 2, "BOTH": 1}
 _ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
+_OPTIONAL = ("f_max", "l_band")  # new faults (not in the paper): saved only when present
 
 
 @dataclass
@@ -27,7 +33,9 @@ class FaultCases:
     """A batch of B fault cases (arrays, SI units).
 
     q_ref (B, N) target postures [rad]; cut, fix (B, M) bool; l_fixed (B, M) motor length at jamming
-    [m], NaN where not jammed; cond (B,) condition names ('CUT', 'FIX', 'BOTH' or 'NONE').
+    [m], NaN where not jammed; cond (B,) condition names (``CONDITIONS``).
+    Optional: f_max (B, M) weakened muscle's tension limit [N], NaN where not weakened; l_band (B, M, 2)
+    [lo, hi] motor-length band [m], NaN where the motor is free. None: no such fault in any case.
     """
 
     q_ref: np.ndarray
@@ -35,29 +43,48 @@ class FaultCases:
     fix: np.ndarray
     l_fixed: np.ndarray
     cond: np.ndarray
+    f_max: np.ndarray | None = None
+    l_band: np.ndarray | None = None
 
     def __post_init__(self):
-        for name in _ARRAYS:  # accept lists; dtypes are checked, not coerced
-            setattr(self, name, np.asarray(getattr(self, name)))
+        for name in _ARRAYS + _OPTIONAL:  # accept lists; dtypes are checked, not coerced
+            if getattr(self, name) is not None:
+                setattr(self, name, np.asarray(getattr(self, name)))
         validate_cases(self)
+
+    @property
+    def weak(self) -> np.ndarray:
+        """(B, M) bool: weakened muscles (finite ``f_max``)."""
+        return self.faults.weak
+
+    @property
+    def band(self) -> np.ndarray:
+        """(B, M) bool: length-banded motors."""
+        return self.faults.band
 
     def __len__(self) -> int:
         return self.q_ref.shape[0]
 
     def take(self, idx) -> "FaultCases":
         """The sub-batch ``idx`` (indices or a (B,) bool mask)."""
-        return FaultCases(*(getattr(self, k)[idx] for k in _ARRAYS))
+        optional = {k: getattr(self, k)[idx] for k in _OPTIONAL if getattr(self, k) is not None}
+        return FaultCases(*(getattr(self, k)[idx] for k in _ARRAYS), **optional)
 
     @property
     def faults(self):
         """The fault masks as ``faults.Faults``, what ``BodySchema.adapt`` takes."""
         from ..faults import Faults
 
-        return Faults(self.cut, self.fix, self.l_fixed)
+        return Faults(self.cut, self.fix, self.l_fixed, self.f_max, self.l_band)
 
     def save(self, path) -> None:
-        """Write the five arrays to ``path`` (.npz): atomic, and byte-identical for identical cases."""
-        save_npz(os.fspath(path), **{k: getattr(self, k) for k in _ARRAYS})
+        """Write the five arrays (and f_max / l_band if present) to ``path`` (.npz): atomic, byte-identical
+        for identical cases."""
+        save_npz(os.fspath(path), **self.arrays())
+
+    def arrays(self) -> dict:
+        """{name: array}: the five case arrays, plus f_max / l_band when present."""
+        return {k: getattr(self, k) for k in _ARRAYS + _OPTIONAL if getattr(self, k) is not None}
 
     @classmethod
     def load(cls, path, n_joints: int | None = None, n_muscles: int | None = None) -> "FaultCases":
@@ -72,12 +99,12 @@ class FaultCases:
 
 
 def _read_npz(path: str) -> dict:
-    """The five case arrays of an .npz file, refusing pickles, missing files and missing arrays."""
+    """The case arrays of an .npz file (f_max / l_band if present), refusing pickles, missing files and arrays."""
     try:
         arrays = load_npz(path, required=_ARRAYS)
     except BodySchemaInputError as err:
         raise BodySchemaInputError(f"case file: {err}; need arrays {list(_ARRAYS)}") from None
-    return {k: arrays[k] for k in _ARRAYS}
+    return {k: arrays[k] for k in _ARRAYS + _OPTIONAL if k in arrays}
 
 
 # ---------------------------------------------------------------------------- validation
@@ -97,12 +124,16 @@ def _check_shapes(c: FaultCases, n_joints, n_muscles):
         got = getattr(c, name).shape
         _require(got == shape, f"{name} has shape {got}; expected {shape} (B = {batch} rows of q_ref, "
                                f"M = {n_m} muscles)")
+    for name, tail in (("f_max", ()), ("l_band", (2,))):
+        got = None if getattr(c, name) is None else getattr(c, name).shape
+        _require(got is None or got == (batch, n_m) + tail,
+                 f"{name} has shape {got}; expected {(batch, n_m) + tail} (B = {batch}, M = {n_m})")
     _require(n_joints is None or c.q_ref.shape[1] == n_joints,
              f"q_ref has {c.q_ref.shape[1]} joints; the model has {n_joints}")
 
 
 def _check_dtypes(c: FaultCases):
-    for name in ("q_ref", "l_fixed"):
+    for name in ("q_ref", "l_fixed") + tuple(k for k in _OPTIONAL if getattr(c, k) is not None):
         _require(np.issubdtype(getattr(c, name).dtype, np.floating),
                  f"{name} must be a float array; got dtype {getattr(c, name).dtype}")
     for name in ("cut", "fix"):
@@ -112,7 +143,8 @@ def _check_dtypes(c: FaultCases):
 
 def _check_values(c: FaultCases):
     _require(bool(np.all(np.isfinite(c.q_ref))), "q_ref contains NaN or inf")
-    c.faults.validate(c.cut.shape[1])  # cut/fix overlap, every muscle cut, NaN l_fixed of a jammed muscle
+    # cut/fix overlap, every muscle cut, NaN l_fixed of a jammed muscle, bad f_max / band
+    c.faults.validate(c.cut.shape[1])
     _require(bool(np.all(np.isnan(c.l_fixed[~c.fix]))), "l_fixed must be NaN where the muscle is not jammed")
     unknown = sorted(set(c.cond.tolist()) - set(CONDITIONS))
     _require(not unknown, f"cond has unknown conditions {unknown}; allowed: {list(CONDITIONS)}")
@@ -123,6 +155,17 @@ def validate_cases(cases: FaultCases, n_joints: int | None = None, n_muscles: in
     _check_shapes(cases, n_joints, n_muscles)
     _check_dtypes(cases)
     _check_values(cases)
+
+
+def condition_of(cut, fix, weak=None, band=None) -> np.ndarray:
+    """(B,) condition labels from (B, M) fault masks: CUT / FIX / BOTH / NONE as in the paper, WEAK or
+    BAND when only weakened or only banded muscles are faulty, MIXED for any other mix with those."""
+    cut, fix = np.asarray(cut, bool).any(1), np.asarray(fix, bool).any(1)
+    weak = np.zeros_like(cut) if weak is None else np.asarray(weak, bool).any(1)
+    band = np.zeros_like(cut) if band is None else np.asarray(band, bool).any(1)
+    paper = np.where(cut & fix, "BOTH", np.where(cut, "CUT", np.where(fix, "FIX", "NONE")))
+    new = np.where(weak & ~band, "WEAK", np.where(band & ~weak, "BAND", "MIXED"))
+    return np.where(weak | band, np.where(cut | fix, "MIXED", new), paper).astype("<U5")
 
 
 # ---------------------------------------------------------------------------- generation

@@ -7,6 +7,8 @@ score (E_cut = E_fix = E_tau = E_q = 0) exists iff some f satisfies
 * healthy muscle i:        0 <= f_i <= f_max             (then l_motor_i = l_geo_i - phi^-1(f_i))
 * ruptured muscle i:       f_i = 0
 * jammed muscle j:         phi(d_j) <= f_j <= f_max,  d_j = max(0, l_geo_j(q_ref) - l_fixed_j)
+* weakened muscle i:       f_max is its own f_max' (``cases.f_max``) in every bound above
+* banded motor j:          phi(l_geo_j - hi_j) <= f_j <= phi(l_geo_j - lo_j)   (phi = 0 for a slack spring)
 
 Why the jammed bound: the fault is ``l_motor_j <= l_fixed_j`` (paper eq. muscle-fix: the wire can
 still be reeled in, not paid out). Any such motor length stretches the spring by
@@ -21,6 +23,11 @@ literal E_tau, whose taut set excludes jammed muscles: then the other healthy mu
 arm alone (jammed tensions are dropped from the equilibrium, the d_j <= phi^-1(f_max) test remains).
 Pair it with the same flag in ``ForwardSolverParams``: a command that is perfect under one torque
 convention is not under the other (see ``oracle_commands``).
+
+Why the band bound: the spring stretches by ``delta = l_geo - l_motor`` and f = phi(max(0, delta)) rises
+with delta, so ``lo <= l_motor <= hi`` is ``l_geo - hi <= delta <= l_geo - lo``. A band wholly above
+l_geo (the motor cannot reel in far enough to tighten the wire) allows only f = 0; a lower bound
+above the upper one (band or jam against f_max') leaves no command at all.
 """
 from __future__ import annotations
 
@@ -37,14 +44,21 @@ JAM_MODELS = ("one_sided", "immobile")
 
 def tension_bounds(l_geo, cases: FaultCases, spring: SpringParams, jam_model: str = "one_sided",
                    jammed_tension_in_torque: bool = True):
-    """Per-case tension bounds lo, hi (B, M) [N] at q_ref, the (B,) mask of cases whose jam bound
-    exceeds f_max, and f_need (B, M) = phi(d_j) on jammed muscles (0 elsewhere)."""
+    """Per-case tension bounds lo, hi (B, M) [N] at q_ref, the (B,) mask of cases whose jam (or band) lower
+    bound exceeds the upper one (f_max, a weakened muscle's f_max', a band's), and f_need (B, M) = phi(d_j)
+    on jammed muscles, raised to phi(l_geo - hi) on banded ones (0 elsewhere)."""
     if jam_model not in JAM_MODELS:
         raise BodySchemaInputError(f"jam_model={jam_model!r}; allowed: {list(JAM_MODELS)}")
-    f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), l_geo.shape)
+    f_max = cases.faults.f_limit(spring.f_max_n)  # a weakened muscle's own limit, else the robot's
     stretch = np.where(cases.fix, np.maximum(0.0, l_geo - np.where(cases.fix, cases.l_fixed, 0.0)), 0.0)
     f_need = np.where(cases.fix, tension_from_elongation(stretch, spring), 0.0)
     crossed = np.any(cases.fix & (stretch > elongation_from_tension(f_max, spring)), axis=1)
+    if cases.l_band is not None:  # banded motor: f in [phi(l_geo - hi), phi(l_geo - lo)]
+        band = cases.band
+        band_lo, band_hi = (np.where(band, tension_from_elongation(l_geo - np.nan_to_num(cases.l_band[..., k]),
+                                                                  spring), v) for k, v in ((1, 0.0), (0, np.inf)))
+        f_need, f_max = np.maximum(f_need, band_lo), np.minimum(f_max, band_hi)
+        crossed |= np.any(band & (f_need > f_max), axis=1)
     lo = np.minimum(f_need, f_max)  # keep lo <= hi so the QP is well posed; ``crossed`` remembers
     hi = np.where(cases.cut, 0.0, f_max)
     if jam_model == "immobile":
@@ -80,9 +94,14 @@ def oracle_commands(model: MusculoskeletalModel, cases: FaultCases, spring: Spri
                     **kwargs):
     """(feasible, l_motor [m], f [N]) (B, M): a perfect command for every feasible case (NaN rows else).
 
-    ``l_motor = l_geo(q_ref) - phi^-1(f*)``; for a jammed muscle this is <= l_fixed by construction.
-    A yardstick for the evaluation: it should score E_cut = E_fix = 0 and E_q, E_tau ~ 0.
+    ``l_motor = l_geo(q_ref) - phi^-1(f*)``; for a jammed muscle this is <= l_fixed by construction. A
+    banded motor is clipped into its band (only moves a slack wire's motor: f* = 0 there, any
+    l_motor >= l_geo gives it). A yardstick for the evaluation: it should score E_cut = E_fix = E_weak =
+    E_band = 0 and E_q, E_tau ~ 0.
     """
     feasible, f_star = check_feasible(model, cases, spring, **kwargs)
     l_geo, _, _ = model.kinematics(cases.q_ref)
-    return feasible, l_geo - elongation_from_tension(f_star, spring), f_star
+    l_motor = l_geo - elongation_from_tension(f_star, spring)
+    if cases.l_band is not None:
+        l_motor = np.where(cases.band, np.clip(l_motor, cases.l_band[..., 0], cases.l_band[..., 1]), l_motor)
+    return feasible, l_motor, f_star

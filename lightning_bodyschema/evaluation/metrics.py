@@ -5,6 +5,14 @@
     E_tau = || -G(q_hat)^T f_eff - tau_bias(q_hat) ||_2               [N m] f_eff: f on the taut set E(q_hat)
     E_q   = || q_ref - q_hat ||_2                                     [rad]
 
+Beyond the paper (``EXTRA_METRICS``, NaN for cases without such a fault):
+
+    E_weak = mean_{i weakened} max(0, f_i - f_max'_i)                 [N]
+    E_band = mean_{j banded} max(0, lo_j - l_motor_j, l_motor_j - hi_j) [m]
+
+The posture solver takes the command as sent (weakened and banded muscles as healthy ones), so
+E_tau and E_q score the command itself; E_weak and E_band say how far it breaks the new faults.
+
 q_hat comes from ``solve_posture``. A metric whose index set is empty for a case (E_fix under CUT,
 E_cut under FIX) is NaN there, so means over a condition never mix in meaningless zeros.
 E_q alone reacts weakly to torque imbalance (the length residuals dominate the solver's objective),
@@ -20,6 +28,7 @@ from .cases import FaultCases
 from .forward_solver import ForwardSolverParams, solve_posture
 
 METRICS = ("E_cut", "E_fix", "E_tau", "E_q")
+EXTRA_METRICS = ("E_weak", "E_band")  # weakened muscles, length-banded motors (not in the paper)
 
 
 def _masked_mean(values, mask):
@@ -41,12 +50,27 @@ def fix_error(cases: FaultCases, l_motor) -> np.ndarray:
     return _masked_mean(over, cases.fix)
 
 
+def weak_error(cases: FaultCases, f) -> np.ndarray:
+    """E_weak (B,) [N]: mean max(0, f_i - f_max'_i) over the weakened muscles (NaN without any)."""
+    limit = np.zeros(cases.cut.shape) if cases.f_max is None else np.nan_to_num(cases.f_max)
+    return _masked_mean(np.maximum(0.0, np.asarray(f, float) - limit), cases.weak)
+
+
+def band_error(cases: FaultCases, l_motor) -> np.ndarray:
+    """E_band (B,) [m]: mean distance of l_motor_j outside [lo_j, hi_j] over the banded motors (NaN without any)."""
+    band, l_motor = cases.band, np.asarray(l_motor, float)
+    if cases.l_band is None:
+        return _masked_mean(np.zeros_like(l_motor), band)
+    lo, hi = np.nan_to_num(cases.l_band[..., 0]), np.nan_to_num(cases.l_band[..., 1])
+    return _masked_mean(np.maximum(0.0, np.maximum(lo - l_motor, l_motor - hi)), band)
+
+
 def evaluate_commands(model: MusculoskeletalModel, cases: FaultCases, l_motor, f,
                       spring: SpringParams = SpringParams(),
                       params: ForwardSolverParams = ForwardSolverParams()) -> dict:
     """Solve for q_hat and score the commands (l_motor [m], f [N]) (B, M) of ``cases``.
 
-    Returns (B,) arrays E_cut, E_fix, E_tau, E_q, status (``SolverStatus`` ints), converged, n_iter,
+    Returns (B,) arrays E_cut, E_fix, E_tau, E_q, E_weak, E_band, status (``SolverStatus`` ints), converged, n_iter,
     objective, and q_hat (B, N). Cases with a non-finite command have NaN E_tau, E_q and q_hat.
     """
     res = solve_posture(model, l_motor, f, cases.q_ref, cases.cut, cases.fix, cases.l_fixed, spring, params)
@@ -55,13 +79,16 @@ def evaluate_commands(model: MusculoskeletalModel, cases: FaultCases, l_motor, f
         "E_fix": fix_error(cases, l_motor),
         "E_tau": np.linalg.norm(res.tau_nm, axis=1),
         "E_q": np.linalg.norm(cases.q_ref - res.q_hat, axis=1),
+        "E_weak": weak_error(cases, f), "E_band": band_error(cases, l_motor),
         "q_hat": res.q_hat, "status": res.status, "converged": res.converged,
         "n_iter": res.n_iter, "objective": res.objective,
     }
 
 
-def summarize_metrics(metrics: dict, cond, mask=None) -> dict:
+def summarize_metrics(metrics: dict, cond, mask=None, names=METRICS) -> dict:
     """{condition: {metric: {n, median, q1, q3, mean}}} over the cases in ``mask`` (default: all).
+
+    ``names``: which metrics (default the paper's four; ``METRICS + EXTRA_METRICS`` for all).
 
     NaN entries (empty index sets, failed commands) are left out and not counted in n.
     """
@@ -70,7 +97,7 @@ def summarize_metrics(metrics: dict, cond, mask=None) -> dict:
     out = {}
     for c in dict.fromkeys(cond.tolist()):
         rows = (cond == c) & mask
-        out[c] = {m: _stats(np.asarray(metrics[m])[rows]) for m in METRICS}
+        out[c] = {m: _stats(np.asarray(metrics[m])[rows]) for m in names}
     return out
 
 

@@ -21,6 +21,9 @@ Force model (one case = one MuJoCo rollout), muscle i with tendon length ``l_geo
   ``feasibility.check_feasible`` (``jam_model="one_sided"``): its oracle commands settle exactly at
   q_ref. ``jam="held"``: the winch cannot move at all, rest length ``l_fixed_j`` whatever the command
   says (then only ``jam_model="immobile"`` oracle commands settle at q_ref).
+* weakened muscles (``FaultCases.f_max``): the tension saturates at f_max' (the motor slips, both modes).
+* banded motors (``FaultCases.l_band``, length mode): the winch stops at its band, rest length
+  ``clip(l_motor, lo, hi)`` (after the jam's ``min``); in tension mode the band is not modelled.
 
 Tensions act on the joints as ``qfrc_applied = -J_ten^T f`` with MuJoCo's own ``ten_length`` /
 ``ten_J`` (sparse in MuJoCo 4, scattered into a dense (M, nv) buffer) of the current state:
@@ -208,19 +211,28 @@ class _Laws(NamedTuple):
     rest_m: np.ndarray  # spring rest length [m]
     spring: np.ndarray  # bool: exponential spring (else a constant force)
     f_const_n: np.ndarray  # constant tension where not a spring [N] (0 for cut muscles)
+    f_cap_n: np.ndarray  # tension ceiling [N]: a weakened muscle's f_max', inf elsewhere
 
     def take(self, idx):
         return _Laws(*(a[idx] for a in self))
 
 
-def _force_laws(l_motor, f, cut, fix, l_fixed, params: SettleParams) -> _Laws:
-    """The force law of every muscle of every case (see the module docstring)."""
+def _force_laws(l_motor, f, cut, fix, l_fixed, params: SettleParams, f_max=None, l_band=None) -> _Laws:
+    """The force law of every muscle of every case (see the module docstring).
+
+    ``f_max`` (B, M) weakened muscles' limits (NaN: not weakened), ``l_band`` (B, M, 2) motor bands (NaN: free).
+    """
     with np.errstate(invalid="ignore"):  # NaN commands are never simulated
         jam_rest = l_fixed if params.jam == "held" else np.minimum(l_motor, l_fixed)
         healthy = ~(cut | fix)
         spring = fix | (healthy & (params.mode == "length"))
         f_const = np.where(healthy & ~spring, np.maximum(f, 0.0), 0.0)
-    return _Laws(np.where(fix, jam_rest, l_motor), spring, f_const)
+        rest = np.where(fix, jam_rest, l_motor)
+        if l_band is not None and params.mode == "length":
+            banded = ~np.isnan(l_band).all(-1)
+            rest = np.where(banded, np.clip(rest, l_band[..., 0], l_band[..., 1]), rest)
+    f_cap = np.full(rest.shape, np.inf) if f_max is None else np.where(np.isnan(f_max), np.inf, f_max)
+    return _Laws(rest, spring, f_const, f_cap)
 
 
 # ---------------------------------------------------------------------------- simulation
@@ -267,7 +279,7 @@ class _Simulator:
             spring = self.k * (grow - 1.0)
             if self.params.muscle_damping_s > 0:  # beta * dphi/ddelta * dl/dt while taut
                 spring += (self.params.muscle_damping_s * self.alpha * self.k) * (taut * grow) * velocity
-            return np.maximum(np.where(laws.spring, spring, laws.f_const_n), 0.0)
+            return np.minimum(np.maximum(np.where(laws.spring, spring, laws.f_const_n), 0.0), laws.f_cap_n)
 
     def _joint_forces(self, ten_j, f) -> np.ndarray:
         """-J_ten^T f (B, nv) [N m] from the sparse ``ten_J`` values (B, nJ) of each data."""
@@ -362,7 +374,7 @@ def settle(model: MusculoskeletalModel, l_motor, f, cases_or_q_ref, cut=None, fi
            spring: SpringParams = SpringParams(), params: SettleParams = SettleParams()) -> SettleResult:
     """Simulate each command (l_motor [m], f [N]) (B, M) from q_ref at rest until the arm stops.
 
-    ``cases_or_q_ref`` is a ``FaultCases`` (its cut / fix / l_fixed are used) or q_ref (B, N) [rad]
+    ``cases_or_q_ref`` is a ``FaultCases`` (its cut / fix / l_fixed, and f_max / l_band, are used) or q_ref (B, N) [rad]
     with optional ``cut``, ``fix`` (B, M) bool and ``l_fixed`` (B, M) [m] (NaN where not jammed);
     without them every muscle is healthy. Cases with a non-finite command are not simulated
     (status NONFINITE_COMMAND, NaN rows). The others run in lockstep chunks of ``params.chunk_size``.
@@ -373,7 +385,9 @@ def settle(model: MusculoskeletalModel, l_motor, f, cases_or_q_ref, cut=None, fi
     out = SettleResult(np.full((batch, n_j), np.nan), np.full(batch, np.nan),
                        np.full(batch, int(SettleStatus.NONFINITE_COMMAND), np.int8), np.zeros(batch),
                        np.full((batch, n_j), np.nan), np.full((batch, n_m), np.nan))
-    laws = _force_laws(l_motor, f, cut, fix, l_fixed, params)
+    new_faults = ({"f_max": cases_or_q_ref.f_max, "l_band": cases_or_q_ref.l_band}
+                  if isinstance(cases_or_q_ref, FaultCases) else {})  # weakened / banded: only through FaultCases
+    laws = _force_laws(l_motor, f, cut, fix, l_fixed, params, **new_faults)
     idx = np.flatnonzero(finite)
     sim = _Simulator(model, spring, params) if idx.size else None
     chunk = int(params.chunk_size)

@@ -1,5 +1,8 @@
-"""Fault constraints (rupture, jamming, tension bounds) and the adaptation loss. Never imports Lightning."""
-from .constraints import (AdaptWeights, Constraint, Jam, MaxTension, MinTension, Rupture, adaptation_loss)
+"""Fault constraints (rupture, jamming, length band, tension bounds; a weakened muscle lowers its bound) and the
+adaptation loss. Never imports Lightning."""
+from .constraints import (AdaptWeights, Constraint, Jam, LengthBand, MaxTension, MinTension, Rupture,
+                          adaptation_loss)
 from .faults import Faults
 
-__all__ = ["AdaptWeights", "Constraint", "Jam", "MaxTension", "MinTension", "Rupture", "adaptation_loss", "Faults"]
+__all__ = ["AdaptWeights", "Constraint", "Jam", "LengthBand", "MaxTension", "MinTension", "Rupture", "adaptation_loss",
+           "Faults"]

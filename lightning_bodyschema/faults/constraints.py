@@ -1,5 +1,8 @@
 """Fault constraints and the adaptation loss (paper eq:muscle-cut, eq:muscle-fix, eq:latent-opt).
 
+Beyond the paper: a weakened muscle is ``MaxTension`` with a lowered per-case limit, and a motor
+confined to a length band is ``LengthBand``.
+
 Each constraint is one small class over a batch of cases, each case with its own muscles (masks):
 ``loss`` gives the penalty per case (torch, differentiable), ``violation`` the worst breach in SI units.
 The adaptation loss is the weighted sum over the constraints plus the tension bounds 0 <= f <= f_max.
@@ -92,14 +95,39 @@ class MaxTension(Constraint):
         return (self.mask * torch.relu(f_n - self.f_max_n)).amax(-1)
 
 
+@dataclass
+class LengthBand(Constraint):
+    """Motor confined to a band: l_lo_j <= l_motor_j <= l_hi_j; ``l_lo_m``, ``l_hi_m (B, M)``, ignored off the mask.
+
+    A jam is the one-sided case (l_hi = l_fixed, l_lo = -inf); a band also stops the motor reeling in.
+    """
+
+    l_lo_m: torch.Tensor = None
+    l_hi_m: torch.Tensor = None
+    weight_name = "c_band"
+
+    def _excess(self, l_motor_m):
+        """Distance outside the band per muscle [m] (0 inside it and off the mask)."""
+        below = torch.nan_to_num(self.l_lo_m) - l_motor_m
+        above = l_motor_m - torch.nan_to_num(self.l_hi_m)
+        return torch.where(self.mask, torch.relu(torch.maximum(below, above)), torch.zeros_like(l_motor_m))
+
+    def loss(self, l_motor_m, f_n, l_scale, f_scale):
+        return (self._excess(l_motor_m) / l_scale).square().sum(-1)
+
+    def violation(self, l_motor_m, f_n):
+        return self._excess(l_motor_m).amax(-1)
+
+
 @dataclass(frozen=True)
 class AdaptWeights:
-    """Loss weights C^adapt; defaults are the paper's (section IV-A)."""
+    """Loss weights C^adapt; defaults are the paper's (section IV-A). ``c_band`` (not in the paper) is c_fix's value."""
 
     c_cut: float = 0.01
     c_fix: float = 1.0
     c_fmin: float = 0.01
     c_fmax: float = 0.01
+    c_band: float = 1.0
 
 
 def adaptation_loss(constraints, weights: AdaptWeights, l_motor_m, f_n, l_scale=1.0, f_scale=1.0) -> torch.Tensor:

@@ -1,14 +1,15 @@
-"""``Faults``: which muscles are cut or jammed in each case of a batch, validated against the model."""
+"""``Faults``: which muscles are cut, jammed, weakened or length-banded in each case of a batch, validated
+against the model."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 import torch
 
 from ..errors import BodySchemaInputError
-from .constraints import Jam, MaxTension, MinTension, Rupture
+from .constraints import Jam, LengthBand, MaxTension, MinTension, Rupture
 
 
 @dataclass
@@ -17,16 +18,40 @@ class Faults:
 
     cut (B, M) bool: ruptured muscles (f = 0). fix (B, M) bool: jammed motors (l_motor <= l_fixed).
     l_fixed_m (B, M): motor length when it jammed [m], NaN where not jammed.
-    f_max_n (B, M) or None: per-case tension limit [N] (a weakened muscle), default the robot's f_max.
+    f_max_n (B, M) or None: per-case tension limit [N] of a weakened muscle (f <= f_max'); NaN (or None
+    for the whole batch) means the robot's own f_max.
+    l_band_m (B, M, 2) or None: [lo, hi] motor-length band [m] of a motor that can move only inside it
+    (lo <= l_motor <= hi); NaN rows where the motor is free. A banded muscle cannot also be cut.
     """
 
     cut: np.ndarray
     fix: np.ndarray
     l_fixed_m: np.ndarray
     f_max_n: Optional[np.ndarray] = None
+    l_band_m: Optional[np.ndarray] = None
 
     def __len__(self):
         return len(self.cut)
+
+    @property
+    def weak(self) -> np.ndarray:
+        """(B, M) bool: muscles with their own tension limit ``f_max_n``."""
+        return np.zeros(self.cut.shape, bool) if self.f_max_n is None else ~np.isnan(self.f_max_n)
+
+    @property
+    def band(self) -> np.ndarray:
+        """(B, M) bool: motors confined to a length band ``l_band_m``."""
+        return np.zeros(self.cut.shape, bool) if self.l_band_m is None else ~np.isnan(self.l_band_m).all(-1)
+
+    def f_limit(self, robot_f_max_n) -> np.ndarray:
+        """(B, M) tension limit [N]: ``f_max_n`` where weakened, else the robot's f_max (scalar or per muscle)."""
+        robot = np.broadcast_to(np.asarray(robot_f_max_n, float), self.cut.shape)
+        return robot.copy() if self.f_max_n is None else np.where(self.weak, self.f_max_n, robot)
+
+    def take(self, idx) -> "Faults":
+        """The sub-batch ``idx`` (indices or a (B,) bool mask)."""
+        pick = lambda a: None if a is None else np.asarray(a)[idx]  # noqa: E731
+        return Faults(pick(self.cut), pick(self.fix), pick(self.l_fixed_m), pick(self.f_max_n), pick(self.l_band_m))
 
     @classmethod
     def none(cls, n_cases: int, n_muscles: int) -> "Faults":
@@ -35,46 +60,81 @@ class Faults:
         return cls(off, off.copy(), np.full((n_cases, n_muscles), np.nan))
 
     @classmethod
-    def from_names(cls, muscle_names: Sequence[str], cut: Sequence[Sequence] = (), jam: Sequence[dict] = (),
+    def from_names(cls, muscle_names: Sequence[str], cut: Sequence[Sequence] = (), jam=(), weak=(), band=(),
                    n_cases: Optional[int] = None) -> "Faults":
         """Build from per-case lists: ``cut=[["shoulder_flexor"], [2]]``, ``jam=[{}, {"elbow_flexor": 0.151}]``.
 
-        Muscles may be named or indexed; each list entry is one case.
+        Muscles may be named or indexed; each list entry is one case. ``weak`` ({muscle: f_max' [N]}) and
+        ``band`` ({muscle: [lo, hi] [m]}) work like ``jam``. ``jam``, ``weak`` and ``band`` may also be one
+        dict, which then applies to every case: ``weak={"elbow_flexor": 60.0}``.
         """
-        n_cases = n_cases or max(len(cut), len(jam))
+        args = {"jam": jam, "weak": weak, "band": band}
+        per_case = {name: [arg] if isinstance(arg, Mapping) else list(arg) for name, arg in args.items()}
+        n_cases = n_cases or max(len(cut), *(len(v) for v in per_case.values()))
+        for name, arg in args.items():
+            if isinstance(arg, Mapping):  # one dict: the same fault in every case
+                per_case[name] = per_case[name] * n_cases
+            if len(per_case[name]) > n_cases:
+                raise BodySchemaInputError(f"{name} has {len(per_case[name])} entries for {n_cases} cases")
+        if len(cut) > n_cases:
+            raise BodySchemaInputError(f"cut has {len(cut)} entries for {n_cases} cases")
         faults = cls.none(n_cases, len(muscle_names))
         for b, muscles in enumerate(cut):
             faults.cut[b, [_muscle_index(m, muscle_names) for m in muscles]] = True
-        for b, jammed in enumerate(jam):
+        for b, jammed in enumerate(per_case["jam"]):
             for m, l_fixed in jammed.items():
                 faults.fix[b, _muscle_index(m, muscle_names)] = True
-                faults.l_fixed_m[b, _muscle_index(m, muscle_names)] = l_fixed
+                faults.l_fixed_m[b, _muscle_index(m, muscle_names)] = _number(l_fixed, f"jam[{b}][{m!r}]")
+        if any(per_case["weak"]):
+            faults.f_max_n = np.full(faults.cut.shape, np.nan)
+            for b, weakened in enumerate(per_case["weak"]):
+                for m, f_max in weakened.items():
+                    faults.f_max_n[b, _muscle_index(m, muscle_names)] = _number(f_max, f"weak[{b}][{m!r}]")
+        if any(per_case["band"]):
+            faults.l_band_m = np.full(faults.cut.shape + (2,), np.nan)
+            for b, banded in enumerate(per_case["band"]):
+                for m, lo_hi in banded.items():
+                    faults.l_band_m[b, _muscle_index(m, muscle_names)] = _band(lo_hi, f"band[{b}][{m!r}]")
         return faults.validate(len(muscle_names))
 
     def validate(self, n_muscles: int) -> "Faults":
         """Refuse inconsistent faults with a message naming the case and muscle."""
-        self.cut, self.fix = np.asarray(self.cut, bool), np.asarray(self.fix, bool)
-        self.l_fixed_m = np.asarray(self.l_fixed_m, float)
-        for name in ("cut", "fix", "l_fixed_m"):
+        batch = len(self.cut)
+        for name, dtype, tail in (("cut", bool, ()), ("fix", bool, ()), ("l_fixed_m", float, ()),
+                                  ("f_max_n", float, ()), ("l_band_m", float, (2,))):
+            if getattr(self, name) is None:
+                continue
+            setattr(self, name, np.asarray(getattr(self, name), dtype))
             shape = getattr(self, name).shape
-            if shape != (len(self.cut), n_muscles):
-                raise BodySchemaInputError(f"faults.{name} has shape {shape}; expected (B, {n_muscles})")
+            if shape != (batch, n_muscles) + tail:
+                expected = ", ".join(["B", str(n_muscles)] + [str(t) for t in tail])
+                raise BodySchemaInputError(f"faults.{name} has shape {shape}; expected ({expected})")
         _refuse_cases(self.cut & self.fix, "the same muscle is both cut and jammed")
         _refuse_cases(self.cut.all(axis=1)[:, None], "every muscle is cut: nothing can hold the arm")
         _refuse_cases(self.fix & ~np.isfinite(self.l_fixed_m), "a jammed muscle has a NaN/inf l_fixed")
-        if self.f_max_n is not None:
-            self.f_max_n = np.asarray(self.f_max_n, float)
-            _refuse_cases(~np.isfinite(self.f_max_n) | (self.f_max_n < 0), "f_max_n is negative or not finite")
+        if self.f_max_n is not None:  # NaN: the robot's f_max
+            _refuse_cases(np.isinf(self.f_max_n) | (self.f_max_n < 0),
+                          "f_max_n of a weakened muscle is negative or inf")
+        if self.l_band_m is not None:
+            band, (lo, hi) = self.band, np.moveaxis(self.l_band_m, -1, 0)
+            _refuse_cases(band & ~(np.isfinite(lo) & np.isfinite(hi)), "a length band has a NaN/inf bound")
+            with np.errstate(invalid="ignore"):
+                _refuse_cases(band & (lo > hi), "a length band has lo > hi")
+            _refuse_cases(band & self.cut, "the same muscle is both cut and length-banded")
         return self
 
     def constraints(self, f_max_n, dtype=torch.float64, device=None) -> list:
-        """The torch constraints of this batch (tension bounds included), for the adaptation loss."""
+        """The torch constraints of this batch (tension bounds included, a weakened muscle's limit lowered),
+        for the adaptation loss. ``f_max_n``: the robot's limit (scalar or per muscle)."""
         as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
         cut = torch.as_tensor(self.cut, device=device)
-        f_max = self.f_max_n if self.f_max_n is not None else np.broadcast_to(f_max_n, self.cut.shape).copy()
         healthy = ~cut
-        return [Rupture(cut), Jam(torch.as_tensor(self.fix, device=device), as_t(self.l_fixed_m)),
-                MinTension(healthy, as_t(np.zeros(self.cut.shape))), MaxTension(healthy, as_t(f_max))]
+        out = [Rupture(cut), Jam(torch.as_tensor(self.fix, device=device), as_t(self.l_fixed_m)),
+               MinTension(healthy, as_t(np.zeros(self.cut.shape))), MaxTension(healthy, as_t(self.f_limit(f_max_n)))]
+        if self.band.any():  # only when used: a fault-free batch runs exactly the paper's loss
+            out.append(LengthBand(torch.as_tensor(self.band, device=device), as_t(self.l_band_m[..., 0]),
+                                  as_t(self.l_band_m[..., 1])))
+        return out
 
 
 def _muscle_index(muscle, names) -> int:
@@ -85,6 +145,22 @@ def _muscle_index(muscle, names) -> int:
     if muscle not in names:
         raise BodySchemaInputError(f"unknown muscle {muscle!r}; the model's muscles are {list(names)}")
     return list(names).index(muscle)
+
+
+def _number(value, where: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = np.nan
+    if isinstance(value, bool) or not np.isfinite(number):
+        raise BodySchemaInputError(f"{where} = {value!r}; need a finite number")
+    return number
+
+
+def _band(value, where: str) -> list:
+    if isinstance(value, (str, bytes)) or np.ndim(value) != 1 or len(value) != 2:
+        raise BodySchemaInputError(f"{where} = {value!r}; a band is [lo, hi] in metres")
+    return [_number(v, where) for v in value]
 
 
 def _refuse_cases(bad: np.ndarray, what: str):

@@ -63,6 +63,8 @@ class BodySchema(L.LightningModule):
                 "a schema needs `robot` (EquilibriumDataModule(...).robot); the CLI links it from the data")
         if batch_size <= 0:
             raise BodySchemaInputError(f"batch_size={batch_size!r} must be a positive integer")
+        if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
+            raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
         self.automatic_optimization = False  # several minibatch updates per Lightning step (one per epoch)
         self.robot_model = MusculoskeletalModel(robot["model_xml"], muscles=robot["muscles"])
         self.spring = SpringParams(**robot["spring"])
@@ -91,7 +93,8 @@ class BodySchema(L.LightningModule):
         return type(self).adapt_normalized is not BodySchema.adapt_normalized
 
     def adapt(self, q_ref, faults, variant: str = "default", **options) -> AdaptationResult:
-        """Commands at postures ``q_ref (B, N)`` [rad] that respect ``faults`` (a ``faults.Faults``, one row per case).
+        """Commands at postures ``q_ref (B, N)`` [rad] that respect ``faults`` (a ``faults.Faults``, one row per case:
+        cut, jammed, weakened and length-banded muscles; see ``adapt_to_target`` for hand targets instead of q_ref).
 
         variant ``"literal"``: the paper's loss in SI units with its weights and learning rate.
         variant ``"default"``: every residual measured in spreads of the healthy data (z-score units), unit
@@ -113,6 +116,53 @@ class BodySchema(L.LightningModule):
             x_n = self.adapt_normalized(self.encode_q(torch.as_tensor(q)), loss_fn, variant, **options)
         return self._command(self.decode(x_n), faults, constraints)
 
+    def adapt_to_target(self, target_xyz, faults, site: str = "hand", variant: str = "default",
+                        tol_m: float = 1e-4, ik_options: Optional[dict] = None, **options) -> AdaptationResult:
+        """Commands that put ``site`` on the task-space targets ``target_xyz (B, 3)`` [m] under ``faults``.
+
+        q_ref comes from inverse kinematics inside the joint limits (``TorchKinematicTwin``: damped least
+        squares from seeded random starts; ``ik_options`` go to ``inverse_kinematics``, e.g. ``n_restarts``,
+        ``max_iter``, ``seed``, ``q0``), and the reach is checked on MuJoCo, the source of truth. A target the
+        site cannot reach within ``tol_m`` gets status ``"unreachable"`` and NaN rows: no command. The
+        reached cases are then adapted together by ``adapt(q_ref, faults, variant, **options)``.
+
+        ``diagnostics`` gains ``q_ref (B, N)`` (NaN where unreachable), ``q_closest (B, N)`` (the IK
+        posture, the closest found for unreachable targets) and ``target_error_m (B,)`` (MuJoCo distance
+        from the site at q_closest to the target).
+        """
+        twin = self.kinematic_twin()
+        target = twin._check_target(target_xyz).numpy()
+        faults.validate(self.n_muscles)
+        if len(faults) != len(target):
+            raise BodySchemaInputError(f"{len(target)} targets but {len(faults)} fault rows; give one row per case")
+        if variant not in self.VARIANTS:  # refuse before spending time on the inverse kinematics
+            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
+        with torch.inference_mode(False):
+            q = twin.inverse_kinematics(target, site=site, tol_m=tol_m, **(ik_options or {})).q.numpy()
+        error = np.linalg.norm(self.robot_model.site_position(q, site) - target, axis=1)
+        reached = error <= tol_m
+        n, m = len(target), self.n_muscles
+        out = AdaptationResult(np.full((n, m), np.nan), np.full((n, m), np.nan),
+                               np.full(n, "unreachable", dtype="<U16"), {})
+        if reached.any():
+            inner = self.adapt(q[reached], faults.take(reached), variant, **options)
+            out.l_motor_m[reached], out.f_n[reached], out.status[reached] = inner.l_motor_m, inner.f_n, inner.status
+            for name, value in inner.diagnostics.items():
+                value = np.asarray(value)
+                full = np.full((n,) + value.shape[1:], np.nan if value.dtype.kind == "f" else 0, value.dtype)
+                full[reached] = value
+                out.diagnostics[name] = full
+        out.diagnostics.update(q_ref=np.where(reached[:, None], q, np.nan), q_closest=q, target_error_m=error)
+        return out
+
+    def kinematic_twin(self):
+        """The robot's ``TorchKinematicTwin`` (built once, on first use: pytorch-kinematics IK and frames)."""
+        if getattr(self, "_twin", None) is None:
+            from ..sim.twin import TorchKinematicTwin
+
+            self._twin = TorchKinematicTwin(self.robot_model)  # a plain attribute: not in the state dict
+        return self._twin
+
     def adaptation_loss_fn(self, constraints, variant: str):
         """L_adapt on normalized x (eq:latent-opt): SI units (literal) or z-score units with unit weights."""
         m = self.n_muscles
@@ -120,7 +170,7 @@ class BodySchema(L.LightningModule):
             weights, l_scale, f_scale = AdaptWeights(), 1.0, 1.0
         else:
             std = self.normalizer.x_std.to(next(self.parameters()).dtype)
-            weights, l_scale, f_scale = AdaptWeights(1.0, 1.0, 1.0, 1.0), std[:m], std[m:]
+            weights, l_scale, f_scale = AdaptWeights(1.0, 1.0, 1.0, 1.0, c_band=1.0), std[:m], std[m:]
 
         def loss_fn(x_n):
             x = self.normalizer.decode_x(x_n)
@@ -132,13 +182,21 @@ class BodySchema(L.LightningModule):
         """Safe command: non-finite rows become NaN with status ``non_finite``; f clipped into its bounds."""
         l_motor, f = x[:, : self.n_muscles].cpu().numpy(), x[:, self.n_muscles:].cpu().numpy()
         finite = np.isfinite(l_motor).all(1) & np.isfinite(f).all(1)
-        f_max = faults.f_max_n if faults.f_max_n is not None else np.broadcast_to(self.spring.f_max_n, f.shape)
+        f_max = faults.f_limit(self.spring.f_max_n)  # a weakened muscle's own limit, else the robot's
         f_safe = np.clip(np.nan_to_num(f), 0.0, f_max)
         status = np.where(finite, "ok", "non_finite").astype("<U16")
-        diagnostics = {"f_clipped_n": np.where(finite, np.abs(f_safe - np.nan_to_num(f)).max(1), np.nan),
-                       "cut_violation_n": np.where(finite, (faults.cut * np.abs(f_safe)).max(1), np.nan),
-                       "jam_violation_m": np.where(finite, np.where(faults.fix, np.maximum(
-                           0.0, l_motor - np.nan_to_num(faults.l_fixed_m)), 0.0).max(1), np.nan)}
+        band, (lo, hi) = faults.band, (np.zeros((2,) + f.shape) if faults.l_band_m is None
+                                       else np.nan_to_num(np.moveaxis(faults.l_band_m, -1, 0)))
+        with np.errstate(invalid="ignore"):
+            diagnostics = {"f_clipped_n": np.where(finite, np.abs(f_safe - np.nan_to_num(f)).max(1), np.nan),
+                           "cut_violation_n": np.where(finite, (faults.cut * np.abs(f_safe)).max(1), np.nan),
+                           "jam_violation_m": np.where(finite, np.where(faults.fix, np.maximum(
+                               0.0, l_motor - np.nan_to_num(faults.l_fixed_m)), 0.0).max(1), np.nan),
+                           # before clipping: how far the adapted tension overshot a weakened muscle's limit
+                           "weak_violation_n": np.where(finite, np.where(faults.weak, np.maximum(
+                               0.0, f - f_max), 0.0).max(1), np.nan),
+                           "band_violation_m": np.where(finite, np.where(band, np.maximum(
+                               np.maximum(lo - l_motor, l_motor - hi), 0.0), 0.0).max(1), np.nan)}
         l_motor = np.where(finite[:, None], l_motor, np.nan)
         f_safe = np.where(finite[:, None], f_safe, np.nan)
         return AdaptationResult(l_motor, f_safe, status, diagnostics)
