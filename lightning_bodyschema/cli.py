@@ -5,7 +5,13 @@
     bodyschema fit --model DiffusionSchema --data.n_samples 800 --trainer.max_epochs 100
 
 The data module's robot (XML, muscles, spring) is linked into the schema at instantiation, so every
-checkpoint is self-contained. User errors exit with code 2 and one line, without a traceback.
+checkpoint is self-contained. User errors exit with code 2 and one line, without a traceback, before
+anything is written. Beyond what jsonargparse checks:
+
+* options must be spelt in full (no argparse prefix abbreviations: ``--trainer.max_epoch`` is an error);
+* ``--trainer.max_epochs`` must be positive, or -1 (endless) with ``--model.lr_final=null``;
+* ``--ckpt_path`` must be a readable lightning_bodyschema checkpoint of the data's robot (model XML,
+  muscles and spring), checked before Lightning loads it.
 """
 from __future__ import annotations
 
@@ -13,6 +19,7 @@ import sys
 import warnings
 
 import torch
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
@@ -20,6 +27,7 @@ from .callbacks import EpochProgressBar, FaultBenchmark, ReconstructionFigure
 from .data import EquilibriumDataModule
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
+from .schemas.loading import read_checkpoint
 
 
 class BodySchemaCLI(LightningCLI):
@@ -32,6 +40,29 @@ class BodySchemaCLI(LightningCLI):
         # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_last": True})
+
+    # ---------------------------------------------------------------- input checks (exit 2, one line)
+    def parse_arguments(self, parser, args):
+        super().parse_arguments(parser, args)
+        # before Lightning's own torch.load of --ckpt_path, which dies with a traceback on a bad file
+        self._checkpoint = None
+        subcommand = self.config.get("subcommand")
+        ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if ckpt_path and str(ckpt_path) not in _LIGHTNING_CKPT_KEYWORDS:
+            self._checkpoint = read_checkpoint(str(ckpt_path))
+
+    def before_instantiate_classes(self):
+        config = self.config[self.subcommand]
+        if self.subcommand == "fit":
+            _check_max_epochs(config)
+        if self._checkpoint is not None:  # before the trainer exists: nothing printed, nothing written
+            data = EquilibriumDataModule(**config["data"].as_dict())  # light: the robot only, no dataset yet
+            _check_same_robot(self._checkpoint, config.get("ckpt_path"), data)
+
+
+# a misspelt flag is an error, not a prefix of some option (argparse's default would run
+# `--trainer.max_epoch=3` as max_epochs); config files never accepted abbreviations either
+_NO_ABBREVIATIONS = {"allow_abbrev": False, **{name: {"allow_abbrev": False} for name in LightningCLI.subcommands()}}
 
 
 def _trainer_defaults() -> dict:
@@ -53,20 +84,63 @@ def main(args=None):
     try:
         BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
                       seed_everything_default=0, save_config_kwargs={"overwrite": True},
-                      trainer_defaults=_trainer_defaults(), auto_configure_optimizers=False)
+                      trainer_defaults=_trainer_defaults(), auto_configure_optimizers=False,
+                      parser_kwargs=_NO_ABBREVIATIONS)
     except Exception as err:  # jsonargparse wraps errors raised while instantiating classes
         cause = _input_error_in_chain(err)
         if cause is None:
             raise
-        print(f"error: {cause}", file=sys.stderr)
+        print(f"error: {' '.join(str(cause).split())}", file=sys.stderr)  # one line, whatever the message
         raise SystemExit(2) from None
 
 
-def _input_error_in_chain(err: BaseException | None) -> BodySchemaInputError | None:
-    """The user-input error at the root of ``err``'s cause/context chain, if there is one."""
+_LIGHTNING_CKPT_KEYWORDS = ("last", "best", "hpc", "registry")  # --ckpt_path values that are not file paths
+
+
+def _check_max_epochs(config):
+    """Refuse epoch counts that train nothing, or forever under a schedule that needs an end."""
+    epochs = config["trainer"].get("max_epochs")
+    if epochs is None or epochs > 0:
+        return
+    if epochs != -1:
+        raise BodySchemaInputError(f"--trainer.max_epochs={epochs} trains nothing; give a positive number of "
+                                   "epochs (or -1 for endless training with a constant learning rate)")
+    init_args = config["model"].get("init_args") if config.get("model") is not None else None
+    if init_args is not None and init_args.get("lr_final") is not None:
+        raise BodySchemaInputError(
+            f"--trainer.max_epochs=-1 (endless training) cannot anneal the learning rate to "
+            f"--model.lr_final={init_args.get('lr_final')} over max_epochs; give a positive max_epochs, "
+            "or --model.lr_final=null for a constant learning rate")
+
+
+def _check_same_robot(checkpoint: dict, ckpt_path, datamodule):
+    """Refuse a checkpoint whose robot (model XML, muscles, spring) is not the data module's.
+
+    Lightning would otherwise fail deep inside ``load_state_dict`` (other sizes) or, worse, run a
+    same-sized schema of another robot without a word.
+    """
+    trained = checkpoint.get("hyper_parameters", {}).get("robot") or {}
+    trained_hash, here = checkpoint["bodyschema"].get("model_xml_sha256"), datamodule.robot
+    differs = [what for what, same in (
+        ("model XML", trained_hash == datamodule.robot_model.xml_hash),
+        ("muscles", list(trained.get("muscles", here["muscles"])) == list(here["muscles"])),
+        ("spring", trained.get("spring", here["spring"]) == here["spring"])) if not same]
+    if differs:
+        raise BodySchemaInputError(
+            f"--ckpt_path {str(ckpt_path)!r} was trained on another robot ({', '.join(differs)} differ): "
+            f"{len(trained.get('muscles', []))} muscles {list(trained.get('muscles', []))} (xml sha256 "
+            f"{str(trained_hash)[:12]}), but the data's robot is {datamodule.robot_model} (xml sha256 "
+            f"{datamodule.robot_model.xml_hash[:12]}); give the config (--data.*) the checkpoint was trained with")
+
+
+def _input_error_in_chain(err: BaseException | None) -> BaseException | None:
+    """The user-input error at the root of ``err``'s cause/context chain, if there is one.
+
+    Lightning's ``MisconfigurationException`` (e.g. an accelerator this machine lacks) is a user error too.
+    """
     seen = set()
     while err is not None and id(err) not in seen:
-        if isinstance(err, BodySchemaInputError):
+        if isinstance(err, (BodySchemaInputError, MisconfigurationException)):
             return err
         seen.add(id(err))
         err = err.__cause__ or err.__context__

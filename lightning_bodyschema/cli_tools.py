@@ -23,7 +23,7 @@ def exits_cleanly(main):
         try:
             return main(argv)
         except BodySchemaInputError as err:
-            print(f"error: {err}", file=sys.stderr)
+            print(f"error: {' '.join(str(err).split())}", file=sys.stderr)  # one line, whatever the message
             raise SystemExit(2) from None
 
     return wrapper
@@ -32,20 +32,23 @@ def exits_cleanly(main):
 @exits_cleanly
 def make_dataset_main(argv=None):
     from .data.dataset import build_dataset
-    from .npz import save_npz
     from .sim import MusculoskeletalModel, SpringParams
 
-    parser = argparse.ArgumentParser(description="Generate a healthy static-equilibrium dataset (.npz, SI units).")
+    parser = _parser("Generate a healthy static-equilibrium dataset (.npz, SI units).")
     parser.add_argument("--model", default="paper_arm", help="'paper_arm' or a path to an MJCF with spatial tendons")
     parser.add_argument("--n", type=int, default=800, help="number of samples (default 800, the paper's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output .npz file")
     parser.add_argument("--qp-solver", default="proxqp", help="proxqp (fast path) or any qpsolvers solver name")
     args = parser.parse_args(argv)
+    if args.seed < 0:
+        raise BodySchemaInputError(f"--seed {args.seed} must be >= 0")
+    if os.path.isdir(args.out):
+        raise BodySchemaInputError(f"--out {args.out!r} is a directory; give a file path such as data.npz")
     model = MusculoskeletalModel(args.model)
     start = time.perf_counter()
     arrays = build_dataset(model, args.n, args.seed, SpringParams(), args.qp_solver)
-    save_npz(args.out, **arrays)
+    _write_npz(args.out, arrays)
     f = arrays["f"]
     print(f"wrote {args.out}: {args.n} samples of {model} in {time.perf_counter() - start:.2f} s "
           f"({int(arrays['n_redrawn'])} infeasible draws re-drawn); f in [{f.min():.1f}, {f.max():.1f}] N, "
@@ -55,9 +58,12 @@ def make_dataset_main(argv=None):
 # ---------------------------------------------------------------------------- fault-case tools
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
 
-# --sampler of tools/adapt_cases.py: name -> options for ``schema.adapt``. Adding a sampler is one line,
-# e.g. ``"ddim20": {"n_steps": 20}`` (strided DDIM steps with the same guidance, diffusion schemas only).
-ADAPT_SAMPLERS = {"ddpm": {}}  # all T deterministic DDPM steps (eta = 0), the paper's
+# --sampler of tools/adapt_cases.py: name -> options for ``schema.adapt``. Adding a sampler is one line.
+ADAPT_SAMPLERS = {
+    "ddpm": {},  # the schema's own sampler: all T deterministic DDPM steps (eta = 0), the paper's, unless the
+                 # checkpoint was trained with ``sample_steps``
+    "ddim20": {"n_steps": 20},  # 20 strided DDIM steps (eta = 0), same guidance per step; diffusion schemas only
+}
 
 
 def _parser(description: str) -> argparse.ArgumentParser:

@@ -173,7 +173,7 @@ ERRORS = {  # name: (edit of the case file or None, overriding args (value or f(
     "missing_ckpt": (None, {"--ckpt": lambda ckpt, tmp: tmp / "missing.ckpt"}, ["missing.ckpt", "does not exist"]),
     "truncated_ckpt": (None, {"--ckpt": _truncated_ckpt}, ["truncated.ckpt", "truncated"]),
     "unknown_variant": (None, {"--variant": "fancy"}, ["--variant", "'fancy'", "default", "literal"]),
-    "unknown_sampler": (None, {"--sampler": "ddim"}, ["--sampler", "'ddim'", "allowed: ['ddpm']"]),
+    "unknown_sampler": (None, {"--sampler": "ddim"}, ["--sampler", "'ddim'", "allowed: ['ddpm'"]),
 }
 
 

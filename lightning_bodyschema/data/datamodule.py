@@ -55,6 +55,8 @@ class EquilibriumDataModule(L.LightningDataModule):
         super().__init__()
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
+        if int(seed) != seed or seed < 0:
+            raise BodySchemaInputError(f"seed={seed!r} must be an integer >= 0")
         if not 0.0 < val_fraction < 1.0:
             raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
         self.save_hyperparameters()
