@@ -43,12 +43,17 @@ def test_default_guidance_cuts_the_tension_and_others_take_over(diffusion):
     faults = Faults.from_names(names, cut=[["biarticular_flexor"]] * 10 + [["shoulder_extensor"]] * 10)
     plain_l, plain_f = schema.infer(q)
     result = schema.adapt(q, faults)
-    assert (result.status == "ok").all()
-    cut_tension = result.f_n[faults.cut]
-    assert np.abs(cut_tension).max() < 1.0 and np.abs(plain_f[faults.cut]).min() > 5.0
+    # the true physics decides which cases any command could hold; exactly those carry a command
+    feasible = result.diagnostics["feasible"]
+    assert 0 < (~feasible).sum() < len(q) // 2
+    assert (result.status == np.where(feasible, "ok", "infeasible")).all() and np.isnan(result.f_n[~feasible]).all()
+    best_effort = result.diagnostics["best_effort_f_n"]
+    assert np.abs(best_effort[faults.cut]).max() < 1.0 and np.abs(plain_f[faults.cut]).min() > 5.0
     # the arm is still held: the remaining muscles supply the lost torque (no worse than the healthy estimate + 1 N m)
-    assert np.median(_torque_residual(schema, q, result.f_n)) < np.median(_torque_residual(schema, q, plain_f)) + 1.0
-    assert (result.f_n >= 0).all() and (result.f_n <= 150).all()
+    ok = result.status == "ok"
+    assert np.median(_torque_residual(schema, q[ok], result.f_n[ok])) < \
+        np.median(_torque_residual(schema, q[ok], plain_f[ok])) + 1.0
+    assert (result.f_n[ok] >= 0).all() and (result.f_n[ok] <= 150).all()
 
 
 def test_default_guidance_respects_a_jammed_motor(diffusion):

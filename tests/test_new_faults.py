@@ -93,7 +93,7 @@ def test_a_weakened_muscle_stays_under_its_limit_and_the_others_compensate(diffu
     f_max = np.full(plain_f.shape, np.nan)
     f_max[:, muscle] = 0.5 * np.clip(plain_f[:, muscle], 0, None)  # half of what the healthy command asks for
     faults = Faults(np.zeros((16, M), bool), np.zeros((16, M), bool), np.full((16, M), np.nan), f_max_n=f_max)
-    result = schema.adapt(q, faults)
+    result = schema.adapt(q, faults, check_physics=False)
     assert (result.status == "ok").all()
     assert np.median(plain_f[:, muscle] - f_max[:, muscle]) > 10.0  # the healthy command breaks the limit
     assert (result.f_n[:, muscle] <= f_max[:, muscle] + 0.5).all()
@@ -105,7 +105,7 @@ def test_weak_from_names_reaches_the_command_and_its_clip(diffusion):
     schema, dm = diffusion
     q = _val(dm, 8)
     result = schema.adapt(q, Faults.from_names(schema.robot_model.muscle_names, weak={"elbow_flexor": 40.0},
-                                               n_cases=8))
+                                               n_cases=8), check_physics=False)
     assert (result.status == "ok").all() and (result.f_n[:, 2] <= 40.0).all()
     assert result.f_n[:, [0, 1, 3, 4, 5]].max() > 40.0  # only the weakened muscle is held down
 
@@ -120,7 +120,7 @@ def test_a_banded_motor_stays_inside_its_band(diffusion, muscle, side):
     band = np.full(plain_l.shape + (2,), np.nan)
     band[:, muscle] = np.sort(plain_l[:, muscle, None] + shift, axis=1)  # excludes the healthy command by 2 mm
     faults = Faults(np.zeros((12, M), bool), np.zeros((12, M), bool), np.full((12, M), np.nan), l_band_m=band)
-    result = schema.adapt(q, faults)
+    result = schema.adapt(q, faults, check_physics=False)
     assert (result.status == "ok").all()
     lo, hi, l_motor = band[:, muscle, 0], band[:, muscle, 1], result.l_motor_m[:, muscle]
     assert ((lo - 1e-4 <= l_motor) & (l_motor <= hi + 1e-4)).all()
@@ -137,7 +137,7 @@ def test_evaluator_scores_new_faults_of_adapted_commands(diffusion):
     band[:, 1] = plain_l[:, 1, None] + [-0.004, -0.002]
     cases = FaultCases(q, np.zeros((10, M), bool), np.zeros((10, M), bool), np.full((10, M), np.nan),
                        np.full(10, "MIXED"), f_max, band)
-    adapted = schema.adapt(q, cases.faults)
+    adapted = schema.adapt(q, cases.faults, check_physics=False)
     met_plain = evaluate_commands(schema.robot_model, cases, plain_l, plain_f)
     met = evaluate_commands(schema.robot_model, cases, adapted.l_motor_m, adapted.f_n)
     assert np.median(met_plain["E_weak"]) > 10.0 and np.median(met_plain["E_band"]) > 1e-3
@@ -157,7 +157,7 @@ def test_feasibility_bounds_of_weak_and_banded_muscles(arm, healthy):
                        condition_of(np.zeros((4, M)), np.zeros((4, M)), ~np.isnan(f_max), ~np.isnan(band).all(-1)),
                        f_max, band)
     assert (cases.cond == "MIXED").all()
-    lo, hi, crossed, _ = tension_bounds(l_geo, cases, SPRING)
+    lo, hi, crossed, _ = tension_bounds(l_geo, cases.faults, SPRING)
     np.testing.assert_allclose(hi[:, 0], 30.0)
     np.testing.assert_allclose(lo[:, 1], tension_from_elongation(l_geo[:, 1] - band[:, 1, 1], SPRING))
     np.testing.assert_allclose(hi[:, 1], tension_from_elongation(l_geo[:, 1] - band[:, 1, 0], SPRING))
@@ -169,7 +169,7 @@ def test_feasibility_bounds_of_weak_and_banded_muscles(arm, healthy):
     jammed = FaultCases(q, np.zeros((4, M), bool), np.eye(M, dtype=bool)[[3] * 4], np.where(np.eye(M)[[3] * 4] > 0,
                         l_geo - elongation_from_tension(100.0, SPRING), np.nan), np.full(4, "MIXED"),
                         np.where(np.eye(M)[[3] * 4] > 0, 50.0, np.nan))
-    assert tension_bounds(l_geo, jammed, SPRING)[2].all() and not check_feasible(arm, jammed)[0].any()
+    assert tension_bounds(l_geo, jammed.faults, SPRING)[2].all() and not check_feasible(arm, jammed)[0].any()
 
 
 def test_oracle_commands_of_new_faults_score_zero_and_settle_at_q_ref(arm, healthy, rng):
@@ -244,7 +244,7 @@ def test_adapt_to_target_reaches_100_random_targets_within_1_mm(diffusion):
     q_true = model.sample_q(np.random.default_rng(7), 100)
     target = model.site_position(q_true, "hand")
     faults = Faults.from_names(model.muscle_names, cut=[["shoulder_flexor"]] * 50 + [[]] * 50)
-    result = schema.adapt_to_target(target, faults)
+    result = schema.adapt_to_target(target, faults, check_physics=False)
     assert (result.status == "ok").all()
     q_ref = result.diagnostics["q_ref"]
     lo, hi = model.q_range.T
