@@ -20,8 +20,10 @@ def read_checkpoint(path: str) -> dict:
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
+        detail = (str(err).splitlines() or [""])[0]
+        detail = detail if len(detail) <= 200 else detail[:200].rsplit(" ", 1)[0] + " ..."
         raise BodySchemaInputError(f"checkpoint {path!r} cannot be read ({type(err).__name__}: "
-                                   f"{str(err).splitlines()[0][:200]}); is it truncated or not a checkpoint?") from None
+                                   f"{detail}); is it truncated or not a checkpoint?") from None
     if not isinstance(checkpoint, dict) or "bodyschema" not in checkpoint or "state_dict" not in checkpoint:
         raise BodySchemaInputError(f"{path!r} is not a lightning_bodyschema checkpoint")
     return checkpoint
