@@ -62,7 +62,9 @@ CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
 ADAPT_SAMPLERS = {
     "ddpm": {},  # the schema's own sampler: all T deterministic DDPM steps (eta = 0), the paper's, unless the
                  # checkpoint was trained with ``sample_steps``
-    "ddim20": {"n_steps": 20},  # 20 strided DDIM steps (eta = 0), same guidance per step; diffusion schemas only
+    "ddim20": {"n_steps": 20},  # the strided sampler (DiffusionSchema.STRIDED) over 20 steps: quad spacing,
+                                # noise-free posterior-mean steps, 2 guidance steps where abar_t >= 0.5;
+                                # diffusion schemas only (~10x faster, same feasible-case accuracy)
 }
 
 

@@ -6,10 +6,8 @@ from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
 import numpy as np
-import torch
 
 from ..errors import BodySchemaInputError
-from .constraints import Jam, LengthBand, MaxTension, MinTension, Rupture
 
 
 @dataclass
@@ -123,9 +121,14 @@ class Faults:
             _refuse_cases(band & self.cut, "the same muscle is both cut and length-banded")
         return self
 
-    def constraints(self, f_max_n, dtype=torch.float64, device=None) -> list:
+    def constraints(self, f_max_n, dtype=None, device=None) -> list:
         """The torch constraints of this batch (tension bounds included, a weakened muscle's limit lowered),
-        for the adaptation loss. ``f_max_n``: the robot's limit (scalar or per muscle)."""
+        for the adaptation loss. ``f_max_n``: the robot's limit (scalar or per muscle); dtype default float64."""
+        import torch  # here, not at the top: evaluation/ uses Faults without paying for torch
+
+        from .constraints import Jam, LengthBand, MaxTension, MinTension, Rupture
+
+        dtype = torch.float64 if dtype is None else dtype
         as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
         cut = torch.as_tensor(self.cut, device=device)
         healthy = ~cut

@@ -13,7 +13,7 @@ All tensors are batched ``(B, D)``; x is z-scored (dimensionless), q in rad.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Optional, Sequence
 
 import torch
 from torch import nn
@@ -71,6 +71,24 @@ class MLP(nn.Module):
         """x (B, in_dim) -> (B, out_dim)."""
         return self.net(x)
 
+    def frozen(self, free: slice) -> Optional["FrozenMLP"]:
+        """Inference-only view for fast loops over the input columns ``free`` (see ``FrozenMLP``).
+
+        None when an activation has no hand-written derivative (callers fall back to autograd). Cached
+        until a parameter changes (in-place optimizer steps bump the tensors' versions) or moves.
+        """
+        modules = list(self.net._modules.values())  # plain dict access: nn.Module attribute lookup is slow
+        if type(modules[1]) not in _ACT_AND_GRAD:
+            return None
+        params = [p for layer in modules[::2] for p in layer._parameters.values()]
+        key = [free.indices(self.in_dim)] + [(p.data_ptr(), p._version, p.dtype) for p in params]
+        cached = self.__dict__.get("_frozen")
+        if cached is None or cached[0] != key:
+            # the entry keeps the parameters' storages alive, so no new tensor can reuse their addresses
+            cached = (key, FrozenMLP(self, free), [p.detach() for p in params])
+            self.__dict__["_frozen"] = cached
+        return cached[1]
+
 
 class AEEncoder(nn.Module):
     """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)).
@@ -121,6 +139,14 @@ class Decoder(nn.Module):
 
     def forward(self, q: torch.Tensor, z_latent: torch.Tensor) -> torch.Tensor:
         return self.mlp(torch.cat([q, z_latent], dim=-1))
+
+    def bind(self, q: torch.Tensor) -> Optional[tuple["FrozenMLP", torch.Tensor]]:
+        """``(frozen, bias)`` for fast loops over z_latent at fixed ``q (B, q_dim)``:
+        ``frozen.forward(z, bias)`` is ``self(q, z)``; ``frozen.forward_vjp`` adds d x_hat / d z_latent.
+        None for activations without a hand-written derivative.
+        """
+        frozen = self.mlp.frozen(slice(self.q_dim, None))
+        return None if frozen is None else (frozen, frozen.first_bias(q.detach()))
 
 
 def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool = False, hidden: int = 64,
@@ -217,6 +243,28 @@ class EpsMLP(nn.Module):
             return (g * dacts[0]) @ ws[0][0][:, :self.x_dim]
         return eps, vjp
 
+    def bind(self, q: torch.Tensor, timesteps: Sequence[int]) -> Optional[BoundEps]:
+        """Fast evaluator for a sampling loop over ``timesteps`` at fixed conditions ``q (B, q_dim)``.
+
+        Same maths as ``forward``/``eps_and_vjp`` (up to float rounding), None for activations without a
+        hand-written derivative. Inference only; weights are read when called (cached until they change).
+        """
+        frozen = self.mlp.frozen(slice(0, self.x_dim))
+        if frozen is None:
+            return None
+        q = q.detach()
+        t_key = (tuple(timesteps), q.dtype, q.device)
+        cached = self.__dict__.get("_t_feat")
+        if cached is None or cached[0] != t_key:
+            cached = (t_key, torch.tensor([t / self.n_timesteps for t in timesteps], dtype=q.dtype, device=q.device))
+            self.__dict__["_t_feat"] = cached
+        t_feat = cached[1]
+        # bias of step i: b1 + (t_i / T) w_t + q W_q^T, all steps in one broadcast op
+        w_t = frozen.w1_rest_t[0]  # (H,): the t/T column
+        base = torch.addmm(frozen.b1, q, frozen.w1_rest_t[1:])  # (B, H)
+        biases = torch.addcmul(base.unsqueeze(0), t_feat.view(-1, 1, 1), w_t.view(1, 1, -1)).unbind(0)
+        return BoundEps(frozen, biases)
+
     def _eps_and_vjp_autograd(self, x_t, t, q):
         with torch.enable_grad():
             x = x_t.detach().requires_grad_(True)
@@ -225,3 +273,98 @@ class EpsMLP(nn.Module):
         def vjp(v: torch.Tensor) -> torch.Tensor:
             return torch.autograd.grad(eps, x, v, retain_graph=True)[0]
         return eps.detach(), vjp
+
+
+class FrozenMLP:
+    """Inference-only copy of an ``MLP``'s weights for fast loops (guided denoising, latent descent).
+
+    The input is split into *free* columns (a slice: what the loop updates, e.g. x_t or z_latent)
+    and the rest (fixed for the whole loop, e.g. t/T and q), whose first-layer contribution is
+    folded into a bias computed once with ``first_bias``. Plain tensors, pre-transposed contiguous
+    weights, no autograd and no ``nn.Module`` dispatch: at batch 1 every tensor op costs a few
+    microseconds of dispatch, so the op count is the cost. One ``addmm`` and one activation per
+    layer forward; the backward pass uses ATen's fused activation backward (``silu_backward`` /
+    ``tanh_backward``: one op instead of four for SiLU's derivative).
+
+    Building blocks, so that a sampler can fuse its own arithmetic into the layers (``samplers.guided``'s
+    fused loops inline them): ``trunk(x, bias) -> (h, saved)`` (last hidden features), ``out_w_t``/``out_w``/
+    ``out_b`` (output layer, out = out_b + h out_w_t), ``back(g_h, saved)`` (dL/dh_last -> dL/d first
+    pre-activation; times ``w1_free`` it is dL/dx_free), ``hidden`` (W^T, W, b) per hidden-to-hidden layer,
+    ``_act``/``_act_backward``. Only SiLU and Tanh; ``MLP.frozen`` returns None otherwise.
+    """
+
+    def __init__(self, mlp: MLP, free: slice):
+        linears = list(mlp.net)[::2]
+        self.silu = type(mlp.net[1]) is nn.SiLU
+        w1 = linears[0].weight.detach()
+        free_cols = range(*free.indices(mlp.in_dim))
+        rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
+        self.w1_free_t = w1[:, free].t().contiguous()  # (n_free, H): forward
+        self.w1_free = w1[:, free].contiguous()  # (H, n_free): backward
+        self.w1_rest_t = w1[:, rest_cols].t().contiguous()  # (n_rest, H)
+        self.b1 = linears[0].bias.detach().clone()
+        # hidden-to-hidden layers: (W^T for forward, W for backward, b)
+        self.hidden = [(m.weight.detach().t().contiguous(), m.weight.detach().contiguous(), m.bias.detach().clone())
+                       for m in linears[1:-1]]
+        out = linears[-1]
+        self.out_w_t, self.out_w = out.weight.detach().t().contiguous(), out.weight.detach().contiguous()
+        self.out_b = out.bias.detach().clone()
+        # silu without F.silu's Python wrapper (private binding; the public function if it ever goes away)
+        self._act = getattr(torch._C._nn, "silu", torch.nn.functional.silu) if self.silu else torch.tanh
+        # grad * act'(.) from what ``trunk`` saved: the pre-activation (SiLU) or the output (Tanh); the raw
+        # overload skips OpOverload.__call__'s Python frame (~0.4 us per call at batch 1)
+        backward = torch.ops.aten.silu_backward.default if self.silu else torch.ops.aten.tanh_backward.default
+        self._act_backward = getattr(backward, "_op", backward)
+
+    def first_bias(self, rest: torch.Tensor) -> torch.Tensor:
+        """First-layer pre-activation from the fixed columns ``rest (B, n_rest)``: ``b1 + rest W1_rest^T``."""
+        return torch.addmm(self.b1, rest, self.w1_rest_t)
+
+    def trunk(self, x_free: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, list]:
+        """Last hidden features (B, H) and what ``back`` needs, for ``x_free (B, n_free)`` and a ``first_bias``."""
+        a = torch.addmm(bias, x_free, self.w1_free_t)
+        h = self._act(a)
+        saved = [a if self.silu else h]
+        for w_t, _, b in self.hidden:
+            a = torch.addmm(b, h, w_t)
+            h = self._act(a)
+            saved.append(a if self.silu else h)
+        return h, saved
+
+    def back(self, g_h: torch.Tensor, saved: list) -> torch.Tensor:
+        """dL/dh_last (B, H) -> dL/d(first-layer pre-activation) (B, H)."""
+        g = self._act_backward(g_h, saved[-1])
+        for (_, w, _), s in zip(reversed(self.hidden), reversed(saved[:-1])):
+            g = self._act_backward(g @ w, s)
+        return g
+
+    def forward(self, x_free: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+        """Output (B, out)."""
+        return torch.addmm(self.out_b, self.trunk(x_free, bias)[0], self.out_w_t)
+
+    def forward_vjp(self, x_free: torch.Tensor, bias: torch.Tensor
+                    ) -> tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]:
+        """Output and ``vjp: v (B, out) -> v^T d out / d x_free`` (B, n_free)."""
+        h, saved = self.trunk(x_free, bias)
+
+        def vjp(v: torch.Tensor) -> torch.Tensor:
+            return self.back(v @ self.out_w, saved) @ self.w1_free
+
+        return torch.addmm(self.out_b, h, self.out_w_t), vjp
+
+
+class BoundEps:
+    """``EpsMLP`` bound to one batch's conditions q and a list of timesteps (``EpsMLP.bind``).
+
+    ``eps(x, i)`` and ``eps_and_vjp(x, i)`` evaluate h^diff(x, timesteps[i], q); the t/T and q columns of
+    the first layer are precomputed for every step at once, so a step costs only the x_t columns.
+    """
+
+    def __init__(self, frozen: FrozenMLP, biases: Sequence[torch.Tensor]):
+        self.frozen, self.biases = frozen, biases
+
+    def eps(self, x_t: torch.Tensor, i: int) -> torch.Tensor:
+        return self.frozen.forward(x_t, self.biases[i])
+
+    def eps_and_vjp(self, x_t: torch.Tensor, i: int):
+        return self.frozen.forward_vjp(x_t, self.biases[i])
