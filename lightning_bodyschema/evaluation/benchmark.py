@@ -22,8 +22,10 @@ from .cases import FaultCases
 from .feasibility import check_feasible
 from .forward_solver import ForwardSolverParams
 from .metrics import METRICS, evaluate_commands
+from .settle import settle
 
 READINGS = {"paper": False, "phys": True}  # reading -> jammed_tension_in_torque
+SUMMARY_METRICS = METRICS + ("E_q_phys",)  # E_q_phys: the MuJoCo settle check, when it was run
 ACTIVE_CUT_N, ACTIVE_FIX_M = 0.5, 1e-4  # a healthy command breaking a fault by more than this needs adapting
 
 
@@ -60,7 +62,8 @@ class BenchmarkResult:
                    ("feasible_active", feasible & self.active))
         for cond in dict.fromkeys(self.cases.cond.tolist()):
             rows = self.cases.cond == cond
-            table[cond] = {subset: {m: _median(values[m][rows & mask]) for m in METRICS} | {"n": int((rows & mask).sum())}
+            names = [m for m in SUMMARY_METRICS if m in values]
+            table[cond] = {subset: {m: _median(values[m][rows & mask]) for m in names} | {"n": int((rows & mask).sum())}
                            for subset, mask in subsets}
         return table
 
@@ -71,8 +74,13 @@ def _median(values) -> float | None:
 
 
 def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases: FaultCases, infer, adapt,
-                        params: ForwardSolverParams = ForwardSolverParams()) -> BenchmarkResult:
-    """Adapt and score every case; unadapted (healthy) commands are scored beside them as the baseline."""
+                        params: ForwardSolverParams = ForwardSolverParams(), settle_check: bool = False
+                        ) -> BenchmarkResult:
+    """Adapt and score every case; unadapted (healthy) commands are scored beside them as the baseline.
+
+    settle_check: also drop every command into MuJoCo (``settle.settle``, a few seconds for 120 cases) and
+    report ``E_q_phys``, the distance of the posture the arm really settles in from q_ref, beside E_q.
+    """
     seconds = {}
     start = time.perf_counter()
     result = adapt(cases.q_ref, cases.faults)
@@ -89,4 +97,11 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
                                                         reading_params)
         metrics["unadapted"][reading] = evaluate_commands(model, cases, l_plain, f_plain, spring, reading_params)
     seconds["evaluate"] = time.perf_counter() - start
+    if settle_check:
+        start = time.perf_counter()
+        for kind, (l_motor, f) in (("adapted", (result.l_motor_m, result.f_n)), ("unadapted", (l_plain, f_plain))):
+            e_q_phys = settle(model, l_motor, f, cases, spring=spring).E_q_phys
+            for reading in READINGS:
+                metrics[kind][reading]["E_q_phys"] = e_q_phys
+        seconds["settle"] = time.perf_counter() - start
     return BenchmarkResult(cases, feasible, metrics, np.asarray(result.status), seconds)

@@ -257,8 +257,12 @@ class BodySchema(L.LightningModule):
         scheduler = self.lr_schedulers()
         if scheduler is not None:
             scheduler.step()
-        self.log("train/loss", total / n_batches, prog_bar=True)
-        self.log("train/lr", optimizer.param_groups[0]["lr"])
+        # Lightning's logger writes every log_every_n_steps epochs; a self.log call costs ~0.3 ms (a quarter of
+        # Lightning's per-epoch overhead here, measured), so only call it when it will be written
+        every = max(1, int(getattr(self.trainer, "log_every_n_steps", 1) or 1))
+        if (self.current_epoch + 1) % every == 0 or self.current_epoch + 1 == self.trainer.max_epochs:
+            self.log("train/loss", total / n_batches, prog_bar=True)
+            self.log("train/lr", optimizer.param_groups[0]["lr"])
         self.on_epoch_trained(q_n, x_n)
 
     def on_epoch_trained(self, q_n, x_n):
