@@ -225,7 +225,7 @@ def _timing_claims(timings):
 
 
 def write_results_md(path, results, timings, command, epochs, n_cases, literal_ok=None):
-    lines = [f"# Results: reproduction of Kawaharazuka & Ikemoto on the paper arm", "",
+    lines = ["# Results: reproduction of Kawaharazuka & Ikemoto on the paper arm", "",
              f"Produced by `{command}` ({epochs} epochs per schema, {n_cases} fault cases, "
              f"{time.strftime('%Y-%m-%d')}). Medians; E_fix in mm.", "",
              "Two readings of E_tau/E_q: **phys** (a jammed muscle still pulls with the tension of its stretch) and "

@@ -2,7 +2,6 @@
 import lightning as L
 import numpy as np
 import pytest
-import torch
 
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.errors import BodySchemaInputError

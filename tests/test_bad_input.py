@@ -16,8 +16,6 @@ its ``error:`` line; the row asserts that line names the bad key.
 """
 from __future__ import annotations
 
-import glob
-import os
 import subprocess
 import sys
 import warnings
@@ -27,6 +25,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
+from physics_checks import fit_tiny_checkpoint
 
 from lightning_bodyschema.cli import main as cli_main
 from lightning_bodyschema.cli_tools import adapt_cases_main, make_cases_main, make_dataset_main
@@ -47,13 +46,8 @@ NO_TENDONS_XML = """<mujoco><worldbody><body name="link"><joint name="hinge" typ
 def ctx(tmp_path_factory):
     """One 3-epoch paper-arm checkpoint, a valid 12-case file, and the broken files the rows point at."""
     root = tmp_path_factory.mktemp("bad_input")
-    with warnings.catch_warnings():  # "args and sys.argv both given": pytest's argv, expected here
-        warnings.filterwarnings("ignore", message=".*LightningCLI's args parameter.*")
-        cli_main(["fit", "--model=DiffusionSchema", "--data.n_samples=200", "--trainer.max_epochs=3",
-                  "--trainer.check_val_every_n_epoch=3", "--faults.every_n_epochs=0", "--progress.enabled=false",
-                  f"--trainer.default_root_dir={root / 'fit'}", f"--data.cache_dir={root / 'cache'}"])
-    ckpts = sorted(glob.glob(f"{root}/fit/lightning_logs/version_*/checkpoints/last.ckpt"))
-    assert ckpts, "fit wrote no checkpoint"
+    ckpts = [fit_tiny_checkpoint(root / "fit", "--data.n_samples=200", "--faults.every_n_epochs=0",
+                                 "--progress.enabled=false")]
     files = root / "files"
     files.mkdir()
     make_cases_main(["--ckpt", ckpts[-1], "--seed", "0", "--out", str(files / "cases.npz"),

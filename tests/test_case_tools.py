@@ -1,15 +1,13 @@
 """tools/make_cases.py and tools/adapt_cases.py: the happy path through real processes, every user error
 as one line ``error: ...`` with exit code 2 and no output file. One 3-epoch checkpoint for the module."""
-import glob
 import os
 import subprocess
 import sys
-import warnings
 
 import numpy as np
 import pytest
+from physics_checks import fit_tiny_checkpoint
 
-from lightning_bodyschema.cli import main as cli_main
 from lightning_bodyschema.cli_tools import adapt_cases_main, make_cases_main
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import FaultCases
@@ -33,14 +31,7 @@ def finish(process):
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory):
-    root = tmp_path_factory.mktemp("fit")
-    with warnings.catch_warnings():  # "args and sys.argv both given": pytest's argv, expected here
-        warnings.filterwarnings("ignore", message=".*LightningCLI's args parameter.*")
-        cli_main(["fit", "--model=DiffusionSchema", "--trainer.max_epochs=3", "--trainer.check_val_every_n_epoch=3",
-                  f"--trainer.default_root_dir={root}", f"--data.cache_dir={root / 'cache'}"])
-    ckpts = sorted(glob.glob(f"{root}/lightning_logs/version_*/checkpoints/*.ckpt"))  # epoch=2-... and maybe last
-    assert ckpts, "fit wrote no checkpoint"
-    return ckpts[-1]
+    return fit_tiny_checkpoint(tmp_path_factory.mktemp("fit"))
 
 
 @pytest.fixture(scope="module")

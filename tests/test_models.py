@@ -6,6 +6,7 @@ physics checks of tests/test_sim.py must hold for each of them.
 import mujoco
 import numpy as np
 import pytest
+from physics_checks import assert_drawn_muscles_match_mujoco, assert_G_matches_finite_differences
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.sim import MusculoskeletalModel, SpringParams, generate_equilibrium_samples, paper_arm_xml
@@ -67,13 +68,7 @@ def test_G_matches_central_finite_differences(robot, rng):
     h = 1e-6
     lo, hi = model.q_range.T
     q = lo + h + (hi - lo - 2 * h) * rng.random((50, model.n_joints))  # q +- h stays inside the range
-    _, G, _ = model.kinematics(q)
-    for j in range(model.n_joints):
-        step = np.zeros(model.n_joints)
-        step[j] = h
-        l_plus, _, _ = model.kinematics(q + step)
-        l_minus, _, _ = model.kinematics(q - step)
-        np.testing.assert_allclose(G[:, :, j], (l_plus - l_minus) / (2 * h), atol=1e-6)
+    assert_G_matches_finite_differences(model, q, h)
 
 
 def test_no_moment_arm_changes_sign_over_the_joint_range(robot):
@@ -143,16 +138,8 @@ def test_gravity_that_loads_no_joint_is_refused(source, gravity):
 
 def test_drawn_muscle_paths_have_mujoco_tendon_length(robot, rng):
     """Arcs on spheres and cylinders are drawn the way MuJoCo wraps (see tests/test_twin.py)."""
-    from lightning_bodyschema.plots.arm import muscle_polylines
-
     _, model = robot
-    m, d = model.mj_model, mujoco.MjData(model.mj_model)
-    for q in model.sample_q(rng, 20):
-        d.qpos[:] = q
-        mujoco.mj_forward(m, d)
-        for tendon in model.muscle_ids:
-            drawn_m = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in muscle_polylines(m, d, tendon))
-            assert drawn_m == pytest.approx(d.ten_length[tendon], rel=1e-3)
+    assert_drawn_muscles_match_mujoco(model, model.sample_q(rng, 20))
 
 
 def test_drawing_plane_is_the_plane_of_motion():

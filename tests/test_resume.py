@@ -5,7 +5,6 @@ import subprocess
 import sys
 import time
 
-import pytest
 import torch
 
 ARGS = ["--model=DiffusionSchema", "--model.batch_size=32", "--data.n_samples=400", "--trainer.max_epochs=60",

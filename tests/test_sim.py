@@ -2,6 +2,7 @@
 import mujoco
 import numpy as np
 import pytest
+from physics_checks import assert_G_matches_finite_differences
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.sim import (MusculoskeletalModel, SpringParams, elongation_from_tension,
@@ -20,15 +21,7 @@ def test_paper_arm_structure_comes_from_the_model(arm):
 
 
 def test_G_matches_central_finite_differences(arm, rng):
-    q = arm.sample_q(rng, 120)
-    _, G, _ = arm.kinematics(q)
-    h = 1e-6
-    for j in range(arm.n_joints):
-        step = np.zeros(arm.n_joints)
-        step[j] = h
-        l_plus, _, _ = arm.kinematics(q + step)
-        l_minus, _, _ = arm.kinematics(q - step)
-        np.testing.assert_allclose(G[:, :, j], (l_plus - l_minus) / (2 * h), atol=1e-6)
+    assert_G_matches_finite_differences(arm, arm.sample_q(rng, 120))
 
 
 def test_no_moment_arm_changes_sign_over_the_joint_range(arm):

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 import torch
+from physics_checks import assert_drawn_muscles_match_mujoco
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.sim import MusculoskeletalModel
@@ -105,17 +106,7 @@ def test_drawn_muscle_paths_have_mujoco_tendon_length(arm, rng):
     An arc drawn the wrong way round the cylinder would be off by centimetres; the 24-point chords
     of the right arc are short by < 0.1 %.
     """
-    import mujoco
-
-    from lightning_bodyschema.plots.arm import muscle_polylines
-
-    m, d = arm.mj_model, mujoco.MjData(arm.mj_model)
-    for q in arm.sample_q(rng, 30):
-        d.qpos[:] = q
-        mujoco.mj_forward(m, d)
-        for tendon in arm.muscle_ids:
-            drawn_m = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in muscle_polylines(m, d, tendon))
-            assert drawn_m == pytest.approx(d.ten_length[tendon], rel=1e-3)
+    assert_drawn_muscles_match_mujoco(arm, arm.sample_q(rng, 30))
 
 
 def test_draw_arm_refuses_postures_outside_the_joint_range(arm, tmp_path):

@@ -7,7 +7,6 @@ LR), side by side in one process, alternating, several repeats; prints medians a
     python tools/bench_training.py --epochs 1000 --repeats 3
 """
 import argparse
-import math
 import statistics
 import tempfile
 import time

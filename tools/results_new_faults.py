@@ -9,7 +9,7 @@ WEAK: one random muscle per case limited to half its healthy tension; BAND: one 
 import numpy as np, torch
 torch.set_num_threads(1)
 from lightning_bodyschema.schemas import load_schema, load_datamodule
-from lightning_bodyschema.evaluation import FaultCases, run_fault_benchmark, check_feasible
+from lightning_bodyschema.evaluation import FaultCases, run_fault_benchmark
 ck = "runs/paper/diff-10000/lightning_logs/version_0/checkpoints/epoch=9999-step=10000.ckpt"
 s = load_schema(ck); dm = load_datamodule(ck)
 q, x = dm.splits["val"]; q = q.numpy(); M = s.n_muscles

@@ -233,7 +233,7 @@ def _evaluate(model, q, cmd: _Command, params: ForwardSolverParams) -> _Point:
     ride along in the same batched kinematics call, so the cost is (N+1) postures per case.
     """
     l_geo, G_all, bias_all = _stacked_kinematics(model, q, params.fd_step_rad)
-    G, bias = G_all[0], bias_all[0]
+    G = G_all[0]
     taut, r, sign = classify_muscles(l_geo, cmd, params)
     f_eff = effective_tension(l_geo, taut, cmd, params)
     tau_all = _torque(G_all, bias_all, f_eff[None])  # (N+1, B, N)

@@ -180,14 +180,19 @@ class BodySchema(L.LightningModule):
             self._twin = TorchKinematicTwin(self.robot_model)  # a plain attribute: not in the state dict
         return self._twin
 
-    def adaptation_loss_fn(self, constraints, variant: str):
-        """L_adapt on normalized x (eq:latent-opt): SI units (literal) or z-score units with unit weights."""
-        m = self.n_muscles
+    def adaptation_units(self, variant: str, x_std):
+        """(weights, l_scale, f_scale) of L_adapt: the paper's weights in SI units (``literal``), or unit weights
+        with every residual in spreads of the healthy data, ``x_std`` (``default``). The one place both live."""
         if variant == "literal":
-            weights, l_scale, f_scale = AdaptWeights(), 1.0, 1.0
-        else:
-            std = self.normalizer.x_std.to(next(self.parameters()).dtype)
-            weights, l_scale, f_scale = AdaptWeights(1.0, 1.0, 1.0, 1.0, c_band=1.0), std[:m], std[m:]
+            return AdaptWeights(), 1.0, 1.0
+        m = self.n_muscles
+        return AdaptWeights(1.0, 1.0, 1.0, 1.0, c_band=1.0), x_std[:m], x_std[m:]
+
+    def adaptation_loss_fn(self, constraints, variant: str):
+        """L_adapt on normalized x (eq:latent-opt), in the units of ``adaptation_units``."""
+        m = self.n_muscles
+        std = self.normalizer.x_std.to(next(self.parameters()).dtype)
+        weights, l_scale, f_scale = self.adaptation_units(variant, std)
 
         def loss_fn(x_n):
             x = self.normalizer.decode_x(x_n)

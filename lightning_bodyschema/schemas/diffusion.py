@@ -6,7 +6,6 @@ from typing import Optional
 import torch
 
 from ..errors import BodySchemaInputError
-from ..faults import AdaptWeights
 from ..networks import EpsMLP
 from ..samplers import GuidanceConfig, NoiseSchedule, guided_denoise
 from ..samplers.guided import BoxPenaltyBuilder
@@ -30,9 +29,8 @@ def with_analytic_gradient(schema: BodySchema, loss_fn, constraints, variant: st
     """Attach ``loss_fn.grad_x0`` (dL/dx_n without autograd, ``samplers.guided.BoxPenalty``) to the loss
     ``BodySchema.adaptation_loss_fn`` built, for the fast adaptation paths.
 
-    The loss's weights and unit scales are those of ``BodySchema.adaptation_loss_fn`` for ``variant``
-    (literal: the paper's weights in SI units; default: unit weights in spreads of the data); a test
-    checks the two against each other. Constraints of an unknown kind leave the loss without
+    The loss's weights and unit scales come from ``BodySchema.adaptation_units``, as for the autograd
+    loss; a test checks the two gradients against each other. Constraints of an unknown kind leave the loss without
     ``grad_x0`` (the fast paths then differentiate the loss with autograd).
     """
     # the model's dtype, from the constraints' float tensors (``adapt`` builds them in it): cheaper than
@@ -49,11 +47,7 @@ def with_analytic_gradient(schema: BodySchema, loss_fn, constraints, variant: st
     if builder is None:
         if len(cache) >= 8:  # stale normalizer versions (e.g. during training): start over
             cache.clear()
-        m = schema.n_muscles
-        if variant == "literal":
-            weights, l_scale, f_scale = AdaptWeights(), 1.0, 1.0
-        else:
-            weights, l_scale, f_scale = AdaptWeights(1.0, 1.0, 1.0, 1.0), std[:m], std[m:]
+        weights, l_scale, f_scale = schema.adaptation_units(variant, std)
         builder = cache[key] = BoxPenaltyBuilder(weights, l_scale, f_scale, mean, std, dtype)
         builder.x_mean, builder.x_std = mean, std  # held: their addresses cannot be reused while cached
     penalty = builder(constraints)
