@@ -36,7 +36,7 @@ def test_fit_logs_fault_scalars_and_boxplots(fitted):
         always += [f"fault/{reading}/CUT/E_cut_all", f"fault/{reading}/FIX/E_fix_mm_all",
                    f"fault/{reading}/BOTH/E_cut_all", f"fault/{reading}/BOTH/E_fix_mm_all",
                    f"fault_unadapted/{reading}/CUT/E_cut_all"]
-        always += [f"fault/{reading}/{c}/{m}_all" for c in ("CUT", "FIX", "BOTH") for m in ("E_tau", "E_q")]
+        always += [f"fault/{reading}/{c}/{m}_all" for c in ("CUT", "FIX", "BOTH") for m in ("E_tau", "E_q", "E_q_phys")]
         always += [f"fault/{reading}/{c}/n_feasible" for c in ("CUT", "FIX", "BOTH")]
     for tag in always:
         assert tag in scalars, f"{tag} missing from {sorted(t for t in scalars if t.startswith('fault'))}"

@@ -5,7 +5,8 @@ No maths here: the cases come from ``evaluation.make_fault_cases``, the scores f
 schedules, logs and writes.
 
 Logged during fit (step = epoch), medians over each condition's cases; units: E_cut [N],
-E_fix_mm [mm], E_tau [N m], E_q [rad]; ``{reading}`` is ``paper`` or ``phys`` (see
+E_fix_mm [mm], E_tau [N m], E_q [rad] and E_q_phys [rad] (the MuJoCo settle check beside the Gauss-Newton
+E_q; ``settle_check``, on by default); ``{reading}`` is ``paper`` or ``phys`` (see
 ``evaluation.benchmark``), ``{subset}`` is ``all`` or ``feasible``:
 
     fault/{reading}/{cond}/{metric}_{subset}              adapted commands, e.g. fault/phys/CUT/E_cut_feasible
@@ -61,10 +62,12 @@ class FaultBenchmark(Callback):
         seed: seed of the case draw (the same cases at every run, so curves are comparable).
         variant: adaptation variant passed to ``BodySchema.adapt`` (``"default"`` or ``"literal"``).
         out_dir: where ``test`` writes ``fault_benchmark.json``/``.md`` (None: the trainer's log folder).
+        settle_check: also run the MuJoCo settle check (``E_q_phys``) in the benchmarks during fit (~4 s per
+            120 cases on one core, twice per paper fit); ``test`` always runs it.
     """
 
     def __init__(self, every_n_epochs: int = 5000, n_per_condition: int = 40, seed: int = 0,
-                 variant: str = "default", out_dir: Optional[str] = None):
+                 variant: str = "default", out_dir: Optional[str] = None, settle_check: bool = True):
         from ..schemas.base import BodySchema  # late: keeps `import callbacks` light for the CLI's parser
 
         if int(every_n_epochs) != every_n_epochs or every_n_epochs < 0:
@@ -74,7 +77,7 @@ class FaultBenchmark(Callback):
         if variant not in BodySchema.VARIANTS:
             raise BodySchemaInputError(f"faults.variant={variant!r}; allowed: {list(BodySchema.VARIANTS)}")
         self.every_n_epochs, self.n_per_condition, self.seed = int(every_n_epochs), int(n_per_condition), seed
-        self.variant, self.out_dir = variant, out_dir
+        self.variant, self.out_dir, self.settle_check = variant, out_dir, bool(settle_check)
         self._cases, self._cases_key, self._warned = None, None, False
         self._last_period = 0  # index of the last every_n_epochs period benchmarked during fit
 
@@ -87,7 +90,7 @@ class FaultBenchmark(Callback):
     def on_validation_epoch_end(self, trainer, pl_module):
         if not self._due_in_fit(trainer):
             return
-        result = self.run(trainer, pl_module)
+        result = self.run(trainer, pl_module, settle_check=self.settle_check)
         if result is None:
             return
         self._last_period = (trainer.current_epoch + 1) // self.every_n_epochs
