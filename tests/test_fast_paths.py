@@ -365,3 +365,65 @@ def test_adapt_cases_runs_the_ddim20_sampler(diffusion, dm, tmp_path, capsys):
     out = load_npz(str(tmp_path / "out.npz"))
     expected = load_schema(str(ckpt)).adapt(cases.q_ref, cases.faults, n_steps=20)
     np.testing.assert_array_equal(out["f"], expected.f_n)
+
+
+# ---------------------------------------------------------------------------- compiled loop and the prepared adapter
+def _paper_faults(schema, dm, n=12, seed=0):
+    """The paper's faults only (cut and jammed muscles): the loss the fused (and compiled) loop covers."""
+    q, x = dm.splits["val"]
+    cases = make_fault_cases(q.numpy(), x[:, :schema.n_muscles].numpy(), n // 3, seed)
+    return cases.q_ref, cases.faults
+
+
+def _compiled_commands(schema, q, faults, **options):
+    from lightning_bodyschema.samplers import guided
+
+    calls = guided.compiled_core.cache_info().hits + guided.compiled_core.cache_info().misses
+    result = schema.adapt(q, faults, compiled=True, **options)
+    assert guided.compiled_core.cache_info().hits + guided.compiled_core.cache_info().misses > calls, \
+        "the compiled loop was not used"
+    return result
+
+
+def test_the_compiled_loop_returns_the_reference_commands_float64(diffusion64, dm):
+    """torch.compile (inductor, C++) of the fused 20-step guided loop: the autograd reference's commands."""
+    q, faults = _paper_faults(diffusion64, dm)
+    options = dict(ADAPT_SAMPLERS["ddim20"])
+    _assert_same_commands(_compiled_commands(diffusion64, q, faults, **options),
+                          diffusion64.adapt(q, faults, fast=False, **options), F64_TOL, F64_TOL)
+
+
+@pytest.mark.slow
+def test_the_compiled_loop_returns_the_reference_commands_200_steps_and_unguided(diffusion, diffusion64, dm):
+    q, faults = _paper_faults(diffusion64, dm)
+    _assert_same_commands(_compiled_commands(diffusion64, q, faults),
+                          diffusion64.adapt(q, faults, fast=False), F64_TOL, F64_TOL)
+    q_n = diffusion64.encode_q(torch.as_tensor(q))
+    torch.testing.assert_close(diffusion64.generate(q_n, n_steps=20, compiled=True),
+                               diffusion64.generate(q_n, n_steps=20, fast=False), rtol=0, atol=1e-9)
+
+
+def test_compiled_needs_the_fast_path(diffusion, dm):
+    q, faults = _paper_faults(diffusion[0], dm)
+    with pytest.raises(BodySchemaInputError, match="compiled=True needs the fast path"):
+        diffusion[0].adapt(q, faults, fast=False, compiled=True)
+
+
+def _assert_adapter_matches_adapt(schema, dm, **options):
+    q, faults = _faults(schema, dm)
+    adapter, expected = schema.adapter(faults, **options), schema.adapt(q, faults, **options)
+    for _ in range(2):  # reusable: a controller calls it every tick
+        got = adapter(q)
+        assert (got.status == expected.status).all()
+        np.testing.assert_array_equal(got.l_motor_m, expected.l_motor_m)
+        np.testing.assert_array_equal(got.f_n, expected.f_n)
+    with pytest.raises(BodySchemaInputError, match="postures but"):
+        adapter(q[:1])
+
+
+def test_a_prepared_adapter_returns_what_adapt_returns_diffusion(diffusion, dm):
+    _assert_adapter_matches_adapt(diffusion[0], dm, n_steps=20)
+
+
+def test_a_prepared_adapter_returns_what_adapt_returns_latent(latent, dm):
+    _assert_adapter_matches_adapt(latent, dm)

@@ -13,6 +13,8 @@ All tensors are batched ``(B, D)``; x is z-scored (dimensionless), q in rad.
 """
 from __future__ import annotations
 
+import functools
+
 from typing import Callable, Optional, Sequence
 
 import torch
@@ -262,8 +264,8 @@ class EpsMLP(nn.Module):
         # bias of step i: b1 + (t_i / T) w_t + q W_q^T, all steps in one broadcast op
         w_t = frozen.w1_rest_t[0]  # (H,): the t/T column
         base = torch.addmm(frozen.b1, q, frozen.w1_rest_t[1:])  # (B, H)
-        biases = torch.addcmul(base.unsqueeze(0), t_feat.view(-1, 1, 1), w_t.view(1, 1, -1)).unbind(0)
-        return BoundEps(frozen, biases)
+        stacked = torch.addcmul(base.unsqueeze(0), t_feat.view(-1, 1, 1), w_t.view(1, 1, -1))  # (S, B, H)
+        return BoundEps(frozen, stacked)
 
     def _eps_and_vjp_autograd(self, x_t, t, q):
         with torch.enable_grad():
@@ -360,8 +362,13 @@ class BoundEps:
     the first layer are precomputed for every step at once, so a step costs only the x_t columns.
     """
 
-    def __init__(self, frozen: FrozenMLP, biases: Sequence[torch.Tensor]):
-        self.frozen, self.biases = frozen, biases
+    def __init__(self, frozen: FrozenMLP, stacked_biases: torch.Tensor):
+        self.frozen, self.stacked_biases = frozen, stacked_biases  # (S, B, H): step i's first-layer bias
+
+    @functools.cached_property
+    def biases(self) -> tuple[torch.Tensor, ...]:
+        """Step i's first-layer bias (B, H), as separate views."""
+        return self.stacked_biases.unbind(0)
 
     def eps(self, x_t: torch.Tensor, i: int) -> torch.Tensor:
         return self.frozen.forward(x_t, self.biases[i])

@@ -77,7 +77,7 @@ def _check_guidance(guidance: GuidanceConfig):
 
 def guided_denoise(eps_model, schedule, q_n: torch.Tensor, x_T: torch.Tensor, loss_fn: Optional[LossFn],
                    guidance: GuidanceConfig = GuidanceConfig(), timesteps: Optional[Sequence[int]] = None,
-                   fast: bool = False, eta: Optional[float] = None):
+                   fast: bool = False, eta: Optional[float] = None, compiled: bool = False):
     """Deterministic denoising from x_T, guided by ``loss_fn`` on the predicted x0 at every step.
 
     ``timesteps``: descending steps; None runs all T steps. ``loss_fn=None`` gives the unguided sample.
@@ -87,6 +87,8 @@ def guided_denoise(eps_model, schedule, q_n: torch.Tensor, x_T: torch.Tensor, lo
     ``fast``: the autograd-free path (see the module docstring); needs ``eps_model.bind`` or
     ``eps_model.eps_and_vjp`` (else it falls back to autograd per step) and uses ``loss_fn.grad_x0`` when
     present (else autograd on the loss alone).
+    ``compiled``: with ``fast``, run the fused loop through ``torch.compile`` (``compiled_core``); cases the
+    fused loop does not cover (see ``_fast_denoise``) run the eager fast path.
     Returns x0 (B, D) (rows may be non-finite if guidance diverged: the caller checks).
     """
     _check_guidance(guidance)
@@ -96,7 +98,9 @@ def guided_denoise(eps_model, schedule, q_n: torch.Tensor, x_T: torch.Tensor, lo
     if not 0.0 <= float(eta) <= 1.0:
         raise BodySchemaInputError(f"eta={eta!r} must be in [0, 1] (0: DDIM, 1: the DDPM posterior mean)")
     if fast:
-        return _fast_denoise(eps_model, schedule, q_n, x_T, loss_fn, guidance, steps, float(eta))
+        return _fast_denoise(eps_model, schedule, q_n, x_T, loss_fn, guidance, steps, float(eta), compiled)
+    if compiled:
+        raise BodySchemaInputError("compiled=True needs the fast path (fast=True)")
     x = x_T
     for i, t in enumerate(steps):
         if loss_fn is None:
@@ -203,7 +207,7 @@ def loss_gradient(loss_fn: LossFn) -> Callable[[torch.Tensor], torch.Tensor]:
     return grad if grad is not None else _autograd_loss_grad(loss_fn)
 
 
-def _fast_denoise(eps_model, schedule, q_n, x_T, loss_fn, guidance, steps, eta):
+def _fast_denoise(eps_model, schedule, q_n, x_T, loss_fn, guidance, steps, eta, compiled=False):
     coefs = _coefficients(_schedule_key(schedule), tuple(steps), eta, float(guidance.lr), guidance.step_scale,
                           guidance.n_guide if loss_fn is not None else 0, float(guidance.min_abar))
     x = x_T.detach().clone()
@@ -213,12 +217,13 @@ def _fast_denoise(eps_model, schedule, q_n, x_T, loss_fn, guidance, steps, eta):
         # inference mode: no version counters or autograd bookkeeping (~0.15 us per op at batch 1); the
         # clone makes the result an ordinary tensor again
         with torch.inference_mode(_INFERENCE_MODE):
-            out = _fused_loop(bound.frozen, bound.biases, x, coefs, box)
+            out = _fused_loop(bound.frozen, bound.stacked_biases, x, coefs, box, compiled)
         return out.clone()
+    # not fusable (another eps model, a loss with overlapping boxes or no analytic gradient): eager, compiled or not
     return _generic_loop(eps_model, q_n, steps, x, coefs, None if loss_fn is None else loss_gradient(loss_fn))
 
 
-def _fused_loop(net, biases, x, coefs, box):
+def _fused_loop(net, biases, x, coefs, box, compiled: bool = False):
     """The loop for an MLP eps-model (``FrozenMLP`` blocks) and a one-slot ``BoxPenalty`` (or no guidance).
 
     It carries the state u = x_t / sqrt(abar_t), in which x0_hat = u + e with e = -(s1/s0) eps, and folds
@@ -227,15 +232,26 @@ def _fused_loop(net, biases, x, coefs, box):
     ``alpha=``/``beta=`` argument ~1 us more. Same maths as the reference (tested to 1e-5 in float64).
     Per guided evaluation: 2 x (addmm + SiLU), e and x0 (2 ops), residual (2), backward pass
     (2 x (mm + SiLU backward)), update (3 or 2): 15 tensor ops, 2 with a scalar argument. Unguided: 6.
+    ``biases``: the first-layer bias of every step, (S, B, H). ``compiled``: run ``_fused_core`` through
+    ``torch.compile`` (``compiled_core``) on the stacked plan.
     """
     uniform = None if box is None else box.uniform_weight
     plan = _fused_plan(net, coefs, 1.0 if uniform is None else uniform)
+    w2 = lo = hi = None
     if box is not None:
         w2, lo, hi = box.slots[0]
         w2 = w2 if uniform is None else None
-    act, act_backward, silu = net._act, net._act_backward, net.silu
+    if compiled:
+        matrices, scalars = _stacked_plan(net, plan)
+        return compiled_core()(matrices, scalars, biases, x, lo, hi, w2, *_TRACEABLE_ACT[net.silu], net.silu)
     hidden = [(w_t, b) for w_t, _, b in net.hidden]
     hidden_back = [w for _, w, _ in reversed(net.hidden)]
+    return _fused_core(plan, biases.unbind(0), x, lo, hi, w2, hidden, hidden_back, net._act, net._act_backward,
+                       net.silu)
+
+
+def _fused_core(plan, biases, x, lo, hi, w2, hidden, hidden_back, act, act_backward, silu: bool):
+    """``_fused_loop``'s arithmetic on plain tensors and floats (what ``torch.compile`` traces)."""
     addmm, add, mm = torch.addmm, torch.add, torch.mm
     u = x * plan[0][1]  # x_T / sqrt(abar_T)
     for bias, (n_guide, _, w1_t, beta, w_e, w_r, w_g, a_e, a_r, w_k, k_r) in zip(biases, plan):
@@ -255,19 +271,77 @@ def _fused_loop(net, biases, x, coefs, box):
                 h = act(a)
                 saved.append(a if silu else h)
             e = addmm(beta, h, w_e)  # -(s1/s0) eps
-            x0 = add(u, e)  # eq:diff-1
+            x0 = add(u, e)  # 1. eq:diff-1: x0_hat
             r = torch.sub(x0, torch.clamp(x0, lo, hi))  # dL/dx0_hat / c
             if w2 is not None:
-                r = r.mul_(w2)
+                r = r.mul(w2)
             # backward pass (FrozenMLP.back): J^T dL/dx0_hat = g1 W1_free, J = d eps / d x_t
             g1 = act_backward(mm(r, w_r), saved[-1])
             for w, sv in zip(hidden_back, saved[-2::-1]):
                 g1 = act_backward(mm(g1, w), sv)
-            if j + 1 < n_guide:  # eq:diff-adapt only: x -= k (g - s1 J^T g)
+            if j + 1 < n_guide:  # 2. eq:diff-adapt only: x -= k (g - s1 J^T g)
                 u = addmm(add(u, r, alpha=k_r), g1, w_k)
-            else:  # eq:diff-adapt + eq:diff-2 / DDIM, in the next step's units
+            else:  # 2. eq:diff-adapt + 3. eq:diff-2 / DDIM, in the next step's units
                 u = addmm(add(u, e, alpha=a_e).add_(r, alpha=a_r), g1, w_g)
     return u
+
+
+# activations that torch.compile can trace (FrozenMLP's private bindings are opaque to dynamo)
+_TRACEABLE_ACT = {True: (torch.nn.functional.silu, torch.ops.aten.silu_backward.default),
+                  False: (torch.tanh, torch.ops.aten.tanh_backward.default)}
+
+
+def _stacked_fused_core(matrices, scalars, biases, x, lo, hi, w2, act, act_backward, silu: bool):
+    """``_fused_core`` on the plan as a few stacked tensors (``_stacked_plan``) and Python numbers.
+
+    What ``torch.compile`` sees: ~10 tensor inputs instead of ~200 list entries, so the guards that run on
+    every call stay cheap; the indexing below is traced into free views.
+    """
+    w1, beta, w_e, w_r, w_g, w_k, h_w_t, h_b, h_w = matrices
+    plan = [(n, inv_s0, w1[i], beta[i], w_e[i], w_r, w_g[i], a_e, a_r, w_k[i], k_r)
+            for i, (n, inv_s0, a_e, a_r, k_r) in enumerate(scalars)]
+    hidden = [(h_w_t[j], h_b[j]) for j in range(len(h_b))]
+    hidden_back = [h_w[j] for j in range(len(h_b) - 1, -1, -1)]
+    return _fused_core(plan, [biases[i] for i in range(len(scalars))], x, lo, hi, w2, hidden, hidden_back,
+                       act, act_backward, silu)
+
+
+def _stacked_plan(net, plan: list) -> tuple:
+    """``plan`` (``_fused_plan``) as stacked (S, ...) matrices (zeros where a step has none) plus a tuple of
+    per-step numbers, cached with the plan."""
+    cache = net.__dict__.setdefault("_stacked_plans", {})
+    hit = cache.get(id(plan))
+    if hit is not None and hit[0] is plan:
+        return hit[1]
+    if len(cache) >= 6:
+        cache.clear()
+
+    def stack(k, like=None):  # unguided steps have no w_g, w_k (shaped like W1_free): zeros, never read
+        return torch.stack([torch.zeros_like(like) if p[k] is None else p[k] for p in plan])
+
+    w_r = next((p[5] for p in plan if p[5] is not None), net.out_w)  # the same matrix at every guided step
+    if net.hidden:  # (W^T, W, b) per hidden-to-hidden layer
+        hidden_w_t, hidden_w, hidden_b = (torch.stack(list(part)) for part in zip(*net.hidden))
+    else:  # one hidden layer: nothing between the first layer and the output
+        hidden_w_t = hidden_w = net.out_w.new_zeros((0, 1, 1))
+        hidden_b = net.out_w.new_zeros((0, 1))
+    matrices = (stack(2), stack(3), stack(4), w_r, stack(6, net.w1_free), stack(9, net.w1_free),
+                hidden_w_t, hidden_b, hidden_w)
+    scalars = tuple((p[0], p[1], p[7], p[8], p[10]) for p in plan)
+    cache[id(plan)] = (plan, (matrices, scalars))
+    return matrices, scalars
+
+
+@functools.lru_cache(maxsize=1)
+def compiled_core():
+    """``_stacked_fused_core`` through ``torch.compile`` (inductor, C++ wrapper, the whole loop as one graph).
+
+    The graph is specialised to a plan (schedule, step count, guidance) and a batch size: the first call
+    for each compiles, ~20-40 s on the project's CPU (a C++ compiler is needed; inductor's on-disk cache
+    makes a repeat in a new process a few seconds); later calls skip Python's per-op dispatch and fuse the
+    elementwise ops. Same commands as the eager loop (tests/test_fast_paths.py, 1e-5).
+    """
+    return torch.compile(_stacked_fused_core, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
 
 
 def _fused_plan(net, coefs: tuple, c_w: float) -> list:

@@ -44,6 +44,36 @@ class AdaptationResult:
         return self.status == "ok"
 
 
+class Adapter:
+    """``BodySchema.adapt`` for a fixed fault set, prepared once (see ``BodySchema.adapter``).
+
+    Call it with ``q_ref (B, N)`` [rad], one row per fault row; returns an ``AdaptationResult``.
+    """
+
+    def __init__(self, schema: "BodySchema", faults, variant: str, check_physics: bool, options: dict):
+        if variant not in schema.VARIANTS:
+            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
+        faults.validate(schema.n_muscles)
+        self.schema, self.faults, self.variant = schema, faults, variant
+        self.check_physics, self.options = check_physics, dict(options)
+        self.f_max = faults.f_limit(schema.spring.f_max_n)
+        # Lightning's val/test/predict loops run under inference_mode, whose tensors cannot enter autograd
+        with torch.inference_mode(False), torch.no_grad():
+            self.constraints = faults.constraints(schema.spring.f_max_n, dtype=schema.dtype, device=schema.device)
+            self.loss_fn = schema.adaptation_loss_fn(self.constraints, variant)
+
+    def __call__(self, q_ref) -> AdaptationResult:
+        schema, faults = self.schema, self.faults
+        q = schema.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref, within_range=True)
+        if len(faults) != len(q):
+            raise BodySchemaInputError(f"{len(q)} postures but {len(faults)} fault rows; give one row per case")
+        with torch.inference_mode(False), torch.no_grad():
+            x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.loss_fn, self.variant,
+                                          **self.options)
+        result = schema._command(schema.decode(x_n), faults, self.f_max)
+        return schema._flag_infeasible(result, q, faults) if self.check_physics else result
+
+
 class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
 
@@ -108,20 +138,18 @@ class BodySchema(L.LightningModule):
         ``options`` override the variant's settings (e.g. ``lr=``, ``n_steps=``).
         Cases are adapted together in one batch; each case gets a status, and only ``ok`` rows hold a command.
         """
-        if variant not in self.VARIANTS:
-            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
-        q = self.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref, within_range=True)
-        faults.validate(self.n_muscles)
-        if len(faults) != len(q):
-            raise BodySchemaInputError(f"{len(q)} postures but {len(faults)} fault rows; give one row per case")
-        dtype = next(self.parameters()).dtype
-        # Lightning's val/test/predict loops run under inference_mode, whose tensors cannot enter autograd
-        with torch.inference_mode(False), torch.no_grad():
-            constraints = faults.constraints(self.spring.f_max_n, dtype=dtype, device=self.device)
-            loss_fn = self.adaptation_loss_fn(constraints, variant)
-            x_n = self.adapt_normalized(self.encode_q(torch.as_tensor(q)), loss_fn, variant, **options)
-        result = self._command(self.decode(x_n), faults, constraints)
-        return self._flag_infeasible(result, q, faults) if check_physics else result
+        return self.adapter(faults, variant, check_physics, **options)(q_ref)
+
+    def adapter(self, faults, variant: str = "default", check_physics: bool = True, **options) -> "Adapter":
+        """``adapt`` prepared for one fault set: ``adapter(faults, ...)(q_ref)`` equals ``adapt(q_ref, faults, ...)``.
+
+        A fault persists while a controller keeps asking for commands, so everything that depends only on the
+        faults (validation, constraints, the loss and its analytic gradient) is done here once; each call then
+        pays for the posture check, the sampler and the safe-command bookkeeping only (BENCHMARKS.md has the
+        per-call saving at batch 1). The adapter holds the schema's weights as they are now: build a new one
+        after training further or changing dtype.
+        """
+        return Adapter(self, faults, variant, check_physics, options)
 
     def _flag_infeasible(self, result: AdaptationResult, q: np.ndarray, faults) -> AdaptationResult:
         """Status ``infeasible`` (NaN row) where no command can hold q under the faults (jammed wires pull)."""
@@ -191,7 +219,7 @@ class BodySchema(L.LightningModule):
     def adaptation_loss_fn(self, constraints, variant: str):
         """L_adapt on normalized x (eq:latent-opt), in the units of ``adaptation_units``."""
         m = self.n_muscles
-        std = self.normalizer.x_std.to(next(self.parameters()).dtype)
+        std = self.normalizer.x_std.to(self.dtype)
         weights, l_scale, f_scale = self.adaptation_units(variant, std)
 
         def loss_fn(x_n):
@@ -200,20 +228,25 @@ class BodySchema(L.LightningModule):
 
         return loss_fn
 
-    def _command(self, x: torch.Tensor, faults, constraints) -> AdaptationResult:
-        """Safe command: non-finite rows become NaN with status ``non_finite``; f clipped into its bounds."""
-        l_motor, f = x[:, : self.n_muscles].cpu().numpy(), x[:, self.n_muscles:].cpu().numpy()
-        finite = np.isfinite(l_motor).all(1) & np.isfinite(f).all(1)
-        f_max = faults.f_limit(self.spring.f_max_n)  # a weakened muscle's own limit, else the robot's
-        f_safe = np.clip(np.nan_to_num(f), 0.0, f_max)
+    def _command(self, x: torch.Tensor, faults, f_max=None) -> AdaptationResult:
+        """Safe command: non-finite rows become NaN with status ``non_finite``; f clipped into its bounds.
+
+        ``f_max`` (B, M): the tension limits ``faults.f_limit(spring.f_max_n)`` (computed here when not given)."""
+        x = x.cpu().numpy()
+        l_motor, f = x[:, : self.n_muscles], x[:, self.n_muscles:]
+        finite = np.isfinite(x).all(1)
+        if f_max is None:  # a weakened muscle's own limit, else the robot's
+            f_max = faults.f_limit(self.spring.f_max_n)
+        # non-finite rows are replaced by NaN below, so NaN/inf may pass through clip and the diagnostics
+        f_safe = np.clip(f, 0.0, f_max)
         status = np.where(finite, "ok", "non_finite").astype("<U16")
         band, (lo, hi) = faults.band, (np.zeros((2,) + f.shape) if faults.l_band_m is None
-                                       else np.nan_to_num(np.moveaxis(faults.l_band_m, -1, 0)))
+                                       else np.moveaxis(faults.l_band_m, -1, 0))  # NaN off the band: masked
         with np.errstate(invalid="ignore"):
-            diagnostics = {"f_clipped_n": np.where(finite, np.abs(f_safe - np.nan_to_num(f)).max(1), np.nan),
-                           "cut_violation_n": np.where(finite, (faults.cut * np.abs(f_safe)).max(1), np.nan),
+            diagnostics = {"f_clipped_n": np.where(finite, np.abs(f_safe - f).max(1), np.nan),
+                           "cut_violation_n": np.where(finite, np.where(faults.cut, np.abs(f_safe), 0.0).max(1), np.nan),
                            "jam_violation_m": np.where(finite, np.where(faults.fix, np.maximum(
-                               0.0, l_motor - np.nan_to_num(faults.l_fixed_m)), 0.0).max(1), np.nan),
+                               0.0, l_motor - faults.l_fixed_m), 0.0).max(1), np.nan),
                            # before clipping: how far the adapted tension overshot a weakened muscle's limit
                            "weak_violation_n": np.where(finite, np.where(faults.weak, np.maximum(
                                0.0, f - f_max), 0.0).max(1), np.nan),
@@ -242,7 +275,7 @@ class BodySchema(L.LightningModule):
 
     def _normalized(self, batch):
         q, x = batch
-        dtype = next(self.parameters()).dtype
+        dtype = self.dtype
         return self.normalizer.encode_q(q).to(dtype), self.normalizer.encode_x(x).to(dtype)
 
     def training_step(self, batch, batch_idx):
@@ -313,7 +346,7 @@ class BodySchema(L.LightningModule):
         return x[:, : self.n_muscles].cpu().numpy(), x[:, self.n_muscles:].cpu().numpy()
 
     def encode_q(self, q: torch.Tensor) -> torch.Tensor:
-        return self.normalizer.encode_q(q.to(self.device, torch.float64)).to(next(self.parameters()).dtype)
+        return self.normalizer.encode_q(q.to(self.device, torch.float64)).to(self.dtype)
 
     def decode(self, x_n: torch.Tensor) -> torch.Tensor:
         """Normalized x -> SI [l_motor, f] in float64."""

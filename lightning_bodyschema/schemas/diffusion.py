@@ -98,6 +98,10 @@ class DiffusionSchema(BodySchema):
         sample_steps: denoising steps of ``infer`` and ``adapt`` (healthy and adapted commands alike).
             None (the paper's): all T deterministic DDPM mean steps (eq:diff-2, no noise injected). k < T:
             the strided sampler ``STRIDED`` over k steps. Per call: ``adapt(..., n_steps=k)``, ``generate(q_n, n_steps=k)``.
+        compile_sampler: run the fused sampling loop through ``torch.compile`` (``samplers.guided.compiled_core``;
+            per call: ``compiled=``). The first call per (step plan, batch size) compiles for ~30 s; later calls
+            save Python's per-op dispatch (BENCHMARKS.md). Off by default: a controller that restarts pays
+            the compile again.
     The healthy command runs the deterministic denoising eq:diff-1/eq:diff-2 from x_T.
 
     The strided sampler (``STRIDED``; each entry can be overridden per call): ``"quad"``-spaced steps (dense at
@@ -121,7 +125,7 @@ class DiffusionSchema(BodySchema):
 
     def __init__(self, n_timesteps: int = 200, hidden: int = 91, n_hidden: int = 2, sample_seed: int = 0,
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
-                 batch_size: int = 64, sample_steps: Optional[int] = None):
+                 batch_size: int = 64, sample_steps: Optional[int] = None, compile_sampler: bool = False):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         self.save_hyperparameters()
         self.eps_model = EpsMLP(self.x_dim, self.n_joints, hidden=hidden, n_hidden=n_hidden, n_timesteps=n_timesteps)
@@ -178,13 +182,13 @@ class DiffusionSchema(BodySchema):
         return cached[1].expand(n, -1).clone()
 
     def generate(self, q_n, n_steps: Optional[int] = None, fast: bool = True, eta: Optional[float] = None,
-                 spacing: Optional[str] = None):
+                 spacing: Optional[str] = None, compiled: Optional[bool] = None):
         """Healthy normalized command: unguided deterministic denoising from x_T (``sample_steps`` steps)."""
         steps = self._timesteps(n_steps, spacing)
         eta = self._sampler_options(steps, eta, None, None, GuidanceConfig())[0]
         with torch.no_grad():
             return guided_denoise(self.eps_model, self.schedule, q_n, self.initial_noise(len(q_n), q_n), None,
-                                  GuidanceConfig(), steps, fast=fast, eta=eta)
+                                  GuidanceConfig(), steps, fast=fast, eta=eta, compiled=self._compiled(fast, compiled))
 
     def adaptation_loss_fn(self, constraints, variant: str):
         """``BodySchema``'s loss (built on first use), with its analytic gradient attached for the fast path."""
@@ -192,14 +196,14 @@ class DiffusionSchema(BodySchema):
                                       constraints, variant)
 
     def adapt_normalized(self, q_n, loss_fn, variant, lr=None, step_scale=None, n_steps=None, n_guide=None,
-                         fast=True, eta=None, spacing=None, min_abar=None):
+                         fast=True, eta=None, spacing=None, min_abar=None, compiled=None):
         """Gradient-guided denoising (eq:diff-1, eq:diff-adapt, eq:diff-2) from the same x_T as ``generate``.
 
         n_steps: None uses ``sample_steps`` (None: all T DDPM steps); k < T runs the strided sampler over k
         steps (``STRIDED``: spacing, eta, n_guide, min_abar, each overridable here). n_guide: guidance steps
         per timestep; min_abar: guide only where abar_t >= min_abar (for all T steps: 1 and 0, the paper's;
         see ``GuidanceConfig``). fast: the autograd-free path (default) or the autograd reference
-        (``fast=False``); same commands.
+        (``fast=False``); same commands. compiled: ``torch.compile`` the fast loop (None: ``compile_sampler``).
         """
         base = self.ADAPT[variant]
         steps = self._timesteps(n_steps, spacing)
@@ -208,4 +212,10 @@ class DiffusionSchema(BodySchema):
                                   step_scale=base.step_scale if step_scale is None else step_scale,
                                   n_guide=n_guide, min_abar=min_abar)
         return guided_denoise(self.eps_model, self.schedule, q_n, self.initial_noise(len(q_n), q_n), loss_fn,
-                              guidance, steps, fast=fast, eta=eta)
+                              guidance, steps, fast=fast, eta=eta, compiled=self._compiled(fast, compiled))
+
+    def _compiled(self, fast: bool, compiled: Optional[bool]) -> bool:
+        """Per-call ``compiled``, else the ``compile_sampler`` default (only with the fast path)."""
+        if compiled is None:
+            return bool(fast and self.hparams.get("compile_sampler", False))
+        return bool(compiled)
