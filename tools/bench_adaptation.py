@@ -146,9 +146,10 @@ def latency_rows(schemas: dict, q_all, faults_all, sizes, repeats: int, referenc
         for name, schema in schemas.items():
             fns[(name, "adapted", "")] = lambda s=schema: s.adapt(q, faults, **NO_CHECK)
             fns[(name, "unadapted", "")] = lambda s=schema: s.infer(q)
-            if name == "Diff-fast":
+            if name.startswith("Diff"):
                 fns[(name, "adapted", "prepared adapter")] = functools.partial(
                     schema.adapter(faults, check_physics=False), q)
+            if name == "Diff-fast":
                 if compiled is not None:
                     fns[(name, "adapted", "compiled")] = lambda s=compiled: s.adapt(q, faults, **NO_CHECK)
                     fns[(name, "adapted", "prepared adapter, compiled")] = functools.partial(
@@ -243,7 +244,7 @@ def markdown(rows, ablation) -> str:
 def target_checks(rows) -> list[dict]:
     out = []
     for variant, kind, n, limit in TARGETS:
-        for note in FAST_NOTES if variant == "Diff-fast" else ("",):
+        for note in FAST_NOTES if variant == "Diff-fast" else ("", "prepared adapter") if variant == "Diff-200" else ("",):
             hit = [r for r in rows if (r["variant"], r["kind"], r["cases"], r["note"]) == (variant, kind, n, note)]
             if hit:
                 out.append({"variant": variant, "kind": kind, "note": note, "cases": n, "limit_ms": limit,

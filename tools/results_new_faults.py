@@ -4,7 +4,8 @@
     python tools/results_new_faults.py   # needs runs/paper/diff-10000 from tools/reproduce_paper.py
 
 WEAK: one random muscle per case limited to half its healthy tension; BAND: one random motor confined to
-[healthy - 4 mm, healthy - 2 mm]. Prints a Markdown table (phys reading, medians).
+[healthy - 4 mm, healthy - 2 mm]. Prints a Markdown table (phys reading, medians): the unadapted command, the
+default adaptation, and a stronger guidance (``n_guide=4, lr=1.0``).
 """
 import numpy as np, torch
 torch.set_num_threads(1)
@@ -26,15 +27,20 @@ l_band[rows[40:], mus[40:], 0], l_band[rows[40:], mus[40:], 1] = lo, hi
 none = np.zeros((80, M), bool)
 cases = FaultCases(q_ref, none, none.copy(), np.full((80, M), np.nan), np.array(["WEAK"] * 40 + ["BAND"] * 40),
                    f_max=f_max, l_band=l_band)
-r = run_fault_benchmark(s.robot_model, s.spring, cases, s.infer,
-                        lambda qq, ff: s.adapt(qq, ff, check_physics=False), settle_check=True)
+# the default guidance, and a stronger one (4 guidance steps per timestep, lr 1.0) for hard one-sided bands
+STRONG = {"n_guide": 4, "lr": 1.0}
+runs = {label: run_fault_benchmark(s.robot_model, s.spring, cases, s.infer,
+                                   lambda qq, ff, o=opts: s.adapt(qq, ff, check_physics=False, **o), settle_check=True)
+        for label, opts in (("default", {}), ("strong", STRONG))}
 print("| condition | subset | n | command | E_weak [N] | E_band [mm] | E_tau [N m] | E_q [rad] | E_q_phys [rad] |")
 print("|---|---|---|---|---|---|---|---|---|")
 for cond in ("WEAK", "BAND"):
-    for subset, mask in (("all", np.ones(80, bool)), ("feasible", r.feasible["phys"])):
-        sel = (cases.cond == cond) & mask
-        for kind in ("unadapted", "adapted"):
+    for subset in ("all", "feasible"):
+        for kind, r, name in (("unadapted", runs["default"], "unadapted"), ("adapted", runs["default"], "adapted"),
+                              ("adapted", runs["strong"], "adapted, n_guide=4, lr=1.0")):
+            mask = np.ones(80, bool) if subset == "all" else r.feasible["phys"]
+            sel = (cases.cond == cond) & mask
             m = r.metrics[kind]["phys"]
             med = lambda a, k=1: f"{k*np.nanmedian(a[sel]):.3g}" if np.isfinite(a[sel]).any() else "—"
-            print(f"| {cond} | {subset} | {sel.sum()} | {kind} | {med(m['E_weak'])} | {med(m['E_band'], 1e3)} | "
+            print(f"| {cond} | {subset} | {sel.sum()} | {name} | {med(m['E_weak'])} | {med(m['E_band'], 1e3)} | "
                   f"{med(m['E_tau'])} | {med(m['E_q'])} | {med(m['E_q_phys'])} |")
