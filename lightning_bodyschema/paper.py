@@ -4,12 +4,13 @@
     python tools/reproduce_paper.py --epochs 1000   # shorter
 
 Training runs ``bodyschema fit`` in parallel processes with one torch thread each (two single-thread
-processes beat one two-thread process on this machine), longest first; a core that has no training left
-benchmarks the schemas already trained. Existing checkpoints of the same settings are reused.
+processes beat one two-thread process on this machine), split into balanced queues; a core that has no
+training left benchmarks the schemas already trained. Existing checkpoints of the same settings are reused.
 """
 from __future__ import annotations
 
 import glob
+import itertools
 import json
 import os
 import statistics
@@ -57,39 +58,61 @@ _EPOCH_COST = {"vae": 1.0, "ae": 0.89, "diff": 0.73}
 
 def train_all(specs: list[RunSpec], config_dir: str, cache_dir: str, jobs: int = 2, log=print,
               when_idle=None) -> dict[str, str]:
-    """Train every spec without a checkpoint, ``jobs`` processes at a time; return name -> checkpoint.
+    """Train every spec without a checkpoint on ``jobs`` slots; return name -> checkpoint.
 
-    Longest runs first (LPT), so the short Diff run fills the gap at the end. Where ``os.fork`` exists each
+    The runs are split into one queue per slot so that the longest queue is as short as possible by the
+    expected cost (``_EPOCH_COST``): on two slots the paper's 7 runs become VAE-3/10/30 and AE-3/10/30 + Diff,
+    ~35 s shorter than handing the next run to whichever slot frees first. Where ``os.fork`` exists each
     training is a forked child that runs the CLI in-process: it inherits the already imported torch and
     Lightning (~5 s of imports per run saved); elsewhere a ``bodyschema fit`` subprocess.
-    ``when_idle(name, checkpoint)``: called for each finished run while a training slot has nothing left to
-    train (the tail of the schedule, when one core would idle), so its benchmark overlaps the last training.
+    ``when_idle(name, checkpoint)``: called for each finished run while a slot has nothing left to train
+    (the tail of the schedule, when a core would idle), so its benchmark overlaps the last trainings.
     """
-    todo = sorted((s for s in specs if s.checkpoint() is None), key=lambda s: -s.epochs * _EPOCH_COST.get(
-        s.config.split("-")[0], 1.0))
+    queues = _balanced_queues([s for s in specs if s.checkpoint() is None], jobs)
     finished = [s for s in specs if s.checkpoint() is not None]
-    running: list[tuple[RunSpec, object, float]] = []
-    while todo or running:
-        while todo and len(running) < jobs:
-            spec = todo.pop(0)
-            os.makedirs(spec.run_dir, exist_ok=True)
-            running.append((spec, _start_training(spec, config_dir, cache_dir), time.perf_counter()))
-            log(f"training {spec.name} ({spec.epochs} epochs) -> {spec.run_dir}")
+    running: dict[int, tuple[RunSpec, object, float]] = {}
+    while any(queues) or running:
+        for slot, queue in enumerate(queues):
+            if slot not in running and queue:
+                spec = queue.pop(0)
+                os.makedirs(spec.run_dir, exist_ok=True)
+                running[slot] = (spec, _start_training(spec, config_dir, cache_dir), time.perf_counter())
+                log(f"training {spec.name} ({spec.epochs} epochs) -> {spec.run_dir}")
         if when_idle is not None and finished and len(running) < jobs:
             spec = finished.pop(0)
             when_idle(spec.name, spec.checkpoint())
             continue
         time.sleep(0.5)
-        for item in list(running):
-            spec, proc, start = item
+        for slot, (spec, proc, start) in list(running.items()):
             code = _poll(proc)
             if code is not None:
-                running.remove(item)
+                del running[slot]
                 if code != 0:
                     raise RuntimeError(f"training {spec.name} failed; see {spec.run_dir}/fit.log")
                 log(f"trained {spec.name} in {time.perf_counter() - start:.0f} s")
                 finished.append(spec)
     return {s.name: s.checkpoint() for s in specs}
+
+
+def _expected_cost(spec: RunSpec) -> float:
+    return spec.epochs * _EPOCH_COST.get(spec.config.split("-")[0], 1.0)
+
+
+def _balanced_queues(specs: list[RunSpec], jobs: int) -> list[list[RunSpec]]:
+    """``jobs`` queues minimising the largest total expected cost: exhaustively for small cases (2 slots, 7
+    runs: 128 splits), else longest-first onto the emptiest queue. Each queue runs longest first."""
+    jobs = max(1, min(jobs, len(specs) or 1))
+    costs = [_expected_cost(s) for s in specs]
+    if jobs ** len(specs) <= 50_000:
+        best = min(itertools.product(range(jobs), repeat=len(specs)),
+                   key=lambda a: max(sum(c for c, k in zip(costs, a) if k == q) for q in range(jobs)))
+    else:
+        totals, best = [0.0] * jobs, [0] * len(specs)
+        for i in sorted(range(len(specs)), key=lambda i: -costs[i]):
+            best[i] = totals.index(min(totals))
+            totals[best[i]] += costs[i]
+    queues = [[s for s, k in zip(specs, best) if k == q] for q in range(jobs)]
+    return [sorted(q, key=lambda s: -_expected_cost(s)) for q in queues]
 
 
 def _start_training(spec: RunSpec, config_dir: str, cache_dir: str):
