@@ -19,10 +19,10 @@ import numpy as np
 import torch
 
 from ..data.normalizer import Normalizer
-from ..optim import LeanFusedAdam
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights, adaptation_loss
 from ..faults.feasibility import feasible_tensions
+from ..optim import LeanFusedAdam
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
 
 
@@ -229,15 +229,13 @@ class BodySchema(L.LightningModule):
 
         return loss_fn
 
-    def _command(self, x: torch.Tensor, faults, f_max=None) -> AdaptationResult:
+    def _command(self, x: torch.Tensor, faults, f_max: np.ndarray) -> AdaptationResult:
         """Safe command: non-finite rows become NaN with status ``non_finite``; f clipped into its bounds.
 
-        ``f_max`` (B, M): the tension limits ``faults.f_limit(spring.f_max_n)`` (computed here when not given)."""
+        ``f_max`` (B, M): the tension limits, ``faults.f_limit(spring.f_max_n)`` (a weakened muscle's own)."""
         x = x.cpu().numpy()
         l_motor, f = x[:, : self.n_muscles], x[:, self.n_muscles:]
         finite = np.isfinite(x).all(1)
-        if f_max is None:  # a weakened muscle's own limit, else the robot's
-            f_max = faults.f_limit(self.spring.f_max_n)
         # non-finite rows are replaced by NaN below, so NaN/inf may pass through clip and the diagnostics
         f_safe = np.clip(f, 0.0, f_max)
         status = np.where(finite, "ok", "non_finite").astype("<U16")
