@@ -317,6 +317,11 @@ class FrozenMLP:
         # overload skips OpOverload.__call__'s Python frame (~0.4 us per call at batch 1)
         backward = torch.ops.aten.silu_backward.default if self.silu else torch.ops.aten.tanh_backward.default
         self._act_backward = getattr(backward, "_op", backward)
+        # the same two ops writing into given buffers (``act(a, out=h)``, ``act_backward(g, s, grad_input=o)``)
+        # for loops that allocate once, and as public ops that torch.compile can trace
+        self.act_out = self._act
+        self.act_backward_out = (torch.ops.aten.silu_backward if self.silu else torch.ops.aten.tanh_backward).grad_input
+        self.traceable_act = (torch.nn.functional.silu if self.silu else torch.tanh), backward
 
     def first_bias(self, rest: torch.Tensor) -> torch.Tensor:
         """First-layer pre-activation from the fixed columns ``rest (B, n_rest)``: ``b1 + rest W1_rest^T``."""

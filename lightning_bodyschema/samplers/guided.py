@@ -243,10 +243,11 @@ def _fused_loop(net, biases, x, coefs, box, compiled: bool = False):
         w2 = w2 if uniform is None else None
     if compiled:
         matrices, scalars = _stacked_plan(net, plan)
-        return compiled_core()(matrices, scalars, biases, x, lo, hi, w2, *_TRACEABLE_ACT[net.silu], net.silu)
+        return compiled_core()(matrices, scalars, biases, x, lo, hi, w2, *net.traceable_act, net.silu)
     hidden = [(w_t, b) for w_t, _, b in net.hidden]
     hidden_back = [w for _, w, _ in reversed(net.hidden)]
-    return _fused_core_buffered(plan, biases.unbind(0), x, lo, hi, w2, hidden, hidden_back, net.silu)
+    return _fused_core_buffered(plan, biases.unbind(0), x, lo, hi, w2, hidden, hidden_back, net.act_out,
+                                net.act_backward_out, net.silu)
 
 
 def _fused_core(plan, biases, x, lo, hi, w2, hidden, hidden_back, act, act_backward, silu: bool):
@@ -285,10 +286,11 @@ def _fused_core(plan, biases, x, lo, hi, w2, hidden, hidden_back, act, act_backw
     return u
 
 
-def _fused_core_buffered(plan, biases, x, lo, hi, w2, hidden, hidden_back, silu: bool):
+def _fused_core_buffered(plan, biases, x, lo, hi, w2, hidden, hidden_back, act, act_backward, silu: bool):
     """``_fused_core`` (same ops, same order, same results to the bit) writing every intermediate into
     buffers allocated once per call: at batch 1 an op that allocates nothing costs ~0.5 us less, ~15 % of an
-    op here. Eager only (``torch.compile`` traces ``_fused_core``). SiLU or Tanh, as ``FrozenMLP``."""
+    op here. Eager only (``torch.compile`` traces ``_fused_core``; out= variants and private bindings are
+    opaque to it). ``act``/``act_backward``: ``FrozenMLP.act_out``/``act_backward_out``."""
     (b, d), h_dim = x.shape, plan[0][2].shape[1]
     new = x.new_empty
     n_layers = 1 + len(hidden)
@@ -298,8 +300,6 @@ def _fused_core_buffered(plan, biases, x, lo, hi, w2, hidden, hidden_back, silu:
     grads = [new((b, h_dim)) for _ in range(2 * n_layers)]
     e, x0, c, r, t = (new((b, d)) for _ in range(5))
     states = (new((b, d)), new((b, d)))  # u alternates between two buffers: addmm's out must not be an input
-    act = torch._C._nn.silu if silu else torch.tanh
-    act_backward = (torch.ops.aten.silu_backward if silu else torch.ops.aten.tanh_backward).grad_input
     addmm, mm, add = torch.addmm, torch.mm, torch.add
     u = torch.mul(x, plan[0][1], out=states[0])  # x_T / sqrt(abar_T)
     k = 0
@@ -333,11 +333,6 @@ def _fused_core_buffered(plan, biases, x, lo, hi, w2, hidden, hidden_back, silu:
             else:  # 2. eq:diff-adapt + 3. eq:diff-2 / DDIM, in the next step's units
                 u = addmm(add(u, e, alpha=a_e, out=t).add_(r, alpha=a_r), g1, w_g, out=states[k])
     return u
-
-
-# activations that torch.compile can trace (FrozenMLP's private bindings are opaque to dynamo)
-_TRACEABLE_ACT = {True: (torch.nn.functional.silu, torch.ops.aten.silu_backward.default),
-                  False: (torch.tanh, torch.ops.aten.tanh_backward.default)}
 
 
 def _stacked_fused_core(matrices, scalars, biases, x, lo, hi, w2, act, act_backward, silu: bool):
