@@ -1,4 +1,5 @@
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -7,6 +8,8 @@ import torch
 torch.set_num_threads(1)
 torch.set_flush_denormal(True)
 os.environ.setdefault("MPLBACKEND", "Agg")
+# the tests live in one folder per subpackage; their shared checks (physics_checks.py) live here
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="session")

@@ -7,7 +7,7 @@
 Writes the five case arrays plus ``l_motor (B,M)`` [m], ``f (B,M)`` [N] and ``status (B,)``; only
 ``ok`` rows hold a command (other rows are NaN).
 """
-from lightning_bodyschema.cli_tools import adapt_cases_main
+from lightning_bodyschema.apps.case_tools import adapt_cases_main
 
 if __name__ == "__main__":
     adapt_cases_main()

@@ -5,7 +5,7 @@
 
 Writes ``q_ref (B,N)``, ``cut (B,M)``, ``fix (B,M)``, ``l_fixed (B,M)`` [m, NaN where not jammed], ``cond (B,)``.
 """
-from lightning_bodyschema.cli_tools import make_cases_main
+from lightning_bodyschema.apps.case_tools import make_cases_main
 
 if __name__ == "__main__":
     make_cases_main()

@@ -3,7 +3,7 @@
 
     python tools/make_dataset.py --model paper_arm --n 800 --seed 0 --out data/paper_arm.npz
 """
-from lightning_bodyschema.cli_tools import make_dataset_main
+from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 
 if __name__ == "__main__":
     make_dataset_main()

@@ -4,7 +4,7 @@
     python tools/reproduce_paper.py                # the paper's 10000 epochs per schema
     python tools/reproduce_paper.py --epochs 1000  # a short run
 """
-from lightning_bodyschema.paper import main
+from lightning_bodyschema.apps.reproduce import main
 
 if __name__ == "__main__":
     main()

@@ -22,7 +22,7 @@ from .cases import FaultCases
 from .feasibility import check_feasible
 from .forward_solver import ForwardSolverParams
 from .metrics import METRICS, evaluate_commands
-from .settle import settle
+from ..sim.settle import settle
 
 READINGS = {"paper": False, "phys": True}  # reading -> jammed_tension_in_torque
 SUMMARY_METRICS = METRICS + ("E_q_phys",)  # E_q_phys: the MuJoCo settle check, when it was run

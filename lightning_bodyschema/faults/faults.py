@@ -78,21 +78,21 @@ class Faults:
             raise BodySchemaInputError(f"cut has {len(cut)} entries for {n_cases} cases")
         faults = cls.none(n_cases, len(muscle_names))
         for b, muscles in enumerate(cut):
-            faults.cut[b, [_muscle_index(m, muscle_names) for m in muscles]] = True
+            faults.cut[b, [muscle_index(m, muscle_names) for m in muscles]] = True
         for b, jammed in enumerate(per_case["jam"]):
             for m, l_fixed in jammed.items():
-                faults.fix[b, _muscle_index(m, muscle_names)] = True
-                faults.l_fixed_m[b, _muscle_index(m, muscle_names)] = _number(l_fixed, f"jam[{b}][{m!r}]")
+                faults.fix[b, muscle_index(m, muscle_names)] = True
+                faults.l_fixed_m[b, muscle_index(m, muscle_names)] = _number(l_fixed, f"jam[{b}][{m!r}]")
         if any(per_case["weak"]):
             faults.f_max_n = np.full(faults.cut.shape, np.nan)
             for b, weakened in enumerate(per_case["weak"]):
                 for m, f_max in weakened.items():
-                    faults.f_max_n[b, _muscle_index(m, muscle_names)] = _number(f_max, f"weak[{b}][{m!r}]")
+                    faults.f_max_n[b, muscle_index(m, muscle_names)] = _number(f_max, f"weak[{b}][{m!r}]")
         if any(per_case["band"]):
             faults.l_band_m = np.full(faults.cut.shape + (2,), np.nan)
             for b, banded in enumerate(per_case["band"]):
                 for m, lo_hi in banded.items():
-                    faults.l_band_m[b, _muscle_index(m, muscle_names)] = _band(lo_hi, f"band[{b}][{m!r}]")
+                    faults.l_band_m[b, muscle_index(m, muscle_names)] = _band(lo_hi, f"band[{b}][{m!r}]")
         return faults.validate(len(muscle_names))
 
     def validate(self, n_muscles: int) -> "Faults":
@@ -140,7 +140,7 @@ class Faults:
         return out
 
 
-def _muscle_index(muscle, names) -> int:
+def muscle_index(muscle, names) -> int:
     if isinstance(muscle, (int, np.integer)) and not isinstance(muscle, bool):
         if not 0 <= muscle < len(names):
             raise BodySchemaInputError(f"muscle index {muscle} is out of range 0..{len(names) - 1}")

@@ -21,7 +21,7 @@ import torch
 from ..data.normalizer import Normalizer
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights, adaptation_loss
-from ..faults.feasibility import feasible_tensions
+from ..evaluation.feasibility import feasible_tensions
 from ..optim import LeanFusedAdam
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
 

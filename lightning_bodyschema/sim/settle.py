@@ -15,11 +15,11 @@ Force model (one case = one MuJoCo rollout), muscle i with tendon length ``l_geo
   ``max(f_i, 0)`` whatever its length (the winch takes up any slack). Constant forces add no
   stiffness, so only gravity restores the arm: small tension errors move it far and slowly.
 * cut muscles: absent (no force) in both modes.
-* jammed motors (default ``jam="one_way"``): the paper's constraint ``l_motor_j <= l_fixed_j`` read
+* jammed motors (default ``jam="one_sided"``): the paper's constraint ``l_motor_j <= l_fixed_j`` read
   as a ratchet: the wire can be taken in but not paid out past l_fixed, so the rest length is
   ``min(l_motor_j, l_fixed_j)``. This is the reading of the adaptation loss and of
-  ``feasibility.check_feasible`` (``jam_model="one_sided"``): its oracle commands settle exactly at
-  q_ref. ``jam="held"``: the winch cannot move at all, rest length ``l_fixed_j`` whatever the command
+  ``evaluation.feasibility.check_feasible`` (``jam_model="one_sided"``): its oracle commands settle exactly at
+  q_ref. ``jam="immobile"``: the winch cannot move at all, rest length ``l_fixed_j`` whatever the command
   says (then only ``jam_model="immobile"`` oracle commands settle at q_ref).
 * weakened muscles (``FaultCases.f_max``): the tension saturates at f_max' (the motor slips, both modes).
 * banded motors (``FaultCases.l_band``, length mode): the winch stops at its band, rest length
@@ -77,12 +77,11 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
-from ..sim.model import MusculoskeletalModel
-from ..sim.spring import SpringParams
-from .cases import FaultCases
+from .model import MusculoskeletalModel
+from .spring import SpringParams
 
 MODES = ("length", "tension")
-JAM_MODES = ("held", "one_way")
+JAM_MODES = ("one_sided", "immobile")  # the same names as evaluation.feasibility.JAM_MODELS
 
 
 class SettleStatus(enum.IntEnum):
@@ -100,7 +99,7 @@ class SettleParams:
     """Simulation settings; see the module docstring for why these defaults."""
 
     mode: str = "length"  # "length": motors hold l_motor (spring); "tension": constant commanded f
-    jam: str = "one_way"  # "one_way": jammed rest length min(l_motor, l_fixed) (paper); "held": l_fixed
+    jam: str = "one_sided"  # "one_sided": jammed rest length min(l_motor, l_fixed) (paper); "immobile": l_fixed
     max_time_s: float = 3.0  # simulated time limit per case [s]
     timestep_s: float | None = None  # None: the model's timestep [s]
     mass_damping_per_s: float = 8.0  # a in -a M qdot [1/s]
@@ -165,12 +164,17 @@ class SettleResult:
 # ---------------------------------------------------------------------------- inputs
 def _unpack_faults(cases_or_q_ref, cut, fix, l_fixed):
     """q_ref and fault masks from a ``FaultCases`` or from a q_ref array plus optional masks."""
-    if isinstance(cases_or_q_ref, FaultCases):
+    if _is_cases(cases_or_q_ref):
         if cut is not None or fix is not None or l_fixed is not None:
             raise BodySchemaInputError("give cut/fix/l_fixed either in the FaultCases or as arguments, not both")
         c = cases_or_q_ref
         return c.q_ref, c.cut, c.fix, c.l_fixed
     return cases_or_q_ref, cut, fix, l_fixed
+
+
+def _is_cases(obj) -> bool:
+    """A case batch (``evaluation.FaultCases`` or alike: q_ref, cut, fix, l_fixed, f_max, l_band), not an array."""
+    return all(hasattr(obj, name) for name in ("q_ref", "cut", "fix", "l_fixed"))
 
 
 def _as_batch(name, value, shape, default, dtype):
@@ -223,7 +227,7 @@ def _force_laws(l_motor, f, cut, fix, l_fixed, params: SettleParams, f_max=None,
     ``f_max`` (B, M) weakened muscles' limits (NaN: not weakened), ``l_band`` (B, M, 2) motor bands (NaN: free).
     """
     with np.errstate(invalid="ignore"):  # NaN commands are never simulated
-        jam_rest = l_fixed if params.jam == "held" else np.minimum(l_motor, l_fixed)
+        jam_rest = l_fixed if params.jam == "immobile" else np.minimum(l_motor, l_fixed)
         healthy = ~(cut | fix)
         spring = fix | (healthy & (params.mode == "length"))
         f_const = np.where(healthy & ~spring, np.maximum(f, 0.0), 0.0)
@@ -374,7 +378,7 @@ def settle(model: MusculoskeletalModel, l_motor, f, cases_or_q_ref, cut=None, fi
            spring: SpringParams = SpringParams(), params: SettleParams = SettleParams()) -> SettleResult:
     """Simulate each command (l_motor [m], f [N]) (B, M) from q_ref at rest until the arm stops.
 
-    ``cases_or_q_ref`` is a ``FaultCases`` (its cut / fix / l_fixed, and f_max / l_band, are used) or q_ref (B, N) [rad]
+    ``cases_or_q_ref`` is a case batch (``evaluation.FaultCases`` or any object with those arrays) (its cut / fix / l_fixed, and f_max / l_band, are used) or q_ref (B, N) [rad]
     with optional ``cut``, ``fix`` (B, M) bool and ``l_fixed`` (B, M) [m] (NaN where not jammed);
     without them every muscle is healthy. Cases with a non-finite command are not simulated
     (status NONFINITE_COMMAND, NaN rows). The others run in lockstep chunks of ``params.chunk_size``.
@@ -386,7 +390,7 @@ def settle(model: MusculoskeletalModel, l_motor, f, cases_or_q_ref, cut=None, fi
                        np.full(batch, int(SettleStatus.NONFINITE_COMMAND), np.int8), np.zeros(batch),
                        np.full((batch, n_j), np.nan), np.full((batch, n_m), np.nan))
     new_faults = ({"f_max": cases_or_q_ref.f_max, "l_band": cases_or_q_ref.l_band}
-                  if isinstance(cases_or_q_ref, FaultCases) else {})  # weakened / banded: only through FaultCases
+                  if _is_cases(cases_or_q_ref) else {})  # weakened / banded: only through FaultCases
     laws = _force_laws(l_motor, f, cut, fix, l_fixed, params, **new_faults)
     idx = np.flatnonzero(finite)
     sim = _Simulator(model, spring, params) if idx.size else None

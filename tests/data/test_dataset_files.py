@@ -1,7 +1,7 @@
 """Dataset files: byte-deterministic, and a cache that is stale, tampered with or truncated is rebuilt, never used."""
 import numpy as np
 
-from lightning_bodyschema.cli_tools import make_dataset_main
+from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.data.dataset import load_or_build_dataset
 from lightning_bodyschema.npz import load_npz, save_npz
 from lightning_bodyschema.sim import SpringParams

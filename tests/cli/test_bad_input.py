@@ -28,11 +28,12 @@ import pytest
 from physics_checks import fit_tiny_checkpoint
 
 from lightning_bodyschema.cli import main as cli_main
-from lightning_bodyschema.cli_tools import adapt_cases_main, make_cases_main, make_dataset_main
+from lightning_bodyschema.apps.case_tools import adapt_cases_main, make_cases_main
+from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.npz import load_npz, save_npz
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 N_PER_CONDITION = 4  # 12 cases: CUT 4, FIX 4, BOTH 4
 B = 3 * N_PER_CONDITION
 NOTICES = ("Seed set to",)  # Lightning's info line before instantiation: not an error message

@@ -1,4 +1,4 @@
-"""Physical settle check: MuJoCo simulation of commands until the arm is at rest (evaluation/settle.py)."""
+"""Physical settle check: MuJoCo simulation of commands until the arm is at rest (sim/settle.py)."""
 import subprocess
 import sys
 
@@ -7,7 +7,7 @@ import pytest
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import FaultCases
-from lightning_bodyschema.evaluation.settle import SettleParams, SettleStatus, settle
+from lightning_bodyschema.sim.settle import SettleParams, SettleStatus, settle
 
 N_MUSCLES = 6
 
@@ -82,7 +82,7 @@ def test_jam_at_the_commanded_length_changes_nothing(arm, healthy):
     l_fixed = np.where(fix, l_motor, np.nan)
     free = settle(arm, l_motor, healthy.f[b], healthy.q[b])
     assert np.all(free.settled) and np.all(free.E_q_phys > 1e-4)  # measured >= 5.8e-4 rad
-    for jam in ("held", "one_way"):
+    for jam in ("immobile", "one_sided"):
         stuck = settle(arm, l_motor, healthy.f[b], healthy.q[b], cut=cut, fix=fix, l_fixed=l_fixed,
                        params=SettleParams(jam=jam))
         np.testing.assert_allclose(stuck.q_settle, free.q_settle, atol=1e-12)
@@ -95,8 +95,8 @@ def test_held_jam_ignores_the_command_one_way_jam_lets_the_motor_reel_in(arm, he
     fix[b, np.argmax(healthy.f[b], axis=1)] = True
     l_fixed = np.where(fix, healthy.l_motor[b] + 0.001, np.nan)
     args = (healthy.l_motor[b], healthy.f[b], healthy.q[b], cut, fix, l_fixed)
-    held = settle(arm, *args, params=SettleParams(jam="held"))
-    one_way = settle(arm, *args, params=SettleParams(jam="one_way"))
+    held = settle(arm, *args, params=SettleParams(jam="immobile"))
+    one_way = settle(arm, *args, params=SettleParams(jam="one_sided"))
     assert np.all(held.E_q_phys > 1e-3)
     assert one_way.E_q_phys.max() <= 1e-9
 
@@ -176,7 +176,7 @@ def test_chunking_does_not_change_results(arm, healthy):
 def test_settle_imports_neither_torch_nor_lightning():
     code = ("import sys, numpy as np\n"
             "from lightning_bodyschema.sim import MusculoskeletalModel\n"
-            "from lightning_bodyschema.evaluation.settle import settle\n"
+            "from lightning_bodyschema.sim.settle import settle\n"
             "m = MusculoskeletalModel()\n"
             "settle(m, np.full((1, 6), 0.3), np.zeros((1, 6)), np.zeros((1, 2)))\n"
             "bad = [k for k in sys.modules if k.split('.')[0] in ('torch', 'lightning', 'pytorch_lightning')]\n"

@@ -1,7 +1,7 @@
 """Any tendon-driven MJCF: the packaged extra robots (3 joints / 8 muscles, OpenSim-style) work like the paper arm.
 
 Everything the pipeline uses -- joint count, ranges, muscles -- must come from the model, and the
-physics checks of tests/test_sim.py must hold for each of them.
+physics checks of tests/sim/test_sim.py must hold for each of them.
 """
 import mujoco
 import numpy as np
@@ -137,7 +137,7 @@ def test_gravity_that_loads_no_joint_is_refused(source, gravity):
 
 
 def test_drawn_muscle_paths_have_mujoco_tendon_length(robot, rng):
-    """Arcs on spheres and cylinders are drawn the way MuJoCo wraps (see tests/test_twin.py)."""
+    """Arcs on spheres and cylinders are drawn the way MuJoCo wraps (see tests/sim/test_twin.py)."""
     _, model = robot
     assert_drawn_muscles_match_mujoco(model, model.sample_q(rng, 20))
 

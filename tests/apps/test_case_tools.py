@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from physics_checks import fit_tiny_checkpoint
 
-from lightning_bodyschema.cli_tools import adapt_cases_main, make_cases_main
+from lightning_bodyschema.apps.case_tools import adapt_cases_main, make_cases_main
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import FaultCases
 from lightning_bodyschema.npz import load_npz, save_npz
 from lightning_bodyschema.schemas import load_datamodule
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
 N_JOINTS, N_MUSCLES, PER_CONDITION = 2, 6, 40
 

@@ -13,7 +13,7 @@ from lightning_bodyschema.evaluation import (
     EXTRA_METRICS, FaultCases, band_error, check_feasible, condition_of, evaluate_commands, oracle_commands,
     tension_bounds, weak_error,
 )
-from lightning_bodyschema.evaluation.settle import settle
+from lightning_bodyschema.sim.settle import settle
 from lightning_bodyschema.faults import AdaptWeights, Faults, LengthBand, adaptation_loss
 from lightning_bodyschema.schemas import DiffusionSchema
 from lightning_bodyschema.sim import SpringParams, elongation_from_tension, tension_from_elongation

@@ -34,12 +34,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cli_tools import (_check_out, _check_schema_options, _count, _parser, _sampler_options, _torch_one_thread,
-                        exits_cleanly)
-from .errors import BodySchemaInputError
-from .faults import Faults
-from .faults.faults import _muscle_index
-from .npz import atomic_write_bytes, load_npz, save_npz
+from .common import (argument_parser, check_out, check_schema_options, count_values, exits_cleanly, sampler_options,
+                     torch_one_thread)
+from ..errors import BodySchemaInputError
+from ..faults import Faults
+from ..faults.faults import muscle_index
+from ..npz import atomic_write_bytes, load_npz, save_npz
 
 REQUEST_KEYS = ("q_ref", "target", "cut", "jam", "weak", "band")
 NPZ_ARRAYS = ("q_ref", "target", "cut", "fix", "l_fixed", "f_max", "l_band", "cond")
@@ -140,7 +140,7 @@ def _parse_one(request, names, n_joints, q_row, target_row, faults):
     if not isinstance(cut, list):
         raise BodySchemaInputError(f"cut = {cut!r}; expected a list of muscle names or indices")
     for muscle in cut:
-        _muscle_index(muscle, names)
+        muscle_index(muscle, names)
     faults["cut"].append(cut)
     for key in ("jam", "weak", "band"):
         value = request.get(key)
@@ -148,7 +148,7 @@ def _parse_one(request, names, n_joints, q_row, target_row, faults):
         if not isinstance(value, Mapping):
             raise BodySchemaInputError(f"{key} = {value!r}; expected a mapping {{muscle: value}}")
         for muscle in value:
-            _muscle_index(muscle, names)
+            muscle_index(muscle, names)
         faults[key].append(dict(value))
 
 
@@ -237,9 +237,9 @@ def evaluate_predictions(schema, out: dict, faults: Faults, jammed_pull: bool) -
     """The evaluator's verdict on every ``ok`` command: feasibility QP, metrics, MuJoCo settle check."""
     from dataclasses import replace
 
-    from .evaluation import EXTRA_METRICS, METRICS, FaultCases, ForwardSolverParams, check_feasible
-    from .evaluation import condition_of, evaluate_commands
-    from .evaluation.settle import SettleStatus, settle
+    from ..evaluation import EXTRA_METRICS, METRICS, FaultCases, ForwardSolverParams, check_feasible
+    from ..evaluation import condition_of, evaluate_commands
+    from ..sim.settle import SettleStatus, settle
 
     n = len(out["status"])
     ok = np.flatnonzero(out["status"] == "ok")
@@ -299,7 +299,7 @@ def _check_out_format(path: str, requests_path: str):
 
 @exits_cleanly
 def predict_main(argv=None):
-    parser = _parser("Commands for a file of requests (postures or hand targets, each with its own faults: cut, "
+    parser = argument_parser("Commands for a file of requests (postures or hand targets, each with its own faults: cut, "
                      "jam, weak, band); writes l_motor [m], f [N] and a status per request (.npz or .json).")
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--requests", required=True, help="request file (.yaml, .yml, .json or .npz)")
@@ -315,18 +315,18 @@ def predict_main(argv=None):
     parser.add_argument("--reading", default="phys", help="evaluator's jam reading: phys (default) or paper")
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    options = _sampler_options(args.sampler)
+    options = sampler_options(args.sampler)
     if args.reading not in READINGS:
         raise BodySchemaInputError(f"unknown --reading {args.reading!r}; allowed: {list(READINGS)}")
     if not (np.isfinite(args.reach_tol_mm) and args.reach_tol_mm > 0):
         raise BodySchemaInputError(f"--reach-tol-mm {args.reach_tol_mm} must be a positive number")
-    _check_out(args.out, args.ckpt)
+    check_out(args.out, args.ckpt)
     _check_out_format(args.out, args.requests)
-    _torch_one_thread()
-    from .schemas.loading import load_schema
+    torch_one_thread()
+    from ..schemas.loading import load_schema
 
     schema = load_schema(args.ckpt)
-    _check_schema_options(schema, args.variant, args.sampler, options)
+    check_schema_options(schema, args.variant, args.sampler, options)
     requests = read_requests(args.requests, schema.robot_model)
     if requests.by_target.any() and args.site not in schema.kinematic_twin().site_names:
         raise BodySchemaInputError(f"unknown --site {args.site!r}; the model's sites are "
@@ -340,5 +340,5 @@ def predict_main(argv=None):
             "sampler": args.sampler, "site": args.site, "reading": args.reading if args.evaluate else None}
     write_predictions(args.out, out, schema, meta)
     print(f"wrote {args.out}: {len(requests)} requests ({int(requests.by_target.sum())} by target), status "
-          f"{_count(out['status'])}; {type(schema).__name__}, variant {args.variant}"
+          f"{count_values(out['status'])}; {type(schema).__name__}, variant {args.variant}"
           f"{', evaluated' if args.evaluate else ''} in {time.perf_counter() - start:.2f} s")

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from lightning_bodyschema.cli_tools import ADAPT_SAMPLERS, adapt_cases_main
+from lightning_bodyschema.apps.case_tools import adapt_cases_main
+from lightning_bodyschema.apps.common import ADAPT_SAMPLERS
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import make_fault_cases

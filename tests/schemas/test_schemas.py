@@ -12,7 +12,7 @@ from lightning_bodyschema.cli import main as cli_main
 from lightning_bodyschema.schemas import load_schema
 from lightning_bodyschema.sim import elongation_from_tension
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CONFIGS = ["ae-3", "ae-10", "ae-30", "vae-3", "vae-10", "vae-30", "diff"]
 
 

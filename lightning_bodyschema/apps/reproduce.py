@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .evaluation import make_fault_cases, run_fault_benchmark
-from .faults import Faults
+from ..evaluation import make_fault_cases, run_fault_benchmark
+from ..faults import Faults
 
 MODELS = {"AE-3": "ae-3", "AE-10": "ae-10", "AE-30": "ae-30", "VAE-3": "vae-3", "VAE-10": "vae-10",
           "VAE-30": "vae-30", "Diff": "diff"}
@@ -122,7 +122,7 @@ def _start_training(spec: RunSpec, config_dir: str, cache_dir: str):
         if not hasattr(os, "fork"):
             env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
             return subprocess.Popen(argv, stdout=logfile, stderr=subprocess.STDOUT, env=env)
-        from . import cli  # imported once here, before forking: the children inherit it
+        from .. import cli  # imported once here, before forking: the children inherit it
 
         sys.stdout.flush()
         sys.stderr.flush()
@@ -164,7 +164,7 @@ class Benchmarker:
         self.cases, self.results, self.schemas = None, {}, {}
 
     def run(self, name: str, checkpoint: str):
-        from .schemas import load_datamodule, load_schema
+        from ..schemas import load_datamodule, load_schema
 
         schema = load_schema(checkpoint)
         if self.cases is None:
@@ -343,7 +343,7 @@ def write_results_md(path, results, timings, command, epochs, n_cases, literal_o
     lines += ["", "## Inference time (one BOTH case, CPU, one thread; median)", "",
               "| model | without adaptation [ms] | with adaptation [ms] | paper with adaptation |", "|---|---|---|---|"]
     lines += [f"| {n} | {1e3 * t['unadapted']:.3f} | {1e3 * t['adapted']:.1f} | ~700 ms |" for n, t in timings.items()]
-    from .npz import atomic_write_bytes
+    from ..npz import atomic_write_bytes
 
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 
@@ -351,8 +351,8 @@ def write_results_md(path, results, timings, command, epochs, n_cases, literal_o
 def main(argv=None):
     import argparse
 
-    from .plots.arm import save_figure_atomic
-    from .plots.boxplots import fault_boxplots
+    from ..plots.arm import save_figure_atomic
+    from ..plots.boxplots import fault_boxplots
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     parser = argparse.ArgumentParser(description="Train the paper's 7 schemas, benchmark them, write figures and RESULTS.md.")
@@ -396,7 +396,7 @@ def main(argv=None):
     summary = {"epochs": args.epochs, "n_cases": len(cases), "timings_s": timings,
                "summary": {name: r.summary() for name, r in results.items()},
                "seconds": {"train": trained - start, "total": time.perf_counter() - start}}
-    from .npz import atomic_write_bytes
+    from ..npz import atomic_write_bytes
 
     atomic_write_bytes(os.path.join(args.out, "results.json"), json.dumps(summary, indent=1, sort_keys=True).encode())
     print(f"done in {time.perf_counter() - start:.0f} s (training {trained - start:.0f} s); "

@@ -41,7 +41,7 @@ from lightning_bodyschema.evaluation.feasibility import check_feasible
 from lightning_bodyschema.faults import Faults
 from lightning_bodyschema.schemas import load_schema
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCHEMA_CONFIGS = {"AE": "ae-10", "VAE": "vae-10", "Diffusion": "diff"}
 EPOCHS = 60
 VARIANTS = ("default", "literal")

@@ -2,7 +2,7 @@
 split allows (by the expected costs), every run is trained exactly once, each queue runs longest first."""
 import itertools
 
-from lightning_bodyschema.paper import MODELS, RunSpec, _balanced_queues, _expected_cost
+from lightning_bodyschema.apps.reproduce import MODELS, RunSpec, _balanced_queues, _expected_cost
 
 
 def _specs(epochs=10000):

@@ -16,10 +16,10 @@ import pytest
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.evaluation import FaultCases, check_feasible, make_fault_cases
 from lightning_bodyschema.npz import load_npz, save_npz
-from lightning_bodyschema.predict import predict_main
+from lightning_bodyschema.apps.predict import predict_main
 from lightning_bodyschema.schemas import DiffusionSchema, load_schema
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 M = 6
 
 
