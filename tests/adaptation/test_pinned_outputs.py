@@ -1,0 +1,84 @@
+"""Every adaptation path returns the commands it returned before the adaptation code was restructured.
+
+``pinned_adaptation.npz`` holds three small trained schemas (Diff, AE-10, VAE-10 of the paper arm, float64 weights),
+fault cases of every kind (CUT / FIX / BOTH, weakened, length-banded, healthy) and the float64 commands the code
+returned for them on the day the pin was made, for each sampler path and option set below. A refactor must keep
+them to 1e-9 (m and N); a deliberate change of behaviour regenerates the pin and says so in the changelog.
+"""
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from lightning_bodyschema.data import EquilibriumDataModule
+from lightning_bodyschema.faults import Faults
+from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema
+
+PIN = np.load(os.path.join(os.path.dirname(__file__), "pinned_adaptation.npz"))
+TOL = 1e-9
+CLASSES = {"diff": DiffusionSchema, "ae": AutoEncoderSchema, "vae": VAESchema}
+LATENT_RUNS = {"fast": {}, "ref": {"fast": False}, "literal": {"variant": "literal"},
+               "adam": {"optimizer": "adam", "lr": 0.02, "n_steps": 100}}
+RUNS = {
+    "diff": {"ddpm_fast": {}, "ddpm_ref": {"fast": False}, "s20_fast": {"n_steps": 20},
+             "s20_ref": {"n_steps": 20, "fast": False}, "literal": {"variant": "literal"},
+             "strong": {"n_guide": 4, "lr": 1.0}, "s20_strong": {"n_steps": 20, "n_guide": 3, "lr": 0.8},
+             "sqrt_abar": {"step_scale": "sqrt_abar", "lr": 0.05},
+             "s50_ddim": {"n_steps": 50, "eta": 0.0, "spacing": "linspace"}},
+    "ae": LATENT_RUNS, "vae": LATENT_RUNS}
+GROUPS = ("paper", "weak", "band", "none")
+
+
+@pytest.fixture(scope="module")
+def schemas():
+    robot = EquilibriumDataModule(cache_dir=None).robot  # the robot only: no dataset is generated
+    out = {}
+    for name, cls in CLASSES.items():
+        schema = cls(robot=robot).double()
+        state = {k[len(f"w/{name}/"):]: torch.from_numpy(PIN[k]) for k in PIN.files if k.startswith(f"w/{name}/")}
+        schema.load_state_dict(state)
+        out[name] = schema.eval()
+    return out
+
+
+def _faults(group: str) -> tuple[np.ndarray, Faults]:
+    get = lambda k: PIN[f"in/{group}/{k}"] if f"in/{group}/{k}" in PIN.files else None  # noqa: E731
+    return get("q"), Faults(get("cut"), get("fix"), get("l_fixed_m"), get("f_max_n"), get("l_band_m"))
+
+
+def _same(actual, pinned_key):
+    np.testing.assert_allclose(actual, PIN[pinned_key], rtol=0, atol=TOL, equal_nan=True, err_msg=pinned_key)
+
+
+@pytest.mark.parametrize("name", list(CLASSES))
+def test_healthy_commands_are_pinned(schemas, name):
+    l_motor, f = schemas[name].infer(PIN[f"out/{name}/infer_q"])
+    _same(l_motor, f"out/{name}/infer/l")
+    _same(f, f"out/{name}/infer/f")
+
+
+def test_unguided_samples_are_pinned(schemas):
+    schema = schemas["diff"]
+    with torch.no_grad():
+        q_n = schema.encode_q(torch.as_tensor(PIN["out/diff/infer_q"]))
+        _same(schema.generate(q_n, n_steps=20).numpy(), "out/diff/gen20")
+        _same(schema.generate(q_n, fast=False).numpy(), "out/diff/gen_ref")
+
+
+@pytest.mark.parametrize("name,run", [(n, r) for n in CLASSES for r in RUNS[n]])
+def test_adapted_commands_are_pinned(schemas, name, run):
+    options = dict(RUNS[name][run])
+    variant = options.pop("variant", "default")
+    for group in GROUPS:
+        q, faults = _faults(group)
+        result = schemas[name].adapt(q, faults, variant=variant, check_physics=False, **options)
+        _same(result.l_motor_m, f"out/{name}/{run}/{group}/l")
+        _same(result.f_n, f"out/{name}/{run}/{group}/f")
+        assert result.status.tolist() == PIN[f"out/{name}/{run}/{group}/status"].tolist()
+
+
+@pytest.mark.parametrize("name", list(CLASSES))
+def test_physics_check_statuses_are_pinned(schemas, name):
+    q, faults = _faults("paper")
+    assert schemas[name].adapt(q, faults).status.tolist() == PIN[f"out/{name}/checked/status"].tolist()
