@@ -75,14 +75,16 @@ def _trainer_defaults() -> dict:
     }
 
 
-def main(args=None):
-    torch.set_num_threads(1)  # one thread per process is fastest for these tiny MLPs (DESIGN §7)
+def main(args=None) -> "BodySchemaCLI":
+    """Run the ``bodyschema`` command (``args``: its arguments, default ``sys.argv[1:]``); returns the CLI object
+    (``cli.trainer``, ``cli.model``, ...) for scripts and tests."""
+    torch.set_num_threads(1)  # one thread per process is fastest for these tiny MLPs (docs/design.md, data and training)
     torch.set_flush_denormal(True)
-    # one Lightning step per epoch by design (DESIGN §4): the "fewer batches than log interval" notice is noise
+    # one Lightning step per epoch by design (docs/design.md): the "fewer batches than log interval" notice is noise
     warnings.filterwarnings("ignore", message=".*smaller than the logging interval.*")
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
     try:
-        BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
+        return BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
                       seed_everything_default=0, save_config_kwargs={"overwrite": True},
                       trainer_defaults=_trainer_defaults(), auto_configure_optimizers=False,
                       parser_kwargs=_NO_ABBREVIATIONS)

@@ -1,3 +1,4 @@
+import copy
 import os
 import sys
 
@@ -10,6 +11,11 @@ torch.set_flush_denormal(True)
 os.environ.setdefault("MPLBACKEND", "Agg")
 # the tests live in one folder per subpackage; their shared checks (physics_checks.py) live here
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from physics_checks import train_schema  # noqa: E402
+
+from lightning_bodyschema.data import EquilibriumDataModule  # noqa: E402
+from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -30,3 +36,39 @@ def healthy(arm):
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+# ---------------------------------------------------------------------------- briefly trained schemas (60 epochs)
+@pytest.fixture(scope="session")
+def dm():
+    """The paper arm's data module (800 samples, seed 0), set up: ``dm.splits["val"]`` is the test split."""
+    datamodule = EquilibriumDataModule(cache_dir=None)
+    datamodule.prepare_data()
+    datamodule.setup("fit")
+    return datamodule
+
+
+@pytest.fixture(scope="session")
+def diff60(dm):
+    """(schema, trainer): the paper's diffusion schema after 60 epochs, float32, eval mode."""
+    return train_schema(DiffusionSchema, 60, dm)[:2]
+
+
+@pytest.fixture(scope="session")
+def diff60_f64(diff60):
+    """A float64 copy. (Converting back with ``.float()`` would round the float64 noise-schedule buffers for
+    good, and the reference then works with other coefficients than a fresh schema.)"""
+    return copy.deepcopy(diff60[0]).double()
+
+
+@pytest.fixture(scope="session", params=[AutoEncoderSchema, VAESchema], ids=["AE", "VAE"])
+def latent60(request, dm):
+    """AE-10 and VAE-10 after 60 epochs, float32, eval mode."""
+    return train_schema(request.param, 60, dm)[0]
+
+
+@pytest.fixture(scope="session")
+def latent60_f64(latent60):
+    return copy.deepcopy(latent60).double()
+
+

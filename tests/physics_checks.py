@@ -6,6 +6,9 @@ import mujoco
 import numpy as np
 import pytest
 
+from lightning_bodyschema.evaluation import make_fault_cases
+from lightning_bodyschema.faults import Faults
+
 
 def assert_G_matches_finite_differences(model, q, h=1e-6, atol=1e-6):
     """G = d l_geo / d q at postures q (B, N) against central differences of MuJoCo's tendon lengths."""
@@ -43,3 +46,48 @@ def fit_tiny_checkpoint(root, *args, epochs=3) -> str:
     ckpts = sorted(glob.glob(f"{root}/lightning_logs/version_*/checkpoints/*.ckpt"))  # epoch=... then last.ckpt
     assert ckpts, "fit wrote no checkpoint"
     return ckpts[-1]
+
+
+def train_schema(cls, epochs, dm=None, **kwargs):
+    """A schema of the paper arm trained briefly (seed 0) with a bare Trainer, in eval mode: (schema, trainer, dm)."""
+    import lightning as L
+
+    from lightning_bodyschema.data import EquilibriumDataModule
+
+    L.seed_everything(0)
+    dm = dm or EquilibriumDataModule(cache_dir=None)
+    schema = cls(robot=dm.robot, **kwargs)
+    trainer = L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0)
+    trainer.fit(schema, dm)
+    return schema.eval(), trainer, dm
+
+
+def torque_residual(model, q, f):
+    """|-G(q)^T f - tau_bias(q)| per posture (B,) [N m]: how far tensions f are from holding q."""
+    _, G, tau = model.kinematics(q)
+    return np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau, axis=1)
+
+
+def mixed_faults(schema, dm, n=12, seed=0):
+    """Cut, jammed, weakened and length-banded muscles, mixed; one band overlaps a jam (a two-slot penalty)."""
+    q, x = dm.splits["val"]
+    m = schema.n_muscles
+    cases = make_fault_cases(q.numpy(), x[:, :m].numpy(), n // 3, seed)
+    faults = cases.faults
+    f_max = np.full(faults.cut.shape, np.nan)
+    f_max[::4, 3] = 60.0  # a weakened muscle in every fourth case
+    band = np.full(faults.cut.shape + (2,), np.nan)
+    l_plain = schema.infer(cases.q_ref)[0]
+    for i in range(0, len(cases), 3):  # one banded motor per third case, on a jammed motor where there is one
+        j = int(np.flatnonzero(faults.fix[i])[0]) if faults.fix[i].any() else int(np.flatnonzero(~faults.cut[i])[0])
+        band[i, j] = [l_plain[i, j] - 0.004, l_plain[i, j] - 0.001]
+    return cases.q_ref, Faults(faults.cut, faults.fix, faults.l_fixed_m, np.where(faults.cut, np.nan, f_max), band)
+
+
+def assert_same_commands(fast, ref, tol_n, tol_m):
+    assert (fast.status == ref.status).all()
+    ok = ref.status == "ok"
+    assert ok.any()
+    np.testing.assert_allclose(fast.f_n[ok], ref.f_n[ok], rtol=0, atol=tol_n)
+    np.testing.assert_allclose(fast.l_motor_m[ok], ref.l_motor_m[ok], rtol=0, atol=tol_m)

@@ -19,7 +19,8 @@ done once, as a controller holding a fault would) and *compiled* (``compile_samp
 through ``torch.compile``); the compile time of each (batch size, guided/unguided) is reported separately.
 
 Paper (GPU): 0.7 s per case adapted (all three models), 0.1 s Diff unadapted, 0.001 s AE/VAE unadapted.
-``--ablation`` measures each optimisation step of the fast path at batch 1 (Diff-200, Diff-fast, AE-10).
+``--ablation`` measures each step of the fast path at batch 1 (Diff-200, Diff-fast, AE-10, VAE-10), chosen by
+public options (``fast=False``, ``inference_mode=False``).
 Writes a markdown table to stdout, ``--json`` (all numbers) and ``--figure`` (PNG, written atomically).
 """
 from __future__ import annotations
@@ -39,7 +40,7 @@ import time
 import numpy as np
 import torch
 
-torch.set_num_threads(1)  # one thread was fastest on the shared 2-core machine (DESIGN §7)
+torch.set_num_threads(1)  # one thread was fastest on the shared 2-core machine (BENCHMARKS.md)
 torch.set_flush_denormal(True)
 
 from lightning_bodyschema.evaluation import make_fault_cases  # noqa: E402
@@ -90,15 +91,14 @@ def _take(q, faults, n):
 
 
 def sampler_only(schema, q, faults, **options):
-    """``adapt_normalized`` with the loss built once outside the timed call."""
+    """``adapt_normalized`` with the penalty built once outside the timed call."""
     with torch.no_grad():
-        constraints = faults.constraints(schema.spring.f_max_n, dtype=next(schema.parameters()).dtype)
-        loss_fn = schema.adaptation_loss_fn(constraints, "default")
+        penalty = schema.penalty_builder("default")(faults.constraints(schema.spring.f_max_n))
         q_n = schema.encode_q(torch.as_tensor(q))
 
     def run():
         with torch.no_grad():
-            return schema.adapt_normalized(q_n, loss_fn, "default", **options)
+            return schema.adapt_normalized(q_n, penalty, "default", **options)
     return run
 
 
@@ -173,45 +173,16 @@ def latency_rows(schemas: dict, q_all, faults_all, sizes, repeats: int, referenc
 
 
 def ablation_rows(schemas: dict, q_all, faults_all, repeats: int) -> list[dict]:
-    """Each optimisation step of the fast path, end to end (``schema.adapt``) at batch 1."""
-    from lightning_bodyschema.samplers import guided
-
+    """Each step of the fast path, end to end (``schema.adapt``) at batch 1, selected by public options."""
     q, faults = _take(q_all, faults_all, 1)
+    steps = [("0 autograd reference (fast=False)", dict(fast=False)),
+             ("1 frozen network (hand-written backward), analytic loss gradient, coefficients folded into per-step "
+              "matrices, buffers allocated once (fast=True, inference_mode=False)", dict(inference_mode=False)),
+             ("2 + torch.inference_mode (the default fast path)", dict())]
     rows = []
-
-    def patched(schema, bind=True, analytic=True, inference=True, **options):
-        def run():
-            saved = guided._INFERENCE_MODE
-            guided._INFERENCE_MODE = inference
-            model = getattr(schema, "eps_model", None) or schema.decoder
-            if not bind:
-                model.bind = lambda *a, **k: None  # instance attribute: hides the method
-            if not analytic:  # the plain loss closure: autograd on the loss alone
-                schema.adaptation_loss_fn = lambda c, v, s=schema: BodySchema.adaptation_loss_fn(s, c, v)
-            try:
-                return schema.adapt(q, faults, **options, **NO_CHECK)
-            finally:
-                guided._INFERENCE_MODE = saved
-                model.__dict__.pop("bind", None)
-                schema.__dict__.pop("adaptation_loss_fn", None)
-        return run
-
-    diffusion_steps = [
-        ("0 autograd reference (fast=False)", dict(fast=False)),
-        ("1 hand-written network backward (EpsMLP.eps_and_vjp), autograd on the loss only",
-         dict(bind=False, analytic=False, inference=False)),
-        ("2 + analytic loss gradient (BoxPenalty: 2 w (x - clamp(x, lo, hi)))", dict(bind=False, inference=False)),
-        ("3 + bound network, coefficients folded into per-step matrices (fused loop)", dict(inference=False)),
-        ("4 + torch.inference_mode (the default fast path)", dict())]
-    latent_steps = [
-        ("0 autograd reference (fast=False)", dict(fast=False)),
-        ("1 hand-written decoder backward, autograd on the loss only", dict(analytic=False, inference=False)),
-        ("2 + analytic loss gradient, lr and weight folded into one addmm", dict(inference=False)),
-        ("3 + torch.inference_mode (the default fast path)", dict())]
     for name in ("Diff-200", "Diff-fast", "AE-10", "VAE-10"):
         schema = schemas[name]
-        steps = diffusion_steps if name.startswith("Diff") else latent_steps
-        fns = {label: patched(schema, **options) for label, options in steps}
+        fns = {label: functools.partial(schema.adapt, q, faults, **options, **NO_CHECK) for label, options in steps}
         print(f"ablation {name} ...", file=sys.stderr, flush=True)
         for label, seconds in time_interleaved(fns, repeats).items():
             rows.append({"variant": name, "step": label, "ms": 1e3 * seconds})

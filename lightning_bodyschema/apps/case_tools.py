@@ -5,7 +5,7 @@ import time
 
 from ..errors import BodySchemaInputError
 from .common import (ADAPT_SAMPLERS, argument_parser, check_out, check_schema_options, count_values, exits_cleanly,
-                     sampler_options, torch_one_thread, write_npz)
+                     resolve_sampler, torch_one_thread, write_npz)
 
 # ---------------------------------------------------------------------------- fault-case tools
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
@@ -30,7 +30,7 @@ def make_cases_main(argv=None):
     from ..schemas.loading import load_datamodule
 
     datamodule = load_datamodule(args.ckpt)
-    q, x = datamodule.splits["val"]  # the held-out split is the test split (DESIGN §6)
+    q, x = datamodule.splits["val"]  # the held-out split is the test split (docs/design.md, evaluation)
     n_muscles = datamodule.robot_model.n_muscles
     cases = make_fault_cases(q.numpy(), x[:, :n_muscles].numpy(), args.n_per_condition, args.seed)
     write_npz(args.out, {name: getattr(cases, name) for name in CASE_ARRAYS})
@@ -85,7 +85,7 @@ def adapt_cases_main(argv=None):
     parser.add_argument("--sampler", default="ddpm", help=f"denoising sampler, one of {list(ADAPT_SAMPLERS)}")
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    options = sampler_options(args.sampler)
+    args.sampler, options = resolve_sampler(args.sampler)
     check_out(args.out, args.ckpt)
     torch_one_thread()
     cases = load_cases(args.cases)  # before the checkpoint: a bad case file is reported without the heavy imports

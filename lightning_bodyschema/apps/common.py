@@ -28,14 +28,15 @@ def exits_cleanly(main):
     return wrapper
 
 
-# --sampler of tools/adapt_cases.py: name -> options for ``schema.adapt``. Adding a sampler is one line.
+# --sampler of tools/adapt_cases.py and tools/predict.py: name -> options for ``schema.adapt``. One line each.
 ADAPT_SAMPLERS = {
-    "ddpm": {},  # the schema's own sampler: all T deterministic DDPM steps (eta = 0), the paper's, unless the
-                 # checkpoint was trained with ``sample_steps``
-    "ddim20": {"n_steps": 20},  # the strided sampler (DiffusionSchema.STRIDED) over 20 steps: quad spacing,
-                                # noise-free posterior-mean steps, 2 guidance steps where abar_t >= 0.5;
-                                # diffusion schemas only (~10x faster, same feasible-case accuracy)
+    "ddpm": {},  # the schema's own sampler: all T deterministic DDPM mean steps (the paper's), unless the checkpoint
+                 # was trained with ``sample_steps``
+    "strided20": {"n_steps": 20},  # the strided posterior-mean sampler (DiffusionSchema.STRIDED) over 20 steps:
+                                   # quad spacing, noise-free DDPM posterior-mean steps (eta = 1), 2 guidance steps
+                                   # where abar_t >= 0.5; diffusion schemas only (~10x faster, same accuracy)
 }
+SAMPLER_ALIASES = {"ddim20": "strided20"}  # earlier name of strided20 (it never was DDIM); scripts depend on it
 
 
 def argument_parser(description: str) -> argparse.ArgumentParser:
@@ -53,7 +54,7 @@ def argument_parser(description: str) -> argparse.ArgumentParser:
 def torch_one_thread():
     import torch
 
-    torch.set_num_threads(1)  # one thread is fastest for these tiny MLPs on the shared cores (DESIGN §7)
+    torch.set_num_threads(1)  # one thread is fastest for these tiny MLPs on the shared cores (docs/design.md)
     torch.set_flush_denormal(True)
 
 
@@ -86,11 +87,13 @@ def count_values(values: np.ndarray) -> str:
 
 
 
-def sampler_options(name: str) -> dict:
-    if name not in ADAPT_SAMPLERS:
-        raise BodySchemaInputError(f"unknown --sampler {name!r}; allowed: {list(ADAPT_SAMPLERS)}")
-    return dict(ADAPT_SAMPLERS[name])
-
+def resolve_sampler(name: str) -> tuple[str, dict]:
+    """(canonical name, options for ``schema.adapt``) of a --sampler name or alias."""
+    canonical = SAMPLER_ALIASES.get(name, name)
+    if canonical not in ADAPT_SAMPLERS:
+        raise BodySchemaInputError(f"unknown --sampler {name!r}; allowed: {list(ADAPT_SAMPLERS)} "
+                                   f"(aliases: {SAMPLER_ALIASES})")
+    return canonical, dict(ADAPT_SAMPLERS[canonical])
 
 
 def check_schema_options(schema, variant: str, sampler: str, options: dict):

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .common import (argument_parser, check_out, check_schema_options, count_values, exits_cleanly, sampler_options,
+from .common import (argument_parser, check_out, check_schema_options, count_values, exits_cleanly, resolve_sampler,
                      torch_one_thread)
 from ..errors import BodySchemaInputError
 from ..faults import Faults
@@ -315,7 +315,7 @@ def predict_main(argv=None):
     parser.add_argument("--reading", default="phys", help="evaluator's jam reading: phys (default) or paper")
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    options = sampler_options(args.sampler)
+    args.sampler, options = resolve_sampler(args.sampler)
     if args.reading not in READINGS:
         raise BodySchemaInputError(f"unknown --reading {args.reading!r}; allowed: {list(READINGS)}")
     if not (np.isfinite(args.reach_tol_mm) and args.reach_tol_mm > 0):

@@ -2,7 +2,7 @@
 
 The train split is served as ONE batch per epoch (all samples as tensors); the schema draws its
 minibatches from it inside the step. On this tiny dataset Lightning's per-batch machinery costs
-more than the maths (DESIGN §4/§7), so one loader step per epoch keeps Lightning's overhead small.
+more than the maths (docs/design.md, data and training), so one loader step per epoch keeps Lightning's overhead small.
 """
 from __future__ import annotations
 

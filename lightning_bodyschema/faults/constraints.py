@@ -1,122 +1,21 @@
-"""Fault constraints and the adaptation loss (paper eq:muscle-cut, eq:muscle-fix, eq:latent-opt).
+"""Fault constraints as intervals (paper eq:muscle-cut, eq:muscle-fix and the tension bounds of eq:latent-opt).
 
-Beyond the paper: a weakened muscle is ``MaxTension`` with a lowered per-case limit, and a motor
-confined to a length band is ``LengthBand``.
+Each constraint states its bounds: which column group it constrains (motor length or tension), which muscles
+of which cases (a (B, M) mask), the interval ``[lower, upper]`` in SI units, and the name of its weight in
+``AdaptWeights``. The adaptation loss of eq:latent-opt is the weighted sum of squared distances of the command
+to these intervals; ``faults.penalty`` builds it on normalized x, with its gradient.
 
-Each constraint is one small class over a batch of cases, each case with its own muscles (masks):
-``loss`` gives the penalty per case (torch, differentiable), ``violation`` the worst breach in SI units.
-The adaptation loss is the weighted sum over the constraints plus the tension bounds 0 <= f <= f_max.
-
-Residuals are divided by per-muscle scales before squaring: ``l_scale`` [m] and ``f_scale`` [N].
-With scales of 1 this is the paper's loss in SI units; with the data's standard deviations every term
-is measured in the same unit (one spread of the healthy data), which the default adaptation uses.
+Beyond the paper: a weakened muscle lowers ``MaxTension``'s upper bound, and a motor confined to a band is a
+``LengthBand``. numpy only (the evaluation uses faults without torch).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
-import torch
+import numpy as np
 
-
-def _relu_sq(x):
-    return torch.relu(x).square()
-
-
-@dataclass
-class Constraint:
-    """Base: a per-case, per-muscle mask ``mask (B, M)`` and the loss weight's name in ``AdaptWeights``."""
-
-    mask: torch.Tensor
-    weight_name = ""
-
-    def loss(self, l_motor_m, f_n, l_scale, f_scale) -> torch.Tensor:
-        raise NotImplementedError
-
-    def violation(self, l_motor_m, f_n) -> torch.Tensor:
-        """Worst breach per case (B,), in N or m; 0 where the case has no such constraint."""
-        raise NotImplementedError
-
-
-@dataclass
-class Rupture(Constraint):
-    """Cut muscle: f_i = 0 (eq:muscle-cut)."""
-
-    weight_name = "c_cut"
-
-    def loss(self, l_motor_m, f_n, l_scale, f_scale):
-        return (self.mask * (f_n / f_scale).square()).sum(-1)
-
-    def violation(self, l_motor_m, f_n):
-        return (self.mask * f_n.abs()).amax(-1)
-
-
-@dataclass
-class Jam(Constraint):
-    """Jammed motor: l_motor_j <= l_fixed_j (eq:muscle-fix); ``l_fixed_m (B, M)``, ignored off the mask."""
-
-    l_fixed_m: torch.Tensor = None
-    weight_name = "c_fix"
-
-    def _excess(self, l_motor_m):
-        return torch.where(self.mask, l_motor_m - torch.nan_to_num(self.l_fixed_m), torch.zeros_like(l_motor_m))
-
-    def loss(self, l_motor_m, f_n, l_scale, f_scale):
-        return _relu_sq(self._excess(l_motor_m) / l_scale).sum(-1)
-
-    def violation(self, l_motor_m, f_n):
-        return torch.relu(self._excess(l_motor_m)).amax(-1)
-
-
-@dataclass
-class MinTension(Constraint):
-    """A wire cannot push: f >= f_min (0 by default)."""
-
-    f_min_n: torch.Tensor = None
-    weight_name = "c_fmin"
-
-    def loss(self, l_motor_m, f_n, l_scale, f_scale):
-        return (self.mask * _relu_sq((self.f_min_n - f_n) / f_scale)).sum(-1)
-
-    def violation(self, l_motor_m, f_n):
-        return (self.mask * torch.relu(self.f_min_n - f_n)).amax(-1)
-
-
-@dataclass
-class MaxTension(Constraint):
-    """Motor limit: f <= f_max (a weakened muscle lowers its f_max)."""
-
-    f_max_n: torch.Tensor = None
-    weight_name = "c_fmax"
-
-    def loss(self, l_motor_m, f_n, l_scale, f_scale):
-        return (self.mask * _relu_sq((f_n - self.f_max_n) / f_scale)).sum(-1)
-
-    def violation(self, l_motor_m, f_n):
-        return (self.mask * torch.relu(f_n - self.f_max_n)).amax(-1)
-
-
-@dataclass
-class LengthBand(Constraint):
-    """Motor confined to a band: l_lo_j <= l_motor_j <= l_hi_j; ``l_lo_m``, ``l_hi_m (B, M)``, ignored off the mask.
-
-    A jam is the one-sided case (l_hi = l_fixed, l_lo = -inf); a band also stops the motor reeling in.
-    """
-
-    l_lo_m: torch.Tensor = None
-    l_hi_m: torch.Tensor = None
-    weight_name = "c_band"
-
-    def _excess(self, l_motor_m):
-        """Distance outside the band per muscle [m] (0 inside it and off the mask)."""
-        below = torch.nan_to_num(self.l_lo_m) - l_motor_m
-        above = l_motor_m - torch.nan_to_num(self.l_hi_m)
-        return torch.where(self.mask, torch.relu(torch.maximum(below, above)), torch.zeros_like(l_motor_m))
-
-    def loss(self, l_motor_m, f_n, l_scale, f_scale):
-        return (self._excess(l_motor_m) / l_scale).square().sum(-1)
-
-    def violation(self, l_motor_m, f_n):
-        return self._excess(l_motor_m).amax(-1)
+LENGTH, TENSION = "l_motor", "f"  # the two column groups of x = [l_motor, f]
 
 
 @dataclass(frozen=True)
@@ -130,9 +29,88 @@ class AdaptWeights:
     c_band: float = 1.0
 
 
-def adaptation_loss(constraints, weights: AdaptWeights, l_motor_m, f_n, l_scale=1.0, f_scale=1.0) -> torch.Tensor:
-    """L_adapt per case (B,) (eq:latent-opt): the weighted sum of every constraint's penalty."""
-    total = torch.zeros(f_n.shape[:-1], dtype=f_n.dtype, device=f_n.device)
-    for constraint in constraints:
-        total = total + getattr(weights, constraint.weight_name) * constraint.loss(l_motor_m, f_n, l_scale, f_scale)
-    return total
+@dataclass
+class Constraint:
+    """``lower <= x <= upper`` on the masked muscles of one column group; ``mask (B, M)`` bool.
+
+    Subclasses name their column, their weight and their bounds; ``violation`` follows from the bounds.
+    """
+
+    mask: np.ndarray
+    column: ClassVar[str] = ""
+    weight_name: ClassVar[str] = ""
+
+    def bounds(self) -> tuple:
+        """(lower, upper) in SI units: (B, M) arrays (ignored off the mask) or floats (+-inf: unbounded)."""
+        raise NotImplementedError
+
+    def violation(self, l_motor_m, f_n) -> np.ndarray:
+        """Worst distance outside the interval per case (B,), in m or N; 0 where the case has no such constraint."""
+        x = np.asarray(l_motor_m if self.column == LENGTH else f_n, float)
+        lower, upper = self.bounds()
+        with np.errstate(invalid="ignore"):  # NaN bounds off the mask
+            outside = np.maximum(np.maximum(np.asarray(lower) - x, x - np.asarray(upper)), 0.0)
+        return np.where(self.mask, outside, 0.0).max(-1)
+
+
+@dataclass
+class Rupture(Constraint):
+    """Cut muscle: f_i = 0 (eq:muscle-cut)."""
+
+    column: ClassVar[str] = TENSION
+    weight_name: ClassVar[str] = "c_cut"
+
+    def bounds(self):
+        return 0.0, 0.0
+
+
+@dataclass
+class Jam(Constraint):
+    """Jammed motor: l_motor_j <= l_fixed_j (eq:muscle-fix); ``l_fixed_m (B, M)`` [m], ignored off the mask."""
+
+    l_fixed_m: np.ndarray = None
+    column: ClassVar[str] = LENGTH
+    weight_name: ClassVar[str] = "c_fix"
+
+    def bounds(self):
+        return -np.inf, self.l_fixed_m
+
+
+@dataclass
+class MinTension(Constraint):
+    """A wire cannot push: f >= f_min (0); ``f_min_n (B, M)`` [N]."""
+
+    f_min_n: np.ndarray = None
+    column: ClassVar[str] = TENSION
+    weight_name: ClassVar[str] = "c_fmin"
+
+    def bounds(self):
+        return self.f_min_n, np.inf
+
+
+@dataclass
+class MaxTension(Constraint):
+    """Motor limit: f <= f_max (a weakened muscle lowers its f_max); ``f_max_n (B, M)`` [N]."""
+
+    f_max_n: np.ndarray = None
+    column: ClassVar[str] = TENSION
+    weight_name: ClassVar[str] = "c_fmax"
+
+    def bounds(self):
+        return -np.inf, self.f_max_n
+
+
+@dataclass
+class LengthBand(Constraint):
+    """Motor confined to a band: l_lo_j <= l_motor_j <= l_hi_j; ``l_lo_m``, ``l_hi_m (B, M)`` [m], ignored off the mask.
+
+    A jam is the one-sided case (l_hi = l_fixed, l_lo = -inf); a band also stops the motor reeling in.
+    """
+
+    l_lo_m: np.ndarray = None
+    l_hi_m: np.ndarray = None
+    column: ClassVar[str] = LENGTH
+    weight_name: ClassVar[str] = "c_band"
+
+    def bounds(self):
+        return self.l_lo_m, self.l_hi_m

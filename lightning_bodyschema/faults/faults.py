@@ -121,22 +121,16 @@ class Faults:
             _refuse_cases(band & self.cut, "the same muscle is both cut and length-banded")
         return self
 
-    def constraints(self, f_max_n, dtype=None, device=None) -> list:
-        """The torch constraints of this batch (tension bounds included, a weakened muscle's limit lowered),
-        for the adaptation loss. ``f_max_n``: the robot's limit (scalar or per muscle); dtype default float64."""
-        import torch  # here, not at the top: evaluation/ uses Faults without paying for torch
-
+    def constraints(self, f_max_n) -> list:
+        """The constraints of this batch (``faults.constraints``: intervals in SI units), tension bounds included and a
+        weakened muscle's limit lowered; ``f_max_n`` is the robot's limit (scalar or per muscle)."""
         from .constraints import Jam, LengthBand, MaxTension, MinTension, Rupture
 
-        dtype = torch.float64 if dtype is None else dtype
-        as_t = lambda a: torch.as_tensor(a, dtype=dtype, device=device)  # noqa: E731
-        cut = torch.as_tensor(self.cut, device=device)
-        healthy = ~cut
-        out = [Rupture(cut), Jam(torch.as_tensor(self.fix, device=device), as_t(self.l_fixed_m)),
-               MinTension(healthy, as_t(np.zeros(self.cut.shape))), MaxTension(healthy, as_t(self.f_limit(f_max_n)))]
+        healthy = ~self.cut
+        out = [Rupture(self.cut), Jam(self.fix, self.l_fixed_m), MinTension(healthy, np.zeros(self.cut.shape)),
+               MaxTension(healthy, self.f_limit(f_max_n))]
         if self.band.any():  # only when used: a fault-free batch runs exactly the paper's loss
-            out.append(LengthBand(torch.as_tensor(self.band, device=device), as_t(self.l_band_m[..., 0]),
-                                  as_t(self.l_band_m[..., 1])))
+            out.append(LengthBand(self.band, self.l_band_m[..., 0], self.l_band_m[..., 1]))
         return out
 
 

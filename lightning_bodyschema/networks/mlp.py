@@ -14,7 +14,7 @@ All tensors are batched ``(B, D)``; x is z-scored (dimensionless), q in rad.
 from __future__ import annotations
 
 import functools
-
+from dataclasses import dataclass
 from typing import Callable, Optional, Sequence
 
 import torch
@@ -73,24 +73,6 @@ class MLP(nn.Module):
         """x (B, in_dim) -> (B, out_dim)."""
         return self.net(x)
 
-    def frozen(self, free: slice) -> Optional["FrozenMLP"]:
-        """Inference-only view for fast loops over the input columns ``free`` (see ``FrozenMLP``).
-
-        None when an activation has no hand-written derivative (callers fall back to autograd). Cached
-        until a parameter changes (in-place optimizer steps bump the tensors' versions) or moves.
-        """
-        modules = list(self.net._modules.values())  # plain dict access: nn.Module attribute lookup is slow
-        if type(modules[1]) not in _ACT_AND_GRAD:
-            return None
-        params = [p for layer in modules[::2] for p in layer._parameters.values()]
-        key = [free.indices(self.in_dim)] + [(p.data_ptr(), p._version, p.dtype) for p in params]
-        cached = self.__dict__.get("_frozen")
-        if cached is None or cached[0] != key:
-            # the entry keeps the parameters' storages alive, so no new tensor can reuse their addresses
-            cached = (key, FrozenMLP(self, free), [p.detach() for p in params])
-            self.__dict__["_frozen"] = cached
-        return cached[1]
-
 
 class AEEncoder(nn.Module):
     """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)).
@@ -142,13 +124,13 @@ class Decoder(nn.Module):
     def forward(self, q: torch.Tensor, z_latent: torch.Tensor) -> torch.Tensor:
         return self.mlp(torch.cat([q, z_latent], dim=-1))
 
-    def bind(self, q: torch.Tensor) -> Optional[tuple["FrozenMLP", torch.Tensor]]:
-        """``(frozen, bias)`` for fast loops over z_latent at fixed ``q (B, q_dim)``:
-        ``frozen.forward(z, bias)`` is ``self(q, z)``; ``frozen.forward_vjp`` adds d x_hat / d z_latent.
+    def frozen(self) -> Optional["FrozenMLP"]:
+        """An inference-only snapshot for latent descent: free columns z_latent, fixed columns q (``FrozenMLP``).
+
+        ``frozen.first_bias(q)`` folds q into the first layer, so ``frozen.forward(z, bias)`` is ``self(q, z)``.
         None for activations without a hand-written derivative.
         """
-        frozen = self.mlp.frozen(slice(self.q_dim, None))
-        return None if frozen is None else (frozen, frozen.first_bias(q.detach()))
+        return FrozenMLP.of(self.mlp, slice(self.q_dim, None))
 
 
 def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool = False, hidden: int = 64,
@@ -166,23 +148,6 @@ def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool
     enc_cls = VAEEncoder if variational else AEEncoder
     encoder = enc_cls(x_dim, q_dim, z_latent_dim, hidden, n_hidden_layers, activation)
     return encoder, Decoder(q_dim, z_latent_dim, x_dim, hidden, n_hidden_layers, activation)
-
-
-def _silu_and_grad(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """silu(a) and silu'(a) = s (1 + a (1 - s)) = s + silu(a) (1 - s), sharing the sigmoid s."""
-    s = torch.sigmoid(a)
-    h = a * s
-    return h, s + h - h * s  # tensor-tensor ops only: ``1.0 - s`` goes through a slow Python rsub
-
-
-def _tanh_and_grad(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    h = torch.tanh(a)
-    return h, (h * h).neg_().add_(1.0)  # 1 - h^2 without the Python-level rsub
-
-
-# activations with a hand-written derivative for EpsMLP.eps_and_vjp; others fall back to autograd
-_ACT_AND_GRAD: dict[type[nn.Module], Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]] = {
-    nn.SiLU: _silu_and_grad, nn.Tanh: _tanh_and_grad}
 
 
 class EpsMLP(nn.Module):
@@ -214,169 +179,124 @@ class EpsMLP(nn.Module):
     def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         return self.mlp(self._inputs(x_t, t, q))
 
-    def eps_and_vjp(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor
-                    ) -> tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]:
-        """eps_hat (B, x_dim) and ``vjp: v (B, x_dim) -> v^T d eps_hat / d x_t`` (B, x_dim), without autograd.
+    def frozen(self) -> Optional["FrozenMLP"]:
+        """An inference-only snapshot for sampling loops: free columns x_t, fixed columns [t/T, q] (``FrozenMLP``).
+        None for activations without a hand-written derivative (samplers then run the autograd reference)."""
+        return FrozenMLP.of(self.mlp, slice(0, self.x_dim))
 
-        For guided denoising (eq:diff-adapt): with g = dL/dx0_hat, grad_{x_t} L(x0_hat(x_t)) is
-        ``(g - sqrt(1 - abar_t) * vjp(g)) / sqrt(abar_t)``. A hand-written backward pass through the
-        stored activation derivatives skips autograd's graph bookkeeping, which dominates for an
-        11k-parameter MLP: measured ~2x faster than ``torch.autograd.grad`` on the 2-core CPU (forward
-        + vjp: ~100 vs ~200 us at batch 1, ~160 vs ~270 us at batch 40; one thread, machine busy).
-        Inference only: outputs carry no graph. Activations other than SiLU and Tanh use autograd.
-        """
-        act_and_grad = _ACT_AND_GRAD.get(type(self.mlp.net[1]))
-        if act_and_grad is None:
-            return self._eps_and_vjp_autograd(x_t, t, q)
-        # plain tensors sharing the parameters' storage: ops on nn.Parameter pay a dispatch toll
-        ws = [(m.weight.detach(), m.bias.detach()) for m in list(self.mlp.net)[::2]]
-        # all operands are detached, so no graph is built even with grad mode on
-        h, dacts = self._inputs(x_t.detach(), t, q.detach()), []
-        for w, b in ws[:-1]:
-            h, dact = act_and_grad(torch.addmm(b, h, w.t()))
-            dacts.append(dact)  # act'(pre-activation), needed by the backward pass
-        eps = torch.addmm(ws[-1][1], h, ws[-1][0].t())
+    def step_biases(self, frozen: "FrozenMLP", q: torch.Tensor, timesteps: Sequence[int]) -> torch.Tensor:
+        """First-layer bias of every step of a sampling loop, (S, B, H): ``b1 + (t_i / T) w_t + q W_q^T``.
 
-        def vjp(v: torch.Tensor) -> torch.Tensor:
-            g = v.detach() @ ws[-1][0]
-            for (w, _), dact in zip(reversed(ws[1:-1]), reversed(dacts[1:])):
-                g = (g * dact) @ w
-            # only the x_t columns of the first layer: t and q are not differentiated
-            return (g * dacts[0]) @ ws[0][0][:, :self.x_dim]
-        return eps, vjp
+        The t/T and q columns are fixed for a whole loop, so a step pays only for its x_t columns; all steps in
+        one broadcast op."""
+        t_feat = q.new_tensor([t / self.n_timesteps for t in timesteps])
+        w_t, w_q = frozen.w1_rest_t[0], frozen.w1_rest_t[1:]  # rest columns in input order: t/T, then q
+        base = torch.addmm(frozen.b1, q.detach(), w_q)  # (B, H)
+        return torch.addcmul(base.unsqueeze(0), t_feat.view(-1, 1, 1), w_t.view(1, 1, -1))
 
-    def bind(self, q: torch.Tensor, timesteps: Sequence[int]) -> Optional[BoundEps]:
-        """Fast evaluator for a sampling loop over ``timesteps`` at fixed conditions ``q (B, q_dim)``.
 
-        Same maths as ``forward``/``eps_and_vjp`` (up to float rounding), None for activations without a
-        hand-written derivative. Inference only; weights are read when called (cached until they change).
-        """
-        frozen = self.mlp.frozen(slice(0, self.x_dim))
-        if frozen is None:
-            return None
-        q = q.detach()
-        t_key = (tuple(timesteps), q.dtype, q.device)
-        cached = self.__dict__.get("_t_feat")
-        if cached is None or cached[0] != t_key:
-            cached = (t_key, torch.tensor([t / self.n_timesteps for t in timesteps], dtype=q.dtype, device=q.device))
-            self.__dict__["_t_feat"] = cached
-        t_feat = cached[1]
-        # bias of step i: b1 + (t_i / T) w_t + q W_q^T, all steps in one broadcast op
-        w_t = frozen.w1_rest_t[0]  # (H,): the t/T column
-        base = torch.addmm(frozen.b1, q, frozen.w1_rest_t[1:])  # (B, H)
-        stacked = torch.addcmul(base.unsqueeze(0), t_feat.view(-1, 1, 1), w_t.view(1, 1, -1))  # (S, B, H)
-        return BoundEps(frozen, stacked)
+_FROZEN_ACTIVATIONS = (nn.SiLU, nn.Tanh)  # activations with a hand-written derivative (ATen's fused backward)
 
-    def _eps_and_vjp_autograd(self, x_t, t, q):
-        with torch.enable_grad():
-            x = x_t.detach().requires_grad_(True)
-            eps = self(x, t, q)
 
-        def vjp(v: torch.Tensor) -> torch.Tensor:
-            return torch.autograd.grad(eps, x, v, retain_graph=True)[0]
-        return eps.detach(), vjp
+@dataclass(frozen=True)
+class ActivationOps:
+    """The activation and its backward, both writing into given buffers: ``act(a, out=h)``,
+    ``act_backward(g, saved, grad_input=o)`` (saved: the pre-activation for SiLU, the output for Tanh).
+
+    Two sets of the same maths: ``eager`` calls the raw C++ bindings (no Python frame of an ``OpOverload``:
+    ~0.4 us less per op at batch 1, where dispatch is the cost), ``traceable`` the public ATen overloads that
+    ``torch.compile`` traces."""
+
+    act: Callable
+    act_backward: Callable
 
 
 class FrozenMLP:
-    """Inference-only copy of an ``MLP``'s weights for fast loops (guided denoising, latent descent).
+    """Inference-only snapshot of an ``MLP``: the package's one hand-written forward and backward pass.
 
-    The input is split into *free* columns (a slice: what the loop updates, e.g. x_t or z_latent)
-    and the rest (fixed for the whole loop, e.g. t/T and q), whose first-layer contribution is
-    folded into a bias computed once with ``first_bias``. Plain tensors, pre-transposed contiguous
-    weights, no autograd and no ``nn.Module`` dispatch: at batch 1 every tensor op costs a few
-    microseconds of dispatch, so the op count is the cost. One ``addmm`` and one activation per
-    layer forward; the backward pass uses ATen's fused activation backward (``silu_backward`` /
-    ``tanh_backward``: one op instead of four for SiLU's derivative).
+    Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice:
+    what the loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer
+    contribution is folded into a bias once (``first_bias``). Plain tensors, pre-transposed contiguous weights,
+    no autograd, no ``nn.Module`` dispatch: at batch 1 a tensor op costs a few microseconds of dispatch, so the
+    op count is the cost. One ``addmm`` and one activation per layer forward; the backward uses ATen's fused
+    activation backward (one op instead of four for SiLU's derivative).
 
-    Building blocks, so that a sampler can fuse its own arithmetic into the layers (``samplers.guided``'s
-    fused loops inline them): ``trunk(x, bias) -> (h, saved)`` (last hidden features), ``out_w_t``/``out_w``/
-    ``out_b`` (output layer, out = out_b + h out_w_t), ``back(g_h, saved)`` (dL/dh_last -> dL/d first
-    pre-activation; times ``w1_free`` it is dL/dx_free), ``hidden`` (W^T, W, b) per hidden-to-hidden layer,
-    ``_act``/``_act_backward``. Only SiLU and Tanh; ``MLP.frozen`` returns None otherwise.
+    Lifetime: the weights are copied when it is built and never follow the module afterwards; whoever holds one
+    (``schemas.cache.InferenceCache``, a prepared ``adaptation.Adapter``) decides when to rebuild it.
+
+    Blocks a sampler fuses its own arithmetic around: ``trunk(u, bias, w1_t, bufs) -> (h, saved)`` (last hidden
+    features for a first-layer weight ``w1_t``, e.g. ``w1_free_t`` or a scaled copy), the output layer
+    (``out_w_t``, ``out_w``, ``out_b``: out = out_b + h out_w_t) and ``back(g_h, saved, bufs)`` (dL/dh_last ->
+    dL/d first pre-activation; times ``w1_free`` it is dL/dx_free). Only SiLU and Tanh (``of`` returns None else).
     """
 
+    @classmethod
+    def of(cls, mlp: MLP, free: slice) -> Optional["FrozenMLP"]:
+        """The snapshot, or None when the activation has no hand-written derivative."""
+        return cls(mlp, free) if type(mlp.net[1]) in _FROZEN_ACTIVATIONS else None
+
     def __init__(self, mlp: MLP, free: slice):
-        linears = list(mlp.net)[::2]
-        self.silu = type(mlp.net[1]) is nn.SiLU
-        w1 = linears[0].weight.detach()
-        free_cols = range(*free.indices(mlp.in_dim))
-        rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
-        self.w1_free_t = w1[:, free].t().contiguous()  # (n_free, H): forward
-        self.w1_free = w1[:, free].contiguous()  # (H, n_free): backward
-        self.w1_rest_t = w1[:, rest_cols].t().contiguous()  # (n_rest, H)
-        self.b1 = linears[0].bias.detach().clone()
-        # hidden-to-hidden layers: (W^T for forward, W for backward, b)
-        self.hidden = [(m.weight.detach().t().contiguous(), m.weight.detach().contiguous(), m.bias.detach().clone())
-                       for m in linears[1:-1]]
-        out = linears[-1]
-        self.out_w_t, self.out_w = out.weight.detach().t().contiguous(), out.weight.detach().contiguous()
-        self.out_b = out.bias.detach().clone()
-        # silu without F.silu's Python wrapper (private binding; the public function if it ever goes away)
-        self._act = getattr(torch._C._nn, "silu", torch.nn.functional.silu) if self.silu else torch.tanh
-        # grad * act'(.) from what ``trunk`` saved: the pre-activation (SiLU) or the output (Tanh); the raw
-        # overload skips OpOverload.__call__'s Python frame (~0.4 us per call at batch 1)
-        backward = torch.ops.aten.silu_backward.default if self.silu else torch.ops.aten.tanh_backward.default
-        self._act_backward = getattr(backward, "_op", backward)
-        # the same two ops writing into given buffers (``act(a, out=h)``, ``act_backward(g, s, grad_input=o)``)
-        # for loops that allocate once, and as public ops that torch.compile can trace
-        self.act_out = self._act
-        self.act_backward_out = (torch.ops.aten.silu_backward if self.silu else torch.ops.aten.tanh_backward).grad_input
-        self.traceable_act = (torch.nn.functional.silu if self.silu else torch.tanh), backward
+        copy = functools.partial(torch.clone, memory_format=torch.contiguous_format)
+        with torch.no_grad():
+            linears = list(mlp.net)[::2]
+            self.silu = type(mlp.net[1]) is nn.SiLU
+            w1 = linears[0].weight.detach()
+            free_cols = range(*free.indices(mlp.in_dim))
+            rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
+            self.w1_free_t, self.w1_free = copy(w1[:, free].t()), copy(w1[:, free])  # (n_free, H), (H, n_free)
+            self.w1_rest_t = copy(w1[:, rest_cols].t())  # (n_rest, H)
+            self.b1 = copy(linears[0].bias.detach())
+            # hidden-to-hidden layers: (W^T for the forward pass, W for the backward pass, b)
+            self.hidden = [(copy(m.weight.detach().t()), copy(m.weight.detach()), copy(m.bias.detach()))
+                           for m in linears[1:-1]]
+            out = linears[-1]
+            self.out_w_t, self.out_w = copy(out.weight.detach().t()), copy(out.weight.detach())
+            self.out_b = copy(out.bias.detach())
+        aten = torch.ops.aten
+        act, backward = (aten.silu, aten.silu_backward) if self.silu else (aten.tanh, aten.tanh_backward)
+        self.traceable = ActivationOps(act.out, backward.grad_input)
+        self.eager = ActivationOps(getattr(torch._C._nn, "silu", act.out) if self.silu else torch.tanh,
+                                   getattr(backward.grad_input, "_op", backward.grad_input))
+
+    @property
+    def hidden_width(self) -> int:
+        return self.b1.shape[0]
 
     def first_bias(self, rest: torch.Tensor) -> torch.Tensor:
         """First-layer pre-activation from the fixed columns ``rest (B, n_rest)``: ``b1 + rest W1_rest^T``."""
         return torch.addmm(self.b1, rest, self.w1_rest_t)
 
-    def trunk(self, x_free: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, list]:
-        """Last hidden features (B, H) and what ``back`` needs, for ``x_free (B, n_free)`` and a ``first_bias``."""
-        a = torch.addmm(bias, x_free, self.w1_free_t)
-        h = self._act(a)
-        saved = [a if self.silu else h]
-        for w_t, _, b in self.hidden:
-            a = torch.addmm(b, h, w_t)
-            h = self._act(a)
-            saved.append(a if self.silu else h)
-        return h, saved
+    def buffers(self, batch: int, like: torch.Tensor) -> tuple[list, list, list]:
+        """(pre, post, grads): per-layer (B, H) buffers for ``trunk`` and ``back``, allocated once per loop."""
+        n_layers = 1 + len(self.hidden)
+        new = functools.partial(like.new_empty, (batch, self.hidden_width))
+        return [new() for _ in range(n_layers)], [new() for _ in range(n_layers)], [new() for _ in range(2)]
 
-    def back(self, g_h: torch.Tensor, saved: list) -> torch.Tensor:
-        """dL/dh_last (B, H) -> dL/d(first-layer pre-activation) (B, H)."""
-        g = self._act_backward(g_h, saved[-1])
+    def trunk(self, u: torch.Tensor, bias: torch.Tensor, w1_t: torch.Tensor, bufs, ops: ActivationOps):
+        """Last hidden features (B, H) of free input ``u (B, n_free)`` and what ``back`` needs (every layer's
+        pre-activation for SiLU, output for Tanh), written into ``bufs`` (``buffers``)."""
+        pre, post, _ = bufs
+        ops.act(torch.addmm(bias, u, w1_t, out=pre[0]), out=post[0])
+        for i, (w_t, _, b) in enumerate(self.hidden, start=1):
+            ops.act(torch.addmm(b, post[i - 1], w_t, out=pre[i]), out=post[i])
+        return post[-1], (pre if self.silu else post)
+
+    def back(self, g_out: torch.Tensor, w_out: torch.Tensor, saved: list, bufs, ops: ActivationOps) -> torch.Tensor:
+        """dL/d(first-layer pre-activation) (B, H) from dL/d(output) ``g_out (B, out)`` through the output weight
+        ``w_out`` (``out_w`` or a scaled copy); alternates between the two gradient buffers of ``bufs``."""
+        grads = bufs[2]
+        g = ops.act_backward(torch.mm(g_out, w_out, out=grads[0]), saved[-1], grad_input=grads[1])
         for (_, w, _), s in zip(reversed(self.hidden), reversed(saved[:-1])):
-            g = self._act_backward(g @ w, s)
+            g = ops.act_backward(torch.mm(g, w, out=grads[0]), s, grad_input=grads[1])
         return g
 
     def forward(self, x_free: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """Output (B, out)."""
-        return torch.addmm(self.out_b, self.trunk(x_free, bias)[0], self.out_w_t)
+        """Output (B, out) for free input ``x_free`` and a ``first_bias``."""
+        h, _ = self.trunk(x_free, bias, self.w1_free_t, self.buffers(len(x_free), x_free), self.eager)
+        return torch.addmm(self.out_b, h, self.out_w_t)
 
-    def forward_vjp(self, x_free: torch.Tensor, bias: torch.Tensor
-                    ) -> tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]:
-        """Output and ``vjp: v (B, out) -> v^T d out / d x_free`` (B, n_free)."""
-        h, saved = self.trunk(x_free, bias)
-
-        def vjp(v: torch.Tensor) -> torch.Tensor:
-            return self.back(v @ self.out_w, saved) @ self.w1_free
-
-        return torch.addmm(self.out_b, h, self.out_w_t), vjp
-
-
-class BoundEps:
-    """``EpsMLP`` bound to one batch's conditions q and a list of timesteps (``EpsMLP.bind``).
-
-    ``eps(x, i)`` and ``eps_and_vjp(x, i)`` evaluate h^diff(x, timesteps[i], q); the t/T and q columns of
-    the first layer are precomputed for every step at once, so a step costs only the x_t columns.
-    """
-
-    def __init__(self, frozen: FrozenMLP, stacked_biases: torch.Tensor):
-        self.frozen, self.stacked_biases = frozen, stacked_biases  # (S, B, H): step i's first-layer bias
-
-    @functools.cached_property
-    def biases(self) -> tuple[torch.Tensor, ...]:
-        """Step i's first-layer bias (B, H), as separate views."""
-        return self.stacked_biases.unbind(0)
-
-    def eps(self, x_t: torch.Tensor, i: int) -> torch.Tensor:
-        return self.frozen.forward(x_t, self.biases[i])
-
-    def eps_and_vjp(self, x_t: torch.Tensor, i: int):
-        return self.frozen.forward_vjp(x_t, self.biases[i])
+    def vjp(self, x_free: torch.Tensor, bias: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """``v^T d out / d x_free`` (B, n_free) at ``x_free``."""
+        bufs = self.buffers(len(x_free), x_free)
+        _, saved = self.trunk(x_free, bias, self.w1_free_t, bufs, self.eager)
+        return self.back(v, self.out_w, saved, bufs, self.eager) @ self.w1_free

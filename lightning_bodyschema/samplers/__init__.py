@@ -1,5 +1,7 @@
-"""Noise schedule and update rules (denoising, guidance, latent optimization). Imports no model, no Lightning."""
-from .guided import GuidanceConfig, LatentConfig, guided_denoise, optimize_latent
+"""Noise schedule and update rules (guided denoising, latent descent). Imports no model, no loss, no Lightning."""
+from .guided import DenoisePlan, GuidanceConfig, denoise, plan_denoising, reference_loop
+from .latent import LatentConfig, latent_descent, reference_latent_descent
 from .schedule import NoiseSchedule
 
-__all__ = ["NoiseSchedule", "GuidanceConfig", "LatentConfig", "guided_denoise", "optimize_latent"]
+__all__ = ["NoiseSchedule", "GuidanceConfig", "DenoisePlan", "plan_denoising", "denoise", "reference_loop",
+           "LatentConfig", "latent_descent", "reference_latent_descent"]

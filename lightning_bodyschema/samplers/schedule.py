@@ -1,23 +1,33 @@
-"""DDPM noise schedule and deterministic update rules (paper section II-C and III-C).
+"""DDPM noise schedule and its deterministic update (paper section II-C and III-C).
 
-Modelled on diffusers' ``scheduling_ddpm.py`` but kept to what the body schema needs: one linear
-beta schedule, the forward (noising) process, ``x0`` prediction (eq:diff-1), the deterministic DDPM
-mean step (eq:diff-2 with eta = 0) and a strided DDIM step (eta = 0) for fast adaptation.
-The guidance step eq:diff-adapt is *not* here: it needs a loss and a model, and this module imports
-neither (DESIGN §1). A sampler calls ``predict_x0`` -> its own guidance -> ``ddpm_mean_step``.
+Modelled on diffusers' ``scheduling_ddpm.py`` and kept to what the body schema needs: one linear beta
+schedule, the forward (noising) process, the x0 prediction (eq:diff-1), ONE deterministic update between two
+timesteps with its ONE coefficient formula (``step_coefficients``), and the strided timestep lists of fast
+samplers. The guidance step eq:diff-adapt is not here: it needs a loss and a model, and this module imports
+neither. A sampler calls ``predict_x0`` -> its own guidance -> ``step``.
 
-Shapes: ``x`` tensors are batched ``(B, D)`` (any trailing dims work); ``t`` is a Python ``int``
-(same step for the whole batch, the fast path in sampling loops) or an integer tensor ``(B,)``
-(one step per sample, as in training). All quantities are dimensionless (x is z-scored).
+**eta** is DDIM's eta (Song et al. 2021) everywhere in this package: it picks the deterministic update from t to
+an earlier t' with the noise term left out. ``eta = 1``: the mean of the DDPM posterior q(x_t' | x_t, x0_hat);
+for t' = t - 1 this is exactly the paper's eq:diff-2 with its noise term ``sigma_t eta_vec`` dropped (the paper
+calls that noise *vector* eta and sets it to zero in adaptation). ``eta = 0``: DDIM's step, which re-noises
+x0_hat with the same predicted noise.
+
+Shapes: ``x`` tensors are batched ``(B, D)``; ``t`` is a Python ``int`` (one step for the whole batch, as in
+sampling loops) or, in ``add_noise``/``predict_x0``, an integer tensor ``(B,)`` (one step per sample, as in
+training). All quantities are dimensionless (x is z-scored).
 """
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 from torch import nn
 
 from ..errors import BodySchemaInputError
 
 TimeStep = int | torch.Tensor
+SPACINGS = ("quad", "linspace", "trailing")  # strided timestep lists, see NoiseSchedule.timesteps
 
 
 class NoiseSchedule(nn.Module):
@@ -84,14 +94,6 @@ class NoiseSchedule(nn.Module):
             coef = coef.reshape(coef.shape + (1,) * (like.ndim - coef.ndim))
         return coef
 
-    def _alpha_bar_prev(self, t_prev: TimeStep, like: torch.Tensor) -> torch.Tensor:
-        """alpha_bar at ``t_prev``; ``t_prev = -1`` means "the clean data", alpha_bar = 1."""
-        if not isinstance(t_prev, torch.Tensor):
-            return like.new_tensor(1.0) if t_prev < 0 else self._gather(self.alpha_bars, t_prev, like)
-        abar = self._gather(self.alpha_bars, t_prev.clamp_min(0), like)
-        is_data = (t_prev < 0).to(like.device).reshape(abar.shape)  # same (B, 1, ...) layout as abar
-        return torch.where(is_data, torch.ones_like(abar), abar)
-
     # ---------------------------------------------------------------- processes
     def add_noise(self, x0: torch.Tensor, eps: torch.Tensor, t: TimeStep) -> torch.Tensor:
         """Forward process (paper II-C): ``x_t = sqrt(abar_t) x0 + sqrt(1 - abar_t) eps``.
@@ -104,52 +106,59 @@ class NoiseSchedule(nn.Module):
     def predict_x0(self, x_t: torch.Tensor, eps_hat: torch.Tensor, t: TimeStep) -> torch.Tensor:
         """eq:diff-1: ``x0_hat = (x_t - sqrt(1 - abar_t) eps_hat) / sqrt(abar_t)`` (exact inverse of add_noise).
 
-        Note d x0_hat / d x_t ~ 1/sqrt(abar_t): up to ~180x at t = T-1 for T = 200 (why a literal
-        guidance lr on x0_hat diverges early, DESIGN §5).
+        Note d x0_hat / d x_t ~ 1/sqrt(abar_t): up to ~180x at t = T-1 for T = 200 (why the paper's guidance
+        step with a fixed lr diverges early in SI units; docs/design.md, "Guidance step").
         """
         self._check_t(t)
         return (x_t - self._gather(self.sqrt_one_minus_alpha_bars, t, x_t) * eps_hat) / self._gather(self.sqrt_alpha_bars, t, x_t)
 
-    def ddpm_mean_step(self, x_t: torch.Tensor, eps_hat: torch.Tensor, t: TimeStep) -> torch.Tensor:
-        """eq:diff-2 with eta = 0 (no noise injected): one deterministic step t -> t-1.
+    def step_coefficients(self, t: int, t_prev: int, eta: float = 1.0) -> tuple[float, float]:
+        """(cx, ce) of the deterministic update ``x_t' = cx x_t + ce eps_hat`` from t to t_prev (-1: the data).
 
-        ``x_{t-1} = (x_t - (1 - a_t) / sqrt(1 - abar_t) eps_hat) / sqrt(a_t)``. At t = 0 the result is
-        x0_hat exactly (abar_0 = a_0). Given the true noise of x_t this lands on
-        ``sqrt(abar_{t-1}) x0 + sqrt(a_t) (1 - abar_{t-1}) / sqrt(1 - abar_t) eps``: the DDPM posterior
-        mean, whose noise share is *smaller* than the DDIM step's ``sqrt(1 - abar_{t-1})``.
+        ``x_t' = sqrt(abar') x0_hat + sqrt(1 - abar' - sigma^2) eps_hat`` with x0_hat from eq:diff-1 and
+        ``sigma^2 = eta^2 (1 - abar') / (1 - abar_t) (1 - abar_t / abar')`` (abar' = abar_{t_prev}, 1 for -1), so
+        ``cx = sqrt(abar' / abar_t)`` and ``ce = sqrt(1 - abar' - sigma^2) - cx sqrt(1 - abar_t)``. Plain floats
+        from the float64 buffers: every sampler, eager, fused or compiled, uses these two numbers.
         """
         self._check_t(t)
-        # 1. noise coefficient (1 - a_t) / sqrt(1 - abar_t) = beta_t / sqrt(1 - abar_t)
-        c_eps = self._gather(self.betas, t, x_t) / self._gather(self.sqrt_one_minus_alpha_bars, t, x_t)
-        # 2. remove the predicted noise share and rescale by 1 / sqrt(a_t)   (eq:diff-2)
-        return (x_t - c_eps * eps_hat) / self._gather(self.sqrt_alphas, t, x_t)
-
-    def ddim_step(self, x_t: torch.Tensor, eps_hat: torch.Tensor, t: TimeStep, t_prev: TimeStep) -> torch.Tensor:
-        """Deterministic DDIM step (eta = 0) from t to any earlier ``t_prev`` (``-1`` returns x0_hat).
-
-        ``x_{t_prev} = sqrt(abar_prev) x0_hat + sqrt(1 - abar_prev) eps_hat``: re-noise the current
-        clean estimate to the earlier level with the *same* noise, so a few strided steps suffice.
-        t, t_prev: ints or (B,) tensors with t_prev < t (not checked per element).
-        """
         self._check_t(t_prev, "t_prev", allow_minus_one=True)
-        if not isinstance(t, torch.Tensor) and not isinstance(t_prev, torch.Tensor) and t_prev >= t:
+        if t_prev >= t:
             raise BodySchemaInputError(f"t_prev={t_prev} must be smaller than t={t} (denoising runs backwards)")
-        # 1. clean estimate from the predicted noise (eq:diff-1); validates t
-        x0_hat = self.predict_x0(x_t, eps_hat, t)
-        # 2. re-noise it to level t_prev with the same eps (DDIM, eta = 0)
-        abar_prev = self._alpha_bar_prev(t_prev, x_t)
-        return abar_prev.sqrt() * x0_hat + (1.0 - abar_prev).sqrt() * eps_hat
+        if not 0.0 <= float(eta) <= 1.0:
+            raise BodySchemaInputError(f"eta={eta!r} must be in [0, 1] (0: DDIM, 1: the DDPM posterior mean)")
+        abar = float(self.alpha_bars[t])
+        abar_prev = float(self.alpha_bars[t_prev]) if t_prev >= 0 else 1.0
+        sigma2 = eta ** 2 * (1.0 - abar_prev) / (1.0 - abar) * (1.0 - abar / abar_prev)
+        s0, s1 = math.sqrt(abar), math.sqrt(1.0 - abar)
+        return math.sqrt(abar_prev) / s0, math.sqrt(max(0.0, 1.0 - abar_prev - sigma2)) - math.sqrt(abar_prev) * s1 / s0
 
-    def timesteps(self, n_steps: int) -> torch.Tensor:
-        """Strided descending steps for a sampling loop, LongTensor (n_steps,) on the buffers' device.
+    def step(self, x_t: torch.Tensor, eps_hat: torch.Tensor, t: int, t_prev: int, eta: float = 1.0) -> torch.Tensor:
+        """The deterministic update x_t -> x_{t_prev} (``step_coefficients``); eta = 1 and t_prev = t - 1 is
+        eq:diff-2 without its noise term, and at t = 0 -> -1 the result is x0_hat."""
+        cx, ce = self.step_coefficients(t, t_prev, eta)
+        # 1. eq:diff-1 and 2. the re-noising to t_prev, folded into one linear combination of x_t and eps_hat
+        return cx * x_t + ce * eps_hat
 
-        "Trailing" spacing (Lin et al. 2024): always starts at T-1 (pure noise) and spaces by T/n,
-        e.g. T = 200, n = 20 -> 199, 189, ..., 9; n = T -> T-1, ..., 0. Pair each t with the next
-        entry as ``t_prev`` and use ``t_prev = -1`` after the last one (``ddim_step`` then returns x0).
-        Loop with ``for t in ts.tolist()`` so each step takes the fast int path.
+    def timesteps(self, n_steps: int, spacing: str = "quad") -> list[int]:
+        """``n_steps`` distinct descending steps from T-1 for a strided sampler.
+
+        ``"quad"``: t_i = (T-1) (1 - i/(n-1))^2 rounded, dense at low noise where guidance settles the command,
+        ending at t = 0; ``"linspace"``: evenly from T-1 to 0; ``"trailing"`` (Lin et al. 2024): T-1, T-1-T/n, ...,
+        ending at T/n - 1. With n = T all three are T-1, ..., 0. Measured on the paper checkpoint (20 steps, one
+        guidance step): quad leaves 0.03 N on a cut muscle, linspace 0.4 N, trailing 2.6 N (its last guided step
+        is at t = 9, where the network's Jacobian still blurs the correction).
         """
-        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or not 1 <= n_steps <= self.n_timesteps:
-            raise BodySchemaInputError(f"n_steps={n_steps!r} must be an int in 1..{self.n_timesteps} (n_timesteps)")
         T = self.n_timesteps
-        steps = [round(T - i * T / n_steps) - 1 for i in range(n_steps)]
-        return torch.tensor(steps, dtype=torch.long, device=self.betas.device)
+        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or not 1 <= n_steps <= T:
+            raise BodySchemaInputError(f"n_steps={n_steps!r} must be an int in 1..{T} (n_timesteps)")
+        if spacing not in SPACINGS:
+            raise BodySchemaInputError(f"unknown spacing {spacing!r}; allowed: {list(SPACINGS)}")
+        if n_steps == 1:
+            return [T - 1]
+        if spacing == "trailing":
+            return [round(T - i * T / n_steps) - 1 for i in range(n_steps)]
+        u = np.linspace(1.0, 0.0, n_steps)
+        steps = np.rint((T - 1) * (u ** 2 if spacing == "quad" else u)).astype(int)
+        for i in range(n_steps - 2, -1, -1):  # rounding can repeat a step near 0: keep them distinct
+            steps[i] = max(steps[i], steps[i + 1] + 1)
+        return steps.tolist()

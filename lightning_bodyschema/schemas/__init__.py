@@ -1,6 +1,7 @@
 """Body schemas: one ``BodySchema`` interface, AE / VAE / diffusion implementations."""
 from .autoencoder import AutoEncoderSchema, VAESchema
-from .base import AdaptationResult, BodySchema
+from ..adaptation import AdaptationResult
+from .base import BodySchema
 from .diffusion import DiffusionSchema
 from .loading import load_datamodule, load_schema
 

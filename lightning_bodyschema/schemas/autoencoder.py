@@ -6,9 +6,8 @@ from typing import Optional
 import torch
 
 from ..networks import build_autoencoder
-from ..samplers import LatentConfig, optimize_latent
+from ..samplers import LatentConfig, latent_descent, reference_latent_descent
 from .base import BodySchema
-from .diffusion import LazyLoss, with_analytic_gradient
 
 
 class AutoEncoderSchema(BodySchema):
@@ -59,21 +58,23 @@ class AutoEncoderSchema(BodySchema):
     def generate(self, q_n):
         return self.decoder(q_n, self.z_latent_ref.expand(len(q_n), -1))
 
-    def adaptation_loss_fn(self, constraints, variant: str):
-        """``BodySchema``'s loss (built on first use), with its analytic gradient attached for the fast path."""
-        return with_analytic_gradient(self, LazyLoss(super().adaptation_loss_fn, constraints, variant),
-                                      constraints, variant)
-
-    def adapt_normalized(self, q_n, loss_fn, variant, lr=None, n_steps=None, optimizer=None, fast=True):
+    def adapt_normalized(self, q_n, penalty, variant, lr=None, n_steps=None, optimizer=None, fast=True,
+                         inference_mode=True):
         """Latent-space optimization (eq:ae-vae, eq:latent-opt) from z_ref, q fixed to q_ref.
 
-        fast: autograd-free descent (hand-written decoder backward, analytic loss gradient; default) or
-        the autograd reference (``fast=False``); same commands (tested).
+        fast: descent through the decoder's frozen snapshot (hand-written backward, analytic loss gradient; default)
+        or the autograd reference (``fast=False``); same commands (tested). inference_mode: run the fast loop under
+        ``torch.inference_mode`` (False: for benchmarks of that choice).
         """
         base = self.ADAPT[variant]
         config = LatentConfig(lr=base.lr if lr is None else lr, n_steps=base.n_steps if n_steps is None else n_steps,
                               optimizer=base.optimizer if optimizer is None else optimizer)
-        z = optimize_latent(self.decoder, q_n, self.z_latent_ref.expand(len(q_n), -1), loss_fn, config, fast=fast)
+        z0 = self.z_latent_ref.expand(len(q_n), -1)
+        frozen = self.inference_cache.get(("frozen_decoder",), self.decoder.frozen) if fast else None
+        if frozen is None:
+            z = reference_latent_descent(self.decoder, q_n, z0, penalty, config)
+        else:
+            z = latent_descent(frozen, frozen.first_bias(q_n.detach()), z0, penalty, config, inference_mode)
         return self.decoder(q_n, z)
 
 

@@ -11,68 +11,20 @@ this tiny data), validation in physical units, checkpoints that carry the robot,
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Optional
 
 import lightning as L
 import numpy as np
 import torch
 
+from ..adaptation import AdaptationResult, Adapter
+from ..adaptation.targets import adapt_to_target
 from ..data.normalizer import Normalizer
 from ..errors import BodySchemaInputError
-from ..faults import AdaptWeights, adaptation_loss
-from ..evaluation.feasibility import feasible_tensions
+from ..faults import AdaptWeights
 from ..optim import LeanFusedAdam
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
-
-
-@dataclass
-class AdaptationResult:
-    """What ``adapt`` returns. Only cases whose ``status`` is ``"ok"`` carry a command to send.
-
-    l_motor_m, f_n: (B, M) commands in SI units; a case that is not ``ok`` has NaN there, never
-    numbers that look like a command. status: (B,) strings (``ok``, ``non_finite``, ``infeasible``,
-    ``not_converged``, ...). diagnostics: per-case arrays (final loss, steps, ...).
-    """
-
-    l_motor_m: np.ndarray
-    f_n: np.ndarray
-    status: np.ndarray
-    diagnostics: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def ok(self) -> np.ndarray:
-        return self.status == "ok"
-
-
-class Adapter:
-    """``BodySchema.adapt`` for a fixed fault set, prepared once (see ``BodySchema.adapter``).
-
-    Call it with ``q_ref (B, N)`` [rad], one row per fault row; returns an ``AdaptationResult``.
-    """
-
-    def __init__(self, schema: "BodySchema", faults, variant: str, check_physics: bool, options: dict):
-        if variant not in schema.VARIANTS:
-            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
-        faults.validate(schema.n_muscles)
-        self.schema, self.faults, self.variant = schema, faults, variant
-        self.check_physics, self.options = check_physics, dict(options)
-        self.f_max = faults.f_limit(schema.spring.f_max_n)
-        # Lightning's val/test/predict loops run under inference_mode, whose tensors cannot enter autograd
-        with torch.inference_mode(False), torch.no_grad():
-            self.constraints = faults.constraints(schema.spring.f_max_n, dtype=schema.dtype, device=schema.device)
-            self.loss_fn = schema.adaptation_loss_fn(self.constraints, variant)
-
-    def __call__(self, q_ref) -> AdaptationResult:
-        schema, faults = self.schema, self.faults
-        q = schema.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref, within_range=True)
-        if len(faults) != len(q):
-            raise BodySchemaInputError(f"{len(q)} postures but {len(faults)} fault rows; give one row per case")
-        with torch.inference_mode(False), torch.no_grad():
-            x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.loss_fn, self.variant,
-                                          **self.options)
-        result = schema._command(schema.decode(x_n), faults, self.f_max)
-        return schema._flag_infeasible(result, q, faults) if self.check_physics else result
+from .cache import InferenceCache
 
 
 class BodySchema(L.LightningModule):
@@ -104,6 +56,7 @@ class BodySchema(L.LightningModule):
         self.x_dim = 2 * self.n_muscles
         self.normalizer = Normalizer(self.x_dim, self.n_joints)
         self._physics_cache: dict = {}
+        self.inference_cache = InferenceCache(self)  # frozen networks, sampling plans, ...: see schemas/cache.py
 
     # ------------------------------------------------------------------ what subclasses implement
     def training_loss(self, q_n: torch.Tensor, x_n: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -112,8 +65,10 @@ class BodySchema(L.LightningModule):
     def generate(self, q_n: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
-    def adapt_normalized(self, q_n: torch.Tensor, loss_fn, variant: str, **options) -> torch.Tensor:
-        """Adapted normalized x (B, D) minimizing ``loss_fn`` per case; what each architecture implements."""
+    def adapt_normalized(self, q_n: torch.Tensor, penalty, variant: str, **options) -> torch.Tensor:
+        """Adapted normalized x (B, D) minimizing ``penalty`` per case (L_adapt of eq:latent-opt on normalized x, a
+        ``faults.penalty.BoxPenalty``: call it for the loss, ``grad``/``residual`` for its gradient); what each
+        architecture implements."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
     # ------------------------------------------------------------------ adaptation (paper section III)
@@ -152,16 +107,6 @@ class BodySchema(L.LightningModule):
         """
         return Adapter(self, faults, variant, check_physics, options)
 
-    def _flag_infeasible(self, result: AdaptationResult, q: np.ndarray, faults) -> AdaptationResult:
-        """Status ``infeasible`` (NaN row) where no command can hold q under the faults (jammed wires pull)."""
-        feasible, _ = feasible_tensions(self.robot_model, q, faults, self.spring)
-        bad = ~feasible & (result.status == "ok")
-        result.diagnostics.update(feasible=feasible, best_effort_l_motor_m=result.l_motor_m.copy(),
-                                  best_effort_f_n=result.f_n.copy())
-        result.status[bad] = "infeasible"
-        result.l_motor_m[bad], result.f_n[bad] = np.nan, np.nan
-        return result
-
     def adapt_to_target(self, target_xyz, faults, site: str = "hand", variant: str = "default",
                         tol_m: float = 1e-4, ik_options: Optional[dict] = None, **options) -> AdaptationResult:
         """Commands that put ``site`` on the task-space targets ``target_xyz (B, 3)`` [m] under ``faults``.
@@ -176,30 +121,7 @@ class BodySchema(L.LightningModule):
         posture, the closest found for unreachable targets) and ``target_error_m (B,)`` (MuJoCo distance
         from the site at q_closest to the target).
         """
-        twin = self.kinematic_twin()
-        target = twin._check_target(target_xyz).numpy()
-        faults.validate(self.n_muscles)
-        if len(faults) != len(target):
-            raise BodySchemaInputError(f"{len(target)} targets but {len(faults)} fault rows; give one row per case")
-        if variant not in self.VARIANTS:  # refuse before spending time on the inverse kinematics
-            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
-        with torch.inference_mode(False):
-            q = twin.inverse_kinematics(target, site=site, tol_m=tol_m, **(ik_options or {})).q.numpy()
-        error = np.linalg.norm(self.robot_model.site_position(q, site) - target, axis=1)
-        reached = error <= tol_m
-        n, m = len(target), self.n_muscles
-        out = AdaptationResult(np.full((n, m), np.nan), np.full((n, m), np.nan),
-                               np.full(n, "unreachable", dtype="<U16"), {})
-        if reached.any():
-            inner = self.adapt(q[reached], faults.take(reached), variant, **options)
-            out.l_motor_m[reached], out.f_n[reached], out.status[reached] = inner.l_motor_m, inner.f_n, inner.status
-            for name, value in inner.diagnostics.items():
-                value = np.asarray(value)
-                full = np.full((n,) + value.shape[1:], np.nan if value.dtype.kind == "f" else 0, value.dtype)
-                full[reached] = value
-                out.diagnostics[name] = full
-        out.diagnostics.update(q_ref=np.where(reached[:, None], q, np.nan), q_closest=q, target_error_m=error)
-        return out
+        return adapt_to_target(self, target_xyz, faults, site, variant, tol_m, ik_options, **options)
 
     def kinematic_twin(self):
         """The robot's ``TorchKinematicTwin`` (built once, on first use: pytorch-kinematics IK and frames)."""
@@ -217,43 +139,33 @@ class BodySchema(L.LightningModule):
         m = self.n_muscles
         return AdaptWeights(1.0, 1.0, 1.0, 1.0, c_band=1.0), x_std[:m], x_std[m:]
 
-    def adaptation_loss_fn(self, constraints, variant: str):
-        """L_adapt on normalized x (eq:latent-opt), in the units of ``adaptation_units``."""
-        m = self.n_muscles
-        std = self.normalizer.x_std.to(self.dtype)
-        weights, l_scale, f_scale = self.adaptation_units(variant, std)
+    def penalty_builder(self, variant: str):
+        """The ``faults.PenaltyBuilder`` of ``variant`` for this schema's normalizer, dtype and device (cached)."""
+        from ..faults.penalty import PenaltyBuilder
 
-        def loss_fn(x_n):
-            x = self.normalizer.decode_x(x_n)
-            return adaptation_loss(constraints, weights, x[:, :m], x[:, m:], l_scale, f_scale)
+        def build():
+            mean, std = self.normalizer.x_mean, self.normalizer.x_std
+            return PenaltyBuilder(*self.adaptation_units(variant, std), mean, std, self.dtype, self.device)
+        return self.inference_cache.get(("penalty_builder", variant), build)
 
-        return loss_fn
+    # ------------------------------------------------------------------ the cache's lifetime (schemas/cache.py)
+    def clear_caches(self) -> None:
+        """Drop everything derived from the weights (frozen networks, sampling plans, ...): call it after editing
+        weights by hand in eval mode. Mode switches, ``load_state_dict`` and dtype/device moves do it themselves."""
+        self.inference_cache.clear()
 
-    def _command(self, x: torch.Tensor, faults, f_max: np.ndarray) -> AdaptationResult:
-        """Safe command: non-finite rows become NaN with status ``non_finite``; f clipped into its bounds.
+    def train(self, mode: bool = True):
+        self.inference_cache.clear()
+        return super().train(mode)
 
-        ``f_max`` (B, M): the tension limits, ``faults.f_limit(spring.f_max_n)`` (a weakened muscle's own)."""
-        x = x.cpu().numpy()
-        l_motor, f = x[:, : self.n_muscles], x[:, self.n_muscles:]
-        finite = np.isfinite(x).all(1)
-        # non-finite rows are replaced by NaN below, so NaN/inf may pass through clip and the diagnostics
-        f_safe = np.clip(f, 0.0, f_max)
-        status = np.where(finite, "ok", "non_finite").astype("<U16")
-        band, (lo, hi) = faults.band, (np.zeros((2,) + f.shape) if faults.l_band_m is None
-                                       else np.moveaxis(faults.l_band_m, -1, 0))  # NaN off the band: masked
-        with np.errstate(invalid="ignore"):
-            diagnostics = {"f_clipped_n": np.where(finite, np.abs(f_safe - f).max(1), np.nan),
-                           "cut_violation_n": np.where(finite, np.where(faults.cut, np.abs(f_safe), 0.0).max(1), np.nan),
-                           "jam_violation_m": np.where(finite, np.where(faults.fix, np.maximum(
-                               0.0, l_motor - faults.l_fixed_m), 0.0).max(1), np.nan),
-                           # before clipping: how far the adapted tension overshot a weakened muscle's limit
-                           "weak_violation_n": np.where(finite, np.where(faults.weak, np.maximum(
-                               0.0, f - f_max), 0.0).max(1), np.nan),
-                           "band_violation_m": np.where(finite, np.where(band, np.maximum(
-                               np.maximum(lo - l_motor, l_motor - hi), 0.0), 0.0).max(1), np.nan)}
-        l_motor = np.where(finite[:, None], l_motor, np.nan)
-        f_safe = np.where(finite[:, None], f_safe, np.nan)
-        return AdaptationResult(l_motor, f_safe, status, diagnostics)
+    def _apply(self, fn, *args, **kwargs):
+        if "inference_cache" in self.__dict__:  # nn.Module may move tensors before __init__ has run to the end
+            self.inference_cache.clear()
+        return super()._apply(fn, *args, **kwargs)
+
+    def load_state_dict(self, *args, **kwargs):
+        self.inference_cache.clear()
+        return super().load_state_dict(*args, **kwargs)
 
     # ------------------------------------------------------------------ Lightning plumbing
     def setup(self, stage: str):
@@ -262,6 +174,7 @@ class BodySchema(L.LightningModule):
             if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:
                 raise BodySchemaInputError("the schema's robot differs from the data module's robot")
             self.normalizer.load_state_dict(datamodule.normalizer.state_dict())
+            self.clear_caches()  # the penalty builder depends on the normalizer
 
     def configure_optimizers(self):
         # fused Adam: ~25 % faster per step than the default on this tiny CPU workload (measured); the lean

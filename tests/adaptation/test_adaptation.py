@@ -1,31 +1,21 @@
 """Fault adaptation on real (briefly) trained schemas: constraints met, safety of the returned command."""
-import lightning as L
 import numpy as np
 import pytest
+from physics_checks import torque_residual, train_schema
 
-from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
 from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema
 
 
-def _train(cls, epochs, **kwargs):
-    L.seed_everything(0)
-    dm = EquilibriumDataModule(cache_dir=None)
-    schema = cls(robot=dm.robot, **kwargs)
-    L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-              enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0).fit(schema, dm)
-    return schema.eval(), dm
-
-
 @pytest.fixture(scope="module")
 def diffusion():
-    return _train(DiffusionSchema, 400)
+    schema, _, dm = train_schema(DiffusionSchema, 400)
+    return schema, dm
 
 
 def _torque_residual(schema, q, f):
-    _, G, tau = schema.robot_model.kinematics(q)
-    return np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau, axis=1)
+    return torque_residual(schema.robot_model, q, f)
 
 
 def test_unguided_denoising_is_the_healthy_command(diffusion):
@@ -72,7 +62,7 @@ def test_literal_recipe_diverges_and_is_never_returned_as_a_command(diffusion):
     q = dm.splits["val"][0][:4].numpy()
     faults = Faults.from_names(schema.robot_model.muscle_names, cut=[["shoulder_flexor"]] * 4)
     result = schema.adapt(q, faults, variant="literal")
-    assert (result.status == "non_finite").all()  # measured: SI-unit loss, lr 0.01 -> NaN (DESIGN §5)
+    assert (result.status == "non_finite").all()  # measured: SI-unit loss, lr 0.01 -> NaN (docs/design.md, guidance step)
     assert np.isnan(result.f_n).all() and np.isnan(result.l_motor_m).all()
     stable = schema.adapt(q, faults, variant="literal", step_scale="sqrt_abar")
     assert (stable.status == "ok").all() and np.abs(stable.f_n[:, 0]).max() < 5.0
@@ -111,7 +101,7 @@ def test_bad_adaptation_requests_are_refused(diffusion):
 
 @pytest.mark.parametrize("cls", [AutoEncoderSchema, VAESchema])
 def test_latent_adaptation_reduces_the_constraint_loss(cls):
-    schema, dm = _train(cls, 150)
+    schema, _, dm = train_schema(cls, 150)
     q = dm.splits["val"][0][:10].numpy()
     faults = Faults.from_names(schema.robot_model.muscle_names, cut=[["biarticular_extensor"]] * 10)
     before = np.abs(schema.infer(q)[1][:, 5])

@@ -250,7 +250,7 @@ def test_adapt_commands_are_safe_10k(name, schemas):
 
 
 def test_literal_diffusion_divergence_is_reported_as_nan(schemas):
-    """The paper's literal guidance diverges on the diffusion schema (DESIGN §5): reported, never returned."""
+    """The paper's literal guidance diverges on the diffusion schema (docs/design.md, guidance step): reported, never returned."""
     schema = schemas["Diffusion"]
     q = schema.robot_model.sample_q(np.random.default_rng(0), 32)
     faults = Faults.from_names(schema.robot_model.muscle_names, cut=[["elbow_flexor", "shoulder_extensor"]] * 32)

@@ -14,10 +14,10 @@ from lightning_bodyschema.evaluation import (
     tension_bounds, weak_error,
 )
 from lightning_bodyschema.sim.settle import settle
-from lightning_bodyschema.faults import AdaptWeights, Faults, LengthBand, adaptation_loss
+from lightning_bodyschema.faults import Faults
 from lightning_bodyschema.schemas import DiffusionSchema
 from lightning_bodyschema.sim import SpringParams, elongation_from_tension, tension_from_elongation
-from test_adaptation import _torque_residual, _train  # the same brief training as the paper's faults
+from physics_checks import torque_residual, train_schema
 
 M = 6
 NAMES = ["shoulder_flexor", "shoulder_extensor", "elbow_flexor", "elbow_extensor", "biarticular_flexor",
@@ -27,7 +27,8 @@ SPRING = SpringParams()
 
 @pytest.fixture(scope="module")
 def diffusion():
-    return _train(DiffusionSchema, 400)
+    schema, _, dm = train_schema(DiffusionSchema, 400)  # the same brief training as tests/adaptation
+    return schema, dm
 
 
 def _val(dm, n):
@@ -71,19 +72,6 @@ def test_band_arrays_are_validated():
         faults.validate(M)
 
 
-def test_length_band_is_one_small_constraint_class():
-    l_motor = torch.tensor([[0.09, 0.11, 0.13]], dtype=torch.float64, requires_grad=True)
-    mask = torch.tensor([[True, True, True]])
-    lo, hi = (torch.full((1, 3), v, dtype=torch.float64) for v in (0.10, 0.12))
-    band = LengthBand(mask, lo, hi)
-    assert band.weight_name == "c_band" and AdaptWeights().c_band == AdaptWeights().c_fix
-    torch.testing.assert_close(band.violation(l_motor, None), torch.tensor([0.01], dtype=torch.float64))
-    loss = adaptation_loss([band], AdaptWeights(c_band=2.0), l_motor, torch.zeros(1, 3, dtype=torch.float64), 0.01)
-    torch.testing.assert_close(loss, torch.tensor([4.0], dtype=torch.float64))  # 2 * (1^2 + 0 + 1^2)
-    loss.sum().backward()
-    assert l_motor.grad[0, 1] == 0 and l_motor.grad[0, 0] < 0 < l_motor.grad[0, 2]
-
-
 # ---------------------------------------------------------------------------- adaptation
 @pytest.mark.parametrize("muscle", range(M))
 def test_a_weakened_muscle_stays_under_its_limit_and_the_others_compensate(diffusion, muscle):
@@ -98,7 +86,7 @@ def test_a_weakened_muscle_stays_under_its_limit_and_the_others_compensate(diffu
     assert np.median(plain_f[:, muscle] - f_max[:, muscle]) > 10.0  # the healthy command breaks the limit
     assert (result.f_n[:, muscle] <= f_max[:, muscle] + 0.5).all()
     assert result.diagnostics["weak_violation_n"].max() < 0.5  # met by the guidance, not by the clip
-    assert np.median(_torque_residual(schema, q, result.f_n)) <= np.median(_torque_residual(schema, q, plain_f)) + 1.0
+    assert np.median(torque_residual(schema.robot_model, q, result.f_n)) <= np.median(torque_residual(schema.robot_model, q, plain_f)) + 1.0
 
 
 def test_weak_from_names_reaches_the_command_and_its_clip(diffusion):
@@ -125,7 +113,7 @@ def test_a_banded_motor_stays_inside_its_band(diffusion, muscle, side):
     lo, hi, l_motor = band[:, muscle, 0], band[:, muscle, 1], result.l_motor_m[:, muscle]
     assert ((lo - 1e-4 <= l_motor) & (l_motor <= hi + 1e-4)).all()
     assert result.diagnostics["band_violation_m"].max() <= 1e-4
-    assert np.median(_torque_residual(schema, q, result.f_n)) <= np.median(_torque_residual(schema, q, plain_f)) + 1.0
+    assert np.median(torque_residual(schema.robot_model, q, result.f_n)) <= np.median(torque_residual(schema.robot_model, q, plain_f)) + 1.0
 
 
 def test_evaluator_scores_new_faults_of_adapted_commands(diffusion):

@@ -74,22 +74,40 @@ def test_eps_mlp_uses_x_t_and_q_and_t():
     assert torch.equal(net(x, torch.full((4,), 50), q), base)  # int t == per-sample t
 
 
-@pytest.mark.parametrize("activation,n_hidden", [("silu", 2), ("tanh", 3), ("relu", 2)])
-@pytest.mark.parametrize("grad_mode", [True, False])
-def test_eps_and_vjp_matches_autograd(activation, n_hidden, grad_mode):
+@pytest.mark.parametrize("activation,n_hidden", [("silu", 2), ("tanh", 3), ("silu", 1)])
+def test_frozen_eps_mlp_forward_and_vjp_match_the_module_and_autograd(activation, n_hidden):
+    """The one hand-written forward/backward (FrozenMLP) against the module and autograd, in float64."""
     torch.manual_seed(0)
     net = EpsMLP(X_DIM, N, n_hidden=n_hidden, activation=activation).double()
-    x, q, v = torch.randn(7, X_DIM, dtype=torch.float64), torch.randn(7, N, dtype=torch.float64), \
-        torch.randn(7, X_DIM, dtype=torch.float64)
-    t = torch.randint(0, 200, (7,))
-    x_req = x.clone().requires_grad_(True)
-    eps_ref = net(x_req, t, q)
-    vjp_ref, = torch.autograd.grad(eps_ref, x_req, v)
-    with torch.set_grad_enabled(grad_mode):
-        eps, vjp = net.eps_and_vjp(x, t, q)
-        got = vjp(v)
-    assert torch.allclose(eps, eps_ref, atol=1e-12) and torch.allclose(got, vjp_ref, atol=1e-12)
-    assert not eps.requires_grad and not got.requires_grad  # inference only: no graph kept alive
+    x, q, v = (torch.randn(7, d, dtype=torch.float64) for d in (X_DIM, N, X_DIM))
+    steps = [199, 120, 7, 0]
+    frozen = net.frozen()
+    biases = net.step_biases(frozen, q, steps)
+    for i, t in enumerate(steps):
+        x_req = x.clone().requires_grad_(True)
+        eps_ref = net(x_req, t, q)
+        vjp_ref, = torch.autograd.grad(eps_ref, x_req, v)
+        torch.testing.assert_close(frozen.forward(x, biases[i]), eps_ref.detach(), rtol=0, atol=1e-12)
+        torch.testing.assert_close(frozen.vjp(x, biases[i], v), vjp_ref, rtol=0, atol=1e-12)
+
+
+def test_a_frozen_snapshot_does_not_follow_later_weight_changes():
+    """A snapshot is a copy: its owner (the schema's inference cache) decides when to rebuild it."""
+    torch.manual_seed(0)
+    net = EpsMLP(X_DIM, N).double()
+    x, q = torch.randn(3, X_DIM, dtype=torch.float64), torch.randn(3, N, dtype=torch.float64)
+    frozen = net.frozen()
+    before = frozen.forward(x, net.step_biases(frozen, q, [50])[0])
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.1)
+    torch.testing.assert_close(frozen.forward(x, net.step_biases(frozen, q, [50])[0]), before)
+    fresh = net.frozen()
+    torch.testing.assert_close(fresh.forward(x, net.step_biases(fresh, q, [50])[0]), net(x, 50, q))
+
+
+def test_an_activation_without_a_hand_written_derivative_has_no_snapshot():
+    assert EpsMLP(X_DIM, N, activation="relu").frozen() is None
 
 
 @pytest.mark.parametrize("kwargs", [dict(in_dim=0, hidden=4, out_dim=2), dict(in_dim=3, hidden=4, out_dim=2.0),

@@ -1,0 +1,58 @@
+"""What adaptation returns, and the step that makes a schema's raw output safe to send to motors."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+# ok: a command to send. non_finite: adaptation diverged (NaN/inf). infeasible: the true physics admits no command
+# at q_ref under these faults (check_physics). unreachable: a task-space target out of reach (adapt_to_target).
+STATUSES = ("ok", "non_finite", "infeasible", "unreachable")
+
+
+@dataclass
+class AdaptationResult:
+    """What ``adapt`` returns. Only cases whose ``status`` is ``"ok"`` carry a command to send.
+
+    l_motor_m, f_n: (B, M) commands in SI units; a case that is not ``ok`` has NaN there, never numbers that look
+    like a command. status: (B,) strings (``STATUSES``). diagnostics: per-case arrays (clipped tension, the
+    constraint violations before clipping, the physics check's verdict, ...).
+    """
+
+    l_motor_m: np.ndarray
+    f_n: np.ndarray
+    status: np.ndarray
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == "ok"
+
+
+def safe_command(x_si: torch.Tensor, faults, f_limit_n: np.ndarray) -> AdaptationResult:
+    """The command a controller may send, from a schema's decoded output ``x_si = [l_motor, f] (B, 2M)`` [m, N].
+
+    Non-finite rows become NaN with status ``non_finite``; tensions are clipped into [0, f_limit_n] (``f_limit_n``
+    (B, M): ``faults.f_limit(spring.f_max_n)``, a weakened muscle's own limit), and how far the raw output broke each
+    fault before clipping goes to ``diagnostics``.
+    """
+    x = x_si.detach().cpu().numpy()
+    m = x.shape[1] // 2
+    l_motor, f = x[:, :m], x[:, m:]
+    finite = np.isfinite(x).all(1)
+    f_safe = np.clip(f, 0.0, f_limit_n)  # non-finite rows are replaced by NaN below
+    status = np.where(finite, "ok", "non_finite").astype("<U16")
+    lo, hi = (np.zeros((2,) + f.shape) if faults.l_band_m is None else np.moveaxis(faults.l_band_m, -1, 0))
+    with np.errstate(invalid="ignore"):  # NaN off the faults is masked
+        worst = {"f_clipped_n": np.abs(f_safe - f).max(1),
+                 "cut_violation_n": np.where(faults.cut, np.abs(f_safe), 0.0).max(1),
+                 "jam_violation_m": np.where(faults.fix, np.maximum(0.0, l_motor - faults.l_fixed_m), 0.0).max(1),
+                 # before clipping: how far the adapted tension overshot a weakened muscle's limit
+                 "weak_violation_n": np.where(faults.weak, np.maximum(0.0, f - f_limit_n), 0.0).max(1),
+                 "band_violation_m": np.where(faults.band, np.maximum(np.maximum(lo - l_motor, l_motor - hi), 0.0),
+                                              0.0).max(1)}
+    diagnostics = {name: np.where(finite, value, np.nan) for name, value in worst.items()}
+    return AdaptationResult(np.where(finite[:, None], l_motor, np.nan), np.where(finite[:, None], f_safe, np.nan),
+                            status, diagnostics)

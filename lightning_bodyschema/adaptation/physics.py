@@ -1,0 +1,19 @@
+"""The physics check of a command: can any command hold q_ref under the faults? (the feasibility QP on the true model)"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..evaluation.feasibility import feasible_tensions
+from .command import AdaptationResult
+
+
+def flag_infeasible(result: AdaptationResult, robot_model, q: np.ndarray, faults, spring) -> AdaptationResult:
+    """Status ``infeasible`` and NaN rows where no command can hold ``q (B, N)`` under ``faults`` (jammed wires pull:
+    ``evaluation.feasibility``, ~60 us per case). The schema's best effort stays in ``diagnostics``."""
+    feasible, _ = feasible_tensions(robot_model, q, faults, spring)
+    bad = ~feasible & (result.status == "ok")
+    result.diagnostics.update(feasible=feasible, best_effort_l_motor_m=result.l_motor_m.copy(),
+                              best_effort_f_n=result.f_n.copy())
+    result.status[bad] = "infeasible"
+    result.l_motor_m[bad], result.f_n[bad] = np.nan, np.nan
+    return result

@@ -1,0 +1,50 @@
+"""``Adapter``: ``BodySchema.adapt`` for one fault set, prepared once and called every control tick."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..errors import BodySchemaInputError
+from .command import AdaptationResult, safe_command
+from .physics import flag_infeasible
+
+
+def check_postures(schema, q_ref, n_cases: int) -> np.ndarray:
+    """q_ref as a (B, N) float64 array inside the joint ranges, one row per fault case."""
+    q = schema.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref, within_range=True)
+    if n_cases != len(q):
+        raise BodySchemaInputError(f"{len(q)} postures but {n_cases} fault rows; give one row per case")
+    return q
+
+
+class Adapter:
+    """Prepare once (validate the faults, build the penalty L_adapt of eq:latent-opt), then per call
+    ``adapter(q_ref (B, N))`` [rad] -> ``AdaptationResult``: check postures -> encode -> the schema's
+    ``adapt_normalized`` -> decode -> ``safe_command`` -> ``flag_infeasible`` (when ``check_physics``).
+
+    Lifetime: the penalty is built from the schema's normalizer, dtype and device as they are now; the networks
+    are the schema's current weights at each call (through its inference cache). Build a new adapter after
+    training further or moving the schema to another dtype or device.
+    """
+
+    def __init__(self, schema, faults, variant: str = "default", check_physics: bool = True, options: dict = None):
+        if variant not in schema.VARIANTS:
+            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
+        faults.validate(schema.n_muscles)
+        self.schema, self.faults, self.variant = schema, faults, variant
+        self.check_physics, self.options = check_physics, dict(options or {})
+        self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
+        # Lightning's val/test/predict loops run under inference_mode: the penalty must be an ordinary tensor
+        with torch.inference_mode(False), torch.no_grad():
+            self.penalty = schema.penalty_builder(variant)(faults.constraints(schema.spring.f_max_n))
+
+    def __call__(self, q_ref) -> AdaptationResult:
+        schema = self.schema
+        q = check_postures(schema, q_ref, len(self.faults))
+        with torch.inference_mode(False), torch.no_grad():
+            x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.penalty, self.variant,
+                                          **self.options)
+        result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n)
+        if not self.check_physics:
+            return result
+        return flag_infeasible(result, schema.robot_model, q, self.faults, schema.spring)

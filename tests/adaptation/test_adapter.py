@@ -1,0 +1,53 @@
+"""The adaptation pipeline: a prepared adapter returns what adapt returns, call after call; its steps are public."""
+import numpy as np
+import pytest
+import torch
+from physics_checks import mixed_faults
+
+from lightning_bodyschema.adaptation import check_postures, flag_infeasible, safe_command
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.faults import Faults
+
+
+def _assert_adapter_matches_adapt(schema, dm, **options):
+    q, faults = mixed_faults(schema, dm)
+    adapter, expected = schema.adapter(faults, **options), schema.adapt(q, faults, **options)
+    for _ in range(2):  # reusable: a controller calls it every tick
+        got = adapter(q)
+        assert (got.status == expected.status).all()
+        np.testing.assert_array_equal(got.l_motor_m, expected.l_motor_m)
+        np.testing.assert_array_equal(got.f_n, expected.f_n)
+    with pytest.raises(BodySchemaInputError, match="postures but"):
+        adapter(q[:1])
+
+
+def test_a_prepared_adapter_returns_what_adapt_returns_diffusion(diff60, dm):
+    _assert_adapter_matches_adapt(diff60[0], dm, n_steps=20)
+
+
+def test_a_prepared_adapter_returns_what_adapt_returns_latent(latent60, dm):
+    _assert_adapter_matches_adapt(latent60, dm)
+
+
+def test_safe_command_never_passes_a_non_finite_row_or_a_tension_outside_its_limits():
+    faults = Faults.from_names(["a", "b"], cut=[["a"], [], []], weak=[{}, {"b": 40.0}, {}])
+    x = torch.tensor([[0.3, 0.3, 5.0, 80.0], [0.3, 0.3, -3.0, 90.0], [np.nan, 0.3, 10.0, 10.0]], dtype=torch.float64)
+    result = safe_command(x, faults, faults.f_limit(150.0))
+    assert result.status.tolist() == ["ok", "ok", "non_finite"]
+    np.testing.assert_array_equal(result.f_n[:2], [[5.0, 80.0], [0.0, 40.0]])  # clipped into [0, f_max']
+    assert np.isnan(result.f_n[2]).all() and np.isnan(result.l_motor_m[2]).all()
+    np.testing.assert_allclose(result.diagnostics["cut_violation_n"][:2], [5.0, 0.0])
+    np.testing.assert_allclose(result.diagnostics["weak_violation_n"][:2], [0.0, 50.0])  # before the clip
+
+
+def test_the_physics_check_blanks_commands_no_physics_can_realize(diff60, dm):
+    schema = diff60[0]
+    q = dm.splits["val"][0][:2].numpy()
+    names = schema.robot_model.muscle_names
+    faults = Faults.from_names(names, cut=[names[:5], []])  # five of six muscles cut: nothing holds the arm
+    q = check_postures(schema, q, len(faults))
+    result = flag_infeasible(safe_command(schema.decode(schema.generate(schema.encode_q(torch.as_tensor(q)))),
+                                          faults, faults.f_limit(schema.spring.f_max_n)),
+                             schema.robot_model, q, faults, schema.spring)
+    assert result.status.tolist() == ["infeasible", "ok"] and np.isnan(result.f_n[0]).all()
+    assert np.isfinite(result.diagnostics["best_effort_f_n"][0]).all()
