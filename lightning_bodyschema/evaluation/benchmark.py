@@ -85,16 +85,56 @@ def _median(values) -> float | None:
     return float(np.median(values)) if values.size else None
 
 
+@dataclass
+class OracleScores:
+    """The physics oracle of one case set, scored once and reusable for every schema benchmarked on it.
+
+    feasible: reading -> (B,) bool; commands: reading -> (l_motor, f) (B, M); metrics: reading -> metric -> (B,)
+    (None until scored); seconds: wall time of the physical reading's ``oracle_commands``.
+    """
+
+    feasible: dict
+    commands: dict
+    seconds: float
+    metrics: dict | None = None
+
+
+def oracle_scores(model: MusculoskeletalModel, spring: SpringParams, cases: FaultCases,
+                  params: ForwardSolverParams = ForwardSolverParams(), settle_check: bool = False,
+                  score: bool = True) -> OracleScores:
+    """Each reading's oracle command (a command exact under one torque convention is not under the other, see
+    ``feasibility``), its feasibility verdict, and with ``score`` its metrics (and E_q_phys with ``settle_check``)."""
+    feasible, commands, seconds = {}, {}, 0.0
+    for reading, jammed_pull in READINGS.items():
+        start = time.perf_counter()
+        feasible[reading], *commands[reading] = oracle_commands(model, cases, spring,
+                                                                jammed_tension_in_torque=jammed_pull)
+        seconds = time.perf_counter() - start if jammed_pull else seconds
+    out = OracleScores(feasible, commands, seconds)
+    if score:
+        out.metrics = {reading: _score(model, spring, cases, *commands[reading], params, reading)
+                       for reading in READINGS}
+        if settle_check:
+            for reading in READINGS:
+                out.metrics[reading]["E_q_phys"] = settle(model, *commands[reading], cases, spring=spring).E_q_phys
+    return out
+
+
+def _score(model, spring, cases, l_motor, f, params, reading):
+    return evaluate_commands(model, cases, l_motor, f, spring,
+                             replace(params, jammed_tension_in_torque=READINGS[reading]))
+
+
 def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases: FaultCases, infer, adapt,
                         params: ForwardSolverParams = ForwardSolverParams(), settle_check: bool = False,
-                        oracle: bool = True) -> BenchmarkResult:
+                        oracle: bool | OracleScores = True) -> BenchmarkResult:
     """Adapt and score every case; unadapted (healthy) and, with ``oracle``, physics-oracle commands are scored
     beside them (the baseline and the physical limit).
 
     settle_check: also drop every command into MuJoCo (``settle.settle``, a few seconds for 120 cases) and
     report ``E_q_phys``, the distance of the posture the arm really settles in from q_ref, beside E_q.
-    The oracle command of each reading is that reading's own (a command exact under one torque convention is
-    not under the other, see ``feasibility``); ``seconds["oracle"]`` times the physical reading's.
+    oracle: True (score it here), False (feasibility only), or the ``oracle_scores`` of these cases (scored once
+    for several schemas); ``seconds["oracle"]`` is the physical reading's oracle time.
     """
     seconds = {}
     start = time.perf_counter()
@@ -103,30 +143,21 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
     start = time.perf_counter()
     l_plain, f_plain = infer(cases.q_ref)
     seconds["infer"] = time.perf_counter() - start
-    feasible, commands = {}, {"adapted": {}, "unadapted": {}, "oracle": {}}
-    for reading, jammed_pull in READINGS.items():
-        start = time.perf_counter()
-        feasible[reading], l_oracle, f_oracle = oracle_commands(model, cases, spring,
-                                                                jammed_tension_in_torque=jammed_pull)
-        if jammed_pull:
-            seconds["oracle"] = time.perf_counter() - start
-        commands["adapted"][reading] = (result.l_motor_m, result.f_n)
-        commands["unadapted"][reading] = (l_plain, f_plain)
-        commands["oracle"][reading] = (l_oracle, f_oracle)
-    if not oracle:
-        del commands["oracle"]
+    if not isinstance(oracle, OracleScores):
+        oracle = oracle_scores(model, spring, cases, params, settle_check, score=bool(oracle))
+    seconds["oracle"] = oracle.seconds
     start = time.perf_counter()
-    metrics = {kind: {reading: evaluate_commands(model, cases, *by_reading[reading], spring,
-                                                 replace(params, jammed_tension_in_torque=READINGS[reading]))
-                      for reading in READINGS} for kind, by_reading in commands.items()}
+    commands = {"adapted": (result.l_motor_m, result.f_n), "unadapted": (l_plain, f_plain)}
+    metrics = {kind: {reading: _score(model, spring, cases, *command, params, reading) for reading in READINGS}
+               for kind, command in commands.items()}
     seconds["evaluate"] = time.perf_counter() - start
     if settle_check:
         start = time.perf_counter()
-        for kind, by_reading in commands.items():
-            readings = READINGS if kind == "oracle" else ("phys",)  # adapted / unadapted: one command for both
-            for reading in readings:
-                e_q_phys = settle(model, *by_reading[reading], cases, spring=spring).E_q_phys
-                for target in (READINGS if kind != "oracle" else (reading,)):
-                    metrics[kind][target]["E_q_phys"] = e_q_phys
+        for kind, command in commands.items():  # the physics has one reading: one settle per command
+            e_q_phys = settle(model, *command, cases, spring=spring).E_q_phys
+            for reading in READINGS:
+                metrics[kind][reading]["E_q_phys"] = e_q_phys
         seconds["settle"] = time.perf_counter() - start
-    return BenchmarkResult(cases, feasible, metrics, np.asarray(result.status), seconds)
+    if oracle.metrics is not None:
+        metrics["oracle"] = oracle.metrics
+    return BenchmarkResult(cases, oracle.feasible, metrics, np.asarray(result.status), seconds)
