@@ -9,9 +9,22 @@ from .command import AdaptationResult, motor_length_range, safe_command
 from .physics import flag_infeasible
 
 
+def real_array(value, name: str) -> np.ndarray:
+    """``value`` as a float64 array; strings, None, objects, complex numbers and bools are refused by name."""
+    try:
+        array = np.asarray(value.detach().cpu().numpy() if torch.is_tensor(value) else value)
+    except (ValueError, TypeError):  # ragged nesting
+        array = np.asarray(None)
+    if array.dtype.kind not in "fiu":
+        shown = repr(value) if len(repr(value)) <= 80 else f"a {type(value).__name__}"
+        raise BodySchemaInputError(f"{name} = {shown} is not an array of real numbers ({array.dtype}); "
+                                   "give postures [rad] as numbers, shape (B, N)")
+    return array.astype(np.float64)
+
+
 def check_postures(schema, q_ref, n_cases: int) -> np.ndarray:
     """q_ref as a (B, N) float64 array inside the joint ranges, one row per fault case."""
-    q = schema.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref, within_range=True)
+    q = schema.robot_model.check_q(real_array(q_ref, "q_ref"), within_range=True)
     if n_cases != len(q):
         raise BodySchemaInputError(f"{len(q)} postures but {n_cases} fault rows; give one row per case")
     return q
@@ -30,7 +43,7 @@ class Adapter:
     def __init__(self, schema, faults, variant: str = "default", check_physics: bool = True, options: dict = None):
         if variant not in schema.VARIANTS:
             raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
-        faults.validate(schema.n_muscles)
+        faults.validate(schema.n_muscles, schema.spring.f_max_n)
         self.schema, self.faults, self.variant = schema, faults, variant
         self.check_physics, self.options = check_physics, dict(options or {})
         self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
