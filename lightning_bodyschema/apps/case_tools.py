@@ -5,7 +5,7 @@ import time
 
 from ..errors import BodySchemaInputError
 from .common import (ADAPT_SAMPLERS, argument_parser, check_out, check_schema_options, count_values, exits_cleanly,
-                     resolve_sampler, torch_one_thread, write_npz)
+                     import_user_modules, load_checked_schema, resolve_sampler, torch_one_thread, write_npz)
 
 # ---------------------------------------------------------------------------- fault-case tools
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
@@ -16,7 +16,7 @@ def make_cases_main(argv=None):
     parser = argument_parser("Draw fault cases from a checkpoint's test split: the paper's protocol (CUT 2 cut, FIX 2 "
                              "jammed, BOTH 1 + 1; the default) or the binding one (CUT, FIX, BOTH, WEAK, BAND, every "
                              "case feasible and every fault broken by the healthy command); writes q_ref, cut, fix, "
-                             "l_fixed, cond (+ f_max, l_band for binding) (.npz, SI units).")
+                             "l_fixed, cond (+ f_max, l_band for binding) (.npz, SI units).", checkpoint=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt); its test split is used")
     parser.add_argument("--seed", type=int, required=True, help="seed of the draw (same seed -> same bytes)")
     parser.add_argument("--out", required=True, help="output case file (.npz)")
@@ -33,6 +33,7 @@ def make_cases_main(argv=None):
     torch_one_thread()
     from ..schemas.loading import load_datamodule
 
+    import_user_modules(args.imports)
     datamodule = load_datamodule(args.ckpt)
     q, x = datamodule.splits["val"]  # the held-out split is the test split (docs/design.md, evaluation)
     cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, q.numpy(), x.numpy(),
@@ -112,11 +113,13 @@ def adapt_cases(schema, cases, variant: str, options: dict, ckpt: str):
 @exits_cleanly
 def adapt_cases_main(argv=None):
     parser = argument_parser("Adapt a trained schema's commands to every case of a fault-case file in one batch; writes "
-                             "the case arrays plus l_motor [m], f [N] and status (.npz).")
+                             "the case arrays plus l_motor [m], f [N] and status (.npz).", checkpoint=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--cases", required=True, help="fault-case file (.npz from tools/make_cases.py or alike)")
     parser.add_argument("--out", required=True, help="output file (.npz), written only if everything succeeds")
-    parser.add_argument("--variant", default="default", help="adaptation variant: default or literal (the paper's)")
+    parser.add_argument("--variant", default="default", help="adaptation variant: default, literal (the paper's), or one "
+                        "of the schema's study variants (diffusion: guided, strong, recurrent, inpaint_box, inpaint_spring, "
+                        "projected; RESULTS.md)")
     parser.add_argument("--sampler", default="ddpm", help=f"denoising sampler, one of {list(ADAPT_SAMPLERS)}")
     args = parser.parse_args(argv)
     start = time.perf_counter()
@@ -124,9 +127,7 @@ def adapt_cases_main(argv=None):
     check_out(args.out, args.ckpt)
     torch_one_thread()
     cases = load_cases(args.cases)  # before the checkpoint: a bad case file is reported without the heavy imports
-    from ..schemas.loading import load_schema
-
-    schema = load_schema(args.ckpt)
+    schema = load_checked_schema(args)
     check_schema_options(schema, args.variant, args.sampler, options)
     check_cases_fit(cases, args.cases, schema.robot_model)
     adapt_start = time.perf_counter()
