@@ -259,3 +259,13 @@ def test_unholdable_postures_name_the_joints_to_lock(coupled):
 
     with pytest.raises(BodySchemaInputError, match=r"too weak.*joints \['shoulder.*data.locked_joints"):
         generate_equilibrium_samples(coupled, 10, seed=0, spring=SpringParams(f_max_n=0.5))
+
+
+def test_fit_on_a_myo_config_without_myo_sim_exits_2_with_one_line():
+    out = _run_without_myo_sim("""
+        from lightning_bodyschema.cli import main
+        main(["fit", "--config", "configs/myoelbow-diff.yaml", "--trainer.max_epochs", "1"])
+        """)
+    assert out.returncode == 2
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and '.[myo]' in errors[0] and "Traceback" not in out.stderr
