@@ -354,20 +354,27 @@ def main(argv=None):
     from ..plots.arm import save_figure_atomic
     from ..plots.boxplots import fault_boxplots
 
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    # the repository (configs/): lightning_bodyschema/apps/reproduce.py is two packages down
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     parser = argparse.ArgumentParser(description="Train the paper's 7 schemas, benchmark them, write figures and RESULTS.md.")
-    parser.add_argument("--epochs", type=int, default=10000, help="epochs per schema (paper: 10000)")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs per schema (paper: 10000; --quick: 1000)")
     parser.add_argument("--quick", action="store_true",
-                        help="a few-minute run: 1000 epochs, results under runs/quick (RESULTS.md untouched)")
+                        help="a few-minute run: 1000 epochs; everything (checkpoints, dataset cache, RESULTS.md, "
+                             "figures) under runs/quick, the repository's RESULTS.md untouched")
     parser.add_argument("--jobs", type=int, default=2, help="parallel training processes (one thread each)")
-    parser.add_argument("--runs-dir", default="runs/paper", help="where checkpoints go (reused when present)")
+    parser.add_argument("--runs-dir", default=None,
+                        help="where checkpoints go, reused when present (default runs/paper; --quick: the --out folder)")
     parser.add_argument("--n-per-condition", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=".", help="folder for RESULTS.md, results.json and docs/*.png")
     parser.add_argument("--models", nargs="*", default=list(MODELS), choices=list(MODELS))
     args = parser.parse_args(argv)
-    if args.quick:
-        args.epochs, args.out = 1000, (args.out if args.out != "." else "runs/quick")
+    if args.quick:  # one run, one folder: its checkpoints beside its RESULTS.md and figures
+        args.out = args.out if args.out != "." else "runs/quick"
+        args.runs_dir = args.runs_dir or args.out
+    default_epochs = 1000 if args.quick else 10000
+    args.epochs = default_epochs if args.epochs is None else args.epochs
+    args.runs_dir = args.runs_dir or "runs/paper"
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
     start = time.perf_counter()
@@ -388,8 +395,8 @@ def main(argv=None):
         save_figure_atomic(fig, os.path.join(args.out, "docs", f"paper_boxplots{suffix}.png"))
     if timings:
         save_figure_atomic(timing_figure(timings), os.path.join(args.out, "docs", "paper_timing.png"))
-    command = "python tools/reproduce_paper.py" + (" --quick" if args.quick else
-                                                   f" --epochs {args.epochs}" if args.epochs != 10000 else "")
+    command = ("python tools/reproduce_paper.py" + (" --quick" if args.quick else "")
+               + (f" --epochs {args.epochs}" if args.epochs != default_epochs else ""))
     if set(MODELS) <= set(results):
         write_results_md(os.path.join(args.out, "RESULTS.md"), results, timings, command, args.epochs, len(cases),
                          None if literal is None else float(np.mean(literal.status == "ok")))

@@ -44,14 +44,15 @@ class EquilibriumDataModule(L.LightningDataModule):
         k_n, alpha_per_m, f_max_n: spring constants (paper: 1000 N, 20 1/m, 150 N); scalar or per muscle.
         gravity: optional gravity override [m/s^2].
         qp_solver: ``"proxqp"`` or any qpsolvers solver name.
-        cache_dir: where generated datasets are cached by content hash (None: no cache).
+        cache_dir: where generated datasets are cached by content hash (None: no cache); under runs/, with
+            every other output of a run, so a checkout stays clean.
     """
 
     def __init__(self, model: str = "paper_arm", n_samples: int = 800, seed: int = 0, val_fraction: float = 0.2,
                  muscles: Optional[Sequence[str]] = None, k_n: float | list[float] = 1000.0,
                  alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] = 150.0,
                  gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
-                 cache_dir: Optional[str] = "data/cache"):
+                 cache_dir: Optional[str] = "runs/cache"):
         super().__init__()
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
