@@ -36,6 +36,25 @@ def schema_class_path(cls) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
+# renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
+DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
+
+
+def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) -> None:
+    """Forget the saved ``ModelCheckpoint`` state when a checkpoint is only evaluated (validate / test).
+
+    That state (best score, best paths) matters only to a resumed fit. A ``bodyschema test`` logs into a new
+    version folder, so Lightning would find another dirpath and warn that best_model_score "won't be reloaded",
+    which is right and irrelevant there. The weights, hyperparameters and RNG state are untouched.
+    """
+    from lightning.pytorch.trainer.states import TrainerFn
+
+    if trainer is None or trainer.state.fn in (None, TrainerFn.FITTING) or "callbacks" not in checkpoint:
+        return
+    checkpoint["callbacks"] = {key: state for key, state in checkpoint["callbacks"].items()
+                               if not str(key).startswith("ModelCheckpoint")}
+
+
 class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
 
@@ -258,7 +277,9 @@ class BodySchema(L.LightningModule):
         for name, value in logs.items():
             self.log(f"{stage}/{name}", value)
         for name, value in self.physical_errors(batch[0], batch[1]).items():
-            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_nm" and stage == "val")
+            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_N_m" and stage == "val")
+            if name in DEPRECATED_METRIC_NAMES:  # old monitors and dashboards keep working for one release
+                self.log(f"{stage}/{DEPRECATED_METRIC_NAMES[name]}", value)
         return loss
 
     def validation_step(self, batch, batch_idx):
@@ -300,6 +321,7 @@ class BodySchema(L.LightningModule):
     def on_load_checkpoint(self, checkpoint):
         if "torch_rng_state" in checkpoint:
             torch.set_rng_state(checkpoint["torch_rng_state"])
+        _drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()
@@ -323,7 +345,7 @@ class BodySchema(L.LightningModule):
         eq = np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau_bias, axis=1)
         length = np.abs(l_motor + elongation_from_tension(f, self.spring) - l_geo)
         x_true = x_true.cpu().numpy()
-        return {"eq_residual_nm": float(np.median(eq)),
+        return {"eq_residual_N_m": float(np.median(eq)),  # newton metres (the old "_nm" read as nanometres)
                 "length_residual_mm": 1e3 * float(np.median(length)),
                 "l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
                 "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}
