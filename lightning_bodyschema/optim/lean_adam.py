@@ -65,25 +65,28 @@ class LeanFusedAdam(torch.optim.Adam):
 
     def step(self, closure=None):
         lists = self._lists
-        if lists is None or closure is not None or self._hooks() or lists[0] is not self.param_groups[0]["params"]:
+        if lists is None or self._hooks() or lists[0] is not self.param_groups[0]["params"]:
             return self._stock_step(closure)
+        loss = None
+        if closure is not None:  # Lightning's automatic optimization: forward and backward run in the closure
+            with torch.enable_grad():
+                loss = closure()
         params, exp_avgs, exp_avg_sqs, steps, counts = lists
         grads = [p.grad for p in params]
-        if any(g is None for g in grads):
-            return self._stock_step(closure)
         group = self.param_groups[0]
         lr = group["lr"]
-        if isinstance(lr, torch.Tensor):
-            return self._stock_step(closure)
+        if any(g is None for g in grads) or isinstance(lr, torch.Tensor):
+            return self._stock_step(None, loss)
         beta1, beta2 = group["betas"]
         with torch.no_grad():  # Adam's two kernels, as in torch.optim.adam._fused_adam for one device
             counts.add_(1)
             torch._fused_adam_(params, grads, exp_avgs, exp_avg_sqs, [], steps, amsgrad=False, lr=lr,
                                beta1=beta1, beta2=beta2, weight_decay=0.0, eps=group["eps"], maximize=False,
                                grad_scale=None, found_inf=None)
-        return None
-
-    def _stock_step(self, closure):
-        loss = super().step(closure)
-        self._lists = self._build_lists()
         return loss
+
+    def _stock_step(self, closure, loss=None):
+        """Adam's own step (``closure`` not yet run, or ``loss`` what it returned)."""
+        stepped = super().step(closure)
+        self._lists = self._build_lists()
+        return loss if closure is None else stepped
