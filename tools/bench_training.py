@@ -6,7 +6,6 @@ LR), side by side in one process, alternating, several repeats; prints medians a
 runs one training step per minibatch (automatic optimization, the 32-true precision plugin).
 
     python tools/bench_training.py --epochs 2000 --repeats 3
-    python tools/bench_training.py --epochs 500 --repeats 5 --lean     # also: Lightning with LeanFusedAdam
 """
 import argparse
 import statistics
@@ -23,7 +22,6 @@ import lightning as L  # noqa: E402
 
 from lightning_bodyschema.callbacks import EpochProgressBar  # noqa: E402
 from lightning_bodyschema.data import EquilibriumDataModule  # noqa: E402
-from lightning_bodyschema.optim import LeanFusedAdam  # noqa: E402
 from lightning_bodyschema.schemas import DiffusionSchema  # noqa: E402
 
 
@@ -44,18 +42,8 @@ def plain_loop(dm, epochs, batch_size=64):
     return schema
 
 
-class LeanDiffusionSchema(DiffusionSchema):
-    """The same schema with ``optim.LeanFusedAdam`` instead of ``torch.optim.Adam(fused=True)``."""
-
-    def configure_optimizers(self):
-        optimizer = LeanFusedAdam(self.parameters(), lr=self.hparams.lr)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=self._epochs_of_fit(),
-                                                              eta_min=self.hparams.lr_final)
-        return {"optimizer": optimizer, "lr_scheduler": schedule}
-
-
-def lightning_fit(dm, epochs, logdir, cls=DiffusionSchema):
-    schema = cls(robot=dm.robot)
+def lightning_fit(dm, epochs, logdir):
+    schema = DiffusionSchema(robot=dm.robot)
     trainer = L.Trainer(max_epochs=epochs, logger=L.pytorch.loggers.TensorBoardLogger(logdir), log_every_n_steps=50,
                         check_val_every_n_epoch=10 ** 9, num_sanity_val_steps=0, enable_model_summary=False,
                         enable_checkpointing=False, callbacks=[EpochProgressBar()], enable_progress_bar=True)
@@ -67,7 +55,6 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--lean", action="store_true", help="also time Lightning with LeanFusedAdam")
     args = parser.parse_args()
     if args.epochs < 2 or args.repeats < 1:
         print(f"error: --epochs={args.epochs} must be >= 2 and --repeats={args.repeats} >= 1", file=sys.stderr)
@@ -77,8 +64,6 @@ def main():
     dm.setup("fit")
     runs = [("plain", lambda: plain_loop(dm, args.epochs)),
             ("lightning", lambda: lightning_fit(dm, args.epochs, logdir))]
-    if args.lean:
-        runs.append(("lean", lambda: lightning_fit(dm, args.epochs, logdir, LeanDiffusionSchema)))
     times = {name: [] for name, _ in runs}
     cpu = {name: [] for name, _ in runs}  # CPU seconds of this (one-thread) process: steadier on a shared machine
     with tempfile.TemporaryDirectory() as logdir:
@@ -101,9 +86,6 @@ def main():
               f"(runs: {', '.join(f'{t:.2f}' for t in cpu[name])})")
     print(f"ratio lightning/plain = {med['lightning'] / med['plain']:.3f} wall clock, "
           f"{med_cpu['lightning'] / med_cpu['plain']:.3f} CPU time  (goal <= 1.2)")
-    if args.lean:
-        print(f"LeanFusedAdam saves {100 * (1 - med['lean'] / med['lightning']):.1f} % of the Lightning fit's wall "
-              f"clock, {100 * (1 - med_cpu['lean'] / med_cpu['lightning']):.1f} % of its CPU time (kept only if >= 10 %)")
     per_epoch = (med["lightning"] - startup) / (args.epochs - 1)
     print(f"fit start-up {startup:.2f} s; per epoch {1e3 * per_epoch:.2f} ms vs plain {1e3 * med['plain'] / args.epochs:.2f}"
           f" ms (ratio {per_epoch * args.epochs / med['plain']:.3f})")

@@ -83,8 +83,11 @@ class MinibatchLoader:
         return math.ceil(len(self.sampler) / self.batch_size)
 
     def __iter__(self):
-        for idx in self.sampler.indices().split(self.batch_size):
-            yield self.q[idx], self.x[idx]
+        # one gather per epoch, then each minibatch is a view (a gather per minibatch cost ~0.1 ms per step)
+        idx = self.sampler.indices()
+        q, x = self.q[idx], self.x[idx]
+        for start in range(0, len(idx), self.batch_size):
+            yield q[start:start + self.batch_size], x[start:start + self.batch_size]
 
 
 class EquilibriumDataModule(L.LightningDataModule):
