@@ -73,6 +73,8 @@ def test_global_step_counts_optimizer_steps_and_max_steps_ends_the_fit(dm, name)
     fit.fit(schema, dm)
     assert fit.global_step == 25 and adam_steps(schema) == 25
     assert fit.num_training_batches == 10  # 640 samples in batches of 64: the fit stopped inside its third epoch
+    (config,) = fit.lr_scheduler_configs
+    assert config.scheduler.T_max == 3  # the cosine spans the epochs max_steps allows, not max_epochs
 
 
 @pytest.fixture(scope="module")
