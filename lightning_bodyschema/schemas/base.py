@@ -312,6 +312,9 @@ class BodySchema(L.LightningModule):
         if hparams_file is not None or strict is False or weights_only is False:
             raise BodySchemaInputError("load_from_checkpoint: hparams_file, strict=False and weights_only=False are "
                                        "not supported (a checkpoint carries its hyperparameters and is checked whole)")
+        if map_location is not None and not isinstance(map_location, (str, torch.device)):
+            raise BodySchemaInputError(f"load_from_checkpoint: map_location={map_location!r}; give a device "
+                                       "('cpu', 'cuda:0', torch.device) or None")
         schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
         return schema if map_location is None else schema.to(map_location)
 
