@@ -139,3 +139,16 @@ def test_the_console_script_exits_0_after_a_fit(tmp_path):
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "BodySchemaCLI object" not in done.stderr
+
+
+def test_a_fit_ended_by_max_steps_validates_at_its_end(tmp_path):
+    """However many optimizer steps an epoch takes, the epoch that reaches max_steps validates."""
+    common = [*TINY, "--trainer.check_val_every_n_epoch=500", f"--data.cache_dir={tmp_path}/cache",
+              "--final_validation.enabled=false"]
+    one = cli_main(["fit", *common, "--trainer.max_epochs=1", f"--trainer.default_root_dir={tmp_path}/one"])
+    steps_per_epoch = one.trainer.global_step
+    cli = cli_main(["fit", *TINY, "--trainer.check_val_every_n_epoch=500", f"--data.cache_dir={tmp_path}/cache",
+                    "--trainer.max_epochs=50", f"--trainer.max_steps={3 * steps_per_epoch}",
+                    f"--trainer.default_root_dir={tmp_path}/three"])
+    assert cli.trainer.current_epoch == 3 and cli.trainer.global_step == 3 * steps_per_epoch  # stopped by max_steps
+    assert "val/eq_residual_N_m" in cli.trainer.callback_metrics
