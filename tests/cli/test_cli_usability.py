@@ -109,7 +109,9 @@ def test_every_fit_validates_at_its_end(short_fit):
     events = EventAccumulator(str(folder / "runs/lightning_logs/version_0"))
     events.Reload()
     scalars = events.Scalars("val/eq_residual_N_m")
-    assert [s.step for s in scalars] == [4, 6]  # current_epoch at validation: epochs 5 and 7
+    steps_per_epoch = cli.trainer.global_step // 7  # logged at the optimizer step count, one per minibatch
+    assert cli.trainer.global_step == 7 * steps_per_epoch
+    assert [s.step for s in scalars] == [5 * steps_per_epoch - 1, 7 * steps_per_epoch - 1]  # ends of epochs 5 and 7
     batch = cli.datamodule.splits["val"]
     final = cli.model.physical_errors(batch[0], batch[1])["eq_residual_N_m"]
     assert scalars[-1].value == pytest.approx(final, rel=1e-5)  # the last weights, not epoch 5's
