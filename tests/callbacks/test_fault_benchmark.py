@@ -109,11 +109,11 @@ def test_boxplots_grid_has_na_panels(fitted, tmp_path):
     from lightning_bodyschema.plots.boxplots import fault_boxplots
     from lightning_bodyschema.schemas import load_schema
 
+    from lightning_bodyschema.schemas import load_datamodule
+
     schema = load_schema(fitted[0])
-    rng = np.random.default_rng(0)
-    q = schema.robot_model.sample_q(rng, 20)
-    l_motor = schema.robot_model.kinematics(q)[0]  # geometric lengths: positive (a 3-epoch schema's may not be,
-    cases = make_fault_cases(q, l_motor, 3, seed=0)  # and a jam at l_fixed <= 0 is refused as input)
+    q, x = (t.numpy() for t in load_datamodule(fitted[0]).splits["val"])
+    cases = make_fault_cases(q, x[:, :schema.n_muscles], 3, seed=0)  # l_fixed: real motor lengths
     result = run_fault_benchmark(schema.robot_model, schema.spring, cases, schema.infer, schema.adapt)
     fig = fault_boxplots({"Diff": result, "Diff again": result}, reading="paper", subset="all")
     axes = fig.get_axes()
