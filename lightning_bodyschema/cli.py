@@ -24,7 +24,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
 from .callbacks import EpochProgressBar, FaultBenchmark, ReconstructionFigure
-from .data import EquilibriumDataModule
+from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
 from .schemas.loading import read_checkpoint
@@ -56,8 +56,19 @@ class BodySchemaCLI(LightningCLI):
         if self.subcommand == "fit":
             _check_max_epochs(config)
         if self._checkpoint is not None:  # before the trainer exists: nothing printed, nothing written
-            data = EquilibriumDataModule(**config["data"].as_dict())  # light: the robot only, no dataset yet
+            data = _data_module(config["data"])  # light: the robot only (a recorded file is read), no dataset yet
             _check_same_robot(self._checkpoint, config.get("ckpt_path"), data)
+
+
+def _data_module(data_config):
+    """The configured data module (``--data`` is a subclass of EquilibriumDataModule: RecordedDataModule too)."""
+    classes = {cls.__name__: cls for cls in (EquilibriumDataModule, RecordedDataModule)}
+    name = str(data_config["class_path"]).rpartition(".")[2]
+    cls = classes.get(name)
+    if cls is None:
+        raise BodySchemaInputError(f"--data {data_config['class_path']!r}: --ckpt_path is checked against "
+                                   f"{list(classes)} only")
+    return cls(**data_config["init_args"].as_dict())
 
 
 # a misspelt flag is an error, not a prefix of some option (argparse's default would run
@@ -84,8 +95,8 @@ def main(args=None) -> "BodySchemaCLI":
     warnings.filterwarnings("ignore", message=".*smaller than the logging interval.*")
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
     try:
-        return BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
-                      seed_everything_default=0, save_config_kwargs={"overwrite": True},
+        return BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, subclass_mode_data=True,
+                      args=args, seed_everything_default=0, save_config_kwargs={"overwrite": True},
                       trainer_defaults=_trainer_defaults(), auto_configure_optimizers=False,
                       parser_kwargs=_NO_ABBREVIATIONS)
     except Exception as err:  # jsonargparse wraps errors raised while instantiating classes

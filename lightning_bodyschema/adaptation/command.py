@@ -9,7 +9,9 @@ import torch
 
 # ok: a command to send. non_finite: adaptation diverged (NaN/inf). infeasible: the true physics admits no command
 # at q_ref under these faults (check_physics). unreachable: a task-space target out of reach (adapt_to_target).
-STATUSES = ("ok", "non_finite", "infeasible", "unreachable")
+# unchecked: a finite command, but the physics check was asked for and could not run (a schema trained on recorded
+# data has no model); a controller decides whether to send it. Never ``ok``: ok means checked or check turned off.
+STATUSES = ("ok", "non_finite", "infeasible", "unreachable", "unchecked")
 
 
 @dataclass

@@ -20,6 +20,7 @@ import torch
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
 from ..data.normalizer import Normalizer
+from ..data.recorded import robot_model_from_dict
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights
 from ..optim import LeanFusedAdam
@@ -31,9 +32,9 @@ class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
 
     Args:
-        robot: what the data module's ``robot`` property gives (model XML, muscles, spring); the CLI
-            links it automatically. It is saved with the hyperparameters, so a checkpoint rebuilds
-            the robot on any machine.
+        robot: what the data module's ``robot`` property gives (model XML, muscles, spring; or, for recorded
+            data, joint and muscle names, limits and spring with no model); the CLI links it automatically. It is
+            saved with the hyperparameters, so a checkpoint rebuilds the robot on any machine.
         lr: Adam learning rate.
         lr_final: learning rate reached at the last epoch by cosine annealing (None: constant).
         batch_size: minibatch size drawn inside each epoch's single Lightning step.
@@ -50,7 +51,7 @@ class BodySchema(L.LightningModule):
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
         self.automatic_optimization = False  # several minibatch updates per Lightning step (one per epoch)
-        self.robot_model = MusculoskeletalModel(robot["model_xml"], muscles=robot["muscles"])
+        self.robot_model = robot_model_from_dict(robot)  # a MusculoskeletalModel, or a ModelFreeRobot
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
         self.x_dim = 2 * self.n_muscles
@@ -71,6 +72,12 @@ class BodySchema(L.LightningModule):
         architecture implements."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
+    @property
+    def has_physics(self) -> bool:
+        """True when the robot comes with a model (MJCF): the physics check, kinematics and evaluation can run.
+        A schema trained on recorded data alone has none; its ``adapt`` reports ``unchecked`` instead of ``ok``."""
+        return isinstance(self.robot_model, MusculoskeletalModel)
+
     # ------------------------------------------------------------------ adaptation (paper section III)
     VARIANTS = ("default", "literal")
 
@@ -90,7 +97,8 @@ class BodySchema(L.LightningModule):
         check_physics: also ask the robot's true physics (MuJoCo + a QP, ~60 us per case) whether any command
             can hold q_ref under these faults; where none can, the status is ``infeasible`` and the row NaN
             (the schema's best effort stays in ``diagnostics``). The paper's benchmark scores every command
-            and turns it off.
+            and turns it off. A schema without a model (recorded data) cannot run the check: its commands get
+            status ``unchecked`` unless the caller turns the check off (``check_physics=False``).
         ``options`` override the variant's settings (e.g. ``lr=``, ``n_steps=``).
         Cases are adapted together in one batch; each case gets a status, and only ``ok`` rows hold a command.
         """
@@ -125,6 +133,9 @@ class BodySchema(L.LightningModule):
 
     def kinematic_twin(self):
         """The robot's ``TorchKinematicTwin`` (built once, on first use: pytorch-kinematics IK and frames)."""
+        if not self.has_physics:
+            raise BodySchemaInputError(f"this schema was trained without a robot model ({self.robot_model}): "
+                                       "kinematics and hand targets need an MJCF")
         if getattr(self, "_twin", None) is None:
             from ..sim.twin import TorchKinematicTwin
 
@@ -282,14 +293,16 @@ class BodySchema(L.LightningModule):
     def physical_errors(self, q: torch.Tensor, x_true: torch.Tensor) -> dict[str, float]:
         """Healthy-command quality in physical units at postures q (medians over the batch)."""
         l_motor, f = self.infer(q)
+        x_true = x_true.cpu().numpy()
+        errors = {"l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
+                  "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}
+        if not self.has_physics:  # recorded data, no model: only the distance to the recorded commands
+            return errors
         l_geo, G, tau_bias = self._physics(q.cpu().numpy())
         eq = np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau_bias, axis=1)
         length = np.abs(l_motor + elongation_from_tension(f, self.spring) - l_geo)
-        x_true = x_true.cpu().numpy()
-        return {"eq_residual_nm": float(np.median(eq)),
-                "length_residual_mm": 1e3 * float(np.median(length)),
-                "l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
-                "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}
+        return {"eq_residual_nm": float(np.median(eq)), "length_residual_mm": 1e3 * float(np.median(length)),
+                **errors}
 
     def _physics(self, q: np.ndarray):
         """MuJoCo kinematics at q, cached: validation postures are the same every time."""

@@ -69,6 +69,12 @@ def load_datamodule(path: str, cache_dir: str | None = None):
     checkpoint = read_checkpoint(path)
     robot = checkpoint["hyper_parameters"]["robot"]
     hparams = {k: v for k, v in (checkpoint.get("datamodule_hyper_parameters") or {}).items() if not k.startswith("_")}
+    if not robot.get("model_xml"):  # trained on recorded data: the file it was read from rebuilds the splits
+        from ..data import RecordedDataModule
+
+        datamodule = RecordedDataModule(**hparams)
+        datamodule.setup("test")
+        return datamodule
     hparams.update(model=robot["model_xml"], muscles=robot["muscles"], gravity=None, cache_dir=cache_dir,
                    **{k: v for k, v in robot["spring"].items()})
     datamodule = EquilibriumDataModule(**hparams)
