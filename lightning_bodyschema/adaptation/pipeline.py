@@ -38,6 +38,9 @@ class Adapter:
         # Lightning's val/test/predict loops run under inference_mode: the penalty must be an ordinary tensor
         with torch.inference_mode(False), torch.no_grad():
             self.penalty = schema.penalty_builder(variant)(faults.constraints(schema.spring.f_max_n))
+            projection = schema.fault_projection(variant, self.penalty, self.options.get("inpaint"))
+        if projection is not None:  # built once with the penalty; the sampler takes it as a value
+            self.options["projection"] = projection
 
     def __call__(self, q_ref) -> AdaptationResult:
         schema = self.schema

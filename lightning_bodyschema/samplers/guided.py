@@ -25,6 +25,7 @@ import torch
 from ..errors import BodySchemaInputError
 
 STEP_SCALES = ("none", "sqrt_abar", "abar")
+INPAINT = ("none", "box", "spring")  # faults.projection's modes
 
 
 @dataclass(frozen=True)
@@ -40,18 +41,41 @@ class GuidanceConfig:
       denoising step then uses the eps of the last one). 1 is the paper's.
     min_abar: guide only where abar_t >= min_abar (0, the paper's: every step). With ``"abar"`` a step at a
       noisy level moves x_t by only ~lr sqrt(abar_t) |grad_x0 L| and the following denoising washes it out.
+    inpaint: at every guided step, replace the x0 the denoising step uses by its projection onto the faults'
+      feasible set (``"box"`` or ``"spring"``, a ``faults.projection.FaultProjection`` given to the sampler), keeping
+      the predicted eps: x_{t'} += sqrt(abar_t') (P(x0_hat) - x0_hat). ``"none"``: the paper's guidance only.
+    inpaint_min_abar: inpaint only where abar_t >= inpaint_min_abar (0: at every guided step). At the noisier
+      steps the predicted x0 is still far from the data, and snapping it costs accuracy in conditions where the
+      faults need little change (RESULTS.md, binding study).
+    recurrence: denoise t -> t' then re-noise t' -> t with fresh seeded noise, ``recurrence`` times per step
+      (universal guidance's recurrence; 1: none). Autograd reference loop only.
+    project_xt: also project x_t itself (scaled to x0 units) after every step, as projected diffusion models do.
+      Autograd reference loop only.
     """
 
     lr: float = 0.01
     step_scale: str = "none"
     n_guide: int = 1
     min_abar: float = 0.0
+    inpaint: str = "none"
+    inpaint_min_abar: float = 0.0
+    recurrence: int = 1
+    project_xt: bool = False
 
     def __post_init__(self):
         if self.step_scale not in STEP_SCALES:
             raise BodySchemaInputError(f"unknown step_scale {self.step_scale!r}; allowed: {list(STEP_SCALES)}")
-        if isinstance(self.n_guide, bool) or not isinstance(self.n_guide, int) or self.n_guide < 1:
-            raise BodySchemaInputError(f"n_guide={self.n_guide!r} must be an integer >= 1")
+        if self.inpaint not in INPAINT:
+            raise BodySchemaInputError(f"unknown inpaint {self.inpaint!r}; allowed: {list(INPAINT)}")
+        for name in ("n_guide", "recurrence"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise BodySchemaInputError(f"{name}={value!r} must be an integer >= 1")
+
+    @property
+    def reference_only(self) -> bool:
+        """True for the settings only the autograd reference loop implements."""
+        return self.recurrence > 1 or self.project_xt
 
     def scale(self, abar: float) -> float:
         """s_t at alpha_bar_t = ``abar``."""
@@ -60,6 +84,10 @@ class GuidanceConfig:
     def n_guide_at(self, abar: float) -> int:
         return self.n_guide if abar >= self.min_abar else 0
 
+    def inpaints_at(self, abar: float) -> bool:
+        """True where a guided step at alpha_bar_t = ``abar`` inpaints its x0."""
+        return self.inpaint != "none" and abar >= self.inpaint_min_abar and self.n_guide_at(abar) > 0
+
 
 def _check_steps(schedule, timesteps: Optional[Sequence[int]]) -> list[int]:
     return list(range(schedule.n_timesteps - 1, -1, -1)) if timesteps is None else [int(t) for t in timesteps]
@@ -67,21 +95,47 @@ def _check_steps(schedule, timesteps: Optional[Sequence[int]]) -> list[int]:
 
 # ---------------------------------------------------------------------------------------------- the reference
 def reference_loop(eps_model, schedule, q_n, x_T, penalty=None, guidance: GuidanceConfig = GuidanceConfig(),
-                      timesteps: Optional[Sequence[int]] = None, eta: float = 1.0) -> torch.Tensor:
+                   timesteps: Optional[Sequence[int]] = None, eta: float = 1.0, projection=None) -> torch.Tensor:
     """Deterministic denoising from ``x_T (B, D)`` over ``timesteps`` (descending; None: all T), guided by
-    ``penalty`` on the predicted x0 at every step (None: the unguided healthy sample). Returns x0 (B, D); rows may be
-    non-finite if guidance diverged (the caller checks)."""
+    ``penalty`` on the predicted x0 at every step (None: the unguided healthy sample) and, with ``guidance.inpaint``,
+    inpainted by ``projection`` (``offset(x0) = x0 - P(x0)``). Returns x0 (B, D); rows may be non-finite if guidance
+    diverged (the caller checks)."""
     steps, x = _check_steps(schedule, timesteps), x_T
+    gen = torch.Generator(device=x_T.device).manual_seed(0) if guidance.recurrence > 1 else None
     for i, t in enumerate(steps):
-        n_guide = 0 if penalty is None else guidance.n_guide_at(float(schedule.alpha_bars[t]))
-        if n_guide == 0:
-            with torch.no_grad():
-                eps = eps_model(x, t, q_n)
-        for _ in range(n_guide):
-            x, eps = _guide(eps_model, schedule, q_n, x, t, penalty, guidance)
-        with torch.no_grad():  # 3. eq:diff-2 (eta = 1, stride 1) or its strided form, with the eps before guidance
-            x = schedule.step(x, eps, t, steps[i + 1] if i + 1 < len(steps) else -1, eta)
+        t_next = steps[i + 1] if i + 1 < len(steps) else -1
+        for r in range(guidance.recurrence if penalty is not None else 1):
+            if r > 0:  # universal guidance's recurrence: back to t with fresh noise, q(x_t | x_t')
+                x = _renoise(schedule, x_next, t, t_next, gen)
+            x_next = _reference_step(eps_model, schedule, q_n, x, t, t_next, penalty, guidance, eta, projection)
+        x = x_next
     return x
+
+
+def _reference_step(eps_model, schedule, q_n, x, t, t_next, penalty, guidance, eta, projection):
+    """One timestep t -> t_next: guidance (eq:diff-1, eq:diff-adapt), the denoising step (eq:diff-2), inpainting."""
+    n_guide = 0 if penalty is None else guidance.n_guide_at(float(schedule.alpha_bars[t]))
+    if n_guide == 0:
+        with torch.no_grad():
+            eps = eps_model(x, t, q_n)
+    for _ in range(n_guide):
+        x, eps = _guide(eps_model, schedule, q_n, x, t, penalty, guidance)
+    with torch.no_grad():  # 3. eq:diff-2 (eta = 1, stride 1) or its strided form, with the eps before guidance
+        x_next = schedule.step(x, eps, t, t_next, eta)
+        s0_next = math.sqrt(float(schedule.alpha_bars[t_next])) if t_next >= 0 else 1.0
+        if projection is not None and n_guide > 0 and guidance.inpaints_at(float(schedule.alpha_bars[t])):
+            # 4. inpainting: the step's x0_hat replaced by P(x0_hat), eps kept (its x0 coefficient is s0')
+            x_next = x_next - s0_next * projection.offset(schedule.predict_x0(x, eps, t))
+        if projection is not None and guidance.project_xt:
+            x_next = x_next - s0_next * projection.offset(x_next / s0_next)
+    return x_next
+
+
+def _renoise(schedule, x_next, t, t_next, gen):
+    """A draw of x_t given x_t' (t' < t): sqrt(abar_t / abar_t') x_t' + sqrt(1 - abar_t / abar_t') xi."""
+    ratio = float(schedule.alpha_bars[t]) / (float(schedule.alpha_bars[t_next]) if t_next >= 0 else 1.0)
+    noise = torch.randn(x_next.shape, generator=gen, device=x_next.device, dtype=x_next.dtype)
+    return math.sqrt(ratio) * x_next + math.sqrt(1.0 - ratio) * noise
 
 
 def _guide(eps_model, schedule, q_n, x_t, t, penalty, guidance):
@@ -101,7 +155,7 @@ def _guide(eps_model, schedule, q_n, x_t, t, penalty, guidance):
 class DenoisePlan:
     """Per-step matrices of ``guided_loop`` for one (network snapshot, schedule, steps, eta, guidance, weight c).
 
-    ``steps[i]`` = (n_guide, 1/s0, W1, beta, We, Wr, Wg, a_e, a_r, Wk, k_r) with s0 = sqrt(abar_t),
+    ``steps[i]`` = (n_guide, 1/s0, W1, beta, We, Wr, Wg, a_e, a_r, Wk, k_r, inpaint) with s0 = sqrt(abar_t),
     s1 = sqrt(1 - abar_t), s0' the next step's (1 after the last), (cx, ce) = ``schedule.step_coefficients`` and
     k = lr s_t / s0 (grad_{x_t} L = (g - s1 J^T g) / s0 with g = dL/dx0_hat, J = d eps/d x_t):
       first layer   x W1_free^T = u W1,  W1 = s0 W1_free^T;   e = -(s1/s0) eps = beta + h We,  x0_hat = u + e
@@ -110,6 +164,8 @@ class DenoisePlan:
                     a_e = -ce s0 / (s1 s0'), a_r = -cx k c / s0', Wg = (cx k s1 / s0') W1_free)
       inner step    u <- u + k_r r + g1 Wk           (n_guide > 1, same t: k_r = -k c / s0, Wk = (k s1 / s0) W1_free)
       unguided      u' = u + beta + h We             (beta, We scaled by ce / s0' instead of -s1 / s0)
+      inpainting    u' -= d,  d = x0_g - P(x0_g),  x0_g = x0_hat + k_r r + g1 Wk   (``inpaint``: this step does it;
+                    with eps kept, x0_hat -> P(x0_hat) moves x_t' by s0' (P - x0_hat), i.e. u' by -d)
     """
 
     steps: list
@@ -125,7 +181,7 @@ class DenoisePlan:
         w_like = self.steps[0][2].t()  # (H, n_free), the shape of Wg and Wk
         matrices = (stack(2, self.steps[0][2]), stack(3, self.steps[0][3]), stack(4, self.steps[0][4]),
                     self.steps[0][4].t() if guided is None else guided[5], stack(6, w_like), stack(9, w_like))
-        scalars = tuple((p[0], p[1], p[7], p[8], p[10]) for p in self.steps)
+        scalars = tuple((p[0], p[1], p[7], p[8], p[10], p[11]) for p in self.steps)
         return matrices, scalars
 
 
@@ -146,24 +202,27 @@ def plan_denoising(net, schedule, timesteps: Optional[Sequence[int]], eta: float
         s0_next = cx * s0_w  # s0' = sqrt(abar_prev)
         if n_guide == 0:
             f = ce / s0_next
-            plan.append((0, inv_s0, s0_w * w1f_t, f * b_out, f * w_out_t, None, None, 0.0, 0.0, None, 0.0))
+            plan.append((0, inv_s0, s0_w * w1f_t, f * b_out, f * w_out_t, None, None, 0.0, 0.0, None, 0.0, False))
             continue
         f = -s1 * inv_s0
         plan.append((n_guide, inv_s0, s0_w * w1f_t, f * b_out, f * w_out_t, w_r, (cx * k * s1 / s0_next) * w1f,
-                     a_e / s0_next, -cx * k * c_w / s0_next, (k * s1 * inv_s0) * w1f, -k * c_w * inv_s0))
+                     a_e / s0_next, -cx * k * c_w / s0_next, (k * s1 * inv_s0) * w1f, -k * c_w * inv_s0,
+                     guidance.inpaints_at(abar)))
     return DenoisePlan(plan)
 
 
-def guided_loop(steps, biases, x, penalty, net, ops) -> torch.Tensor:
+def guided_loop(steps, biases, x, penalty, net, ops, projection=None) -> torch.Tensor:
     """THE fused loop body (see ``DenoisePlan``): ``steps`` per-step plan entries, ``biases[i]`` step i's first-layer
     bias (B, H), ``x`` x_T (B, D); returns x0 (B, D). Every intermediate is written into buffers allocated here, once
     per call (at batch 1 an op that allocates nothing costs ~0.5 us less); ``u`` alternates between two of them
-    because ``addmm``'s out must not be an input. ``ops``: ``net.eager`` or, under torch.compile, ``net.traceable``."""
+    because ``addmm``'s out must not be an input. ``ops``: ``net.eager`` or, under torch.compile, ``net.traceable``.
+    ``projection``: inpaint every guided step's x0 (``GuidanceConfig.inpaint``; None: no inpainting)."""
     (b, d), new = x.shape, x.new_empty
     bufs = net.buffers(b, x)
     e, x0, tmp, res, states = new((b, d)), new((b, d)), new((b, d)), (new((b, d)), new((b, d))), (new((b, d)), new((b, d)))
+    x0_guided = (new((b, d)), new((b, d)))
     u, k = torch.mul(x, steps[0][1], out=states[0]), 0  # x_T / sqrt(abar_T)
-    for i, (n_guide, _, w1_t, beta, w_e, w_r, w_g, a_e, a_r, w_k, k_r) in enumerate(steps):
+    for i, (n_guide, _, w1_t, beta, w_e, w_r, w_g, a_e, a_r, w_k, k_r, inpaint) in enumerate(steps):
         if n_guide == 0:  # eq:diff-2 / DDIM without guidance: u' = u + beta + h We
             h, _ = net.trunk(u, biases[i], w1_t, bufs, ops)
             k = 1 - k
@@ -179,17 +238,23 @@ def guided_loop(steps, biases, x, penalty, net, ops) -> torch.Tensor:
             if j + 1 < n_guide:  # 2. eq:diff-adapt only: x -= k (g - s1 J^T g)
                 u = torch.addmm(torch.add(u, r, alpha=k_r, out=tmp), g1, w_k, out=states[k])
             else:  # 2. eq:diff-adapt and 3. eq:diff-2 / DDIM, in the next step's units
+                inpaint = inpaint and projection is not None
+                if inpaint:  # the guided x0_hat (the inner step's u, plus e) and its offset d
+                    d = projection.offset(torch.addmm(torch.add(x0, r, alpha=k_r, out=x0_guided[0]), g1, w_k,
+                                                      out=x0_guided[1]))
                 u = torch.addmm(torch.add(u, e, alpha=a_e, out=tmp).add_(r, alpha=a_r), g1, w_g, out=states[k])
+                if inpaint:  # 4. inpainting: x0_hat -> P(x0_hat) with eps kept is u' -= d
+                    u.sub_(d)
     return u
 
 
-def _from_stacked(matrices, scalars, biases, x, penalty, net):
+def _from_stacked(matrices, scalars, biases, x, penalty, net, projection=None):
     """``guided_loop`` on the stacked plan (``DenoisePlan.stacked``): what ``torch.compile`` traces; the indexing
     becomes free views inside the graph."""
     w1, beta, w_e, w_r, w_g, w_k = matrices
-    steps = [(n, inv_s0, w1[i], beta[i], w_e[i], w_r, w_g[i], a_e, a_r, w_k[i], k_r)
-             for i, (n, inv_s0, a_e, a_r, k_r) in enumerate(scalars)]
-    return guided_loop(steps, biases, x, penalty, net, net.traceable)
+    steps = [(n, inv_s0, w1[i], beta[i], w_e[i], w_r, w_g[i], a_e, a_r, w_k[i], k_r, inpaint)
+             for i, (n, inv_s0, a_e, a_r, k_r, inpaint) in enumerate(scalars)]
+    return guided_loop(steps, biases, x, penalty, net, net.traceable, projection)
 
 
 @functools.lru_cache(maxsize=1)
@@ -202,15 +267,16 @@ def compiled_sampler():
 
 
 def denoise(net, plan: DenoisePlan, biases: torch.Tensor, x_T: torch.Tensor, penalty=None, compiled: bool = False,
-            inference_mode: bool = True) -> torch.Tensor:
+            inference_mode: bool = True, projection=None) -> torch.Tensor:
     """Run ``plan`` from ``x_T (B, D)`` with the first-layer biases ``(S, B, H)`` of its steps; returns x0 (B, D).
 
     ``compiled``: through ``compiled_sampler``; ``inference_mode``: run under ``torch.inference_mode`` (no version
-    counters or autograd bookkeeping, ~0.15 us per op at batch 1); the result is an ordinary tensor either way."""
+    counters or autograd bookkeeping, ~0.15 us per op at batch 1); the result is an ordinary tensor either way.
+    ``projection``: inpaint the guided steps (see ``guided_loop``)."""
     with torch.inference_mode(inference_mode):
         if compiled:
             matrices, scalars = plan.stacked
-            out = compiled_sampler()(matrices, scalars, biases, x_T, penalty, net)
+            out = compiled_sampler()(matrices, scalars, biases, x_T, penalty, net, projection)
         else:
-            out = guided_loop(plan.steps, biases.unbind(0), x_T, penalty, net, net.eager)
+            out = guided_loop(plan.steps, biases.unbind(0), x_T, penalty, net, net.eager, projection)
     return out.clone()

@@ -81,6 +81,11 @@ class BodySchema(L.LightningModule):
     # ------------------------------------------------------------------ adaptation (paper section III)
     VARIANTS = ("default", "literal")
 
+    def fault_projection(self, variant: str, penalty, inpaint: Optional[str] = None):
+        """The projection onto the faults' feasible set a variant's sampler uses (``faults.projection``); None: the
+        architecture's adaptation uses none (the default)."""
+        return None
+
     @property
     def supports_adaptation(self) -> bool:
         """True when the architecture implements ``adapt_normalized`` (a plain regressor need not)."""

@@ -1,11 +1,13 @@
 """Diffusion (DDPM) body schema (paper section II-C): eps-prediction conditioned on q, adapted by guided denoising."""
 from __future__ import annotations
 
+from dataclasses import fields, replace
 from typing import Optional
 
 import torch
 
 from ..errors import BodySchemaInputError
+from ..faults.projection import projection_for
 from ..networks import EpsMLP
 from ..samplers import GuidanceConfig, NoiseSchedule, denoise, plan_denoising, reference_loop
 from ..samplers.schedule import SPACINGS
@@ -42,10 +44,24 @@ class DiffusionSchema(BodySchema):
     """
 
     STRIDED = {"spacing": "quad", "eta": 1.0, "n_guide": 2, "min_abar": 0.5}
+    # with inpainting, guide and inpaint from abar_t >= 0.3: at 0.5 the 20 strided steps left BOTH's E_tau 1.54x the
+    # 200-step sampler's on binding faults, at 0.3 1.42x (RESULTS.md)
+    STRIDED_INPAINT = {"min_abar": 0.3, "inpaint_min_abar": 0.3}
 
-    # eq:diff-adapt settings per variant; see BodySchema.adapt and README "Design decisions"
+    # eq:diff-adapt settings per variant; see BodySchema.adapt, README "Design decisions" and RESULTS.md (binding
+    # faults). The study variants are selectable by name (``adapt(..., variant=...)``, ``--variant``).
+    _GUIDED = GuidanceConfig(lr=0.5, step_scale="abar")
     ADAPT = {"literal": GuidanceConfig(lr=0.01, step_scale="none"),
-             "default": GuidanceConfig(lr=0.5, step_scale="abar")}
+             # gradient guidance plus spring-consistent inpainting of x0 where abar_t >= 0.5: meets the binding-fault
+             # targets where guidance alone leaves jams ~0.7 mm broken (RESULTS.md); lr 1: at 0.5 BOTH's E_tau misses
+             "default": replace(_GUIDED, lr=1.0, inpaint="spring", inpaint_min_abar=0.5),
+             "guided": _GUIDED,  # gradient guidance only: the default before the binding-fault study
+             "strong": replace(_GUIDED, lr=1.0, n_guide=4),
+             "recurrent": replace(_GUIDED, recurrence=3),
+             "inpaint_box": replace(_GUIDED, inpaint="box"),
+             "inpaint_spring": replace(_GUIDED, inpaint="spring"),
+             "projected": replace(_GUIDED, project_xt=True)}
+    VARIANTS = tuple(ADAPT)
 
     def __init__(self, n_timesteps: int = 200, hidden: int = 91, n_hidden: int = 2, sample_seed: int = 0,
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
@@ -79,12 +95,23 @@ class DiffusionSchema(BodySchema):
         return self.inference_cache.get(("timesteps", n_steps, spacing),
                                         lambda: tuple(self.schedule.timesteps(n_steps, spacing)))
 
-    def _guidance(self, steps, variant, lr, step_scale, n_guide, min_abar) -> GuidanceConfig:
-        """The variant's eq:diff-adapt settings with per-call overrides; the strided defaults for fewer than T steps."""
-        base, strided = self.ADAPT[variant], len(steps) < self.schedule.n_timesteps
-        pick = lambda value, name: (self.STRIDED[name] if strided else getattr(base, name)) if value is None else value  # noqa: E731
-        return GuidanceConfig(lr=base.lr if lr is None else lr, step_scale=base.step_scale if step_scale is None else step_scale,
-                              n_guide=pick(n_guide, "n_guide"), min_abar=float(pick(min_abar, "min_abar")))
+    def _guidance(self, steps, variant, **overrides) -> GuidanceConfig:
+        """The variant's eq:diff-adapt settings with per-call overrides (None: keep); the strided defaults for fewer
+        than T steps."""
+        values = {f.name: getattr(self.ADAPT[variant], f.name) for f in fields(GuidanceConfig)}
+        if len(steps) < self.schedule.n_timesteps:
+            values.update(n_guide=self.STRIDED["n_guide"], min_abar=self.STRIDED["min_abar"])
+            if values["inpaint"] != "none" and overrides.get("inpaint") in (None, values["inpaint"]):
+                values.update(self.STRIDED_INPAINT)
+        values.update({name: value for name, value in overrides.items() if value is not None})
+        return GuidanceConfig(**{**values, "min_abar": float(values["min_abar"])})
+
+    def fault_projection(self, variant: str, penalty, inpaint: Optional[str] = None):
+        """The ``faults.projection.FaultProjection`` the variant inpaints or projects with (None: it does neither)."""
+        config = self.ADAPT[variant]
+        mode = config.inpaint if inpaint is None else inpaint
+        mode = "box" if mode == "none" and config.project_xt else mode
+        return projection_for(penalty, mode, self.normalizer.x_mean, self.normalizer.x_std, self.spring)
 
     def initial_noise(self, n: int, like: torch.Tensor) -> torch.Tensor:
         """x_T for n cases: ONE seeded draw shared by every case.
@@ -107,7 +134,8 @@ class DiffusionSchema(BodySchema):
                                  fast, compiled)
 
     def adapt_normalized(self, q_n, penalty, variant, lr=None, step_scale=None, n_steps=None, n_guide=None,
-                         fast=True, eta=None, spacing=None, min_abar=None, compiled=None, inference_mode=True):
+                         fast=True, eta=None, spacing=None, min_abar=None, compiled=None, inference_mode=True,
+                         inpaint=None, inpaint_min_abar=None, recurrence=None, project_xt=None, projection=None):
         """Gradient-guided denoising (eq:diff-1, eq:diff-adapt, eq:diff-2) of ``penalty`` from the same x_T as
         ``generate``.
 
@@ -117,13 +145,19 @@ class DiffusionSchema(BodySchema):
         see ``GuidanceConfig``). fast: the autograd-free loop (default) or the autograd reference
         (``fast=False``); same commands. compiled: ``torch.compile`` the fast loop (None: ``compile_sampler``).
         inference_mode: run the fast loop under ``torch.inference_mode`` (False: for benchmarks of that choice).
+        inpaint, inpaint_min_abar, recurrence, project_xt: see ``GuidanceConfig``; projection: the ``fault_projection`` of the faults
+        (the adapter builds it once; None with inpainting on: built here from ``penalty``).
         """
         steps = self._timesteps(n_steps, spacing)
-        guidance = self._guidance(steps, variant, lr, step_scale, n_guide, min_abar)
+        guidance = self._guidance(steps, variant, lr=lr, step_scale=step_scale, n_guide=n_guide, min_abar=min_abar,
+                                  inpaint=inpaint, inpaint_min_abar=inpaint_min_abar, recurrence=recurrence,
+                                  project_xt=project_xt)
+        if projection is None and (guidance.inpaint != "none" or guidance.project_xt):
+            projection = self.fault_projection(variant, penalty, guidance.inpaint)
         return self._denoise(q_n, penalty, steps, self.STRIDED["eta"] if eta is None else eta, guidance, fast, compiled,
-                             inference_mode)
+                             inference_mode, projection)
 
-    def _denoise(self, q_n, penalty, steps, eta, guidance, fast, compiled, inference_mode=True):
+    def _denoise(self, q_n, penalty, steps, eta, guidance, fast, compiled, inference_mode=True, projection=None):
         """The fast loop through the eps-model's frozen snapshot, or the autograd reference (``fast=False``, or an
         activation without a hand-written derivative)."""
         compiled = bool(fast and self.hparams.get("compile_sampler", False)) if compiled is None else bool(compiled)
@@ -131,11 +165,12 @@ class DiffusionSchema(BodySchema):
             raise BodySchemaInputError("compiled=True needs the fast path (fast=True)")
         x_T = self.initial_noise(len(q_n), q_n)
         frozen = self.inference_cache.get(("frozen_eps",), self.eps_model.frozen) if fast else None
-        if frozen is None:
-            return reference_loop(self.eps_model, self.schedule, q_n, x_T, penalty, guidance, steps, eta)
+        if frozen is None or guidance.reference_only:
+            return reference_loop(self.eps_model, self.schedule, q_n, x_T, penalty, guidance, steps, eta, projection)
         c_w = 1.0 if penalty is None or penalty.uniform_weight is None else penalty.uniform_weight
         plan = self.inference_cache.get(("plan", steps, float(eta), guidance, c_w, penalty is not None),
                                         lambda: plan_denoising(frozen, self.schedule, steps, eta, guidance, c_w,
                                                                guided=penalty is not None))
         biases = self.eps_model.step_biases(frozen, q_n, steps)
-        return denoise(frozen, plan, biases, x_T, penalty, compiled, inference_mode)
+        inpaint = projection if guidance.inpaint != "none" else None
+        return denoise(frozen, plan, biases, x_T, penalty, compiled, inference_mode, inpaint)

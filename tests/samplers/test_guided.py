@@ -25,6 +25,9 @@ SAMPLERS = {
     # the paper's SI-unit loss (stable with sqrt(abar) scaling and 20 steps on this briefly trained model; with
     # 200 steps it runs away to ~1e8 m on some cases, where two chaotic trajectories cannot be compared)
     "literal_sqrt_abar_strided20": dict(variant="literal", step_scale="sqrt_abar", n_steps=20),
+    "guided_no_inpainting": dict(variant="guided"),
+    "inpaint_box_every_step_strided20": dict(variant="inpaint_box", n_steps=20, min_abar=0.0),
+    "inpaint_spring_every_step": dict(variant="inpaint_spring"),
 }
 
 
@@ -50,6 +53,34 @@ def test_fast_unguided_sampling_returns_the_reference_sample(diff60, diff60_f64,
     q_n = schema.encode_q(dm.splits["val"][0][:9])
     torch.testing.assert_close(schema.generate(q_n, n_steps=n_steps), schema.generate(q_n, n_steps=n_steps, fast=False),
                                rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("n_steps", [None, 20])
+def test_inpainting_leaves_no_jam_cut_or_band_broken_where_guidance_alone_does(diff60_f64, dm, n_steps):
+    """The default inpaints the predicted x0 at the low-noise steps; its last step is x0 := P(x0), so the raw
+    output (before the safe-command clipping) meets every fault exactly."""
+    q, faults = mixed_faults(diff60_f64, dm)
+    inpainted = diff60_f64.adapt(q, faults, n_steps=n_steps, check_physics=False).diagnostics
+    guided_only = diff60_f64.adapt(q, faults, variant="guided", n_steps=n_steps, check_physics=False).diagnostics
+    with np.errstate(invalid="ignore"):  # a jam below its own band's floor: no length meets both
+        contradictory = (faults.fix & faults.band & (faults.l_fixed_m < faults.l_band_m[..., 0])).any(1)
+    assert 0 < contradictory.sum() < len(q)
+    for name in ("cut_violation_n", "jam_violation_m", "band_violation_m", "weak_violation_n"):
+        assert np.nanmax(inpainted[name][~contradictory]) < 1e-9, name
+    assert max(np.nanmax(guided_only[name]) for name in ("jam_violation_m", "band_violation_m")) > 1e-5
+
+
+@pytest.mark.parametrize("variant", ["recurrent", "projected"])
+def test_reference_only_variants_run_from_the_fast_path_and_meet_the_faults_better_than_none(diff60_f64, dm, variant):
+    q, faults = mixed_faults(diff60_f64, dm, n=6)
+    fast = diff60_f64.adapt(q, faults, variant=variant, n_steps=20, check_physics=False)
+    ref = diff60_f64.adapt(q, faults, variant=variant, n_steps=20, fast=False, check_physics=False)
+    assert_same_commands(fast, ref, 1e-12, 1e-12)  # the fast path hands these to the reference loop
+    plain_l = diff60_f64.infer(q)[0]
+    jam = faults.fix
+    assert (fast.status == "ok").all()
+    broken_before = np.maximum(plain_l - faults.l_fixed_m, 0.0)[jam].sum()
+    assert np.maximum(fast.l_motor_m - faults.l_fixed_m, 0.0)[jam].sum() < 0.5 * broken_before
 
 
 def test_a_case_adapts_the_same_alone_or_in_a_batch_with_the_strided_sampler(diff60_f64, dm):
