@@ -16,13 +16,14 @@ from ..errors import BodySchemaInputError
 from .common import argument_parser, exits_cleanly
 
 
-def add_sensor_noise(arrays: dict, noise_q_rad: float, noise_l_m: float, noise_f_n: float, seed: int) -> dict:
-    """Gaussian sensor noise (standard deviations in SI units) on q, l_motor and f, from its own seeded stream."""
+def add_sensor_noise(arrays: dict, noise_q_rad, noise_l_m, noise_f_n, seed: int) -> dict:
+    """Gaussian sensor noise on q, l_motor and f (standard deviations in SI units: scalars, or one per channel),
+    from its own seeded stream."""
     rng = np.random.default_rng([int(seed), 16])  # apart from the posture stream: noise 0 leaves the data as it was
     noisy = dict(arrays)
     for name, sigma in (("q", noise_q_rad), ("l_motor", noise_l_m), ("f", noise_f_n)):
         noise = rng.standard_normal(arrays[name].shape)
-        noisy[name] = arrays[name] + sigma * noise if sigma > 0 else arrays[name]
+        noisy[name] = arrays[name] + np.asarray(sigma) * noise if np.any(np.asarray(sigma) > 0) else arrays[name]
     return noisy
 
 
