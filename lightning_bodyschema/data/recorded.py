@@ -371,9 +371,7 @@ def _robot_and_rows(path, table: RecordedTable, q_range, l_range, f_range, k_n, 
     """The robot (names, limits, spring) and the kept rows; prints how many rows were dropped and why."""
     n, m = len(table.q), len(table.muscles)
     finite = np.isfinite(table.q).all(1) & np.isfinite(table.l_motor).all(1) & np.isfinite(table.f).all(1)
-    observed = (np.stack([table.q[finite].min(0), table.q[finite].max(0)], axis=1) if finite.any()
-                else np.tile([-np.inf, np.inf], (len(table.joints), 1)))
-    q_lim = _limits(table.joints, "q", q_range, table.ranges, observed)
+    q_lim = _limits(table.joints, "q", q_range, table.ranges, np.tile([-np.inf, np.inf], (len(table.joints), 1)))
     l_lim = _limits(table.muscles, "l", l_range, table.ranges, np.tile([-np.inf, np.inf], (m, 1)))
     f_default = np.zeros((m, 2))
     f_default[:, 1] = np.broadcast_to(np.asarray(PAPER_F_MAX_N if f_max_n is None else f_max_n, float), (m,))
@@ -384,6 +382,9 @@ def _robot_and_rows(path, table: RecordedTable, q_range, l_range, f_range, k_n, 
             & ((table.l_motor >= l_lim[:, 0]) & (table.l_motor <= l_lim[:, 1])).all(1) \
             & ((table.f >= f_lim[:, 0]) & (table.f <= f_lim[:, 1])).all(1)
     keep = finite & inside
+    unbounded = np.isinf(q_lim).any(1)  # a joint with no range given: the kept rows' span is its range
+    if keep.any():
+        q_lim[unbounded] = np.stack([table.q[keep].min(0), table.q[keep].max(0)], axis=1)[unbounded]
     print(f"recorded data {path}: {n} rows, kept {int(keep.sum())}; dropped {int((~finite).sum())} with NaN/inf and "
           f"{int((finite & ~inside).sum())} outside the limits")
     if keep.sum() < _MIN_ROWS:
