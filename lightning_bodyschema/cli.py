@@ -23,7 +23,7 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
-from .callbacks import EpochProgressBar, FaultBenchmark, ReconstructionFigure
+from .callbacks import EpochProgressBar, FaultBenchmark, InitFrom, ReconstructionFigure
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
@@ -37,6 +37,8 @@ class BodySchemaCLI(LightningCLI):
         parser.add_lightning_class_args(EpochProgressBar, "progress")
         parser.add_lightning_class_args(ReconstructionFigure, "figures")
         parser.add_lightning_class_args(FaultBenchmark, "faults")
+        # fine-tune: --init_from.ckpt OLD.ckpt starts from its weights and normalizer (a fresh optimizer and schedule)
+        parser.add_lightning_class_args(InitFrom, "init_from")
         # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_last": True})
