@@ -27,7 +27,7 @@ from .callbacks import EpochProgressBar, FaultBenchmark, InitFrom, Reconstructio
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
-from .schemas.loading import read_checkpoint
+from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
 class BodySchemaCLI(LightningCLI):
@@ -51,7 +51,11 @@ class BodySchemaCLI(LightningCLI):
         subcommand = self.config.get("subcommand")
         ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
         if ckpt_path and str(ckpt_path) not in _LIGHTNING_CKPT_KEYWORDS:
+            # the loader's every check (schemas/loading.py): Lightning then imports the checkpoint's _class_path
+            # and loads its hyperparameters and weights, which must have passed first
             self._checkpoint = read_checkpoint(str(ckpt_path))
+            checked = check_checkpoint(self._checkpoint, str(ckpt_path))
+            _check_same_class(checked.cls, self.config[subcommand].get("model"), ckpt_path)
 
     def before_instantiate_classes(self):
         config = self.config[self.subcommand]
@@ -126,6 +130,14 @@ def _check_max_epochs(config):
             f"--trainer.max_epochs=-1 (endless training) cannot anneal the learning rate to "
             f"--model.lr_final={init_args.get('lr_final')} over max_epochs; give a positive max_epochs, "
             "or --model.lr_final=null for a constant learning rate")
+
+
+def _check_same_class(cls, model_config, ckpt_path):
+    """Refuse a checkpoint of another schema class than --model (Lightning would fail on its hyperparameters)."""
+    named = model_config.get("class_path") if model_config is not None else None
+    if named and schema_class(str(named), where="--model") is not cls:
+        raise BodySchemaInputError(f"--ckpt_path {str(ckpt_path)!r} holds a {cls.__name__}, but --model is {named}; "
+                                   f"give --model={cls.__name__} (or the config the checkpoint was trained with)")
 
 
 def _check_same_robot(checkpoint: dict, ckpt_path, datamodule):

@@ -138,7 +138,8 @@ def compile_all(compiled, q_all, faults_all, sizes) -> dict:
     return seconds
 
 
-def latency_rows(schemas: dict, q_all, faults_all, sizes, repeats: int, reference: bool, compiled=None) -> list[dict]:
+def latency_rows(schemas: dict, q_all, faults_all, sizes, repeats: int, reference: bool, compiled=None,
+                 other_variants=()) -> list[dict]:
     rows = []
     for n in sizes:
         q, faults = _take(q_all, faults_all, n)
@@ -149,6 +150,12 @@ def latency_rows(schemas: dict, q_all, faults_all, sizes, repeats: int, referenc
             if name.startswith("Diff"):
                 fns[(name, "adapted", "prepared adapter")] = functools.partial(
                     schema.adapter(faults, check_physics=False), q)
+                for v in other_variants:  # side by side with the default, same run
+                    fns[(name, "adapted", f"variant {v}, prepared adapter")] = functools.partial(
+                        schema.adapter(faults, variant=v, check_physics=False), q)
+                    if compiled is not None and name == "Diff-fast":
+                        fns[(name, "adapted", f"variant {v}, prepared adapter, compiled")] = functools.partial(
+                            compiled.adapter(faults, variant=v, check_physics=False), q)
             if name == "Diff-fast":
                 if compiled is not None:
                     fns[(name, "adapted", "compiled")] = lambda s=compiled: s.adapt(q, faults, **NO_CHECK)
@@ -269,6 +276,8 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--reference", action="store_true", help="also time the autograd reference (1 and 40 cases)")
     parser.add_argument("--ablation", action="store_true", help="time each optimisation step at batch 1")
+    parser.add_argument("--variants", nargs="*", default=[],
+                        help="also time these adaptation variants of the diffusion schemas (e.g. guided), side by side")
     parser.add_argument("--no-compile", dest="compile", action="store_false",
                         help="skip the torch.compile rows (compiling takes ~20 s per batch size and kind)")
     args = parser.parse_args(argv)
@@ -285,7 +294,8 @@ def main(argv=None):
         compiled = load_schema(paths["Diff"])
         compiled.hparams.sample_steps, compiled.hparams.compile_sampler = FAST_STEPS, True
         compile_s = compile_all(compiled, q_all, faults_all, sorted(args.sizes))
-    rows = latency_rows(schemas, q_all, faults_all, sorted(args.sizes), args.repeats, args.reference, compiled)
+    rows = latency_rows(schemas, q_all, faults_all, sorted(args.sizes), args.repeats, args.reference, compiled,
+                        args.variants)
     ablation = ablation_rows(schemas, q_all, faults_all, args.repeats) if args.ablation else []
     print(markdown(rows, ablation))
     if compile_s:

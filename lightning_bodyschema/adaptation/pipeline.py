@@ -5,13 +5,26 @@ import numpy as np
 import torch
 
 from ..errors import BodySchemaInputError
-from .command import AdaptationResult, safe_command
+from .command import AdaptationResult, motor_length_range, safe_command
 from .physics import flag_infeasible, mark_unchecked
+
+
+def real_array(value, name: str) -> np.ndarray:
+    """``value`` as a float64 array; strings, None, objects, complex numbers and bools are refused by name."""
+    try:
+        array = np.asarray(value.detach().cpu().numpy() if torch.is_tensor(value) else value)
+    except (ValueError, TypeError):  # ragged nesting
+        array = np.asarray(None)
+    if array.dtype.kind not in "fiu":
+        shown = repr(value) if len(repr(value)) <= 80 else f"a {type(value).__name__}"
+        raise BodySchemaInputError(f"{name} = {shown} is not an array of real numbers ({array.dtype}); "
+                                   "give postures [rad] as numbers, shape (B, N)")
+    return array.astype(np.float64)
 
 
 def check_postures(schema, q_ref, n_cases: int) -> np.ndarray:
     """q_ref as a (B, N) float64 array inside the joint ranges, one row per fault case."""
-    q = schema.robot_model.check_q(q_ref.cpu().numpy() if torch.is_tensor(q_ref) else q_ref, within_range=True)
+    q = schema.robot_model.check_q(real_array(q_ref, "q_ref"), within_range=True)
     if n_cases != len(q):
         raise BodySchemaInputError(f"{len(q)} postures but {n_cases} fault rows; give one row per case")
     return q
@@ -31,10 +44,11 @@ class Adapter:
     def __init__(self, schema, faults, variant: str = "default", check_physics: bool = True, options: dict = None):
         if variant not in schema.VARIANTS:
             raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
-        faults.validate(schema.n_muscles)
+        faults.validate(schema.n_muscles, schema.spring.f_max_n)
         self.schema, self.faults, self.variant = schema, faults, variant
         self.check_physics, self.options = check_physics, dict(options or {})
         self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
+        self.l_range_m = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
         # Lightning's val/test/predict loops run under inference_mode: the penalty must be an ordinary tensor
         with torch.inference_mode(False), torch.no_grad():
             self.penalty = schema.penalty_builder(variant)(faults.constraints(schema.spring.f_max_n))
@@ -48,7 +62,7 @@ class Adapter:
         with torch.inference_mode(False), torch.no_grad():
             x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.penalty, self.variant,
                                           **self.options)
-        result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n)
+        result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n, self.l_range_m)
         if not self.check_physics:
             return result
         if not schema.has_physics:

@@ -5,7 +5,7 @@ import time
 
 from ..errors import BodySchemaInputError
 from .common import (ADAPT_SAMPLERS, argument_parser, check_out, check_schema_options, count_values, exits_cleanly,
-                     resolve_sampler, torch_one_thread, write_npz)
+                     import_user_modules, load_checked_schema, resolve_sampler, torch_one_thread, write_npz)
 
 # ---------------------------------------------------------------------------- fault-case tools
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
@@ -13,30 +13,66 @@ CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
 
 @exits_cleanly
 def make_cases_main(argv=None):
-    parser = argument_parser("Draw the paper's fault cases (CUT 2 cut, FIX 2 jammed, BOTH 1 + 1) from a checkpoint's "
-                             "test split; writes q_ref, cut, fix, l_fixed, cond (.npz, SI units).")
+    parser = argument_parser("Draw fault cases from a checkpoint's test split: the paper's protocol (CUT 2 cut, FIX 2 "
+                             "jammed, BOTH 1 + 1; the default) or the binding one (CUT, FIX, BOTH, WEAK, BAND, every "
+                             "case feasible and every fault broken by the healthy command); writes q_ref, cut, fix, "
+                             "l_fixed, cond (+ f_max, l_band for binding) (.npz, SI units).", checkpoint=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt); its test split is used")
     parser.add_argument("--seed", type=int, required=True, help="seed of the draw (same seed -> same bytes)")
     parser.add_argument("--out", required=True, help="output case file (.npz)")
-    parser.add_argument("--n-per-condition", type=int, default=40, help="cases per condition (default 40, the paper's)")
+    parser.add_argument("--protocol", default="paper", help="paper (default) or binding")
+    parser.add_argument("--n", type=int, default=None,
+                        help="cases per condition (default: 100 for binding, 40 for paper)")
+    parser.add_argument("--n-per-condition", type=int, default=None,
+                        help="cases per condition, paper protocol (default 40, the paper's); same as --n")
     args = parser.parse_args(argv)
+    n_per_condition = _cases_per_condition(args)
     if args.seed < 0:
         raise BodySchemaInputError(f"--seed {args.seed} must be >= 0")
-    if args.n_per_condition <= 0:
-        raise BodySchemaInputError(f"--n-per-condition {args.n_per_condition} must be a positive integer")
     check_out(args.out, args.ckpt)
     torch_one_thread()
-    from ..evaluation.cases import make_fault_cases
     from ..schemas.loading import load_datamodule
 
+    import_user_modules(args.imports)
     datamodule = load_datamodule(args.ckpt)
     q, x = datamodule.splits["val"]  # the held-out split is the test split (docs/design.md, evaluation)
-    n_muscles = datamodule.robot_model.n_muscles
-    cases = make_fault_cases(q.numpy(), x[:, :n_muscles].numpy(), args.n_per_condition, args.seed)
-    write_npz(args.out, {name: getattr(cases, name) for name in CASE_ARRAYS})
-    print(f"wrote {args.out}: {len(cases)} fault cases ({count_values(cases.cond)}), seed {args.seed}, postures from "
-          f"the {len(q)}-sample test split of {args.ckpt}")
+    cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, q.numpy(), x.numpy(),
+                                 n_per_condition, args.seed)
+    write_npz(args.out, cases.arrays() if args.protocol == "binding" else
+              {name: getattr(cases, name) for name in CASE_ARRAYS})
+    print(f"wrote {args.out}: {len(cases)} fault cases ({count_values(cases.cond)}), protocol {args.protocol}, seed "
+          f"{args.seed}, postures from the {len(q)}-sample test split of {args.ckpt}")
+    for cond, reasons in (rejected or {}).items():
+        print(f"  {cond}: rejected {sum(reasons.values())} draws"
+              + (" (" + ", ".join(f"{reason}: {count}" for reason, count in reasons.items()) + ")" if reasons else ""))
 
+
+def _cases_per_condition(args) -> int:
+    from ..evaluation.cases import PROTOCOLS
+
+    if args.protocol not in PROTOCOLS:
+        raise BodySchemaInputError(f"--protocol {args.protocol!r}; allowed: {list(PROTOCOLS)}")
+    if args.n_per_condition is not None and args.protocol != "paper":
+        raise BodySchemaInputError(f"--n-per-condition is the paper protocol's option; use --n with --protocol "
+                                   f"{args.protocol}")
+    if None not in (args.n, args.n_per_condition) and args.n != args.n_per_condition:
+        raise BodySchemaInputError(f"--n {args.n} and --n-per-condition {args.n_per_condition} disagree; give one")
+    option, given = ("--n", args.n) if args.n is not None else ("--n-per-condition", args.n_per_condition)
+    if given is not None and given <= 0:
+        raise BodySchemaInputError(f"{option} {given} must be a positive integer (cases per condition)")
+    return given if given is not None else (100 if args.protocol == "binding" else 40)
+
+
+def draw_cases(protocol: str, model, spring, q_pool, x_pool, n_per_condition: int, seed: int):
+    """(cases, rejections or None) of ``protocol`` from a test split: q (P, N) [rad], x = [l_motor, f] (P, 2M);
+    ``model``, ``spring``: the robot the split belongs to."""
+    from ..evaluation.cases import HealthyPool, make_binding_cases, make_fault_cases
+
+    n_muscles = model.n_muscles
+    if protocol == "binding":
+        pool = HealthyPool(q_pool, x_pool[:, :n_muscles], x_pool[:, n_muscles:2 * n_muscles])
+        return make_binding_cases(model, pool, n_per_condition, seed, spring)
+    return make_fault_cases(q_pool, x_pool[:, :n_muscles], n_per_condition, seed), None
 
 
 def load_cases(path: str):
@@ -77,7 +113,7 @@ def adapt_cases(schema, cases, variant: str, options: dict, ckpt: str):
 @exits_cleanly
 def adapt_cases_main(argv=None):
     parser = argument_parser("Adapt a trained schema's commands to every case of a fault-case file in one batch; writes "
-                             "the case arrays plus l_motor [m], f [N] and status (.npz).")
+                             "the case arrays plus l_motor [m], f [N] and status (.npz).", checkpoint=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--cases", required=True, help="fault-case file (.npz from tools/make_cases.py or alike)")
     parser.add_argument("--out", required=True, help="output file (.npz), written only if everything succeeds")
@@ -91,15 +127,13 @@ def adapt_cases_main(argv=None):
     check_out(args.out, args.ckpt)
     torch_one_thread()
     cases = load_cases(args.cases)  # before the checkpoint: a bad case file is reported without the heavy imports
-    from ..schemas.loading import load_schema
-
-    schema = load_schema(args.ckpt)
+    schema = load_checked_schema(args)
     check_schema_options(schema, args.variant, args.sampler, options)
     check_cases_fit(cases, args.cases, schema.robot_model)
     adapt_start = time.perf_counter()
     result = adapt_cases(schema, cases, args.variant, options, args.ckpt)
     adapt_seconds = time.perf_counter() - adapt_start
-    arrays = {name: getattr(cases, name) for name in CASE_ARRAYS}
+    arrays = cases.arrays()  # the five case arrays, and f_max / l_band when the file has them
     arrays.update(l_motor=result.l_motor_m, f=result.f_n, status=result.status)
     write_npz(args.out, arrays)
     print(f"wrote {args.out}: {len(cases)} cases, {int(result.ok.sum())} ok (status: {count_values(result.status)}); "

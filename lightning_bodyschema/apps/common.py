@@ -39,15 +39,57 @@ ADAPT_SAMPLERS = {
 SAMPLER_ALIASES = {"ddim20": "strided20"}  # earlier name of strided20 (it never was DDIM); scripts depend on it
 
 
-def argument_parser(description: str) -> argparse.ArgumentParser:
-    """An ArgumentParser whose usage errors are one-line ``BodySchemaInputError`` (exit 2, no usage dump)."""
+def argument_parser(description: str, checkpoint: bool = False) -> argparse.ArgumentParser:
+    """An ArgumentParser whose usage errors are one-line ``BodySchemaInputError`` (exit 2, no usage dump).
+
+    checkpoint: the tool reads a --ckpt; add ``--import MODULE`` for checkpoints of a user's schema class.
+    """
     parser = argparse.ArgumentParser(description=description)
 
     def error(message):
         raise BodySchemaInputError(f"{message} (see {parser.prog} --help)")
 
     parser.error = error
+    if checkpoint:
+        parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE",
+                            help="import this module (a dotted name on the Python path, or a .py file) before loading "
+                                 "the checkpoint, so that a schema class it defines is known; repeatable. A checkpoint "
+                                 "itself never makes anything get imported")
     return parser
+
+
+def import_user_modules(names) -> None:
+    """Run the modules the USER named with --import (their BodySchema subclasses register themselves)."""
+    import importlib.util
+
+    for name in names:
+        if name.endswith(".py"):
+            if not os.path.isfile(name):
+                raise BodySchemaInputError(f"--import {name!r} does not exist")
+            module_name = os.path.splitext(os.path.basename(name))[0]
+            spec = importlib.util.spec_from_file_location(module_name, name)
+        else:
+            try:
+                spec = importlib.util.find_spec(name)
+            except (ImportError, ValueError):
+                spec = None
+            if spec is None:
+                raise BodySchemaInputError(f"--import {name!r}: no such module on the Python path (give a dotted "
+                                           "module name, e.g. with PYTHONPATH set, or a .py file)")
+            module_name = name
+        if module_name in sys.modules:
+            continue
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module
+        spec.loader.exec_module(module)
+
+
+def load_checked_schema(args):
+    """The tools' one way to a schema: the user's --import modules, then ``load_schema`` (every check)."""
+    from ..schemas.loading import load_schema
+
+    import_user_modules(args.imports)
+    return load_schema(args.ckpt)
 
 
 

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .common import (argument_parser, check_out, check_schema_options, count_values, exits_cleanly, resolve_sampler,
-                     torch_one_thread)
+from .common import (argument_parser, check_out, check_schema_options, count_values, exits_cleanly,
+                     load_checked_schema, resolve_sampler, torch_one_thread)
 from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.faults import muscle_index
@@ -300,7 +300,8 @@ def _check_out_format(path: str, requests_path: str):
 @exits_cleanly
 def predict_main(argv=None):
     parser = argument_parser("Commands for a file of requests (postures or hand targets, each with its own faults: cut, "
-                     "jam, weak, band); writes l_motor [m], f [N] and a status per request (.npz or .json).")
+                     "jam, weak, band); writes l_motor [m], f [N] and a status per request (.npz or .json).",
+                             checkpoint=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--requests", required=True, help="request file (.yaml, .yml, .json or .npz)")
     parser.add_argument("--out", required=True, help="output file (.npz or .json), written only if all succeeds")
@@ -323,9 +324,7 @@ def predict_main(argv=None):
     check_out(args.out, args.ckpt)
     _check_out_format(args.out, args.requests)
     torch_one_thread()
-    from ..schemas.loading import load_schema
-
-    schema = load_schema(args.ckpt)
+    schema = load_checked_schema(args)
     check_schema_options(schema, args.variant, args.sampler, options)
     requests = read_requests(args.requests, schema.robot_model)
     if requests.by_target.any() and args.site not in schema.kinematic_twin().site_names:

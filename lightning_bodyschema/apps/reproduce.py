@@ -22,8 +22,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..evaluation import make_fault_cases, run_fault_benchmark
+from ..evaluation import oracle_commands, oracle_scores, run_fault_benchmark
+from ..evaluation.benchmark import ACTIVE_CUT_N, ACTIVE_FIX_M
+from ..evaluation.cases import PROTOCOLS
 from ..faults import Faults
+from .case_tools import draw_cases
 
 MODELS = {"AE-3": "ae-3", "AE-10": "ae-10", "AE-30": "ae-30", "VAE-3": "vae-3", "VAE-10": "vae-10",
           "VAE-30": "vae-30", "Diff": "diff"}
@@ -156,50 +159,76 @@ def _poll(proc) -> int | None:
 
 
 class Benchmarker:
-    """The same seeded case set for every schema (they share one dataset); ``run(name, checkpoint)`` loads and
-    benchmarks one schema, ``results``/``schemas`` collect them."""
+    """The same seeded case sets for every schema (they share one dataset): the paper's protocol and the binding
+    one (``evaluation.make_binding_cases``), each with its physics oracle scored once; ``run(name, checkpoint)``
+    loads and benchmarks one schema on both, ``results[protocol]``/``schemas`` collect them."""
 
-    def __init__(self, n_per_condition: int = 40, seed: int = 0, variant: str = "default"):
+    def __init__(self, n_per_condition: int = 40, seed: int = 0, variant: str = "default",
+                 binding_n_per_condition: int = 40):
         self.n_per_condition, self.seed, self.variant = n_per_condition, seed, variant
-        self.cases, self.results, self.schemas = None, {}, {}
+        self.binding_n_per_condition = binding_n_per_condition
+        self.cases, self.oracles, self.rejected = {}, {}, None
+        self.results, self.schemas = {p: {} for p in PROTOCOLS}, {}
+
+    def _draw(self, checkpoint: str, schema):
+        from ..schemas import load_datamodule
+
+        q_pool, x_pool = (t.numpy() for t in load_datamodule(checkpoint).splits["val"])
+        for protocol in PROTOCOLS:
+            n = self.binding_n_per_condition if protocol == "binding" else self.n_per_condition
+            self.cases[protocol], rejected = draw_cases(protocol, schema.robot_model, schema.spring, q_pool, x_pool,
+                                                        n, self.seed)
+            self.rejected = rejected or self.rejected
+            self.oracles[protocol] = oracle_scores(schema.robot_model, schema.spring, self.cases[protocol],
+                                                   settle_check=True)
 
     def run(self, name: str, checkpoint: str):
-        from ..schemas import load_datamodule, load_schema
+        from ..schemas import load_schema
 
         schema = load_schema(checkpoint)
-        if self.cases is None:
-            q_pool, x_pool = load_datamodule(checkpoint).splits["val"]
-            m = schema.n_muscles
-            self.cases = make_fault_cases(q_pool.numpy(), x_pool[:, :m].numpy(), self.n_per_condition, self.seed)
+        if not self.cases:
+            self._draw(checkpoint, schema)
         self.schemas[name] = schema
-        self.results[name] = run_fault_benchmark(
-            schema.robot_model, schema.spring, self.cases, schema.infer,
-            lambda q, f: schema.adapt(q, f, variant=self.variant, check_physics=False), settle_check=True)
+        for protocol, cases in self.cases.items():
+            self.results[protocol][name] = run_fault_benchmark(
+                schema.robot_model, schema.spring, cases, schema.infer,
+                lambda q, f: schema.adapt(q, f, variant=self.variant, check_physics=False), settle_check=True,
+                oracle=self.oracles[protocol])
 
 
 def benchmark_all(checkpoints: dict[str, str], n_per_condition: int = 40, seed: int = 0, variant: str = "default",
                   bench: Benchmarker | None = None):
-    """Benchmark every checkpoint not yet in ``bench``; returns (name -> BenchmarkResult, cases, name -> schema)
-    in the order of ``checkpoints``."""
+    """Benchmark every checkpoint not yet in ``bench``; returns ({protocol: {name: BenchmarkResult}},
+    {protocol: cases}, {name: schema}), names in the order of ``checkpoints``."""
     bench = bench or Benchmarker(n_per_condition, seed, variant)
     for name, path in checkpoints.items():
-        if name not in bench.results:
+        if name not in bench.schemas:
             bench.run(name, path)
     names = list(checkpoints)
-    return ({n: bench.results[n] for n in names}, bench.cases, {n: bench.schemas[n] for n in names})
+    results = {protocol: {n: by_name[n] for n in names} for protocol, by_name in bench.results.items()}
+    return results, bench.cases, {n: bench.schemas[n] for n in names}
+
+
+def _one_both_case(cases):
+    both = np.flatnonzero(cases.cond == "BOTH")[:1]
+    return cases.q_ref[both], Faults(cases.cut[both], cases.fix[both], cases.l_fixed[both]), cases.take(both)
 
 
 def time_inference(schemas: dict, cases, repeats: int = 7) -> dict:
     """Median seconds per call for one BOTH case, with and without adaptation (paper Fig. exp-time)."""
-    both = np.flatnonzero(cases.cond == "BOTH")[:1]
-    q = cases.q_ref[both]
-    faults = Faults(cases.cut[both], cases.fix[both], cases.l_fixed[both])
+    q, faults, _ = _one_both_case(cases)
     out = {}
     for name in TIMED:
         schema = schemas[name]
         out[name] = {"unadapted": _median_seconds(lambda: schema.infer(q), repeats),
                      "adapted": _median_seconds(lambda: schema.adapt(q, faults, check_physics=False), repeats)}
     return out
+
+
+def time_oracle(schema, cases, repeats: int = 7) -> float:
+    """Median seconds of the physics oracle (``oracle_commands``: feasibility QP + spring) for the same BOTH case."""
+    _, _, one = _one_both_case(cases)
+    return _median_seconds(lambda: oracle_commands(schema.robot_model, one, schema.spring), repeats)
 
 
 def _median_seconds(fn, repeats):
@@ -212,23 +241,35 @@ def _median_seconds(fn, repeats):
     return statistics.median(times)
 
 
-def timing_figure(timings: dict):
+TIMING_FORMATS = {"unadapted": "%.3f", "adapted": "%.1f", "oracle": "%.3f"}  # the RESULTS.md table's precision
+
+
+def timing_figure(timings: dict, oracle_s: float | None = None):
+    """Bars of milliseconds per case with and without adaptation per schema, and the physics oracle's, labelled
+    with the precision of the RESULTS.md table."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5, 3.4))
+    fig, ax = plt.subplots(figsize=(5.6, 3.6))
     names = list(timings)
     width = 0.38
     for k, (kind, color) in enumerate((("unadapted", "tab:gray"), ("adapted", "tab:blue"))):
         values = [1e3 * timings[n][kind] for n in names]
         bars = ax.bar(np.arange(len(names)) + (k - 0.5) * width, values, width, label=f"{kind} (ours)", color=color)
-        ax.bar_label(bars, fmt="%.1f", fontsize=7)
+        ax.bar_label(bars, fmt=TIMING_FORMATS[kind], fontsize=7)
+    ticks = list(names)
+    if oracle_s is not None:
+        bars = ax.bar([len(names)], [1e3 * oracle_s], width, color="k", label="physics oracle (exact model)")
+        ax.bar_label(bars, fmt=TIMING_FORMATS["oracle"], fontsize=7)
+        ticks.append("oracle")
     ax.axhline(700, color="tab:red", ls="--", lw=1, label="paper, adapted (0.7 s)")
-    ax.set_xticks(np.arange(len(names)), names)
+    ax.set_xticks(np.arange(len(ticks)), ticks)
     ax.set_yscale("log")
-    ax.set_ylabel("ms per case (BOTH)")
+    ax.set_xlabel("schema (one BOTH case, CPU, one thread)")
+    ax.set_ylabel("ms per case (median)")
+    ax.set_title("Inference time with and without adaptation")
     ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
@@ -236,9 +277,16 @@ def timing_figure(timings: dict):
 
 # ---------------------------------------------------------------------------------------------- RESULTS.md
 TARGETS = {"E_cut": 1.0, "E_fix": 1e-3, "E_tau": 0.5, "E_q": 0.01}  # issue acceptance, SI units
-UNITS = {"E_cut": ("N", 1.0), "E_fix": ("mm", 1e3), "E_tau": ("N m", 1.0), "E_q": ("rad", 1.0),
-         "E_q_phys": ("rad", 1.0)}
+UNITS = {"E_cut": ("N", 1.0), "E_fix": ("mm", 1e3), "E_weak": ("N", 1.0), "E_band": ("mm", 1e3),
+         "E_tau": ("N m", 1.0), "E_q": ("rad", 1.0), "E_q_phys": ("rad", 1.0)}
 CONDS = ("CUT", "FIX", "BOTH")
+BINDING_CONDS = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
+PAPER_COLUMNS = ("E_cut", "E_fix", "E_tau", "E_q", "E_q_phys")
+BINDING_COLUMNS = ("E_cut", "E_fix", "E_weak", "E_band", "E_tau", "E_q", "E_q_phys")
+# what each binding condition's fault is scored by (beside E_tau, E_q and E_q_phys, which every condition has)
+FAULT_METRICS = {"CUT": ("E_cut",), "FIX": ("E_fix",), "BOTH": ("E_cut", "E_fix"), "WEAK": ("E_weak",),
+                 "BAND": ("E_band",)}
+HAND_WRITTEN = "<!-- Hand-written sections below: tools/reproduce_paper.py keeps everything after this line. -->"
 
 
 def _med(result, metric, cond, reading="phys", subset="feasible", kind="adapted"):
@@ -251,15 +299,18 @@ def _fmt(value, metric):
     return "—" if not np.isfinite(value) else f"{value * scale:.3g}"
 
 
-def results_table(results: dict, reading: str, subset: str) -> str:
-    rows = ["| model | cond | n | E_cut [N] | E_fix [mm] | E_tau [N m] | E_q [rad] | E_q_phys [rad] |",
-            "|---|---|---|---|---|---|---|---|"]
-    first = next(iter(results.values()))
-    for name, result in [("unadapted (Diff)", results.get("Diff", first))] + list(results.items()):
-        kind = "unadapted" if name.startswith("unadapted") else "adapted"
-        for cond in CONDS:
+def results_table(results: dict, reading: str, subset: str, conds=CONDS, columns=PAPER_COLUMNS) -> str:
+    """Medians per condition: the unadapted command (of Diff) and the physics oracle as reference rows, then
+    every schema's adapted command."""
+    header = " | ".join(f"{m} [{UNITS[m][0]}]" for m in columns)
+    rows = [f"| model | cond | n | {header} |", "|---|---|---|" + "---|" * len(columns)]
+    reference = results.get("Diff", next(iter(results.values())))
+    named = [("unadapted (Diff)", reference, "unadapted"), ("oracle", reference, "oracle")]
+    named = [row for row in named if row[2] in reference.metrics] + [(n, r, "adapted") for n, r in results.items()]
+    for name, result, kind in named:
+        for cond in conds:
             n = result.summary()[kind][reading][cond][subset]["n"]
-            cells = [_fmt(_med(result, m, cond, reading, subset, kind), m) for m in (*TARGETS, "E_q_phys")]
+            cells = [_fmt(_med(result, m, cond, reading, subset, kind), m) for m in columns]
             rows.append(f"| {name} | {cond} | {n} | " + " | ".join(cells) + " |")
     return "\n".join(rows)
 
@@ -303,6 +354,23 @@ def _beats_unadapted(result):
             ", ".join(f"{m} {c} (n={n}) {_fmt(a, m)} vs {_fmt(u, m)}" for m, c, n, a, u in pairs))
 
 
+def binding_claims(results: dict) -> list[tuple[str, str, str]]:
+    """The paper's "adapted beats unadapted" judged on the binding set, where every case has a physical solution
+    and the healthy command breaks every fault: per schema, the (condition, metric) pairs where the adapted
+    median is below the unadapted one; metrics: the condition's fault metric, E_tau, E_q and E_q_phys."""
+    out = []
+    for name, result in results.items():
+        pairs = [(c, m, _med(result, m, c, subset="all"), _med(result, m, c, subset="all", kind="unadapted"))
+                 for c in BINDING_CONDS for m in FAULT_METRICS[c] + ("E_tau", "E_q", "E_q_phys")]
+        pairs = [p for p in pairs if np.isfinite(p[2]) and np.isfinite(p[3])]
+        lost = [p for p in pairs if not p[2] < p[3]]
+        verdict = "confirmed" if not lost else f"{len(pairs) - len(lost)} of {len(pairs)}"
+        evidence = ("not better in: " + ", ".join(f"{m} {c} {_fmt(a, m)} vs {_fmt(u, m)}" for c, m, a, u in lost)
+                    if lost else "better in every pair")
+        out.append((f"{name} adaptation beats the unadapted command (binding set, all metrics)", verdict, evidence))
+    return out
+
+
 def _worse_claim(results, claim, weak, metric, conds, others):
     """Weak = every 'weak' model's median (all cases) is above every other model's, in every condition."""
     pairs = [(c, max(_med(results[w], metric, c, subset="all") for w in weak),
@@ -323,26 +391,73 @@ def _timing_claims(timings):
              ", ".join(f"{n} {1e3 * v:.1f} ms" for n, v in adapted.items()))]
 
 
-def write_results_md(path, results, timings, command, epochs, n_cases, literal_ok=None):
+def _hand_written_tail(path) -> list[str]:
+    """The hand-written sections of an existing RESULTS.md (after ``HAND_WRITTEN``), kept across regenerations."""
+    if not os.path.isfile(path):
+        return []
+    text = open(path, encoding="utf-8").read()
+    return ["", HAND_WRITTEN, ""] + text.split(HAND_WRITTEN, 1)[1].strip("\n").split("\n") if HAND_WRITTEN in text else []
+
+
+def write_results_md(path, results, timings, command, epochs, n_cases, literal_ok=None, binding=None,
+                     oracle_s=None, rejected=None):
+    """RESULTS.md from the paper-protocol ``results`` and the ``binding`` ones ({name: BenchmarkResult})."""
     lines = ["# Results: reproduction of Kawaharazuka & Ikemoto on the paper arm", "",
-             f"Produced by `{command}` ({epochs} epochs per schema, {n_cases} fault cases, "
-             f"{time.strftime('%Y-%m-%d')}). Medians; E_fix in mm.", "",
+             f"Produced by `{command}` ({epochs} epochs per schema, {n_cases} fault cases of the paper's protocol"
+             + (f" and {len(next(iter(binding.values())).cases)} of the binding protocol" if binding else "")
+             + f", {time.strftime('%Y-%m-%d')}). Medians; E_fix and E_band in mm.", "",
              "Two readings of E_tau/E_q: **phys** (a jammed muscle still pulls with the tension of its stretch) and "
              "**paper** (the paper's taut set excludes jammed muscles, so their pull is left out of the torque "
-             "balance; a physically exact command then scores several N m under FIX). Each is summarised over the "
-             "cases that have a physical solution under the same reading (feasible) and over all cases.", "",
-             "![fault benchmark](docs/paper_boxplots.png)", "", "![inference time](docs/paper_timing.png)", "",
+             "balance; a physically exact command then scores several N m under FIX). Subsets: **all** cases; "
+             "**feasible**, the cases that have a physical solution under the same reading (the feasibility QP); "
+             f"**feasible_active**, the feasible cases whose unadapted (healthy) command breaks a fault, i.e. a cut "
+             f"muscle pulls with more than {ACTIVE_CUT_N:g} N or a jammed motor is more than {1e3 * ACTIVE_FIX_M:g} mm "
+             "too long (elsewhere adaptation has nothing to fix and can only tie).", "",
+             "Two case protocols. **paper**: 40 CUT (2 cut), FIX (2 jammed) and BOTH (1 + 1) cases, l_fixed the "
+             "motor length of a random other posture, as in the paper; most FIX cases are infeasible or already met "
+             "by the healthy command. **binding** (`tools/make_cases.py --protocol binding`): CUT, FIX, BOTH, WEAK (1 "
+             "weakened) and BAND (1 length-banded) cases that all have a physical solution and in which the healthy "
+             "command breaks every fault (a cut muscle pulls, a jammed motor must pay out >= 0.5 mm, a weakened "
+             "muscle is over its new limit, a banded motor is >= 0.5 mm outside its band): there adaptation always "
+             "has work to do.", "",
+             "Reference rows: **unadapted** is the Diff schema's healthy command; **oracle** is the command the true "
+             "physics gives for the faults (the feasibility QP's tensions nearest the healthy ones, lengths from the "
+             "spring), scored by the same evaluator. It is the physical limit of every metric (0 up to round-off on "
+             "feasible cases) and what a user with an exact model of the robot would run instead of a schema.", "",
+             "| paper protocol (phys reading, feasible cases) | binding protocol (phys reading, all cases) |",
+             "|---|---|",
+             "| ![paper protocol](docs/paper_boxplots.png) | ![binding protocol](docs/binding_boxplots.png) |", "",
+             "The paper's own metric definitions (paper reading, all cases, the paper's protocol): "
+             "[docs/paper_boxplots_paper_reading.png](docs/paper_boxplots_paper_reading.png).", "",
+             "![inference time](docs/paper_timing.png)", "",
              "## Claims", "", "| paper's claim | our verdict | evidence |", "|---|---|---|"]
     lines += [f"| {c} | {v} | {e} |" for c, v, e in claims(results, timings)]
+    if binding:
+        lines += ["", "### Adapted vs unadapted where the faults bind (binding protocol)", "",
+                  "Per schema, the (condition, metric) pairs whose adapted median is below the unadapted one; metrics: "
+                  "the condition's own fault metric (E_cut, E_fix, E_weak, E_band), E_tau, E_q and E_q_phys; medians "
+                  "over all binding cases (every one feasible and binding).", "",
+                  "| claim | verdict | evidence |", "|---|---|---|"]
+        lines += [f"| {c} | {v} | {e} |" for c, v, e in binding_claims(binding)]
     if literal_ok is not None:
         lines += ["", f"The literal recipe (SI-unit loss, lr 0.01, no step scaling) returned a finite command for "
                       f"{literal_ok:.0%} of the Diff cases; the rest diverged to NaN and were reported `non_finite`."]
+    if binding:
+        lines += ["", "## Binding protocol: medians, reading `phys`, all cases (every case feasible)", "",
+                  results_table(binding, "phys", "all", BINDING_CONDS, BINDING_COLUMNS)]
+        if rejected:
+            lines += ["", "Draws the binding protocol rejected (why): " + "; ".join(
+                f"{c} " + ", ".join(f"{r} {k}" for r, k in reasons.items()) for c, reasons in rejected.items()) + "."]
     for reading, subset in (("phys", "feasible"), ("phys", "feasible_active"), ("phys", "all"),
                             ("paper", "feasible"), ("paper", "all")):
-        lines += ["", f"## Medians, reading `{reading}`, {subset} cases", "", results_table(results, reading, subset)]
+        lines += ["", f"## Paper protocol: medians, reading `{reading}`, {subset} cases", "",
+                  results_table(results, reading, subset)]
     lines += ["", "## Inference time (one BOTH case, CPU, one thread; median)", "",
               "| model | without adaptation [ms] | with adaptation [ms] | paper with adaptation |", "|---|---|---|---|"]
     lines += [f"| {n} | {1e3 * t['unadapted']:.3f} | {1e3 * t['adapted']:.1f} | ~700 ms |" for n, t in timings.items()]
+    if oracle_s is not None:
+        lines += [f"| oracle (feasibility QP + spring, exact model) | — | {1e3 * oracle_s:.3f} | — |"]
+    lines += _hand_written_tail(path)
     from ..npz import atomic_write_bytes
 
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
@@ -351,17 +466,16 @@ def write_results_md(path, results, timings, command, epochs, n_cases, literal_o
 def main(argv=None):
     import argparse
 
-    from ..plots.arm import save_figure_atomic
-    from ..plots.boxplots import fault_boxplots
-
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository (configs/)
     parser = argparse.ArgumentParser(description="Train the paper's 7 schemas, benchmark them, write figures and RESULTS.md.")
     parser.add_argument("--epochs", type=int, default=10000, help="epochs per schema (paper: 10000)")
     parser.add_argument("--quick", action="store_true",
                         help="a few-minute run: 1000 epochs, results under runs/quick (RESULTS.md untouched)")
     parser.add_argument("--jobs", type=int, default=2, help="parallel training processes (one thread each)")
     parser.add_argument("--runs-dir", default="runs/paper", help="where checkpoints go (reused when present)")
-    parser.add_argument("--n-per-condition", type=int, default=40)
+    parser.add_argument("--n-per-condition", type=int, default=40, help="paper-protocol cases per condition")
+    parser.add_argument("--binding-n-per-condition", type=int, default=40,
+                        help="binding-protocol cases per condition (5 conditions; default 40)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=".", help="folder for RESULTS.md, results.json and docs/*.png")
     parser.add_argument("--models", nargs="*", default=list(MODELS), choices=list(MODELS))
@@ -373,31 +487,51 @@ def main(argv=None):
     start = time.perf_counter()
     specs = [RunSpec(n, MODELS[n], os.path.join(args.runs_dir, f"{MODELS[n]}-{args.epochs}"), args.epochs)
              for n in args.models]
-    bench = Benchmarker(args.n_per_condition, args.seed)
+    bench = Benchmarker(args.n_per_condition, args.seed, binding_n_per_condition=args.binding_n_per_condition)
     checkpoints = train_all(specs, os.path.join(root, "configs"), os.path.join(args.runs_dir, "cache"), args.jobs,
                             when_idle=bench.run)
     trained = time.perf_counter()
-    results, cases, schemas = benchmark_all(checkpoints, bench=bench)
+    by_protocol, case_sets, schemas = benchmark_all(checkpoints, bench=bench)
+    results, binding, cases = by_protocol["paper"], by_protocol["binding"], case_sets["paper"]
     timings = time_inference(schemas, cases) if set(TIMED) <= set(schemas) else {}
+    oracle_s = time_oracle(next(iter(schemas.values())), cases)
     literal = (schemas["Diff"].adapt(cases.q_ref, cases.faults, variant="literal", check_physics=False)
                if "Diff" in schemas else None)
-    os.makedirs(os.path.join(args.out, "docs"), exist_ok=True)
-    for reading in ("phys", "paper"):
-        fig = fault_boxplots(results, reading=reading, subset="all")
-        suffix = "" if reading == "phys" else "_paper_reading"
-        save_figure_atomic(fig, os.path.join(args.out, "docs", f"paper_boxplots{suffix}.png"))
-    if timings:
-        save_figure_atomic(timing_figure(timings), os.path.join(args.out, "docs", "paper_timing.png"))
+    write_figures(args.out, results, binding, timings, oracle_s)
     command = "python tools/reproduce_paper.py" + (" --quick" if args.quick else
                                                    f" --epochs {args.epochs}" if args.epochs != 10000 else "")
     if set(MODELS) <= set(results):
         write_results_md(os.path.join(args.out, "RESULTS.md"), results, timings, command, args.epochs, len(cases),
-                         None if literal is None else float(np.mean(literal.status == "ok")))
-    summary = {"epochs": args.epochs, "n_cases": len(cases), "timings_s": timings,
+                         None if literal is None else float(np.mean(literal.status == "ok")), binding, oracle_s,
+                         bench.rejected)
+    summary = {"epochs": args.epochs, "n_cases": len(cases), "n_binding_cases": len(case_sets["binding"]),
+               "timings_s": timings, "oracle_s": oracle_s,
                "summary": {name: r.summary() for name, r in results.items()},
+               "binding_summary": {name: r.summary() for name, r in binding.items()},
                "seconds": {"train": trained - start, "total": time.perf_counter() - start}}
     from ..npz import atomic_write_bytes
 
     atomic_write_bytes(os.path.join(args.out, "results.json"), json.dumps(summary, indent=1, sort_keys=True).encode())
     print(f"done in {time.perf_counter() - start:.0f} s (training {trained - start:.0f} s); "
           f"wrote {os.path.join(args.out, 'RESULTS.md')}")
+
+
+def write_figures(out: str, results: dict, binding: dict, timings: dict, oracle_s: float):
+    """docs/paper_boxplots.png (phys reading, feasible cases: what the claims use), paper_boxplots_paper_reading.png
+    (the paper's definitions, all cases), binding_boxplots.png (binding protocol) and paper_timing.png; each box
+    plot has the unadapted command and the physics oracle as reference boxes."""
+    from ..plots.arm import save_figure_atomic
+    from ..plots.boxplots import fault_boxplots
+
+    os.makedirs(os.path.join(out, "docs"), exist_ok=True)
+    for name, by_name, reading, subset, what in (
+            ("paper_boxplots", results, "phys", "feasible", "paper protocol"),
+            ("paper_boxplots_paper_reading", results, "paper", "all", "paper protocol, the paper's metric definitions"),
+            ("binding_boxplots", binding, "phys", "all", "binding protocol (every case feasible, every fault binding)")):
+        reference = by_name.get("Diff", next(iter(by_name.values())))
+        fig = fault_boxplots(by_name, reading=reading, subset=subset,
+                             references={"unadapted (Diff)": (reference, "unadapted"), "oracle": (reference, "oracle")},
+                             title=f"Fault benchmark, {what}: adapted commands, {reading} reading, {subset} cases")
+        save_figure_atomic(fig, os.path.join(out, "docs", f"{name}.png"))
+    if timings:
+        save_figure_atomic(timing_figure(timings, oracle_s), os.path.join(out, "docs", "paper_timing.png"))

@@ -164,11 +164,9 @@ def _protocols(out_dir: str) -> list[str]:
 
 
 def make_cases(out_dir: str, n: int, seed: int, n_per_condition: int) -> dict:
-    """The fault cases (paper protocol, and binding when ``make_fault_cases`` has it) and healthy postures, from
-    the true model's clean test split; the physics oracle's scores on them."""
-    import inspect
-
-    from ..evaluation.cases import FaultCases, make_fault_cases
+    """The fault cases (paper and binding protocols; CUT, FIX, BOTH) and healthy postures, from the true model's
+    clean test split; the physics oracle's scores on them."""
+    from ..evaluation.cases import FaultCases, HealthyPool, make_binding_cases, make_fault_cases
     from ..evaluation.feasibility import oracle_commands
     from ..sim import MusculoskeletalModel, SpringParams
 
@@ -178,13 +176,13 @@ def make_cases(out_dir: str, n: int, seed: int, n_per_condition: int) -> dict:
     datamodule.setup("test")
     q, x = (t.numpy() for t in datamodule.splits["val"])
     m = x.shape[1] // 2
-    protocols = {"paper": {}}
-    if "protocol" in inspect.signature(make_fault_cases).parameters:  # the binding protocol, where it exists
-        protocols["binding"] = {"protocol": "binding"}
     model, spring = MusculoskeletalModel("paper_arm"), SpringParams()
+    protocols = {"paper": make_fault_cases(q, x[:, :m], n_per_condition, seed),
+                 # every case has a physical solution and its healthy command breaks every fault
+                 "binding": make_binding_cases(model, HealthyPool(q, x[:, :m], x[:, m:]), n_per_condition, seed,
+                                               spring, conditions=("CUT", "FIX", "BOTH"))[0]}
     oracle = {}
-    for name, extra in protocols.items():
-        cases = make_fault_cases(q, x[:, :m], n_per_condition, seed, **extra)
+    for name, cases in protocols.items():
         cases.save(os.path.join(out_dir, f"cases_{name}.npz"))
         feasible, l_motor, f = oracle_commands(model, cases, spring)
         oracle[name] = score(score_commands(model, spring, cases, l_motor, f), cases, feasible)

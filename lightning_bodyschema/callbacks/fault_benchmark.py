@@ -11,16 +11,20 @@ E_q; ``settle_check``, on by default); ``{reading}`` is ``paper`` or ``phys`` (s
 
     fault/{reading}/{cond}/{metric}_{subset}              adapted commands, e.g. fault/phys/CUT/E_cut_feasible
     fault_unadapted/{reading}/{cond}/{metric}_{subset}    the healthy command at the same cases (baseline)
+    fault_oracle/{reading}/{cond}/{metric}_{subset}       the physics oracle (test only: a constant of the cases)
     fault/{reading}/{cond}/n_feasible                     cases with a physical solution
     fault/adapt_ok_fraction, fault/adapt_seconds, fault/infer_seconds, fault/evaluate_seconds
     fault/boxplots                                        figure: phys reading, all cases, unadapted vs adapted
 
 A median over an empty set (E_fix under CUT, E_cut under FIX, no feasible case) is not logged.
 
-At test (``bodyschema test --config X --ckpt_path Y``) it writes ``fault_benchmark.json`` (summary,
-per-case arrays, cases, feasibility; deterministic: identical bytes on rerun) and ``fault_benchmark.md``
-(the median table, adapted vs unadapted, and the wall times, which are not in the JSON because they
-differ from run to run) to ``out_dir`` or the trainer's log folder.
+At test (``bodyschema test --config X --ckpt_path Y``) it benchmarks every protocol of ``protocols``
+(default the paper's cases and the binding ones, ``evaluation.make_binding_cases``) and writes, per protocol,
+``fault_benchmark{suffix}.json`` (summary, per-case arrays, cases, feasibility; deterministic: identical bytes
+on rerun) and ``fault_benchmark{suffix}.md`` (the median table with one row per command: adapted, unadapted and
+the physics oracle, and the wall times, which are not in the JSON because they differ from run to run) to
+``out_dir`` or the trainer's log folder; suffix "" for paper, "_binding" for binding. It prints the phys-reading
+table of each protocol.
 """
 from __future__ import annotations
 
@@ -38,15 +42,17 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_only, rank_zer
 
 from ..errors import BodySchemaInputError
 from ..evaluation import BenchmarkResult, make_fault_cases, run_fault_benchmark
-from ..evaluation.benchmark import SUMMARY_METRICS
+from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
+from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
 
-CONDITION_ORDER = ("CUT", "FIX", "BOTH")
+CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
 METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0),
-               "E_q_phys": ("E_q_phys", 1.0)}
+               "E_weak": ("E_weak", 1.0), "E_band": ("E_band_mm", 1e3), "E_q_phys": ("E_q_phys", 1.0)}
 METRIC_HEADERS = {"E_cut": "E_cut [N]", "E_fix": "E_fix [mm]", "E_tau": "E_tau [N m]", "E_q": "E_q [rad]",
-                  "E_q_phys": "E_q_phys (MuJoCo settle) [rad]"}
+                  "E_weak": "E_weak [N]", "E_band": "E_band [mm]", "E_q_phys": "E_q_phys (MuJoCo settle) [rad]"}
 JSON_NAME, MD_NAME = "fault_benchmark.json", "fault_benchmark.md"
+PREFIXES = {"adapted": "fault", "unadapted": "fault_unadapted", "oracle": "fault_oracle"}
 SIGNIFICANT_DIGITS = 9
 
 
@@ -59,6 +65,9 @@ class FaultBenchmark(Callback):
             runs it). Default 5000: twice in the paper's 10000 epochs (about 1.5 s each for 120 cases on one
             CPU core), which keeps the full paper fit under 2 minutes here.
         n_per_condition: cases per condition (paper: 40), drawn from the validation (= test) split.
+        protocols: the case protocols ``test`` benchmarks (``evaluation.cases.PROTOCOLS``); fit uses the paper's.
+        binding_n_per_condition: binding cases per condition at test (5 conditions; 40 keeps ``bodyschema test``
+            under a minute on one core).
         seed: seed of the case draw (the same cases at every run, so curves are comparable).
         variant: adaptation variant passed to ``BodySchema.adapt`` (``"default"`` or ``"literal"``).
         out_dir: where ``test`` writes ``fault_benchmark.json``/``.md`` (None: the trainer's log folder).
@@ -67,18 +76,26 @@ class FaultBenchmark(Callback):
     """
 
     def __init__(self, every_n_epochs: int = 5000, n_per_condition: int = 40, seed: int = 0,
-                 variant: str = "default", out_dir: Optional[str] = None, settle_check: bool = True):
+                 variant: str = "default", out_dir: Optional[str] = None, settle_check: bool = True,
+                 protocols: tuple[str, ...] = PROTOCOLS, binding_n_per_condition: int = 40):
         from ..schemas.base import BodySchema  # late: keeps `import callbacks` light for the CLI's parser
 
         if int(every_n_epochs) != every_n_epochs or every_n_epochs < 0:
             raise BodySchemaInputError(f"faults.every_n_epochs={every_n_epochs!r} must be an integer >= 0")
         if int(n_per_condition) != n_per_condition or n_per_condition < 1:
             raise BodySchemaInputError(f"faults.n_per_condition={n_per_condition!r} must be an integer >= 1")
+        if int(binding_n_per_condition) != binding_n_per_condition or binding_n_per_condition < 1:
+            raise BodySchemaInputError(f"faults.binding_n_per_condition={binding_n_per_condition!r} must be an "
+                                       f"integer >= 1")
+        unknown = [p for p in protocols if p not in PROTOCOLS]
+        if unknown or not protocols:
+            raise BodySchemaInputError(f"faults.protocols={list(protocols)!r}; allowed: one or more of {list(PROTOCOLS)}")
         if variant not in BodySchema.VARIANTS:
             raise BodySchemaInputError(f"faults.variant={variant!r}; allowed: {list(BodySchema.VARIANTS)}")
         self.every_n_epochs, self.n_per_condition, self.seed = int(every_n_epochs), int(n_per_condition), seed
         self.variant, self.out_dir, self.settle_check = variant, out_dir, bool(settle_check)
-        self._cases, self._cases_key, self._warned = None, None, False
+        self.protocols, self.binding_n_per_condition = tuple(dict.fromkeys(protocols)), int(binding_n_per_condition)
+        self._cases, self._warned = {}, False  # protocol -> (key of the split, cases)
         self._last_period = 0  # index of the last every_n_epochs period benchmarked during fit
 
     # ------------------------------------------------------------------ Lightning hooks
@@ -100,14 +117,20 @@ class FaultBenchmark(Callback):
 
     @rank_zero_only
     def on_test_epoch_end(self, trainer, pl_module):
-        result = self.run(trainer, pl_module, settle_check=True)  # test time: also the MuJoCo settle check
-        if result is None:
-            return
-        self._log_scalars(trainer, result, trainer.current_epoch)
         folder = self.out_dir or trainer.log_dir or trainer.default_root_dir
-        json_path, md_path = self.write(result, folder, pl_module)
-        print(f"fault benchmark ({len(result.cases)} cases, {sum(result.seconds.values()):.2f} s): "
-              f"{json_path}\nfault benchmark table: {md_path}")
+        for protocol in self.protocols:
+            # test time: also the MuJoCo settle check and the physics oracle
+            result = self.run(trainer, pl_module, settle_check=True, protocol=protocol, oracle=True)
+            if result is None:
+                return
+            if protocol == "paper":
+                self._log_scalars(trainer, result, trainer.current_epoch)
+            json_path, md_path = self.write(result, folder, pl_module, protocol)
+            print(f"\nfault benchmark, {protocol} protocol ({len(result.cases)} cases, "
+                  f"{sum(result.seconds.values()):.2f} s): {json_path}\n"
+                  + benchmark_markdown(result, self._meta(pl_module, protocol), readings=("phys",),
+                                       subsets=("feasible",), title=False)
+                  + f"full table: {md_path}")
 
     def _due_in_fit(self, trainer) -> bool:
         if trainer.sanity_checking or trainer.state.fn != TrainerFn.FITTING or self.every_n_epochs == 0:
@@ -120,22 +143,28 @@ class FaultBenchmark(Callback):
         return last or epoch // self.every_n_epochs > self._last_period
 
     # ------------------------------------------------------------------ the benchmark
-    def cases_for(self, trainer, pl_module):
-        """The seeded case set from the data module's validation split, drawn once per split."""
+    def cases_for(self, trainer, pl_module, protocol: str = "paper"):
+        """The seeded case set of ``protocol`` from the data module's validation split, drawn once per split."""
         datamodule = getattr(trainer, "datamodule", None)
         splits = getattr(datamodule, "splits", None)
         if splits is None or "val" not in splits:
             rank_zero_warn("FaultBenchmark: the data module has no `splits['val']`; fault benchmark skipped")
             return None
         q, x = (t.detach().cpu().numpy() if torch.is_tensor(t) else np.asarray(t) for t in splits["val"])
-        l_motor = x[:, : pl_module.n_muscles]
-        key = hashlib.sha256(q.tobytes() + l_motor.tobytes()).hexdigest()
-        if key != self._cases_key:
-            self._cases = make_fault_cases(q, l_motor, self.n_per_condition, self.seed)
-            self._cases_key = key
-        return self._cases
+        n_muscles = pl_module.n_muscles
+        key = hashlib.sha256(q.tobytes() + x.tobytes()).hexdigest()
+        if self._cases.get(protocol, (None,))[0] != key:
+            if protocol == "binding":
+                pool = HealthyPool(q, x[:, :n_muscles], x[:, n_muscles:2 * n_muscles])
+                cases = make_binding_cases(pl_module.robot_model, pool, self.binding_n_per_condition, self.seed,
+                                           pl_module.spring)[0]
+            else:
+                cases = make_fault_cases(q, x[:, :n_muscles], self.n_per_condition, self.seed)
+            self._cases[protocol] = (key, cases)
+        return self._cases[protocol][1]
 
-    def run(self, trainer, pl_module, settle_check: bool = False) -> Optional[BenchmarkResult]:
+    def run(self, trainer, pl_module, settle_check: bool = False, protocol: str = "paper",
+            oracle: bool = False) -> Optional[BenchmarkResult]:
         """Run ``run_fault_benchmark`` on the schema, with gradients available and the RNG left untouched."""
         if not getattr(pl_module, "supports_adaptation", False):
             if not self._warned:
@@ -147,7 +176,7 @@ class FaultBenchmark(Callback):
                 rank_zero_info(f"FaultBenchmark: {pl_module.robot_model} has no model to evaluate on; skipped")
                 self._warned = True
             return None
-        cases = self.cases_for(trainer, pl_module)
+        cases = self.cases_for(trainer, pl_module, protocol)
         if cases is None:
             return None
 
@@ -163,7 +192,7 @@ class FaultBenchmark(Callback):
             with torch.inference_mode(False), torch.random.fork_rng(devices=[]):
                 torch.manual_seed(self.seed)
                 return run_fault_benchmark(pl_module.robot_model, pl_module.spring, cases, pl_module.infer, adapt,
-                                           settle_check=settle_check)
+                                           settle_check=settle_check, oracle=oracle)
         finally:
             pl_module.train(was_training)
 
@@ -187,11 +216,17 @@ class FaultBenchmark(Callback):
             experiment.add_figure("fault/boxplots", fig, global_step=step, close=False)
 
     # ------------------------------------------------------------------ files
-    def write(self, result: BenchmarkResult, folder: str, pl_module=None) -> tuple[str, str]:
-        """Write ``fault_benchmark.json`` and ``.md`` into ``folder`` atomically; return both paths."""
-        meta = {"model": type(pl_module).__name__ if pl_module is not None else None, "variant": self.variant,
-                "n_per_condition": self.n_per_condition, "seed": self.seed}
-        json_path, md_path = os.path.join(folder, JSON_NAME), os.path.join(folder, MD_NAME)
+    def _meta(self, pl_module, protocol: str) -> dict:
+        n = self.binding_n_per_condition if protocol == "binding" else self.n_per_condition
+        return {"model": type(pl_module).__name__ if pl_module is not None else None, "variant": self.variant,
+                "protocol": protocol, "n_per_condition": n, "seed": self.seed}
+
+    def write(self, result: BenchmarkResult, folder: str, pl_module=None, protocol: str = "paper") -> tuple[str, str]:
+        """Write ``fault_benchmark{suffix}.json`` and ``.md`` into ``folder`` atomically; return both paths."""
+        meta = self._meta(pl_module, protocol)
+        suffix = "" if protocol == "paper" else f"_{protocol}"
+        json_path = os.path.join(folder, JSON_NAME.replace(".json", f"{suffix}.json"))
+        md_path = os.path.join(folder, MD_NAME.replace(".md", f"{suffix}.md"))
         for path, text in ((json_path, benchmark_json(result, meta)), (md_path, benchmark_markdown(result, meta))):
             atomic_write_bytes(path, text.encode())
         return json_path, md_path
@@ -202,7 +237,8 @@ def scalar_metrics(result: BenchmarkResult) -> dict[str, float]:
     """The flat {tag: value} dict logged during fit (see the module docstring for the keys)."""
     out = {}
     summary = result.summary()
-    for kind, prefix in (("adapted", "fault"), ("unadapted", "fault_unadapted")):
+    for kind in summary:
+        prefix = PREFIXES[kind]
         for reading, by_cond in summary[kind].items():
             for cond, by_subset in by_cond.items():
                 for subset, values in by_subset.items():
@@ -248,13 +284,13 @@ def benchmark_json(result: BenchmarkResult, meta: Optional[dict] = None) -> str:
     cases = result.cases
     payload = {
         "meta": dict(meta or {}) | {"units": {"E_cut": "N", "E_fix": "m", "E_tau": "N m", "E_q": "rad",
-                                              "q_ref": "rad", "l_fixed": "m"}},
+                                              "E_weak": "N", "E_band": "m", "E_q_phys": "rad",
+                                              "q_ref": "rad", "l_fixed": "m", "f_max": "N", "l_band": "m"}},
         "summary": result.summary(),
         "per_case": result.metrics,  # kind -> reading -> E_*, q_hat, status, converged, n_iter, objective
         "feasible": result.feasible,
         "adapt_status": result.adapt_status,
-        "cases": {"q_ref": cases.q_ref, "cut": cases.cut, "fix": cases.fix, "l_fixed": cases.l_fixed,
-                  "cond": cases.cond},
+        "cases": cases.arrays(),  # q_ref, cut, fix, l_fixed, cond (+ f_max, l_band when the cases have them)
     }
     return json.dumps(_jsonable(payload), sort_keys=True, indent=1, allow_nan=False) + "\n"
 
@@ -263,33 +299,36 @@ def _cell(value, factor=1.0) -> str:
     return "n/a" if value is None else f"{factor * value:.4g}"
 
 
-def benchmark_markdown(result: BenchmarkResult, meta: Optional[dict] = None) -> str:
-    """Markdown table of medians: rows condition x reading x subset; each metric adapted and unadapted."""
+def benchmark_markdown(result: BenchmarkResult, meta: Optional[dict] = None, readings=None,
+                       subsets=("all", "feasible"), title: bool = True) -> str:
+    """Markdown table of medians: rows condition x reading x subset x command (adapted, unadapted, oracle)."""
     meta = meta or {}
     summary = result.summary()
-    header = ["condition", "reading", "subset", "n"]
-    names = [m for m in SUMMARY_METRICS if m in summary["adapted"]["phys"][next(iter(summary["adapted"]["phys"]))]["all"]]
-    for metric in names:
-        header += [f"{METRIC_HEADERS[metric]} adapted", f"{METRIC_HEADERS[metric]} unadapted"]
-    lines = [f"# Fault benchmark: {meta.get('model', 'schema')}", "",
-             f"{len(result.cases)} cases ({meta.get('n_per_condition', '?')} per condition, seed "
-             f"{meta.get('seed', '?')}), adaptation variant `{meta.get('variant', '?')}`; medians over the cases "
-             f"(NaN left out); adaptation ok: {int(np.sum(result.adapt_status == 'ok'))}/{len(result.cases)}.",
-             "Readings: `paper` = the paper's metric definitions (jammed muscles excluded from the torque); "
-             "`phys` = jammed muscles pull with their stretch. `feasible`: cases with a physical solution.", "",
-             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    readings = readings or tuple(summary["adapted"])
+    first = summary["adapted"]["phys"][next(iter(summary["adapted"]["phys"]))]["all"]
+    names = [m for m in SUMMARY_METRICS if m in first]
+    header = ["condition", "reading", "subset", "command", "n"] + [METRIC_HEADERS[m] for m in names]
+    lines = [f"# Fault benchmark: {meta.get('model', 'schema')}, {meta.get('protocol', 'paper')} protocol", ""] if title \
+        else []
+    lines += [f"{len(result.cases)} cases ({meta.get('n_per_condition', '?')} per condition, seed "
+              f"{meta.get('seed', '?')}), adaptation variant `{meta.get('variant', '?')}`; medians over the cases "
+              f"(NaN left out); adaptation ok: {int(np.sum(result.adapt_status == 'ok'))}/{len(result.cases)}.",
+              "Readings: `paper` = the paper's metric definitions (jammed muscles excluded from the torque); "
+              "`phys` = jammed muscles pull with their stretch. `feasible`: cases with a physical solution. "
+              "`oracle`: the command the true physics gives (the physical limit of every metric).", "",
+              "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     conds = [c for c in CONDITION_ORDER if c in summary["adapted"]["phys"]]
     conds += [c for c in summary["adapted"]["phys"] if c not in conds]
     for cond in conds:
-        for reading in summary["adapted"]:
-            for subset in ("all", "feasible"):
-                adapted = summary["adapted"][reading][cond][subset]
-                plain = summary["unadapted"][reading][cond][subset]
-                row = [cond, reading, subset, str(adapted["n"])]
-                for metric in names:
-                    factor = METRIC_KEYS[metric][1]
-                    row += [_cell(adapted[metric], factor), _cell(plain[metric], factor)]
-                lines.append("| " + " | ".join(row) + " |")
+        for reading in readings:
+            for subset in subsets:
+                for kind in (k for k in COMMANDS if k in summary):
+                    values = summary[kind][reading][cond][subset]
+                    row = [cond, reading, subset, kind, str(values["n"])]
+                    row += [_cell(values.get(metric), METRIC_KEYS[metric][1]) for metric in names]
+                    lines.append("| " + " | ".join(row) + " |")
     timing = ", ".join(f"{k} {v:.3f} s" for k, v in result.seconds.items())
+    if "oracle" in result.seconds:
+        timing += f"; oracle {1e3 * result.seconds['oracle'] / len(result.cases):.3f} ms per case"
     lines += ["", f"Wall time (this run; not in the JSON, which is byte-identical across reruns): {timing}.", ""]
     return "\n".join(lines)

@@ -14,7 +14,8 @@ import torch
 from torch.utils.data import DataLoader
 
 from ..errors import BodySchemaInputError
-from ..sim import MusculoskeletalModel, SpringParams
+from ..sim import MusculoskeletalModel
+from ..sim.spring import spring_for_model
 from .dataset import load_or_build_dataset
 from .normalizer import Normalizer
 
@@ -36,22 +37,28 @@ class EquilibriumDataModule(L.LightningDataModule):
     """Healthy equilibrium samples of a musculoskeletal robot.
 
     Args:
-        model: ``"paper_arm"`` or a path to an MJCF with spatial tendons.
+        model: ``"paper_arm"``, ``myo:<name>`` (a MyoSuite model, ``[myo]`` extra) or a path to an MJCF with
+            spatial tendons.
         n_samples: dataset size (paper: 800).
         seed: seeds the postures, reference tensions and the split.
         val_fraction: share held out for validation/test (paper: 0.2).
-        muscles: tendon names that are muscles (default: every spatial tendon).
-        k_n, alpha_per_m, f_max_n: spring constants (paper: 1000 N, 20 1/m, 150 N); scalar or per muscle.
+        muscles: tendon names that are muscles (default: the tendons muscle actuators drive, else every
+            spatial tendon).
+        k_n, alpha_per_m, f_max_n: spring constants (paper: 1000 N, 20 1/m, 150 N); scalar or per muscle;
+            f_max_n and k_n also ``"model"`` (peak forces of the model's muscle actuators, k scaled with
+            them; the default for models with muscle actuators): see ``sim.spring.spring_for_model``.
         gravity: optional gravity override [m/s^2].
         qp_solver: ``"proxqp"`` or any qpsolvers solver name.
         cache_dir: where generated datasets are cached by content hash (None: no cache).
+        locked_joints: ``{joint: value}`` [rad or m] held fixed; joints no muscle crosses are locked at
+            their reference position anyway (one summary line).
     """
 
     def __init__(self, model: str = "paper_arm", n_samples: int = 800, seed: int = 0, val_fraction: float = 0.2,
-                 muscles: Optional[Sequence[str]] = None, k_n: float | list[float] = 1000.0,
-                 alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] = 150.0,
+                 muscles: Optional[Sequence[str]] = None, k_n: float | list[float] | str | None = None,
+                 alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] | str | None = None,
                  gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
-                 cache_dir: Optional[str] = "data/cache"):
+                 cache_dir: Optional[str] = "data/cache", locked_joints: Optional[dict[str, float]] = None):
         super().__init__()
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
@@ -60,8 +67,8 @@ class EquilibriumDataModule(L.LightningDataModule):
         if not 0.0 < val_fraction < 1.0:
             raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
         self.save_hyperparameters()
-        self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity)
-        self.spring = SpringParams(k_n, alpha_per_m, f_max_n)
+        self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity, locked_joints=locked_joints)
+        self.spring = spring_for_model(self.robot_model, k_n, alpha_per_m, f_max_n)
         self.normalizer = Normalizer(2 * self.robot_model.n_muscles, self.robot_model.n_joints)
         self.arrays: dict[str, np.ndarray] | None = None
 

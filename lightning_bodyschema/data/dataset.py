@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,9 @@ def build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring
                   qp_solver: str = "proxqp") -> dict[str, np.ndarray]:
     """Generate the arrays written to a dataset file: q, l_motor, f (SI units) and the model XML."""
     samples = generate_equilibrium_samples(model, n_samples, seed, spring, solver=qp_solver)
+    print(f"equilibrium dataset: {n_samples} samples of {model.n_joints} joints / {model.n_muscles} muscles; accepted "
+          f"fraction of drawn postures {samples.accepted_fraction:.3f} ({samples.n_redrawn} unholdable re-drawn)",
+          file=sys.stderr)
     return {"q": samples.q, "l_motor": samples.l_motor, "f": samples.f, "model_xml": np.array(model.xml),
             "muscle_names": np.array(model.muscle_names), "n_redrawn": np.array(samples.n_redrawn)}
 

@@ -63,8 +63,22 @@ class ModelFreeRobot:
         self.l_range = np.tile(inf, (self.n_muscles, 1)) if l_range is None else np.asarray(l_range, float)
         self.f_range = np.tile(inf, (self.n_muscles, 1)) if f_range is None else np.asarray(f_range, float)
 
-    # the same posture check as a model's (it reads only n_joints, q_range and joint_names)
-    check_q = MusculoskeletalModel.check_q
+    def check_q(self, q, within_range: bool = False) -> np.ndarray:
+        """q as a (B, N) float64 array; refuses other widths, NaN/inf and (``within_range``) postures outside
+        ``q_range``, naming the first bad value, as ``MusculoskeletalModel.check_q`` does."""
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        if q.ndim != 2 or q.shape[1] != self.n_joints:
+            raise BodySchemaInputError(f"q has shape {q.shape}; expected (B, {self.n_joints}) for joints "
+                                       f"{self.joint_names}")
+        if not np.all(np.isfinite(q)):
+            raise BodySchemaInputError("q contains NaN or inf")
+        outside = (q < self._q_range[:, 0]) | (q > self._q_range[:, 1]) if within_range else np.zeros(q.shape, bool)
+        if outside.any():
+            b, j = np.argwhere(outside)[0]
+            raise BodySchemaInputError(f"q[{b}] of joint {self.joint_names[j]!r} is {q[b, j]:.6g}, outside its range "
+                                       f"{self._q_range[j].tolist()} ({int(outside.any(1).sum())} posture(s) out "
+                                       "of range)")
+        return q
 
     @property
     def n_joints(self) -> int:

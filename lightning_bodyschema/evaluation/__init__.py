@@ -7,7 +7,7 @@ from .feasibility import check_feasible, feasible_tensions, oracle_commands, ten
 from .forward_solver import ForwardSolverParams, PostureResult, SolverStatus, solve_posture
 from .metrics import (EXTRA_METRICS, METRICS, band_error, cut_error, evaluate_commands, fix_error, summarize_metrics,
                       weak_error)
-from .benchmark import BenchmarkResult, run_fault_benchmark
+from .benchmark import BenchmarkResult, OracleScores, oracle_scores, run_fault_benchmark
 
 __all__ = [
     "CONDITIONS", "FaultCases", "condition_of", "make_fault_cases", "validate_cases",
@@ -15,5 +15,5 @@ __all__ = [
     "ForwardSolverParams", "PostureResult", "SolverStatus", "solve_posture",
     "METRICS", "EXTRA_METRICS", "cut_error", "fix_error", "weak_error", "band_error", "evaluate_commands",
     "summarize_metrics",
-    "BenchmarkResult", "run_fault_benchmark",
+    "BenchmarkResult", "OracleScores", "oracle_scores", "run_fault_benchmark",
 ]

@@ -9,6 +9,12 @@ so this module needs no Lightning. Metrics are computed twice:
 
 Each is summarised over all cases, over the cases that are feasible under the same reading, and over the
 feasible cases whose healthy command breaks a fault constraint (``feasible_active``: adaptation has work to do).
+
+Three commands are scored per case: ``adapted`` (the schema's), ``unadapted`` (its healthy command, the
+baseline) and ``oracle`` (``feasibility.oracle_commands``: what the true physics gives for the faults, the
+tensions nearest the healthy ones that hold q_ref, lengths from the spring; NaN where no command exists). The
+oracle is the physical limit of every metric (0 where feasible) and what a user with an exact model of the
+robot would run instead of a learned schema; its wall time is ``seconds["oracle"]``.
 """
 from __future__ import annotations
 
@@ -19,13 +25,14 @@ import numpy as np
 
 from ..sim import MusculoskeletalModel, SpringParams
 from .cases import FaultCases
-from .feasibility import check_feasible
+from .feasibility import oracle_commands
 from .forward_solver import ForwardSolverParams
-from .metrics import METRICS, evaluate_commands
+from .metrics import EXTRA_METRICS, METRICS, evaluate_commands
 from ..sim.settle import settle
 
 READINGS = {"paper": False, "phys": True}  # reading -> jammed_tension_in_torque
-SUMMARY_METRICS = METRICS + ("E_q_phys",)  # E_q_phys: the MuJoCo settle check, when it was run
+SUMMARY_METRICS = METRICS + EXTRA_METRICS + ("E_q_phys",)  # E_q_phys: the MuJoCo settle check, when it was run
+COMMANDS = ("adapted", "unadapted", "oracle")  # the command kinds a benchmark scores
 ACTIVE_CUT_N, ACTIVE_FIX_M = 0.5, 1e-4  # a healthy command breaking a fault by more than this needs adapting
 
 
@@ -35,7 +42,7 @@ class BenchmarkResult:
 
     cases: FaultCases
     feasible: dict  # reading -> (B,) bool
-    metrics: dict  # command kind ("adapted", "unadapted") -> reading -> metric -> (B,)
+    metrics: dict  # command kind (``COMMANDS``) -> reading -> metric -> (B,)
     adapt_status: np.ndarray
     seconds: dict = field(default_factory=dict)
 
@@ -62,10 +69,15 @@ class BenchmarkResult:
                    ("feasible_active", feasible & self.active))
         for cond in dict.fromkeys(self.cases.cond.tolist()):
             rows = self.cases.cond == cond
-            names = [m for m in SUMMARY_METRICS if m in values]
+            names = [m for m in SUMMARY_METRICS if m in values and _defined(values[m])]
             table[cond] = {subset: {m: _median(values[m][rows & mask]) for m in names} | {"n": int((rows & mask).sum())}
                            for subset, mask in subsets}
         return table
+
+
+def _defined(values) -> bool:
+    """A metric a case set has at all: E_weak / E_band only where some muscle is weakened / banded."""
+    return not np.issubdtype(np.asarray(values).dtype, np.floating) or bool(np.isfinite(values).any())
 
 
 def _median(values) -> float | None:
@@ -73,13 +85,56 @@ def _median(values) -> float | None:
     return float(np.median(values)) if values.size else None
 
 
+@dataclass
+class OracleScores:
+    """The physics oracle of one case set, scored once and reusable for every schema benchmarked on it.
+
+    feasible: reading -> (B,) bool; commands: reading -> (l_motor, f) (B, M); metrics: reading -> metric -> (B,)
+    (None until scored); seconds: wall time of the physical reading's ``oracle_commands``.
+    """
+
+    feasible: dict
+    commands: dict
+    seconds: float
+    metrics: dict | None = None
+
+
+def oracle_scores(model: MusculoskeletalModel, spring: SpringParams, cases: FaultCases,
+                  params: ForwardSolverParams = ForwardSolverParams(), settle_check: bool = False,
+                  score: bool = True) -> OracleScores:
+    """Each reading's oracle command (a command exact under one torque convention is not under the other, see
+    ``feasibility``), its feasibility verdict, and with ``score`` its metrics (and E_q_phys with ``settle_check``)."""
+    feasible, commands, seconds = {}, {}, 0.0
+    for reading, jammed_pull in READINGS.items():
+        start = time.perf_counter()
+        feasible[reading], *commands[reading] = oracle_commands(model, cases, spring,
+                                                                jammed_tension_in_torque=jammed_pull)
+        seconds = time.perf_counter() - start if jammed_pull else seconds
+    out = OracleScores(feasible, commands, seconds)
+    if score:
+        out.metrics = {reading: _score(model, spring, cases, *commands[reading], params, reading)
+                       for reading in READINGS}
+        if settle_check:
+            for reading in READINGS:
+                out.metrics[reading]["E_q_phys"] = settle(model, *commands[reading], cases, spring=spring).E_q_phys
+    return out
+
+
+def _score(model, spring, cases, l_motor, f, params, reading):
+    return evaluate_commands(model, cases, l_motor, f, spring,
+                             replace(params, jammed_tension_in_torque=READINGS[reading]))
+
+
 def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases: FaultCases, infer, adapt,
-                        params: ForwardSolverParams = ForwardSolverParams(), settle_check: bool = False
-                        ) -> BenchmarkResult:
-    """Adapt and score every case; unadapted (healthy) commands are scored beside them as the baseline.
+                        params: ForwardSolverParams = ForwardSolverParams(), settle_check: bool = False,
+                        oracle: bool | OracleScores = True) -> BenchmarkResult:
+    """Adapt and score every case; unadapted (healthy) and, with ``oracle``, physics-oracle commands are scored
+    beside them (the baseline and the physical limit).
 
     settle_check: also drop every command into MuJoCo (``settle.settle``, a few seconds for 120 cases) and
     report ``E_q_phys``, the distance of the posture the arm really settles in from q_ref, beside E_q.
+    oracle: True (score it here), False (feasibility only), or the ``oracle_scores`` of these cases (scored once
+    for several schemas); ``seconds["oracle"]`` is the physical reading's oracle time.
     """
     seconds = {}
     start = time.perf_counter()
@@ -88,20 +143,21 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
     start = time.perf_counter()
     l_plain, f_plain = infer(cases.q_ref)
     seconds["infer"] = time.perf_counter() - start
+    if not isinstance(oracle, OracleScores):
+        oracle = oracle_scores(model, spring, cases, params, settle_check, score=bool(oracle))
+    seconds["oracle"] = oracle.seconds
     start = time.perf_counter()
-    feasible, metrics = {}, {"adapted": {}, "unadapted": {}}
-    for reading, jammed_pull in READINGS.items():
-        feasible[reading] = check_feasible(model, cases, spring, jammed_tension_in_torque=jammed_pull)[0]
-        reading_params = replace(params, jammed_tension_in_torque=jammed_pull)
-        metrics["adapted"][reading] = evaluate_commands(model, cases, result.l_motor_m, result.f_n, spring,
-                                                        reading_params)
-        metrics["unadapted"][reading] = evaluate_commands(model, cases, l_plain, f_plain, spring, reading_params)
+    commands = {"adapted": (result.l_motor_m, result.f_n), "unadapted": (l_plain, f_plain)}
+    metrics = {kind: {reading: _score(model, spring, cases, *command, params, reading) for reading in READINGS}
+               for kind, command in commands.items()}
     seconds["evaluate"] = time.perf_counter() - start
     if settle_check:
         start = time.perf_counter()
-        for kind, (l_motor, f) in (("adapted", (result.l_motor_m, result.f_n)), ("unadapted", (l_plain, f_plain))):
-            e_q_phys = settle(model, l_motor, f, cases, spring=spring).E_q_phys
+        for kind, command in commands.items():  # the physics has one reading: one settle per command
+            e_q_phys = settle(model, *command, cases, spring=spring).E_q_phys
             for reading in READINGS:
                 metrics[kind][reading]["E_q_phys"] = e_q_phys
         seconds["settle"] = time.perf_counter() - start
-    return BenchmarkResult(cases, feasible, metrics, np.asarray(result.status), seconds)
+    if oracle.metrics is not None:
+        metrics["oracle"] = oracle.metrics
+    return BenchmarkResult(cases, oracle.feasible, metrics, np.asarray(result.status), seconds)

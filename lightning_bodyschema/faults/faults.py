@@ -95,8 +95,12 @@ class Faults:
                     faults.l_band_m[b, muscle_index(m, muscle_names)] = _band(lo_hi, f"band[{b}][{m!r}]")
         return faults.validate(len(muscle_names))
 
-    def validate(self, n_muscles: int) -> "Faults":
-        """Refuse inconsistent faults with a message naming the case and muscle."""
+    def validate(self, n_muscles: int, f_max_n=None) -> "Faults":
+        """Refuse inconsistent faults with a message naming the case and muscle.
+
+        f_max_n: the robot's healthy tension limit [N] (scalar or per muscle); when given, a weakened limit must lie
+        below it (a weakening at or above the healthy strength is a mistake, not a fault).
+        """
         batch = len(self.cut)
         for name, dtype, tail in (("cut", bool, ()), ("fix", bool, ()), ("l_fixed_m", float, ()),
                                   ("f_max_n", float, ()), ("l_band_m", float, (2,))):
@@ -110,9 +114,17 @@ class Faults:
         _refuse_cases(self.cut & self.fix, "the same muscle is both cut and jammed")
         _refuse_cases(self.cut.all(axis=1)[:, None], "every muscle is cut: nothing can hold the arm")
         _refuse_cases(self.fix & ~np.isfinite(self.l_fixed_m), "a jammed muscle has a NaN/inf l_fixed")
+        with np.errstate(invalid="ignore"):  # NaN where not jammed
+            _refuse_cases(self.fix & (self.l_fixed_m <= 0), "a jammed motor length l_fixed is <= 0 m (a motor "
+                          "length is positive)")
         if self.f_max_n is not None:  # NaN: the robot's f_max
             _refuse_cases(np.isinf(self.f_max_n) | (self.f_max_n < 0),
                           "f_max_n of a weakened muscle is negative or inf")
+            if f_max_n is not None:
+                healthy = np.broadcast_to(np.asarray(f_max_n, float), self.cut.shape)
+                with np.errstate(invalid="ignore"):
+                    _refuse_cases(self.weak & (self.f_max_n >= healthy), f"a weakened f_max_n is at or above the "
+                                  f"healthy f_max {_shown(f_max_n)} N (a weakening lies below it)")
         if self.l_band_m is not None:
             band, (lo, hi) = self.band, np.moveaxis(self.l_band_m, -1, 0)
             _refuse_cases(band & ~(np.isfinite(lo) & np.isfinite(hi)), "a length band has a NaN/inf bound")
@@ -158,6 +170,11 @@ def _band(value, where: str) -> list:
     if isinstance(value, (str, bytes)) or np.ndim(value) != 1 or len(value) != 2:
         raise BodySchemaInputError(f"{where} = {value!r}; a band is [lo, hi] in metres")
     return [_number(v, where) for v in value]
+
+
+def _shown(values) -> str:
+    values = np.unique(np.asarray(values, float))
+    return f"{values[0]:g}" if values.size == 1 else f"{values.min():g}..{values.max():g}"
 
 
 def _refuse_cases(bad: np.ndarray, what: str):

@@ -27,6 +27,15 @@ from ..optim import LeanFusedAdam
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
 from .cache import InferenceCache
 
+# class path -> schema class, filled by subclassing: the classes a checkpoint may name (schemas/loading.py). A class
+# is known once the user's code has defined (imported) it; a checkpoint never makes anything get imported.
+SCHEMA_CLASSES: dict[str, type] = {}
+
+
+def schema_class_path(cls) -> str:
+    """``module.QualName``: how checkpoints name a schema class."""
+    return f"{cls.__module__}.{cls.__qualname__}"
+
 
 class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
@@ -58,6 +67,10 @@ class BodySchema(L.LightningModule):
         self.normalizer = Normalizer(self.x_dim, self.n_joints)
         self._physics_cache: dict = {}
         self.inference_cache = InferenceCache(self)  # frozen networks, sampling plans, ...: see schemas/cache.py
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        SCHEMA_CLASSES[schema_class_path(cls)] = cls
 
     # ------------------------------------------------------------------ what subclasses implement
     def training_loss(self, q_n: torch.Tensor, x_n: torch.Tensor) -> tuple[torch.Tensor, dict]:
@@ -270,11 +283,27 @@ class BodySchema(L.LightningModule):
         return {"q": batch[0].cpu().numpy(), "l_motor": l_motor, "f": f}
 
     def on_save_checkpoint(self, checkpoint):
-        checkpoint["bodyschema"] = {"class_path": f"{type(self).__module__}.{type(self).__qualname__}",
+        checkpoint["bodyschema"] = {"class_path": schema_class_path(type(self)),
                                     "model_xml_sha256": self.robot_model.xml_hash}
         # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue
         # the same stream to end with the same weights as an uninterrupted one
         checkpoint["torch_rng_state"] = torch.get_rng_state()
+
+    @classmethod
+    def load_from_checkpoint(cls, checkpoint_path, map_location=None, hparams_file=None, strict=None,
+                             weights_only=None, **kwargs):
+        """Lightning's convention, through the checked loader: ``MySchema.load_from_checkpoint(path)`` equals
+        ``load_schema(path, cls=MySchema)`` (``BodySchema.load_from_checkpoint``: any known schema class), in eval
+        mode on the CPU, moved to ``map_location`` if given. ``kwargs`` override hyperparameters and are checked the
+        same way. Lightning's own loader would import the ``_instantiator`` a checkpoint names; this one never does.
+        """
+        from .loading import load_schema
+
+        if hparams_file is not None or strict is False or weights_only is False:
+            raise BodySchemaInputError("load_from_checkpoint: hparams_file, strict=False and weights_only=False are "
+                                       "not supported (a checkpoint carries its hyperparameters and is checked whole)")
+        schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
+        return schema if map_location is None else schema.to(map_location)
 
     def on_load_checkpoint(self, checkpoint):
         if "torch_rng_state" in checkpoint:

@@ -105,27 +105,47 @@ class EquilibriumSamples:
     f: np.ndarray  # (n, M)
     n_redrawn: int  # infeasible draws that were replaced
 
+    @property
+    def accepted_fraction(self) -> float:
+        """Share of drawn postures that some tensions could hold (the rest were re-drawn)."""
+        return len(self.q) / (len(self.q) + self.n_redrawn)
+
+
+def _unholdable_message(model: MusculoskeletalModel, n_kept: int, n_drawn: int, spring: SpringParams,
+                        shortfall_nm: np.ndarray) -> str:
+    """The error when too few postures can be held: which joints the muscles fail to hold, and what to do."""
+    median = np.median(shortfall_nm, axis=0) if len(shortfall_nm) else np.zeros(model.n_joints)
+    worst = np.argsort(-median)
+    names = [f"{model.joint_names[j]} ({median[j]:.3g} N m)" for j in worst if median[j] > EQUILIBRIUM_TOL_NM][:6]
+    return (f"only {n_kept} of {n_drawn} postures ({100 * n_kept / max(n_drawn, 1):.2g} %) can be held in equilibrium "
+            f"with f_max={spring.f_max_n} N: the muscles are too weak for this model's gravity at joints {names} (median torque shortfall of the "
+            "unholdable draws): lock them (data.locked_joints: {name: rad}), narrow their range, or raise f_max_n")
+
 
 def generate_equilibrium_samples(model: MusculoskeletalModel, n: int, seed: int,
                                  spring: SpringParams = SpringParams(), solver: str = "proxqp",
                                  max_draw_factor: int = 20) -> EquilibriumSamples:
-    """Draw ``n`` healthy equilibrium samples: uniform q in the joint range, uniform f_ref in [0, f_max]."""
+    """Draw ``n`` healthy equilibrium samples: uniform q in the joint range, uniform f_ref in [0, f_max].
+
+    Postures no tension can hold are re-drawn; at most ``max_draw_factor * n`` postures are drawn (an
+    accepted fraction of 1/max_draw_factor), past which the error names the joints the muscles fail to hold.
+    """
     if int(n) != n or n <= 0:
         raise BodySchemaInputError(f"dataset size n={n!r} must be a positive integer")
     rng = np.random.default_rng(seed)
     f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), (model.n_muscles,))
-    kept, n_drawn = [], 0
+    kept, n_drawn, shortfall = [], 0, []
     while sum(len(k[0]) for k in kept) < n:
         if n_drawn >= max_draw_factor * n:
-            raise BodySchemaInputError(
-                f"only {sum(len(k[0]) for k in kept)} of {n_drawn} postures can be held in equilibrium "
-                f"with f_max={spring.f_max_n} N; the muscles are too weak for this model's gravity")
+            raise BodySchemaInputError(_unholdable_message(model, sum(len(k[0]) for k in kept), n_drawn, spring,
+                                                           np.concatenate(shortfall)))
         batch = n - sum(len(k[0]) for k in kept)
         q = model.sample_q(rng, batch)
         f_ref = f_max * rng.random((batch, model.n_muscles))
         l_geo, G, tau_bias = model.kinematics(q)
         f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_max, solver=solver)
         kept.append((q[ok], l_geo[ok] - elongation_from_tension(f[ok], spring), f[ok]))
+        shortfall.append(np.abs(np.einsum("bmn,bm->bn", -G[~ok], f[~ok]) - tau_bias[~ok]))
         n_drawn += batch
     q, l_motor, f = (np.concatenate(parts)[:n] for parts in zip(*kept))
     return EquilibriumSamples(q=q, l_motor=l_motor, f=f, n_redrawn=n_drawn - n)

@@ -8,31 +8,18 @@ Tensions act on the joints as ``-G^T f``; static equilibrium is ``-G^T f = tau_b
 from __future__ import annotations
 
 import hashlib
-import os
-from importlib import resources
-from typing import Sequence
+import sys
+from typing import Mapping, Sequence
 
 import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from .joints import JointMap
+from .mjcf import compile_spec, load_spec, packaged_model_names, packaged_model_xml, self_contained_xml
 
 _SUPPORTED_JOINTS = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 UNLOADED_TAU_NM = 1e-9  # below this gravity torque at every probed posture, gravity does not load the joints
-
-
-def packaged_model_names() -> list[str]:
-    """Names of the MJCF models shipped in ``lightning_bodyschema/assets`` (e.g. ``paper_arm``)."""
-    files = resources.files("lightning_bodyschema.assets").iterdir()
-    return sorted(f.name[:-4] for f in files if f.name.endswith(".xml"))
-
-
-def packaged_model_xml(name: str) -> str:
-    """The MJCF text of a packaged model: ``paper_arm``, ``arm3_8``, ``opensim_like_arm``, ..."""
-    names = packaged_model_names()
-    if name not in names:
-        raise BodySchemaInputError(f"unknown packaged model {name!r}; packaged models are {names}")
-    return resources.files("lightning_bodyschema.assets").joinpath(f"{name}.xml").read_text()
 
 
 def paper_arm_xml() -> str:
@@ -40,23 +27,40 @@ def paper_arm_xml() -> str:
     return packaged_model_xml("paper_arm")
 
 
-def _load_spec(source: str) -> mujoco.MjSpec:
-    """Parse an MJCF given as a packaged model name, a file path, or XML text."""
-    if source in packaged_model_names():
-        return mujoco.MjSpec.from_string(packaged_model_xml(source))
-    if source.lstrip().startswith("<"):
+def _muscle_forces(spec: mujoco.MjSpec) -> dict[str, float]:
+    """Peak force [N] of each tendon driven by a muscle actuator (``<muscle force=...>``), by tendon name.
+
+    A force of -1 asks MuJoCo to derive it at compile time (scale / acc0): then the spec is compiled
+    with its actuators once; NaN if that fails (e.g. a length range that does not converge).
+    """
+    muscles = [a for a in spec.actuators
+               if a.trntype == mujoco.mjtTrn.mjTRN_TENDON and a.gaintype == mujoco.mjtGain.mjGAIN_MUSCLE]
+    forces = {a.target: float(a.gainprm[2]) for a in muscles}
+    if any(f <= 0 for f in forces.values()):
         try:
-            return mujoco.MjSpec.from_string(source)
-        except Exception as err:  # MuJoCo raises plain ValueError with its parser message
-            raise BodySchemaInputError(f"model XML does not parse: {str(err).strip()}") from None
-    if not os.path.isfile(source):
-        raise BodySchemaInputError(
-            f"model {source!r} does not exist: it is neither a packaged model {packaged_model_names()} "
-            "nor an MJCF file (give a packaged name, an MJCF path, or MJCF text)")
-    try:
-        return mujoco.MjSpec.from_file(source)
-    except Exception as err:
-        raise BodySchemaInputError(f"model file {source!r} does not parse: {str(err).strip()}") from None
+            compiled = spec.copy().compile()
+            for a in muscles:
+                i = mujoco.mj_name2id(compiled, mujoco.mjtObj.mjOBJ_ACTUATOR, a.name) if a.name else -1
+                if i >= 0 and forces[a.target] <= 0:
+                    forces[a.target] = float(compiled.actuator_gainprm[i, 2])
+        except Exception:  # MuJoCo raises plain ValueError; a force stays unknown
+            pass
+    return {name: (f if f > 0 else float("nan")) for name, f in forces.items()}
+
+
+def _add_locks(spec: mujoco.MjSpec, locked: Mapping[str, float]):
+    """Lock joints at absolute values [rad or m] as ``<equality joint>`` constraints without joint2."""
+    joints = {j.name: j for j in spec.joints}
+    for name, value in locked.items():
+        if name not in joints:
+            raise BodySchemaInputError(f"locked joint {name!r} is not a joint of the model; joints are {sorted(joints)}")
+        joint, value = joints[name], float(value)
+        lo, hi = joint.range
+        if not np.isfinite(value) or (lo < hi and not lo <= value <= hi):
+            raise BodySchemaInputError(f"locked joint {name!r} at {value!r} is outside its range [{lo:.6g}, {hi:.6g}]")
+        eq = spec.add_equality(name=f"lock_{name}", type=mujoco.mjtEq.mjEQ_JOINT, name1=name,
+                               objtype=mujoco.mjtObj.mjOBJ_JOINT)
+        eq.data[:5] = [value - float(joint.ref), 0.0, 0.0, 0.0, 0.0]
 
 
 class MusculoskeletalModel:
@@ -64,38 +68,86 @@ class MusculoskeletalModel:
 
     Args:
         source: a packaged model name (``"paper_arm"``, ``"arm3_8"``, ``"opensim_like_arm"``; see
-            ``packaged_model_names()``), a path to an MJCF file, or MJCF text.
-        muscles: names of the tendons that are muscles; default: every spatial tendon
-            (fixed, i.e. joint, tendons are never muscles).
+            ``packaged_model_names()``), ``myo:<name>`` for a MyoSuite model (``myo:myoelbow_2dof``,
+            ``myo:myoarm``, ...; needs the ``[myo]`` extra), a path to an MJCF file, or MJCF text.
+        muscles: names of the tendons that are muscles; default: the tendons that the model's muscle
+            actuators drive when it has any (ligaments and other passive tendons are not muscles), of
+            those only the ones crossing a free joint; else every spatial tendon (fixed tendons never).
         gravity: optional override of the model's gravity vector [m/s^2].
         allow_unloaded: accept a model whose gravity loads no joint (zero gravity, or gravity along
             every hinge axis). Refused by default: the static equilibrium ``-G^T f = tau_bias`` is
             then ``-G^T f = 0`` everywhere, i.e. pure co-contraction, which is almost always a
             wrong gravity vector or a wrongly oriented model rather than the robot one meant.
+        locked_joints: ``{joint: value}`` [rad or m] joints held fixed (written into the model as
+            ``<equality joint>`` locks, so the stored XML carries them).
+        lock_uncrossed: lock free joints that no muscle crosses at their reference position (clipped
+            into their range), printing one summary line: nothing could hold them against gravity.
 
-    MuJoCo actuators are removed before compiling: the pipeline needs only tendons, and a
+    Postures ``q (B, N)`` are the *free* joints (``joint_names``): those neither locked nor following
+    another through an ``<equality joint>`` coupling (see ``sim/joints.py``); without couplings and
+    locks these are all the model's joints. MuJoCo actuators are removed before compiling (their
+    muscle peak forces are kept in ``actuator_f_max_n``): the pipeline needs only tendons, and a
     ``<muscle>`` actuator whose length-range computation fails must not stop the model loading.
-    Joint count, ranges and muscle names all come from the model.
+    ``xml`` is self-contained (``sim/mjcf.py``) and the model is compiled from it, so a checkpoint
+    holding ``xml`` rebuilds exactly this model anywhere.
     """
 
     def __init__(self, source: str = "paper_arm", muscles: Sequence[str] | None = None,
-                 gravity: Sequence[float] | None = None, allow_unloaded: bool = False):
-        spec = _load_spec(source)
+                 gravity: Sequence[float] | None = None, allow_unloaded: bool = False,
+                 locked_joints: Mapping[str, float] | None = None, lock_uncrossed: bool = True):
+        spec = load_spec(source)
+        self._actuator_forces = _muscle_forces(spec)
         for actuator in list(spec.actuators):
             spec.delete(actuator)
         if gravity is not None:
             spec.option.gravity = np.asarray(gravity, dtype=float)
-        try:
-            self.mj_model = spec.compile()
-        except Exception as err:
-            raise BodySchemaInputError(f"model does not compile: {str(err).strip()}") from None
-        self.xml = spec.to_xml()
-        self._check_joints()
+        _add_locks(spec, dict(locked_joints or {}))
+        self._build(spec)
         self.muscle_ids = self._select_muscles(muscles)
-        self._data = mujoco.MjData(self.mj_model)
-        self._dense_index = self._tendon_jacobian_index()
+        if lock_uncrossed:
+            self._lock_uncrossed(spec, muscles)
+        if muscles is None and self._actuator_forces:
+            self._drop_muscles_crossing_nothing()
         if not allow_unloaded:
             self._check_gravity_loads()
+
+    def _build(self, spec: mujoco.MjSpec):
+        """Compile the self-contained XML of ``spec``: the model used here is exactly the one stored."""
+        self.xml = self_contained_xml(spec)
+        self.mj_model = compile_spec(mujoco.MjSpec.from_string(self.xml))
+        self._check_joints()
+        self.joint_map = JointMap.from_model(self.mj_model)
+        self._q_range = self.joint_map.free_range(self.mj_model.jnt_range[: self.mj_model.njnt])
+        m = self.mj_model
+        self._passive = bool(m.jnt_stiffness.any() or m.tendon_stiffness.any() or m.body_gravcomp.any())
+        self._data = mujoco.MjData(m)
+        self._dense_index = self._tendon_jacobian_index()
+
+    def _lock_uncrossed(self, spec, muscles):
+        """Lock the free joints no muscle moves (|G| = 0 at probed postures), then rebuild."""
+        q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(0), 8)])
+        crossed = np.abs(self.kinematics(q)[1]).max(axis=(0, 1)) > 1e-12
+        if crossed.all() or not crossed.any():  # none crossed: a kinematic rig, not a robot to hold up
+            return
+        lo, hi = self.q_range.T
+        names = self.joint_names
+        ref = np.clip(self.joint_map.qpos0[self.joint_map.free], lo, hi)
+        locks = {names[c]: float(ref[c]) for c in np.flatnonzero(~crossed)}
+        _add_locks(spec, locks)
+        self._build(spec)
+        self.muscle_ids = self._select_muscles(muscles)
+        print(f"locked {len(locks)} joint(s) that no muscle crosses at their reference position: "
+              + ", ".join(f"{k}={v:.4g}" for k, v in locks.items()) + f"; free joints: {self.joint_names}",
+              file=sys.stderr)
+
+    def _drop_muscles_crossing_nothing(self):
+        """Default muscles that cross no free joint (e.g. finger muscles of a locked hand) are left out."""
+        q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(0), 8)])
+        moves = np.abs(self.kinematics(q)[1]).max(axis=(0, 2)) > 1e-12
+        if not moves.all():
+            dropped = [n for n, keep in zip(self.muscle_names, moves) if not keep]
+            self.muscle_ids = self.muscle_ids[moves]
+            print(f"left out {len(dropped)} muscle(s) that cross no free joint: {dropped}", file=sys.stderr)
 
     # ------------------------------------------------------------------ structure
     def _check_joints(self):
@@ -135,9 +187,11 @@ class MusculoskeletalModel:
         if not spatial:
             raise BodySchemaInputError(
                 "model has no spatial tendons: muscles must be <spatial> tendons in the <tendon> section")
-        if muscles is None:
-            return np.array(spatial, dtype=int)
         names = {self._name(mujoco.mjtObj.mjOBJ_TENDON, i): i for i in spatial}
+        if muscles is None:
+            if self._actuator_forces:  # the tendons muscle actuators drive; ligaments are not muscles
+                return np.array([i for n, i in names.items() if n in self._actuator_forces], dtype=int)
+            return np.array(spatial, dtype=int)
         unknown = [name for name in muscles if name not in names]
         if unknown:
             raise BodySchemaInputError(f"unknown muscle {unknown}; the model's spatial tendons are {sorted(names)}")
@@ -147,7 +201,8 @@ class MusculoskeletalModel:
         """Row/column indices that scatter MuJoCo's sparse ``ten_J`` into a dense (ntendon, nv) array."""
         m = self.mj_model
         rows = np.repeat(np.arange(m.ntendon), m.ten_J_rownnz)
-        entries = np.concatenate([np.arange(a, a + n) for a, n in zip(m.ten_J_rowadr, m.ten_J_rownnz)])
+        entries = np.concatenate([np.arange(a, a + n) for a, n in zip(m.ten_J_rowadr, m.ten_J_rownnz)]
+                                 + [np.zeros(0, int)])
         return rows, m.ten_J_colind[entries], entries
 
     def _name(self, kind, i):
@@ -155,7 +210,8 @@ class MusculoskeletalModel:
 
     @property
     def n_joints(self) -> int:
-        return int(self.mj_model.nq)
+        """Number of free joints N (all the model's joints when none is locked or coupled)."""
+        return len(self.joint_map.free)
 
     @property
     def n_muscles(self) -> int:
@@ -163,7 +219,27 @@ class MusculoskeletalModel:
 
     @property
     def joint_names(self) -> list[str]:
-        return [self._name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(self.mj_model.njnt)]
+        """Names of the free joints, the columns of q."""
+        return self.joint_map.free_names
+
+    @property
+    def all_joint_names(self) -> list[str]:
+        """Every joint of the model (free, locked and coupled), the columns of ``full_q``."""
+        return list(self.joint_map.names)
+
+    @property
+    def locked_joints(self) -> dict[str, float]:
+        """Locked joints and their values [rad or m]."""
+        return {self.joint_map.names[j]: v for j, v in self.joint_map.locked.items()}
+
+    @property
+    def actuator_f_max_n(self) -> np.ndarray:
+        """(M,) peak force [N] of each muscle's actuator in the source model (NaN: none or unknown)."""
+        return np.array([self._actuator_forces.get(n, np.nan) for n in self.muscle_names])
+
+    def full_q(self, q) -> np.ndarray:
+        """Every joint of the model (B, nq) at free-joint postures q (B, N): exactly on couplings and locks."""
+        return self.joint_map.full_q(self.check_q(q))
 
     @property
     def muscle_names(self) -> list[str]:
@@ -171,8 +247,8 @@ class MusculoskeletalModel:
 
     @property
     def q_range(self) -> np.ndarray:
-        """Joint limits (N, 2) [rad or m], from the model."""
-        return self.mj_model.jnt_range[: self.n_joints].copy()
+        """Free joints' limits (N, 2) [rad or m], from the model (narrowed so coupled followers stay in range)."""
+        return self._q_range.copy()
 
     @property
     def xml_hash(self) -> str:
@@ -183,13 +259,19 @@ class MusculoskeletalModel:
     def check_q(self, q, within_range: bool = False) -> np.ndarray:
         """Return q as a (B, N) float64 array, refusing non-finite values and wrong widths.
 
+        A model with locked or coupled joints also takes every joint (B, nq), checked against the
+        couplings and locks (``joints.COUPLING_TOL_RAD``) and reduced to the free joints.
         within_range: also refuse postures outside the joint ranges (``q_range``), naming the first one.
         """
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-        if q.ndim != 2 or q.shape[1] != self.n_joints:
-            raise BodySchemaInputError(f"q has shape {q.shape}; expected (B, {self.n_joints})")
+        n_all = len(self.joint_map.names)
+        if q.ndim != 2 or q.shape[1] not in (self.n_joints, n_all):
+            every = "" if n_all == self.n_joints else f" (free joints {self.joint_names}) or (B, {n_all}) (every joint)"
+            raise BodySchemaInputError(f"q has shape {q.shape}; expected (B, {self.n_joints}){every}")
         if not np.all(np.isfinite(q)):
             raise BodySchemaInputError("q contains NaN or inf")
+        if q.shape[1] != self.n_joints:
+            q = self.joint_map.reduce(q)
         if within_range:
             lo, hi = self.q_range.T
             rows, joints = np.nonzero((q < lo) | (q > hi))
@@ -201,8 +283,16 @@ class MusculoskeletalModel:
         return q
 
     def kinematics(self, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Batched ``l_geo (B, M)``, ``G (B, M, N)`` and ``tau_bias (B, N)`` at postures ``q (B, N)``."""
+        """Batched ``l_geo (B, M)``, ``G (B, M, N)`` and ``tau_bias (B, N)`` at postures ``q (B, N)``.
+
+        With couplings or locks, G and tau_bias are in the free joints: ``G = J_ten E``,
+        ``tau_bias = E^T (qfrc_bias - qfrc_passive)`` with ``E = d q_full / d q`` (sim/joints.py).
+        Passive forces (joint and tendon springs, gravity compensation) are part of tau_bias when the
+        model has any: a non-muscle tendon with stiffness pulls as MuJoCo says, in the equilibrium
+        and in the settle simulation alike.
+        """
         q = self.check_q(q)
+        full = self.joint_map.full_q(q)
         m, d = self.mj_model, self._data
         rows, cols, entries = self._dense_index
         batch = q.shape[0]
@@ -211,19 +301,25 @@ class MusculoskeletalModel:
         bias = np.empty((batch, m.nv))
         d.qvel[:] = 0.0
         for b in range(batch):  # MuJoCo evaluates one posture per call
-            d.qpos[:] = q[b]
+            d.qpos[:] = full[b]
             mujoco.mj_kinematics(m, d)
             mujoco.mj_comPos(m, d)
             mujoco.mj_tendon(m, d)
             mujoco.mj_rne(m, d, 0, bias[b])
+            if self._passive:
+                mujoco.mj_passive(m, d)
+                bias[b] -= d.qfrc_passive
             lengths[b] = d.ten_length
             jac[b, rows, cols] = d.ten_J[entries]
         idx = self.muscle_ids
-        return lengths[:, idx], jac[:, idx, :], bias
+        if self.joint_map.identity:
+            return lengths[:, idx], jac[:, idx, :], bias
+        tangent = self.joint_map.tangent(q)  # (B, nq, N)
+        return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, bias)
 
     def site_position(self, q, site: str) -> np.ndarray:
         """World position (B, 3) [m] of a named site, e.g. the hand."""
-        q = self.check_q(q)
+        q = self.full_q(q)
         sid = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_SITE, site)
         if sid < 0:
             raise BodySchemaInputError(f"unknown site {site!r}")
@@ -235,10 +331,10 @@ class MusculoskeletalModel:
         return out
 
     def sample_q(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """n postures drawn uniformly inside the joint ranges."""
+        """n postures of the free joints drawn uniformly inside their ranges (on the coupled manifold)."""
         lo, hi = self.q_range.T
         return lo + (hi - lo) * rng.random((n, self.n_joints))
 
     def __repr__(self):
-        return (f"MusculoskeletalModel({self.mj_model.nq} joints {self.joint_names}, "
+        return (f"MusculoskeletalModel({self.n_joints} joints {self.joint_names}, "
                 f"{self.n_muscles} muscles {self.muscle_names})")

@@ -57,6 +57,12 @@ or ``max|qvel| > max_qvel_rad_s``; NOT_SETTLED when ``max_time_s`` runs out. A c
 centimetres) overpower MuJoCo's soft limit, and that rest posture is not physical. An exact but
 unstable equilibrium at q_ref is reported as settled: the simulation starts without a perturbation.
 
+Couplings and locks (``<equality joint>``, sim/joints.py): q_ref and q_settle are the free joints; the
+simulation runs on every joint. A locked joint gets a huge armature (so the arm moves as if it were welded)
+and is reset to its value at rest after every step: it never moves. A coupling is MuJoCo's equality
+constraint made near-hard (followers miss their polynomial by ~1e-6 rad at rest; E_q_phys of an exact
+equilibrium command ~1e-4 rad instead of ~1e-9 without couplings).
+
 Batching: MuJoCo steps one MjData at a time and the tension law needs a per-step computation that
 ``mujoco.rollout`` cannot express (it would need a global Python callback). So the cases of a chunk
 (``chunk_size``, one MjData each, reused across chunks) advance in lockstep: ``mj_step1`` per case,
@@ -81,6 +87,8 @@ from .model import MusculoskeletalModel
 from .spring import SpringParams
 
 MODES = ("length", "tension")
+LOCK_ARMATURE = 1e6  # [kg m^2] added to a locked joint: it does not accelerate (see _hold_couplings_and_locks)
+COUPLING_IMPEDANCE = 0.999  # MuJoCo solimp d of a coupling in the simulation: near-hard (0.99 left cases chattering)
 JAM_MODES = ("one_sided", "immobile")  # the same names as evaluation.feasibility.JAM_MODELS
 
 
@@ -263,8 +271,28 @@ class _Simulator:
         self.k = np.broadcast_to(np.asarray(spring.k_n, float), (len(self.ids),)).copy()
         self.alpha = np.broadcast_to(np.asarray(spring.alpha_per_m, float), (len(self.ids),)).copy()
         self.params = params
+        self.joint_map = model.joint_map
+        self._hold_couplings_and_locks()
         self.pool: list[mujoco.MjData] = []
         self._jacobian_index()
+
+    def _hold_couplings_and_locks(self):
+        """Locks: the equality is switched off and the joint gets a huge armature, so it does not accelerate while
+        the rest of the arm moves exactly as if it were welded (M_jj -> inf), then is reset each step. Couplings:
+        MuJoCo's equality constraint made stiff (time constant 2 steps, impedance 0.999): at rest a follower misses
+        its polynomial by ~(1 - d) a / (d k) ~ 1e-6 rad, and its constraint force is the one the arm needs."""
+        m, jm = self.m, self.joint_map
+        self._locked = np.array(sorted(jm.locked), dtype=int)
+        self._locked_values = np.array([jm.locked[j] for j in self._locked])
+        m.dof_armature[self._locked] += LOCK_ARMATURE
+        for e in range(m.neq):
+            if int(m.eq_type[e]) != int(mujoco.mjtEq.mjEQ_JOINT):
+                continue
+            if m.eq_obj2id[e] < 0:
+                m.eq_active0[e] = 0
+            else:
+                m.eq_solref[e] = [2.0 * m.opt.timestep, 1.0]
+                m.eq_solimp[e, :2] = COUPLING_IMPEDANCE
 
     def _jacobian_index(self):
         """Scatter indices from MuJoCo's sparse ``ten_J`` rows of the muscles into a dense (M, nv) block."""
@@ -311,27 +339,35 @@ class _Simulator:
             if not skip:
                 d.qfrc_applied[:] = tau
                 mujoco.mj_step2(m, d)  # acceleration, limit constraints, Euler integration
+        if self._locked.size:
+            self._project(datas)
         return f, blown
+
+    def _project(self, datas):
+        """Locked joints back at their value and at rest (their huge armature leaves them only ~1e-9 to undo)."""
+        for d in datas:
+            d.qpos[self._locked], d.qvel[self._locked] = self._locked_values, 0.0
 
     def verdict(self, datas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(status (B,) with -1 = keep going, qpos (B, N), qvel (B, N)) of the current states."""
         p, bad = self.params, int(mujoco.mjtWarning.mjWARN_BADQACC)
         qpos, qvel = np.array([d.qpos for d in datas]), np.array([d.qvel for d in datas])
-        qacc = np.array([d.qacc for d in datas])
+        free = self.joint_map.free
+        qacc = np.array([d.qacc for d in datas])[:, free]  # followers chatter on their stiff constraint
         flagged = np.array([d.warning[bad].number > 0 for d in datas])
         finite = np.all(np.isfinite(qpos) & np.isfinite(qvel), axis=1)
         with np.errstate(invalid="ignore"):
-            speed, accel = np.max(np.abs(qvel), axis=1), np.max(np.abs(qacc), axis=1)
+            speed, accel = np.max(np.abs(qvel[:, free]), axis=1), np.max(np.abs(qacc), axis=1)
             rest = (speed < p.qvel_tol_rad_s) & (accel < p.qacc_tol_rad_s2)
             unstable = flagged | ~finite | ~(speed <= p.max_qvel_rad_s)
         status = np.where(rest, int(SettleStatus.SETTLED), -1)
-        return np.where(unstable, int(SettleStatus.UNSTABLE), status), qpos, qvel
+        return np.where(unstable, int(SettleStatus.UNSTABLE), status), qpos[:, free], qvel[:, free]
 
     def _start(self, q_ref) -> list:
         """One MjData per case (reused across chunks: a fresh MjData costs ~1 ms), reset to q_ref at rest."""
         while len(self.pool) < len(q_ref):
             self.pool.append(mujoco.MjData(self.m))
-        for d, q in zip(self.pool, q_ref):
+        for d, q in zip(self.pool, self.joint_map.full_q(q_ref)):
             mujoco.mj_resetData(self.m, d)
             d.qpos[:] = q
         return self.pool[:len(q_ref)]

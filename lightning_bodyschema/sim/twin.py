@@ -161,6 +161,11 @@ class TorchKinematicTwin:
     """
 
     def __init__(self, model: MusculoskeletalModel, dtype: torch.dtype = torch.float64):
+        if not model.joint_map.identity:
+            raise BodySchemaInputError(
+                f"the kinematic twin (inverse kinematics, adapt_to_target) does not support coupled or locked joints "
+                f"yet; model {model!r} has locked {sorted(model.locked_joints)} and "
+                f"{len(model.joint_map.deps)} coupled joints: give q_ref to adapt() instead")
         self.model, self.dtype = model, dtype
         self.chain = build_twin_chain(model, dtype)
         names = model.joint_names

@@ -5,6 +5,7 @@ import torch
 from physics_checks import mixed_faults
 
 from lightning_bodyschema.adaptation import check_postures, flag_infeasible, safe_command
+from lightning_bodyschema.adaptation.command import motor_length_range
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
 
@@ -38,6 +39,18 @@ def test_safe_command_never_passes_a_non_finite_row_or_a_tension_outside_its_lim
     assert np.isnan(result.f_n[2]).all() and np.isnan(result.l_motor_m[2]).all()
     np.testing.assert_allclose(result.diagnostics["cut_violation_n"][:2], [5.0, 0.0])
     np.testing.assert_allclose(result.diagnostics["weak_violation_n"][:2], [0.0, 50.0])  # before the clip
+
+
+def test_a_finite_but_absurd_motor_length_is_out_of_range_never_ok():
+    """A diverged guidance can stay finite (metres of motor length); such a row is no command."""
+    faults = Faults.from_names(["a", "b"], n_cases=3)
+    l_range = motor_length_range(np.array([0.3, 0.3, 50.0, 50.0]), np.array([0.01, 0.01, 20.0, 20.0]), 2)
+    np.testing.assert_allclose(l_range, [[0.1, 0.1], [0.5, 0.5]])  # 20 spreads each way
+    x = torch.tensor([[0.31, 0.29, 5.0, 80.0], [4.8, 0.3, 5.0, 80.0], [0.3, -3.9, 5.0, 80.0]], dtype=torch.float64)
+    result = safe_command(x, faults, faults.f_limit(150.0), l_range)
+    assert result.status.tolist() == ["ok", "out_of_range", "out_of_range"]
+    assert np.isnan(result.l_motor_m[1:]).all() and np.isnan(result.f_n[1:]).all()
+    np.testing.assert_allclose(result.diagnostics["l_motor_out_of_range_m"], [0.0, 4.3, 4.0])
 
 
 def test_the_physics_check_blanks_commands_no_physics_can_realize(diff60, dm):

@@ -152,6 +152,8 @@ def make_cases(schema, spec: BatchSpec, batch: int) -> tuple[FaultCases, np.ndar
         q[b] = q_b
         cut[b], fix[b] = np.array(states) == "cut", np.array(states) == "jam"
         l_fixed[b] = np.where(fix[b], l_fixed_b, np.nan)
+    # a jam length <= 0 m is refused as input (tests/faults); the fuzz keeps the absurd-but-valid 1 um instead
+    l_fixed = np.where(fix & (l_fixed <= 0), 1e-6, l_fixed)
     labels = np.array(KINDS + ("explicit",))[np.where(np.arange(batch) < len(spec.explicit), len(KINDS), kind)]
     cond = np.where(cut.any(1) & fix.any(1), "BOTH", np.where(cut.any(1), "CUT", np.where(fix.any(1), "FIX", "NONE")))
     return FaultCases(q, cut, fix, l_fixed, cond), labels
@@ -268,7 +270,7 @@ def test_infeasible_cases_are_counted(schemas):
     cut[:20, 1:] = True  # only muscle 0 left: cannot hold two loaded joints
     fix = np.zeros((40, m), bool)
     fix[20:, 0] = True
-    l_fixed = np.where(fix, schema.infer(q)[0] - 1.0, np.nan)  # jammed 1 m short: the spring would need ~50x f_max
+    l_fixed = np.where(fix, schema.infer(q)[0] - 0.1, np.nan)  # jammed 10 cm short: the spring would need ~40x f_max
     cases = FaultCases(q, cut, fix, l_fixed, np.array(["CUT"] * 20 + ["FIX"] * 20))
     feasible, f_star = check_feasible(model, cases, schema.spring)
     assert not feasible.any() and np.isnan(f_star).all()

@@ -220,3 +220,73 @@ def test_make_cases_user_errors(ckpt, tmp_path, capsys):
         with pytest.raises(SystemExit) as exit_info:
             make_cases_main([*args, "--out", str(tmp_path / "out" / "cases.npz")])
         _assert_clean_error(exit_info.value.code, capsys.readouterr().err, words, tmp_path)
+
+
+# ---------------------------------------------------------------------------- the binding protocol
+def test_make_cases_binding_protocol_is_feasible_binding_and_byte_reproducible(ckpt, tmp_path, capsys):
+    """Twice the same bytes; every case feasible (the QP) and binding (the test split's healthy command breaks it)."""
+    from lightning_bodyschema.evaluation import check_feasible
+    from lightning_bodyschema.evaluation.cases import BINDING_CONDITIONS, MIN_PAYOUT_M, MIN_PULL_N
+
+    paths = [tmp_path / f"b{k}.npz" for k in range(2)]
+    for path in paths:
+        make_cases_main(["--ckpt", ckpt, "--protocol", "binding", "--n", "6", "--seed", "0", "--out", str(path)])
+    out = capsys.readouterr().out
+    assert paths[0].read_bytes() == paths[1].read_bytes()
+    assert "30 fault cases (CUT 6, FIX 6, BOTH 6, WEAK 6, BAND 6), protocol binding" in out
+    assert all(f"  {cond}: rejected" in out for cond in BINDING_CONDITIONS)  # rejection counts by reason
+    cases = FaultCases.load(paths[0], N_JOINTS, N_MUSCLES)
+    datamodule = load_datamodule(ckpt)
+    assert check_feasible(datamodule.robot_model, cases, datamodule.spring)[0].all()
+    q, x = (t.numpy() for t in datamodule.splits["val"])
+    row = np.array([np.flatnonzero((q == q_ref).all(1))[0] for q_ref in cases.q_ref])  # drawn from the test split
+    l_h, f_h = x[row, :N_MUSCLES], x[row, N_MUSCLES:]
+    assert np.all(f_h[cases.cut] > MIN_PULL_N)
+    assert np.all(l_h[cases.fix] - cases.l_fixed[cases.fix] >= MIN_PAYOUT_M - 1e-12)
+    assert np.all(f_h[cases.weak] > cases.f_max[cases.weak])
+    lo, hi = np.moveaxis(cases.l_band[cases.band], -1, 0)
+    assert np.all(np.maximum(lo - l_h[cases.band], l_h[cases.band] - hi) >= MIN_PAYOUT_M - 1e-12)
+
+
+def test_make_cases_protocol_option_errors(ckpt, tmp_path, capsys):
+    for args, words in ((["--protocol", "random"], ["--protocol", "'random'", "paper", "binding"]),
+                        (["--protocol", "binding", "--n", "0"], ["--n 0"]),
+                        (["--protocol", "binding", "--n-per-condition", "5"], ["--n-per-condition", "--n"]),
+                        (["--n", "4", "--n-per-condition", "5"], ["--n 4", "--n-per-condition 5"])):
+        with pytest.raises(SystemExit) as exit_info:
+            make_cases_main(["--ckpt", ckpt, "--seed", "0", *args, "--out", str(tmp_path / "out" / "cases.npz")])
+        _assert_clean_error(exit_info.value.code, capsys.readouterr().err, words, tmp_path)
+
+
+def test_make_cases_n_is_the_paper_protocols_n_per_condition(ckpt, made, tmp_path, capsys):
+    make_cases_main(["--ckpt", ckpt, "--seed", "0", "--n", "40", "--out", str(tmp_path / "n.npz")])
+    assert (tmp_path / "n.npz").read_bytes() == made[0]["seed0"].read_bytes()
+
+
+# ---------------------------------------------------------------------------- files from other programs
+def _zeros_where_no_fault(a):
+    """What another program may write: 0 instead of NaN wherever a muscle is not jammed."""
+    a["l_fixed"] = np.where(a["fix"], a["l_fixed"], 0.0)
+
+
+def test_l_fixed_zero_where_not_jammed_adapts_exactly_as_nan(ckpt, made, tmp_path, capsys):
+    lenient = _case_file(made, tmp_path, _zeros_where_no_fault)
+    assert (load_npz(str(lenient))["l_fixed"] == 0.0).any()
+    outs = {}
+    for name, path in (("nan", made[0]["seed0"]), ("zero", lenient)):
+        outs[name] = tmp_path / f"adapted_{name}.npz"
+        adapt_cases_main(["--ckpt", ckpt, "--cases", str(path), "--out", str(outs[name])])
+    nan_run, zero_run = load_npz(str(outs["nan"])), load_npz(str(outs["zero"]))
+    for name in ("l_motor", "f", "status", "l_fixed"):
+        np.testing.assert_array_equal(zero_run[name], nan_run[name])  # bit for bit (NaN == NaN here)
+
+
+def test_jammed_muscle_without_l_fixed_is_a_clean_error(ckpt, made, tmp_path, capsys):
+    def nan_jam(a):
+        a["l_fixed"] = np.where(a["fix"], np.nan, 0.0)  # the zeros are fine; the NaN jams are not
+
+    args = ["--ckpt", ckpt, "--cases", str(_case_file(made, tmp_path, nan_jam)),
+            "--out", str(tmp_path / "out" / "adapted.npz")]
+    with pytest.raises(SystemExit) as exit_info:
+        adapt_cases_main(args)
+    _assert_clean_error(exit_info.value.code, capsys.readouterr().err, ["l_fixed", "jammed", "NaN"], tmp_path)

@@ -8,7 +8,8 @@ import pytest
 
 from lightning_bodyschema.cli import main as cli_main
 
-COMMON = ["--model=DiffusionSchema", "--data.n_samples=100", "--model.n_timesteps=50", "--faults.n_per_condition=4"]
+COMMON = ["--model=DiffusionSchema", "--data.n_samples=100", "--model.n_timesteps=50", "--faults.n_per_condition=4",
+          "--faults.binding_n_per_condition=3"]
 
 
 @pytest.fixture(scope="module")
@@ -53,34 +54,51 @@ def test_fit_logs_fault_scalars_and_boxplots(fitted):
 
 def test_test_writes_identical_json_and_a_markdown_table(fitted, capsys):
     ckpt, _, tmp = fitted
-    texts = []
+    texts = {"paper": [], "binding": []}
     for i in range(2):
         out = tmp / f"test{i}"
         cli_main(["test", *COMMON, f"--ckpt_path={ckpt}", f"--faults.out_dir={out}",
                   f"--trainer.default_root_dir={tmp / 'run'}", f"--data.cache_dir={tmp / 'cache'}"])
-        json_path, md_path = out / "fault_benchmark.json", out / "fault_benchmark.md"
-        assert json_path.is_file() and md_path.is_file()
-        assert str(json_path) in capsys.readouterr().out
-        texts.append(json_path.read_bytes())
-        table = md_path.read_text()
-        header = "| condition | reading | subset | n | E_cut [N] adapted | E_cut [N] unadapted | E_fix [mm] adapted"
-        assert header in table
-        assert table.count("| CUT |") == table.count("| FIX |") == table.count("| BOTH |") == 4
-    assert texts[0] == texts[1], "reruns must give byte-identical JSON"
-    report = json.loads(texts[0])
+        printed = capsys.readouterr().out
+        for protocol, suffix, conds in (("paper", "", ("CUT", "FIX", "BOTH")),
+                                        ("binding", "_binding", ("CUT", "FIX", "BOTH", "WEAK", "BAND"))):
+            json_path, md_path = out / f"fault_benchmark{suffix}.json", out / f"fault_benchmark{suffix}.md"
+            assert json_path.is_file() and md_path.is_file()
+            assert str(json_path) in printed and f"{protocol} protocol" in printed
+            texts[protocol].append(json_path.read_bytes())
+            table = md_path.read_text()
+            assert "| condition | reading | subset | command | n | E_cut [N] | E_fix [mm] | E_tau [N m] |" in table
+            for cond in conds:  # 2 readings x 2 subsets x (adapted, unadapted, oracle)
+                assert table.count(f"| {cond} |") == 12, cond
+                assert f"| {cond} | phys | feasible | oracle |" in printed  # the printed table has the oracle row
+            assert "ms per case" in table
+    for protocol, (first, second) in texts.items():
+        assert first == second, f"reruns must give byte-identical JSON ({protocol})"
+    report = json.loads(texts["paper"][0])
     assert not list(tmp.glob("test*/.tmp-*")), "temporary files left behind"
-    for kind in ("adapted", "unadapted"):
+    for kind in ("adapted", "unadapted", "oracle"):
         for reading in ("paper", "phys"):
             by_cond = report["summary"][kind][reading]
             assert set(by_cond) == {"CUT", "FIX", "BOTH"}
             for cond in ("CUT", "FIX", "BOTH"):
                 assert by_cond[cond]["all"]["n"] == 4
-                assert by_cond[cond]["all"]["E_tau"] is not None and by_cond[cond]["all"]["E_q"] is not None
             assert by_cond["CUT"]["all"]["E_fix"] is None and by_cond["FIX"]["all"]["E_cut"] is None
-            assert by_cond["CUT"]["all"]["E_cut"] is not None and by_cond["FIX"]["all"]["E_fix"] is not None
+    for kind in ("adapted", "unadapted"):
+        for cond in ("CUT", "FIX", "BOTH"):
+            assert report["summary"][kind]["phys"][cond]["all"]["E_tau"] is not None
     assert len(report["cases"]["cond"]) == 12 and len(report["per_case"]["adapted"]["phys"]["E_tau"]) == 12
     assert np.array(report["cases"]["q_ref"]).shape == (12, 2)
     assert report["adapt_status"] == ["ok"] * 12
+    binding = json.loads(texts["binding"][0])
+    assert binding["meta"]["protocol"] == "binding" and len(binding["cases"]["cond"]) == 15
+    for name, report in (("paper", report), ("binding", binding)):
+        for reading in ("paper", "phys"):
+            feasible = np.array(binding["feasible"][reading] if name == "binding" else report["feasible"][reading])
+            assert name == "paper" or reading == "paper" or feasible.all()  # binding: every case, physically
+            oracle = report["per_case"]["oracle"][reading]
+            for metric in ("E_cut", "E_fix", "E_weak", "E_band", "E_tau", "E_q"):
+                values = np.array([np.nan if v is None else v for v in oracle[metric]], float)[feasible]
+                assert np.nanmax(values, initial=0.0) <= 1e-6, (name, reading, metric)
 
 
 def test_boxplots_grid_has_na_panels(fitted, tmp_path):

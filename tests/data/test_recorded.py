@@ -128,7 +128,7 @@ def test_make_dataset_read_back_trains_the_simulation_modules_weights(sim_and_fi
 def model_free(sim_and_files, tmp_path_factory):
     """(model-free schema from its checkpoint, the same weights with the MJCF, checkpoint path)."""
     sim, paths = sim_and_files
-    schema, trainer = _train(RecordedDataModule(paths["npz"], seed=3))
+    schema, trainer = _train(RecordedDataModule(paths["npz"], seed=3), epochs=150)  # commands within range
     ckpt = str(tmp_path_factory.mktemp("ckpt") / "recorded.ckpt")
     trainer.save_checkpoint(ckpt, weights_only=False)
     with_model = DiffusionSchema(robot=sim.robot)
@@ -146,14 +146,17 @@ def test_model_free_adapt_is_unchecked_never_ok_unless_the_check_is_turned_off(m
     assert schema.robot_model.muscle_names == with_model.robot_model.muscle_names  # names and limits in the ckpt
     torch.manual_seed(0)
     result = schema.adapt(cases.q_ref, cases.faults, n_steps=20)
-    assert set(result.status) == {"unchecked"} and not result.ok.any()
     torch.manual_seed(0)
     reference = with_model.adapt(cases.q_ref, cases.faults, n_steps=20, check_physics=False)
+    assert not result.ok.any() and reference.ok.sum() >= 8
+    # where the schema with a model says ok (check off), the model-free one says unchecked; other statuses agree
+    np.testing.assert_array_equal(result.status, np.where(reference.ok, "unchecked", reference.status))
     # the same command as the schema with a model: unchecked is a flag, not another answer
     np.testing.assert_allclose(result.l_motor_m, reference.l_motor_m, rtol=0, atol=1e-12)
     np.testing.assert_allclose(result.f_n, reference.f_n, rtol=0, atol=1e-12)
     torch.manual_seed(0)
-    assert set(schema.adapt(cases.q_ref, cases.faults, n_steps=20, check_physics=False).status) == {"ok"}
+    unchecked_off = schema.adapt(cases.q_ref, cases.faults, n_steps=20, check_physics=False)
+    np.testing.assert_array_equal(unchecked_off.status, reference.status)
     with pytest.raises(BodySchemaInputError, match="without a robot model"):
         schema.adapt_to_target([[0.3, -0.6, 0.0]], cases.faults.take(np.array([0])))
 
@@ -164,7 +167,7 @@ def test_tools_make_and_adapt_cases_on_a_model_free_checkpoint(model_free, tmp_p
     make_cases_main(["--ckpt", ckpt, "--seed", "0", "--out", cases, "--n-per-condition", "3"])
     adapt_cases_main(["--ckpt", ckpt, "--cases", cases, "--out", out, "--sampler", "strided20"])
     status = load_npz(out)["status"]
-    assert len(status) == 9 and set(status.tolist()) <= {"unchecked", "non_finite"} and "unchecked" in status
+    assert len(status) == 9 and "ok" not in status.tolist() and "unchecked" in status.tolist()
 
 
 # ---------------------------------------------------------------------------- realistic data from simulation

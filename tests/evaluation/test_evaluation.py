@@ -256,3 +256,45 @@ def test_evaluation_does_not_import_lightning():
             "print(bad); sys.exit(1 if bad else 0)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+# ---------------------------------------------------------------------------- case files from other programs
+def _file_with(tmp_path, name, arrays):
+    path = tmp_path / f"{name}.npz"
+    np.savez(path, **arrays)
+    return path
+
+
+@pytest.mark.parametrize("filler", [0.0, 0.151, -3.0])
+def test_values_where_a_muscle_has_no_such_fault_are_ignored(data, tmp_path, filler):
+    """l_fixed where not jammed, f_max on a cut muscle, and f_max / l_band outside the file's weak / band masks:
+    any finite filler loads exactly as NaN; the masks themselves are not kept."""
+    cases = paper_cases(data)
+    weak, band = np.zeros_like(cases.cut), np.zeros_like(cases.cut)
+    weak[:, 0] = ~cases.cut[:, 0]
+    band[:, 1] = ~cases.cut[:, 1]
+    f_max = np.where(weak, 40.0, np.nan)
+    l_band = np.where(band[..., None], [0.30, 0.32], np.nan)
+    clean = FaultCases(cases.q_ref, cases.cut, cases.fix, cases.l_fixed, np.full(len(cases), "MIXED"), f_max, l_band)
+    messy = {**clean.arrays(), "l_fixed": np.where(cases.fix, cases.l_fixed, filler),
+             "f_max": np.where(weak, 40.0, filler), "l_band": np.where(band[..., None], [0.30, 0.32], filler),
+             "weak": weak, "band": band}
+    loaded = FaultCases.load(_file_with(tmp_path, "messy", messy))
+    for name, array in clean.arrays().items():
+        np.testing.assert_array_equal(getattr(loaded, name), array)
+    assert sorted(loaded.arrays()) == sorted(clean.arrays())
+    # f_max on a cut muscle means nothing (the muscle carries no tension at all)
+    on_cut = FaultCases(cases.q_ref, cases.cut, cases.fix, cases.l_fixed, cases.cond,
+                        f_max=np.where(cases.cut, 10.0 + filler, np.nan))
+    assert not on_cut.weak.any() and set(on_cut.cond.tolist()) == {"CUT", "FIX", "BOTH"}
+
+
+def test_a_jammed_muscle_needs_a_finite_l_fixed_and_masks_must_fit(data, tmp_path):
+    cases = paper_cases(data)
+    arrays = {k: getattr(cases, k).copy() for k in ("q_ref", "cut", "fix", "l_fixed", "cond")}
+    arrays["l_fixed"] = np.where(cases.fix, np.nan, 0.0)
+    with pytest.raises(BodySchemaInputError, match="jammed muscle has a NaN/inf l_fixed"):
+        FaultCases.load(_file_with(tmp_path, "nan_jam", arrays))
+    arrays = {**cases.arrays(), "f_max": np.full(cases.cut.shape, 50.0), "weak": np.ones(5, bool)}
+    with pytest.raises(BodySchemaInputError, match=r"weak must be a bool \(B, M\) mask"):
+        FaultCases.load(_file_with(tmp_path, "bad_mask", arrays))
