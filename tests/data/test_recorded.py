@@ -194,3 +194,18 @@ def test_sensor_noise_has_the_asked_spread_and_mismatch_moves_moment_arms_within
     assert np.all(np.abs(ratio - 1) <= 0.1 + 1e-9) and np.ptp(ratio) > 0.02
     assert 0.8 < np.median(np.abs(tau2) / np.abs(tau).clip(1e-9)) < 1.2 and not np.allclose(tau2, tau)
     assert np.all(np.abs(np.asarray(spring.k_n) / 1000.0 - 1) <= 0.1) and np.ptp(spring.k_n) > 0
+
+
+def test_a_model_free_checkpoint_whose_limits_were_edited_is_refused(model_free, tmp_path):
+    _, _, ckpt = model_free
+    checkpoint = torch.load(ckpt, map_location="cpu", weights_only=True)
+    assert "model_xml" not in checkpoint["hyper_parameters"]["robot"]  # names and limits, no model
+    checkpoint["hyper_parameters"]["robot"]["q_range"][0] = [-2.0, 2.0]  # wider than the data it was trained on
+    edited = str(tmp_path / "edited.ckpt")
+    torch.save(checkpoint, edited)
+    with pytest.raises(BodySchemaInputError, match="does not match its recorded hash"):
+        load_schema(edited)
+    checkpoint["hyper_parameters"]["robot"]["q_range"][0] = [1.0, -1.0]
+    torch.save(checkpoint, edited)
+    with pytest.raises(BodySchemaInputError, match=r"robot.q_range .* lo < hi"):
+        load_schema(edited)
