@@ -202,10 +202,7 @@ def markdown(results: list[dict], oracle: dict, meta: dict) -> str:
              f"{meta['n_per_condition']} cases per condition; {meta['minutes']:.1f} min on 2 cores "
              f"(load average {meta['load_start']:.1f} at start, {meta['load_end']:.1f} at end). Medians over the "
              "cases with a physical solution on the true model; E_tau [N m], E_q and E_q_phys [rad].", ""]
-    lines += ["| training data | dropped rows | healthy E_tau | healthy E_q | healthy E_q_phys |", "|---|---|---|---|---|"]
-    for r in results:
-        h = r["healthy"]["all"]
-        lines.append(f"| {_label(r['level'])} | {r['n_dropped']} | " + " | ".join(_fmt(h[k]) for k in METRICS) + " |")
+    lines += summary_table(results, oracle)
     for protocol in oracle:
         lines += ["", f"Fault cases, {protocol} protocol (adapted / unadapted):", "",
                   "| training data | cond | n | E_tau | E_q | E_q_phys |", "|---|---|---|---|---|---|"]
@@ -218,6 +215,26 @@ def markdown(results: list[dict], oracle: dict, meta: dict) -> str:
                 lines.append(f"| {_label(r['level'])} | {cond} | {a['n']} | "
                              + " | ".join(f"{_fmt(a[k])} / {_fmt(u[k])}" for k in METRICS) + " |")
     return "\n".join(lines) + "\n"
+
+
+def summary_table(results: list[dict], oracle: dict) -> list[str]:
+    """One row per level: healthy E_tau / E_q / E_q_phys, then adapted (unadapted) E_tau / E_q_phys per protocol,
+    pooled over the conditions."""
+    protocols = [p for p in ("paper", "binding") if p in oracle] + sorted(p for p in oracle if p not in
+                                                                           ("paper", "binding"))
+    lines = ["| training data | rows dropped | healthy (no fault) E_tau / E_q / E_q_phys | "
+             + " | ".join(f"{p} protocol: adapted (unadapted) E_tau / E_q_phys" for p in protocols) + " |",
+             "|---|---|---|" + "---|" * len(protocols)]
+    lines.append("| physics oracle of the true arm | — | — | " + " | ".join(
+        f"{_fmt(oracle[p]['all']['E_tau'])} / {_fmt(oracle[p]['all']['E_q_phys'])}" for p in protocols) + " |")
+    for r in results:
+        h, cells = r["healthy"]["all"], []
+        for p in protocols:
+            a, u = r["protocols"][p]["adapted"]["all"], r["protocols"][p]["unadapted"]["all"]
+            cells.append(f"{_fmt(a['E_tau'])} ({_fmt(u['E_tau'])}) / {_fmt(a['E_q_phys'])} ({_fmt(u['E_q_phys'])})")
+        lines.append(f"| {_label(r['level'])} | {r['n_dropped']} | {_fmt(h['E_tau'])} / {_fmt(h['E_q'])} / "
+                     f"{_fmt(h['E_q_phys'])} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _conditions(by_cond: dict) -> list:
