@@ -46,7 +46,8 @@ class InitFrom(Callback):
         datamodule = getattr(trainer, "datamodule", None)
         if self.keep_normalizer and datamodule is not None:
             prefix = "normalizer."
-            datamodule.normalizer.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+            old_normalizer = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+            datamodule.normalizer.load_state_dict(old_normalizer)
 
     def _check_same_schema(self, pl_module):
         meta, robot = self.checkpoint["bodyschema"], self.checkpoint.get("hyper_parameters", {}).get("robot") or {}
