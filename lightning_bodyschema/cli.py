@@ -62,6 +62,8 @@ class BodySchemaCLI(LightningCLI):
         # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_last": True})
+        # --data is a class option (EquilibriumDataModule or RecordedDataModule): the simulation module by default
+        parser.set_defaults({"data": {"class_path": "lightning_bodyschema.data.EquilibriumDataModule"}})
 
     # ---------------------------------------------------------------- input checks (exit 2, one line)
     def parse_arguments(self, parser, args):
