@@ -1,10 +1,12 @@
 """Draw a model's arm and muscle routing at a few postures, e.g.
 
-    python tools/draw_arm.py --model paper_arm --out docs/arm.png
-    python tools/draw_arm.py --model arm3_8 --out docs/arm3_8.png
+    python tools/draw_arm.py --model paper_arm                  # -> runs/arm.png
+    python tools/draw_arm.py --model arm3_8 --out runs/arm3_8.png
     python tools/draw_arm.py --model my_robot.xml --q 0,0 --q 0.5,-0.3 --out /tmp/robot.png
+    python tools/draw_arm.py --model myo:myoelbow_2dof --site r_radius_styloid --out docs/myoelbow.png
 
-Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
+The default output is under runs/ (git-ignored): docs/arm.png is the README's tracked figure and is
+replaced only when asked for (``--out docs/arm.png``). Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
 paper arm's [-1, 1] ranges: 0,0  0.8,0.6  -0.7,-0.9).
 
 Exit status 2 with one line on stderr for bad input (unknown model, posture out of range, ...).
@@ -26,12 +28,15 @@ DEFAULT_POSTURES_NORMALIZED = ((0.0,), (0.8, 0.6), (-0.7, -0.9))
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="paper_arm",
-                        help="a packaged model (paper_arm, arm3_8, opensim_like_arm) or a path to an MJCF file")
-    parser.add_argument("--out", default="docs/arm.png", help="output image (png, pdf, svg)")
+                        help="a packaged model (paper_arm, arm3_8, opensim_like_arm), myo:<name> or a path to an MJCF file")
+    parser.add_argument("--out", default="runs/arm.png", help="output image (png, pdf, svg); default runs/arm.png")
     parser.add_argument("--q", action="append", metavar="Q1,Q2,...",
                         help="a posture [rad], comma separated; repeat for more "
                              "(default: three postures spread over the model's joint ranges)")
     parser.add_argument("--site", default="hand", help="site to mark, e.g. the hand")
+    parser.add_argument("--no-zoom", action="store_true", help="no close-up row per joint (for many joints)")
+    parser.add_argument("--lock", action="append", metavar="JOINT=RAD", default=[],
+                        help="lock a joint, e.g. --lock cmc_flexion=0 (repeat; as data.locked_joints)")
     return parser.parse_args(argv)
 
 
@@ -44,6 +49,18 @@ def parse_postures(texts) -> list[list[float]]:
     if len({len(q) for q in qs}) > 1:
         raise BodySchemaInputError(f"--q values {texts} have different numbers of joints")
     return qs
+
+
+def parse_locks(texts) -> dict[str, float]:
+    """{joint: value} from '--lock JOINT=RAD' texts."""
+    locks = {}
+    for text in texts:
+        name, _, value = text.partition("=")
+        try:
+            locks[name] = float(value)
+        except ValueError:
+            raise BodySchemaInputError(f"--lock {text!r} must be JOINT=RAD, e.g. cmc_flexion=0") from None
+    return locks
 
 
 def default_postures(q_range: np.ndarray) -> list[list[float]]:
@@ -59,9 +76,9 @@ def main(argv=None) -> int:
     from lightning_bodyschema.sim import MusculoskeletalModel
 
     try:
-        model = MusculoskeletalModel(args.model)
+        model = MusculoskeletalModel(args.model, locked_joints=parse_locks(args.lock))
         qs = parse_postures(args.q) if args.q else default_postures(model.q_range)
-        draw_arm(model, qs, path=args.out, site=args.site)
+        draw_arm(model, qs, path=args.out, site=args.site, zoom=not args.no_zoom)
     except BodySchemaInputError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -106,7 +106,8 @@ class EquilibriumDataModule(L.LightningDataModule):
             them; the default for models with muscle actuators): see ``sim.spring.spring_for_model``.
         gravity: optional gravity override [m/s^2].
         qp_solver: ``"proxqp"`` or any qpsolvers solver name.
-        cache_dir: where generated datasets are cached by content hash (None: no cache).
+        cache_dir: where generated datasets are cached by content hash (None: no cache); under runs/, with
+            every other output of a run, so a checkout stays clean.
         locked_joints: ``{joint: value}`` [rad or m] held fixed; joints no muscle crosses are locked at
             their reference position anyway (one summary line).
     """
@@ -115,7 +116,7 @@ class EquilibriumDataModule(L.LightningDataModule):
                  muscles: Optional[Sequence[str]] = None, k_n: float | list[float] | str | None = None,
                  alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] | str | None = None,
                  gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
-                 cache_dir: Optional[str] = "data/cache", locked_joints: Optional[dict[str, float]] = None):
+                 cache_dir: Optional[str] = "runs/cache", locked_joints: Optional[dict[str, float]] = None):
         super().__init__()
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")

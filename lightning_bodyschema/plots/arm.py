@@ -146,13 +146,16 @@ def _draw_wrap_surfaces(ax: Axes, m, d, wraps: set[int], plane: ViewPlane):
                             edgecolor=(0.2, 0.45, 0.75, 0.8), lw=0.8, ls="--" if sphere else "-", zorder=2))
 
 
+_MAX_LABELLED = 12  # more muscles than this (myoArm's 50) are drawn thinner and without a legend entry each
+
+
 def _draw_muscles(ax: Axes, model: MusculoskeletalModel, d, label: bool, plane: ViewPlane):
     for k, (tendon, name) in enumerate(zip(model.muscle_ids, model.muscle_names)):
         color = _TAB10[k % len(_TAB10)]
         for j, path in enumerate(muscle_polylines(model.mj_model, d, int(tendon))):
             xy = plane.xy(path)
-            ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.8, zorder=4,
-                    label=name if label and j == 0 else None)
+            ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.8 if model.n_muscles <= _MAX_LABELLED else 0.9, zorder=4,
+                    label=name if label and j == 0 and model.n_muscles <= _MAX_LABELLED else None)
             ax.plot(xy[[0, -1], 0], xy[[0, -1], 1], "o", color=color, ms=3, zorder=5)
 
 
@@ -241,13 +244,13 @@ def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None =
     mujoco.mj_kinematics(m, d)
     plane = view_plane(m, d)  # hinge axes keep their world direction in a planar arm
     for i, (q, column) in enumerate(zip(qs, grid)):
-        d.qpos[:] = q
+        d.qpos[:] = model.joint_map.full_q(q[None])[0]  # locked and coupled joints too
         mujoco.mj_forward(m, d)
         for row, a in enumerate(column):
             _draw_posture(a, model, d, site, label=i == 0 and row == 0, plane=plane)
         _style_whole(column[0], q, model.joint_names, plane)
         for j, a in enumerate(column[1:]):
-            center = plane.xy(d.xanchor[j])
+            center = plane.xy(d.xanchor[model.joint_map.free[j]])
             _style_zoom(a, center, _zoom_half_width_m(m, d, plane, center), model.joint_names[j])
     _draw_gravity(grid[0][0], m.opt.gravity, plane)
     fig = fig or grid[0][0].figure
@@ -271,7 +274,8 @@ def _style_whole(a: Axes, q: np.ndarray, joint_names: list[str], plane: ViewPlan
     a.grid(True, lw=0.3, alpha=0.5)
     a.set_xlabel(plane.label(plane.right))
     a.set_ylabel(plane.label(plane.up))
-    title = ", ".join(f"{n}={v:+.2f}" for n, v in zip(joint_names, q)) + " rad"
+    parts = [f"{n}={v:+.2f}" for n, v in zip(joint_names, q)]
+    title = "\n".join(", ".join(parts[i:i + 2]) for i in range(0, len(parts), 2)) + " rad"  # 2 joints a line
     a.set_title(title if a.get_title() == "" else a.get_title() + "\n" + title, fontsize=9)
 
 
@@ -288,6 +292,8 @@ def _style_zoom(a: Axes, center: np.ndarray, half_m: float, joint: str):
 
 def _legend(fig: Figure, first: Axes, own_figure: bool):
     handles, labels = first.get_legend_handles_labels()
+    if not labels:
+        return  # too many muscles to label one by one
     if own_figure:
         fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 3), fontsize=8, frameon=False)
     else:

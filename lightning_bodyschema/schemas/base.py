@@ -37,6 +37,25 @@ def schema_class_path(cls) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
+# renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
+DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
+
+
+def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) -> None:
+    """Forget the saved ``ModelCheckpoint`` state when a checkpoint is only evaluated (validate / test).
+
+    That state (best score, best paths) matters only to a resumed fit. A ``bodyschema test`` logs into a new
+    version folder, so Lightning would find another dirpath and warn that best_model_score "won't be reloaded",
+    which is right and irrelevant there. The weights, hyperparameters and RNG state are untouched.
+    """
+    from lightning.pytorch.trainer.states import TrainerFn
+
+    if trainer is None or trainer.state.fn in (None, TrainerFn.FITTING) or "callbacks" not in checkpoint:
+        return
+    checkpoint["callbacks"] = {key: state for key, state in checkpoint["callbacks"].items()
+                               if not str(key).startswith("ModelCheckpoint")}
+
+
 class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
 
@@ -296,7 +315,9 @@ class BodySchema(L.LightningModule):
         # every rank validates the whole held-out split (160 postures, a few ms): medians do not average
         # across shards; sync_dist reduces the (then equal) figures so every rank's callbacks see the same
         for name, value in self.physical_errors(batch[0], batch[1]).items():
-            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_nm" and stage == "val", sync_dist=True)
+            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_N_m" and stage == "val", sync_dist=True)
+            if name in DEPRECATED_METRIC_NAMES:  # old monitors and dashboards keep working for one release
+                self.log(f"{stage}/{DEPRECATED_METRIC_NAMES[name]}", value, sync_dist=True)
         return loss
 
     def validation_step(self, batch, batch_idx):
@@ -331,6 +352,9 @@ class BodySchema(L.LightningModule):
         if hparams_file is not None or strict is False or weights_only is False:
             raise BodySchemaInputError("load_from_checkpoint: hparams_file, strict=False and weights_only=False are "
                                        "not supported (a checkpoint carries its hyperparameters and is checked whole)")
+        if map_location is not None and not isinstance(map_location, (str, torch.device)):
+            raise BodySchemaInputError(f"load_from_checkpoint: map_location={map_location!r}; give a device "
+                                       "('cpu', 'cuda:0', torch.device) or None")
         schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
         return schema if map_location is None else schema.to(map_location)
 
@@ -340,6 +364,7 @@ class BodySchema(L.LightningModule):
         cuda_states = checkpoint.get("torch_cuda_rng_state")
         if cuda_states is not None and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
             torch.cuda.set_rng_state_all(cuda_states)
+        _drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()
@@ -363,7 +388,7 @@ class BodySchema(L.LightningModule):
         eq = np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau_bias, axis=1)
         length = np.abs(l_motor + elongation_from_tension(f, self.spring) - l_geo)
         x_true = x_true.cpu().numpy()
-        return {"eq_residual_nm": float(np.median(eq)),
+        return {"eq_residual_N_m": float(np.median(eq)),  # newton metres (the old "_nm" read as nanometres)
                 "length_residual_mm": 1e3 * float(np.median(length)),
                 "l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
                 "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}

@@ -259,3 +259,31 @@ def test_unholdable_postures_name_the_joints_to_lock(coupled):
 
     with pytest.raises(BodySchemaInputError, match=r"too weak.*joints \['shoulder.*data.locked_joints"):
         generate_equilibrium_samples(coupled, 10, seed=0, spring=SpringParams(f_max_n=0.5))
+
+
+def test_fit_on_a_myo_config_without_myo_sim_exits_2_with_one_line():
+    out = _run_without_myo_sim("""
+        from lightning_bodyschema.cli import main
+        main(["fit", "--config", "configs/myoelbow-diff.yaml", "--trainer.max_epochs", "1"])
+        """)
+    assert out.returncode == 2
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and '.[myo]' in errors[0] and "Traceback" not in out.stderr
+
+
+def test_a_stiff_passive_tendon_pulls_in_the_equilibrium_and_in_the_settle_check():
+    """A ligament with MuJoCo stiffness is no muscle, but its spring force is part of tau_bias: commands that
+    balance it settle at their posture, while ignoring it would not."""
+    from lightning_bodyschema.sim import SpringParams, generate_equilibrium_samples, paper_arm_xml
+    from lightning_bodyschema.sim.settle import settle
+
+    muscles = MusculoskeletalModel("paper_arm").muscle_names
+    xml = paper_arm_xml().replace("</tendon>", """<spatial name="ligament" stiffness="400" springlength="0 0.05">
+      <site site="o_shoulder_flex"/><site site="i_shoulder_flex"/></spatial></tendon>""")
+    model = MusculoskeletalModel(xml, muscles=muscles)
+    plain = MusculoskeletalModel("paper_arm")
+    samples = generate_equilibrium_samples(model, 10, seed=1, spring=SpringParams(f_max_n=300.0))
+    tau_with, tau_without = model.kinematics(samples.q)[2], plain.kinematics(samples.q)[2]
+    assert np.abs(tau_with - tau_without).max() > 0.5  # the ligament's pull is in the torque to balance [N m]
+    out = settle(model, samples.l_motor, samples.f, samples.q, spring=SpringParams(f_max_n=300.0))
+    assert out.settled.all() and out.E_q_phys.max() < 1e-6

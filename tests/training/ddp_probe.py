@@ -18,7 +18,7 @@ class RecordRank(Callback):
     def on_train_end(self, trainer, pl_module):
         record = {"rows": torch.cat(self.rows), "world_size": trainer.world_size, "global_step": trainer.global_step,
                   "state_dict": {k: v.detach().cpu() for k, v in pl_module.state_dict().items()},
-                  "val_eq_residual": float(trainer.callback_metrics["val/eq_residual_nm"])}
+                  "val_eq_residual": float(trainer.callback_metrics["val/eq_residual_N_m"])}
         path = os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt")
         torch.save(record, path + ".tmp")
         os.replace(path + ".tmp", path)

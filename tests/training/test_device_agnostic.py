@@ -42,7 +42,7 @@ def test_training_continues_after_a_dtype_move_and_adapts_in_the_new_dtype(dm, c
     _fit(schema, dm, "32-true", 2)
     trainer = _fit(schema, dm, "64-true", 2)  # Lightning moves the module to float64; batches follow it
     assert all(p.dtype == torch.float64 for p in schema.parameters())
-    assert np.isfinite(float(trainer.callback_metrics["val/eq_residual_nm"]))
+    assert np.isfinite(float(trainer.callback_metrics["val/eq_residual_N_m"]))
     schema.eval()
     q = dm.splits["val"][0][:3].numpy()
     faults = Faults.from_names(schema.robot_model.muscle_names, cut=[["shoulder_flexor"]] * 3)

@@ -144,8 +144,8 @@ def test_early_stopping_on_the_validation_residual_stops_a_fit(dm):
     L.seed_everything(0)
     schema = AutoEncoderSchema(robot=dm.robot)
     # an improvement of 1e3 N m per validation is impossible: the fit stops after patience + 1 validations
-    stop = EarlyStopping(monitor="val/eq_residual_nm", mode="min", patience=1, min_delta=1e3)
+    stop = EarlyStopping(monitor="val/eq_residual_N_m", mode="min", patience=1, min_delta=1e3)
     fit = trainer(max_epochs=50, check_val_every_n_epoch=2, callbacks=[stop])
     fit.fit(schema, dm)
     assert fit.should_stop and stop.stopped_epoch == 3 and fit.current_epoch == 4
-    assert "val/eq_residual_nm" in fit.callback_metrics
+    assert "val/eq_residual_N_m" in fit.callback_metrics
