@@ -300,8 +300,9 @@ def benchmark_markdown(result: BenchmarkResult, meta: Optional[dict] = None, rea
     meta = meta or {}
     summary = result.summary()
     readings = readings or tuple(summary["adapted"])
-    first = summary["adapted"]["phys"][next(iter(summary["adapted"]["phys"]))]["all"]
-    names = [m for m in SUMMARY_METRICS if m in first]
+    # every metric some command has (adapted commands that all failed have none)
+    names = [m for m in SUMMARY_METRICS if any(m in by_subset["all"] for kind in summary
+                                                for by_subset in summary[kind]["phys"].values())]
     header = ["condition", "reading", "subset", "command", "n"] + [METRIC_HEADERS[m] for m in names]
     lines = [f"# Fault benchmark: {meta.get('model', 'schema')}, {meta.get('protocol', 'paper')} protocol", ""] if title \
         else []
