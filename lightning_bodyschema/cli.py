@@ -1,15 +1,20 @@
-"""``bodyschema``: the LightningCLI front end (fit, validate, test, predict).
+"""``bodyschema``: the LightningCLI front end (fit, validate, test).
 
     bodyschema fit --config configs/diff.yaml
     bodyschema fit --config configs/ae-10.yaml --config configs/quick.yaml
     bodyschema fit --model DiffusionSchema --data.n_samples 800 --trainer.max_epochs 100
+    bodyschema fit --config configs/diff.yaml --optimizer AdamW --optimizer.lr 3e-4 \
+        --lr_scheduler CosineAnnealingLR --lr_scheduler.T_max 10000
 
 The data module's robot (XML, muscles, spring) is linked into the schema at instantiation, so every
 checkpoint is self-contained. User errors exit with code 2 and one line, without a traceback, before
-anything is written. Beyond what jsonargparse checks:
+anything is written (``cli_parser.OneLineErrorParser``: a misspelt option gets a "did you mean"). There
+is no ``predict`` subcommand: LightningCLI's predict runs over the data module's split, while a controller's
+requests carry their own faults; ``tools/predict.py`` serves those. Beyond what jsonargparse checks:
 
 * options must be spelt in full (no argparse prefix abbreviations: ``--trainer.max_epoch`` is an error);
 * ``--trainer.max_epochs`` must be positive, or -1 (endless) with ``--model.lr_final=null``;
+* ``--lr_scheduler`` needs ``--optimizer`` (without it the schema's Adam + cosine schedule train);
 * ``--ckpt_path`` must be a readable lightning_bodyschema checkpoint of the data's robot (model XML,
   muscles and spring), checked before Lightning loads it.
 """
@@ -17,33 +22,50 @@ from __future__ import annotations
 
 import sys
 import warnings
+from typing import Optional
 
 import torch
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
-from .callbacks import EpochProgressBar, FaultBenchmark, ReconstructionFigure
+from .callbacks import EpochProgressBar, FaultBenchmark, FinalValidation, ReconstructionFigure
+from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
+DESCRIPTION = ("Train and evaluate body schemas of musculoskeletal robots (AE, VAE, diffusion; Kawaharazuka & "
+               "Ikemoto). Subcommands: fit (train, with validation in physical units and the in-fit fault "
+               "benchmark), validate and test (a checkpoint on the data's splits). Adapting commands to faults: "
+               "tools/predict.py, tools/adapt_cases.py, or schema.adapt from Python.")
+
+
 class BodySchemaCLI(LightningCLI):
+    @staticmethod
+    def subcommands() -> dict[str, set[str]]:
+        """fit, validate and test; no predict (see the module docstring)."""
+        return {name: skip for name, skip in LightningCLI.subcommands().items() if name != "predict"}
+
     def add_arguments_to_parser(self, parser):
         parser.link_arguments("data.robot", "model.init_args.robot", apply_on="instantiate")
         # always-on callbacks, configurable as --progress.*, --figures.* and --faults.*
         parser.add_lightning_class_args(EpochProgressBar, "progress")
         parser.add_lightning_class_args(ReconstructionFigure, "figures")
         parser.add_lightning_class_args(FaultBenchmark, "faults")
+        # physical metrics at the end of every fit, whatever check_val_every_n_epoch
+        parser.add_lightning_class_args(FinalValidation, "final_validation")
         # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_last": True})
 
     # ---------------------------------------------------------------- input checks (exit 2, one line)
     def parse_arguments(self, parser, args):
-        super().parse_arguments(parser, args)
+        # main() always passes the command line explicitly; LightningCLI's "args and sys.argv both given" warning
+        # would fire on every run (and under pytest, whose sys.argv is not ours), so parse without it
+        self.config = parser.parse_args(args)
         # before Lightning's own torch.load of --ckpt_path, which dies with a traceback on a bad file
         self._checkpoint = None
         subcommand = self.config.get("subcommand")
@@ -59,6 +81,12 @@ class BodySchemaCLI(LightningCLI):
         config = self.config[self.subcommand]
         if self.subcommand == "fit":
             _check_max_epochs(config)
+            if config.get("lr_scheduler") and not config.get("optimizer"):
+                # LightningCLI would drop it without a word: the schema's own optimizer brings its own schedule
+                raise BodySchemaInputError(
+                    f"--lr_scheduler {config['lr_scheduler'].get('class_path')} needs --optimizer too (e.g. "
+                    "--optimizer Adam --optimizer.lr 1e-3); without --optimizer the schema trains with Adam and "
+                    "its cosine schedule from --model.lr to --model.lr_final")
         if self._checkpoint is not None:  # before the trainer exists: nothing printed, nothing written
             data = EquilibriumDataModule(**config["data"].as_dict())  # light: the robot only, no dataset yet
             _check_same_robot(self._checkpoint, config.get("ckpt_path"), data)
@@ -66,38 +94,51 @@ class BodySchemaCLI(LightningCLI):
 
 # a misspelt flag is an error, not a prefix of some option (argparse's default would run
 # `--trainer.max_epoch=3` as max_epochs); config files never accepted abbreviations either
-_NO_ABBREVIATIONS = {"allow_abbrev": False, **{name: {"allow_abbrev": False} for name in LightningCLI.subcommands()}}
+_NO_ABBREVIATIONS = {"allow_abbrev": False, **{name: {"allow_abbrev": False} for name in BodySchemaCLI.subcommands()}}
 
 
 def _trainer_defaults() -> dict:
     return {
         "max_epochs": 10000,  # the paper's setting
         "check_val_every_n_epoch": 500,
-        "log_every_n_steps": 50,  # one step per epoch: log every 50 epochs
+        "log_every_n_steps": 50,  # optimizer steps: every 5 epochs of the paper's 640 samples in batches of 64
         "num_sanity_val_steps": 0,
         "enable_model_summary": False,
+        "default_root_dir": "runs",  # every output of a run under runs/ (git-ignored), not the working tree
     }
 
 
-def main(args=None) -> "BodySchemaCLI":
-    """Run the ``bodyschema`` command (``args``: its arguments, default ``sys.argv[1:]``); returns the CLI object
-    (``cli.trainer``, ``cli.model``, ...) for scripts and tests."""
+def main(args: Optional[list[str]] = None) -> Optional["BodySchemaCLI"]:
+    """Run the ``bodyschema`` command.
+
+    ``main()`` (the console script, ``python -m lightning_bodyschema.cli``) reads ``sys.argv`` and returns
+    None, so the ``sys.exit(main())`` of the console script exits 0 after a successful run (a returned object
+    would be printed and exit 1). ``main([...])`` runs those arguments and returns the CLI object
+    (``cli.trainer``, ``cli.model``, ...) for scripts and tests; ``sys.argv`` is then never read.
+    """
+    from_command_line = args is None
+    # resolved here, once, and handed to LightningCLI explicitly (see BodySchemaCLI.parse_arguments)
+    args = sys.argv[1:] if from_command_line else [str(arg) for arg in args]
     torch.set_num_threads(1)  # one thread per process is fastest for these tiny MLPs (docs/design.md, data and training)
     torch.set_flush_denormal(True)
-    # one Lightning step per epoch by design (docs/design.md): the "fewer batches than log interval" notice is noise
+    # 10 optimizer steps per epoch with the paper's data: the "fewer batches than log interval" notice is noise
     warnings.filterwarnings("ignore", message=".*smaller than the logging interval.*")
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
+    # --optimizer / --lr_scheduler replace the schema's default Adam + cosine by design (README, Lightning)
+    warnings.filterwarnings("ignore", message=".*configure_optimizers` will be overridden by.*")
     try:
-        return BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
-                      seed_everything_default=0, save_config_kwargs={"overwrite": True},
-                      trainer_defaults=_trainer_defaults(), auto_configure_optimizers=False,
-                      parser_kwargs=_NO_ABBREVIATIONS)
+        cli = BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
+                            seed_everything_default=0, save_config_kwargs={"overwrite": True},
+                            trainer_defaults=_trainer_defaults(),
+                            parser_kwargs={**_NO_ABBREVIATIONS, "prog": "bodyschema", "description": DESCRIPTION},
+                            parser_class=OneLineErrorParser)
     except Exception as err:  # jsonargparse wraps errors raised while instantiating classes
         cause = _input_error_in_chain(err)
         if cause is None:
             raise
         print(f"error: {' '.join(str(cause).split())}", file=sys.stderr)  # one line, whatever the message
         raise SystemExit(2) from None
+    return None if from_command_line else cli
 
 
 _LIGHTNING_CKPT_KEYWORDS = ("last", "best", "hpc", "registry")  # --ckpt_path values that are not file paths

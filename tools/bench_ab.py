@@ -2,6 +2,7 @@
 """A/B a benchmark tool between an older revision and the working tree, back to back on one machine.
 
     python tools/bench_ab.py --base 8ed602b --rounds 3 -- tools/bench_adaptation.py --ckpt-dir runs/paper --no-compile
+    python tools/bench_ab.py --base 8ed602b --new 26b90ca -- tools/bench_adaptation.py ...   # two revisions
 
 Checks the base revision out into a temporary git worktree and runs the tool alternately there (its own copy of the
 tool and the package) and here, ``--rounds`` times each (base, new, base, new, ...), each writing ``--json``. The
@@ -31,9 +32,18 @@ def run_tool(tree: str, tool_argv: list[str], out_json: str) -> list[dict]:
         return json.load(fh)["rows"]
 
 
+def add_worktree(tmp: str, name: str, revision: str) -> str:
+    tree = os.path.join(tmp, name)
+    subprocess.run(["git", "-C", ROOT, "worktree", "add", "--detach", tree, revision], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return tree
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--base", required=True, help="git revision to compare against (e.g. the commit before a change)")
+    parser.add_argument("--new", default=None,
+                        help="git revision of the new side (default: the working tree)")
     parser.add_argument("--rounds", type=int, default=3, help="runs per side, alternating (default 3)")
     parser.add_argument("--json", help="write every round's rows and the comparison here")
     parser.add_argument("tool", nargs=argparse.REMAINDER, help="-- then the tool and its arguments")
@@ -42,17 +52,18 @@ def main(argv=None):
     if not tool or args.rounds < 1:
         raise SystemExit("error: give --rounds >= 1 and the tool after --")
     with tempfile.TemporaryDirectory(prefix="bench-ab-") as tmp:
-        base_tree = os.path.join(tmp, "base")
-        subprocess.run(["git", "-C", ROOT, "worktree", "add", "--detach", base_tree, args.base], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        trees = {"base": add_worktree(tmp, "base", args.base),
+                 "new": ROOT if args.new is None else add_worktree(tmp, "new", args.new)}
         try:
             results = {"base": [], "new": []}
             for r in range(args.rounds):
-                for side, tree in (("base", base_tree), ("new", ROOT)):
+                for side, tree in trees.items():
                     print(f"round {r + 1}/{args.rounds}: {side}", file=sys.stderr, flush=True)
                     results[side].append(run_tool(tree, tool, os.path.join(tmp, f"{side}-{r}.json")))
         finally:
-            subprocess.run(["git", "-C", ROOT, "worktree", "remove", "--force", base_tree], check=False)
+            for tree in trees.values():
+                if tree != ROOT:
+                    subprocess.run(["git", "-C", ROOT, "worktree", "remove", "--force", tree], check=False)
     table = compare(results)
     print("| variant | kind | cases | base ms/case | new ms/case | new/base |\n|---|---|---|---|---|---|")
     for row in table:
@@ -61,7 +72,7 @@ def main(argv=None):
               f"{row['ratio']:.3f} |")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"base": args.base, "tool": tool, "rounds": results, "comparison": table}, fh, indent=1)
+            json.dump({"base": args.base, "new": args.new or "working tree", "tool": tool, "rounds": results, "comparison": table}, fh, indent=1)
 
 
 def compare(results: dict) -> list[dict]:

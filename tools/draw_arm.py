@@ -1,11 +1,12 @@
 """Draw a model's arm and muscle routing at a few postures, e.g.
 
-    python tools/draw_arm.py --model paper_arm --out docs/arm.png
-    python tools/draw_arm.py --model arm3_8 --out docs/arm3_8.png
+    python tools/draw_arm.py --model paper_arm                  # -> runs/arm.png
+    python tools/draw_arm.py --model arm3_8 --out runs/arm3_8.png
     python tools/draw_arm.py --model my_robot.xml --q 0,0 --q 0.5,-0.3 --out /tmp/robot.png
     python tools/draw_arm.py --model myo:myoelbow_2dof --site r_radius_styloid --out docs/myoelbow.png
 
-Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
+The default output is under runs/ (git-ignored): docs/arm.png is the README's tracked figure and is
+replaced only when asked for (``--out docs/arm.png``). Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
 paper arm's [-1, 1] ranges: 0,0  0.8,0.6  -0.7,-0.9).
 
 Exit status 2 with one line on stderr for bad input (unknown model, posture out of range, ...).
@@ -28,7 +29,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="paper_arm",
                         help="a packaged model (paper_arm, arm3_8, opensim_like_arm), myo:<name> or a path to an MJCF file")
-    parser.add_argument("--out", default="docs/arm.png", help="output image (png, pdf, svg)")
+    parser.add_argument("--out", default="runs/arm.png", help="output image (png, pdf, svg); default runs/arm.png")
     parser.add_argument("--q", action="append", metavar="Q1,Q2,...",
                         help="a posture [rad], comma separated; repeat for more "
                              "(default: three postures spread over the model's joint ranges)")

@@ -36,7 +36,7 @@ class EpochProgressBar(ProgressBar):
         if trainer.current_epoch % 50 == 0:  # formatting metrics every epoch would cost more than training
             metrics = trainer.progress_bar_metrics
             post = {k.split("/")[-1]: f"{float(v):.4g}" for k, v in metrics.items()
-                    if k in ("train/loss", "val/loss", "val/eq_residual_nm")}
+                    if k in ("train/loss", "val/loss", "val/eq_residual_N_m")}
             self.bar.set_postfix(post, refresh=False)
 
     def on_train_end(self, trainer, pl_module):

@@ -36,11 +36,19 @@ class FaultProjection:
                  alpha_per_m, mode: str = "spring"):
         if mode not in MODES[1:]:
             raise BodySchemaInputError(f"unknown projection mode {mode!r}; allowed: {list(MODES[1:])}")
-        self.mode, self.m = mode, lo.shape[-1] // 2
-        self.lo, self.hi, self.mean, self.std = lo, hi, x_mean, x_std
+        self.mode, m = mode, lo.shape[-1] // 2
+        self.m = m
         self.lo_n, self.hi_n = (lo - x_mean) / x_std, (hi - x_mean) / x_std  # the box in normalized units
-        as_t = lambda v: torch.as_tensor(np.asarray(v, np.float64), dtype=lo.dtype, device=lo.device)  # noqa: E731
-        self.k, self.alpha = as_t(k_n), as_t(alpha_per_m)
+        as_t = lambda v: torch.as_tensor(np.broadcast_to(np.asarray(v, np.float64), (m,)).copy(),  # noqa: E731
+                                         dtype=lo.dtype, device=lo.device)
+        k, alpha, s_l = as_t(k_n), as_t(alpha_per_m), x_std[:m]
+        # the spring in normalized length units: e_n = log1p(f / k) / (alpha s_l), f = k expm1(alpha s_l e_n)
+        self.f_mean, self.f_std, self.inv_f_std = x_mean[m:], x_std[m:], 1.0 / x_std[m:]
+        self.inv_k, self.k, self.inv_alpha_sl, self.alpha_sl = 1.0 / k, k, 1.0 / (alpha * s_l), alpha * s_l
+        # the tension box as an elongation box, e_n in [delta(lo_f), delta(hi_f)] (eq:muscle-elongation-inv)
+        e_box = [torch.log1p(b[:, m:].clamp_min(0.0) * self.inv_k) * self.inv_alpha_sl for b in (lo, hi)]
+        self.e_lo_n, self.e_hi_n = e_box
+        self.l_lo_n, self.l_hi_n = self.lo_n[:, :m], self.hi_n[:, :m]
 
     @classmethod
     def from_penalty(cls, penalty, x_mean, x_std, k_n, alpha_per_m, mode: str = "spring") -> "FaultProjection":
@@ -55,23 +63,24 @@ class FaultProjection:
                      for v in (x_mean, x_std))
         return cls(lo_n * std + mean, hi_n * std + mean, mean, std, k_n, alpha_per_m, mode)
 
-    def offset(self, x_n: torch.Tensor) -> torch.Tensor:
-        """d = x_n - P(x_n) (B, D), normalized units."""
+    def offset(self, x_n: torch.Tensor, out: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """d = x_n - P(x_n) (B, D), normalized units (``out``: a (B, D) buffer to write into).
+
+        Spring mode, per muscle: the geometric length g = l + e the prediction implies is kept (e its elongation,
+        eq:muscle-elongation-inv), so one number moves: the motor goes into its length box, the elongation that
+        leaves into the tension box (as an elongation box), and the motor follows (l = g - e, still in its box).
+        Where nothing is violated, P(x) = x up to rounding (~1e-16)."""
         if self.mode == "box":
-            return x_n - torch.clamp(x_n, self.lo_n, self.hi_n)
-        m, k, alpha = self.m, self.k, self.alpha
-        x = torch.addcmul(self.mean, x_n, self.std)
-        l, f = x[:, :m], x[:, m:]
-        lo_l, hi_l, lo_f, hi_f = self.lo[:, :m], self.hi[:, :m], self.lo[:, m:], self.hi[:, m:]
-        g = l + torch.log1p(f.clamp_min(0.0) / k) / alpha  # eq:muscle-elongation-inv: the implied geometric length
-        l_box = torch.clamp(l, lo_l, hi_l)
-        # a motor held back by its jam/band: the tension its spring gives there (eq:nonlinear-spring)
-        f_src = torch.where(l_box != l, k * torch.expm1(alpha * (g - l_box).clamp_min(0.0)), f)
-        f_new = torch.clamp(f_src, lo_f, hi_f)
-        # a tension moved (spring or limits): the motor length that keeps the muscle on its spring, inside its box
-        l_new = torch.where(f_new != f, torch.clamp(g - torch.log1p(f_new.clamp_min(0.0) / k) / alpha, lo_l, hi_l),
-                            l_box)
-        return (x - torch.cat([l_new, f_new], 1)) / self.std
+            return torch.sub(x_n, torch.clamp(x_n, self.lo_n, self.hi_n), out=out)
+        m = self.m
+        l_n, f_n = x_n[:, :m], x_n[:, m:]
+        f = torch.addcmul(self.f_mean, f_n, self.f_std)
+        e = torch.log1p(f.clamp_min(0.0).mul_(self.inv_k)).mul_(self.inv_alpha_sl)  # eq:muscle-elongation-inv
+        g = e.add_(l_n)  # the geometric length, kept
+        e = torch.clamp(g - torch.clamp(l_n, self.l_lo_n, self.l_hi_n), self.e_lo_n, self.e_hi_n)
+        d_l = torch.sub(l_n, torch.clamp(g.sub_(e), self.l_lo_n, self.l_hi_n))
+        f_new = torch.expm1(e.mul_(self.alpha_sl)).mul_(self.k)  # eq:nonlinear-spring
+        return torch.cat([d_l, f.sub_(f_new).mul_(self.inv_f_std)], 1, out=out)  # (out=: torch.compile wants it whole)
 
     def __call__(self, x_n: torch.Tensor) -> torch.Tensor:
         """P(x_n)."""

@@ -220,7 +220,7 @@ def guided_loop(steps, biases, x, penalty, net, ops, projection=None) -> torch.T
     (b, d), new = x.shape, x.new_empty
     bufs = net.buffers(b, x)
     e, x0, tmp, res, states = new((b, d)), new((b, d)), new((b, d)), (new((b, d)), new((b, d))), (new((b, d)), new((b, d)))
-    x0_guided = (new((b, d)), new((b, d)))
+    x0_guided = (new((b, d)), new((b, d)), new((b, d)))  # x0_g, its addmm twin, and d
     u, k = torch.mul(x, steps[0][1], out=states[0]), 0  # x_T / sqrt(abar_T)
     for i, (n_guide, _, w1_t, beta, w_e, w_r, w_g, a_e, a_r, w_k, k_r, inpaint) in enumerate(steps):
         if n_guide == 0:  # eq:diff-2 / DDIM without guidance: u' = u + beta + h We
@@ -241,7 +241,7 @@ def guided_loop(steps, biases, x, penalty, net, ops, projection=None) -> torch.T
                 inpaint = inpaint and projection is not None
                 if inpaint:  # the guided x0_hat (the inner step's u, plus e) and its offset d
                     d = projection.offset(torch.addmm(torch.add(x0, r, alpha=k_r, out=x0_guided[0]), g1, w_k,
-                                                      out=x0_guided[1]))
+                                                      out=x0_guided[1]), out=x0_guided[2])
                 u = torch.addmm(torch.add(u, e, alpha=a_e, out=tmp).add_(r, alpha=a_r), g1, w_g, out=states[k])
                 if inpaint:  # 4. inpainting: x0_hat -> P(x0_hat) with eps kept is u' -= d
                     u.sub_(d)

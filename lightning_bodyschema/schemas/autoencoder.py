@@ -46,7 +46,9 @@ class AutoEncoderSchema(BodySchema):
         return loss, {"recon": recon.detach(), "joint": joint.detach(), **{k: v.detach() for k, v in extra.items()}}
 
     def on_epoch_trained(self, q_n, x_n):
-        last = self.trainer.max_epochs is not None and self.current_epoch + 1 >= self.trainer.max_epochs
+        trainer = self.trainer
+        last = ((trainer.max_epochs is not None and self.current_epoch + 1 >= trainer.max_epochs) or trainer.should_stop
+                or (trainer.max_steps not in (None, -1) and trainer.global_step >= trainer.max_steps))
         if self.current_epoch % 10 == 0 or last:  # cheap, and exact at the end of training
             with torch.no_grad():
                 self.z_latent_ref.copy_(self.latent_reference(x_n))

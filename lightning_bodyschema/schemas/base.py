@@ -6,11 +6,13 @@ faults without retraining. Subclasses provide only the maths:
 * ``training_loss(q_n, x_n) -> (loss, logs)``   on normalized q and x = [l_motor, f]
 * ``generate(q_n) -> x_n``                       the healthy (unadapted) normalized estimate
 
-Everything else is shared: normalization, minibatching inside one Lightning step per epoch (fast on
-this tiny data), validation in physical units, checkpoints that carry the robot, ``infer``/``adapt``.
+Everything else is shared: normalization, one Lightning training step per minibatch (automatic
+optimization: precision, clipping, accumulation and DDP as Lightning documents them), validation in
+physical units, checkpoints that carry the robot, ``infer``/``adapt``.
 """
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import lightning as L
@@ -22,7 +24,6 @@ from ..adaptation.targets import adapt_to_target
 from ..data.normalizer import Normalizer
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights
-from ..optim import LeanFusedAdam
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
 from .cache import InferenceCache
 
@@ -36,6 +37,25 @@ def schema_class_path(cls) -> str:
     return f"{cls.__module__}.{cls.__qualname__}"
 
 
+# renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
+DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
+
+
+def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) -> None:
+    """Forget the saved ``ModelCheckpoint`` state when a checkpoint is only evaluated (validate / test).
+
+    That state (best score, best paths) matters only to a resumed fit. A ``bodyschema test`` logs into a new
+    version folder, so Lightning would find another dirpath and warn that best_model_score "won't be reloaded",
+    which is right and irrelevant there. The weights, hyperparameters and RNG state are untouched.
+    """
+    from lightning.pytorch.trainer.states import TrainerFn
+
+    if trainer is None or trainer.state.fn in (None, TrainerFn.FITTING) or "callbacks" not in checkpoint:
+        return
+    checkpoint["callbacks"] = {key: state for key, state in checkpoint["callbacks"].items()
+                               if not str(key).startswith("ModelCheckpoint")}
+
+
 class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
 
@@ -43,9 +63,9 @@ class BodySchema(L.LightningModule):
         robot: what the data module's ``robot`` property gives (model XML, muscles, spring); the CLI
             links it automatically. It is saved with the hyperparameters, so a checkpoint rebuilds
             the robot on any machine.
-        lr: Adam learning rate.
+        lr: Adam learning rate (the default optimizer; the CLI's ``--optimizer`` replaces it).
         lr_final: learning rate reached at the last epoch by cosine annealing (None: constant).
-        batch_size: minibatch size drawn inside each epoch's single Lightning step.
+        batch_size: minibatch size per optimizer step and process (the data module serves batches of it).
     """
 
     def __init__(self, robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
@@ -58,7 +78,7 @@ class BodySchema(L.LightningModule):
             raise BodySchemaInputError(f"batch_size={batch_size!r} must be a positive integer")
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
-        self.automatic_optimization = False  # several minibatch updates per Lightning step (one per epoch)
+        self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
         self.robot_model = MusculoskeletalModel(robot["model_xml"], muscles=robot["muscles"])
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
@@ -186,6 +206,17 @@ class BodySchema(L.LightningModule):
         return super().load_state_dict(*args, **kwargs)
 
     # ------------------------------------------------------------------ Lightning plumbing
+    # Lightning sets ``_current_fx_name`` twice around every hook it calls (~20 per optimizer step), and
+    # nn.Module.__setattr__ spends ~10 us each checking whether a string is a parameter, buffer or module
+    # (profiled: ~9 % of a training step here, ~15 % of Lightning's overhead). A plain string can be none of these.
+    _PLAIN_ATTRIBUTES = frozenset({"_current_fx_name"})
+
+    def __setattr__(self, name, value):
+        if name in BodySchema._PLAIN_ATTRIBUTES and (value is None or isinstance(value, str)):
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
     def setup(self, stage: str):
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if datamodule is not None and stage == "fit":
@@ -195,14 +226,28 @@ class BodySchema(L.LightningModule):
             self.clear_caches()  # the penalty builder depends on the normalizer
 
     def configure_optimizers(self):
-        # fused Adam: ~25 % faster per step than the default on this tiny CPU workload (measured); the lean
-        # variant calls the same kernels with ~115 us less Python per step (optim/lean_adam.py)
-        optimizer = LeanFusedAdam(self.parameters(), lr=self.hparams.lr)
+        """Adam (fused: ~25 % faster per step than the default on this tiny CPU workload, measured) with the
+        cosine schedule from ``lr`` to ``lr_final`` over the fit's epochs, stepped once per epoch. The CLI's
+        ``--optimizer`` / ``--lr_scheduler`` replace both (LightningCLI's own mechanism)."""
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=True)
         if self.hparams.lr_final is None:
             return optimizer
-        epochs = max(1, int(self.trainer.max_epochs or 1))
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs, eta_min=self.hparams.lr_final)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=self._epochs_of_fit(),
+                                                              eta_min=self.hparams.lr_final)
         return {"optimizer": optimizer, "lr_scheduler": schedule}
+
+    def _epochs_of_fit(self) -> int:
+        """Epochs this fit will run: ``max_epochs``, or fewer when ``max_steps`` ends it first."""
+        trainer = self.trainer
+        epochs = int(trainer.max_epochs) if trainer.max_epochs not in (None, -1) else None
+        if trainer.max_steps not in (None, -1):
+            batches = trainer.num_training_batches
+            if batches in (None, float("inf")) or batches == 0:
+                batches = len(trainer.datamodule.train_dataloader()) if trainer.datamodule is not None else 1
+            steps_per_epoch = max(1, math.ceil(batches / trainer.accumulate_grad_batches))
+            by_steps = math.ceil(trainer.max_steps / steps_per_epoch)
+            epochs = by_steps if epochs is None else min(epochs, by_steps)
+        return max(1, epochs or 1)
 
     def _normalized(self, batch):
         q, x = batch
@@ -210,55 +255,69 @@ class BodySchema(L.LightningModule):
         return self.normalizer.encode_q(q).to(dtype), self.normalizer.encode_x(x).to(dtype)
 
     def training_step(self, batch, batch_idx):
+        """One minibatch: Lightning runs the backward, the precision plugin (scaling, unscaling, inf checks),
+        gradient clipping and accumulation, DDP's gradient averaging and the optimizer step."""
         q_n, x_n = self._normalized(batch)
-        optimizer = self.optimizers()
-        minibatches = torch.randperm(len(q_n), device=q_n.device).split(self.hparams.batch_size)
-        total = 0.0
-        plain = self._plain_backward_ok()
-        for i, idx in enumerate(minibatches):
-            last = i == len(minibatches) - 1
-            loss, _ = self.training_loss(q_n[idx], x_n[idx])
-            optimizer.zero_grad(set_to_none=True)
-            # Lightning's backward runs every callback's on_before/after_backward hooks (~0.2 ms per call,
-            # ~10 % of an epoch here) and its optimizer wrapper costs ~0.1 ms, so on one device in 32-bit the
-            # inner steps use torch directly and the last one Lightning's: hooks fire and global_step counts
-            # once per epoch. Other strategies (DDP's reducer) and precisions (scaling) always go through Lightning.
-            if plain and not last:
-                loss.backward()
-            else:
-                self.manual_backward(loss)
-            (optimizer if last else optimizer.optimizer).step()
-            total += loss.detach()
-        n_batches = len(minibatches)
-        scheduler = self.lr_schedulers()
-        if scheduler is not None:
-            scheduler.step()
-        # Lightning's logger writes every log_every_n_steps epochs; a self.log call costs ~0.3 ms (a quarter of
-        # Lightning's per-epoch overhead here, measured), so only call it when it will be written
-        every = max(1, int(getattr(self.trainer, "log_every_n_steps", 1) or 1))
-        if (self.current_epoch + 1) % every == 0 or self.current_epoch + 1 == self.trainer.max_epochs:
-            self.log("train/loss", total / n_batches, prog_bar=True)
-            self.log("train/lr", optimizer.param_groups[0]["lr"])
-        self.on_epoch_trained(q_n, x_n)
+        loss, _ = self.training_loss(q_n, x_n)
+        # a self.log call costs ~0.3 ms, a quarter of a minibatch step here (measured): call it only on the
+        # steps the logger writes (Lightning's own test, so log_every_n_steps means what it documents)
+        if self.trainer._logger_connector.should_update_logs:
+            self.log("train/loss", loss.detach(), prog_bar=True)
+            self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"])
+        return loss
 
-    def _plain_backward_ok(self) -> bool:
-        """True when ``loss.backward()`` is all Lightning's backward would do: one device, 32-bit precision."""
-        from lightning.pytorch.strategies import SingleDeviceStrategy
+    def on_before_optimizer_step(self, optimizer):
+        """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
 
-        trainer = self.trainer
-        return type(trainer.strategy) is SingleDeviceStrategy and trainer.precision == "32-true"
+        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions
+        the gradients are dropped, so the optimizer leaves the weights and its state untouched. Under DDP
+        the gradients are already averaged here, so every rank takes the same decision.
+        """
+        scaler = getattr(self.trainer.precision_plugin, "scaler", None)
+        if scaler is not None:
+            return
+        params = [p for p in self.parameters() if p.grad is not None]
+        if not params:
+            return
+        total = torch.stack(torch._foreach_norm([p.grad for p in params])).sum()
+        if not torch.isfinite(total):
+            for p in params:
+                p.grad = None
+            self.skipped_steps += 1
+
+    def on_train_start(self):
+        self.skipped_steps = 0
+        if self.trainer.world_size > 1:
+            # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
+            # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
+            # pair its shard with the same noise. Deterministic: the seed plus the rank.
+            torch.manual_seed(torch.initial_seed() + self.global_rank)
+
+    def on_train_epoch_end(self):
+        if type(self).on_epoch_trained is BodySchema.on_epoch_trained:
+            return
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and getattr(datamodule, "splits", None) is not None:
+            q, x = datamodule.splits["train"]
+            q_n, x_n = self._normalized((q.to(self.device), x.to(self.device)))
+            self.on_epoch_trained(q_n, x_n)
 
     def on_epoch_trained(self, q_n, x_n):
-        """Hook after each epoch's updates (e.g. refresh a latent reference); default: nothing."""
+        """Hook after each epoch's updates with the whole (normalized) train split, the same on every rank
+        (e.g. refresh a latent reference); default: nothing."""
 
     def _common_step(self, batch, stage: str):
         q_n, x_n = self._normalized(batch)
         loss, logs = self.training_loss(q_n, x_n)
-        self.log(f"{stage}/loss", loss, prog_bar=stage == "val")
+        self.log(f"{stage}/loss", loss, prog_bar=stage == "val", sync_dist=True)
         for name, value in logs.items():
-            self.log(f"{stage}/{name}", value)
+            self.log(f"{stage}/{name}", value, sync_dist=True)
+        # every rank validates the whole held-out split (160 postures, a few ms): medians do not average
+        # across shards; sync_dist reduces the (then equal) figures so every rank's callbacks see the same
         for name, value in self.physical_errors(batch[0], batch[1]).items():
-            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_nm" and stage == "val")
+            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_N_m" and stage == "val", sync_dist=True)
+            if name in DEPRECATED_METRIC_NAMES:  # old monitors and dashboards keep working for one release
+                self.log(f"{stage}/{DEPRECATED_METRIC_NAMES[name]}", value, sync_dist=True)
         return loss
 
     def validation_step(self, batch, batch_idx):
@@ -277,6 +336,8 @@ class BodySchema(L.LightningModule):
         # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue
         # the same stream to end with the same weights as an uninterrupted one
         checkpoint["torch_rng_state"] = torch.get_rng_state()
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            checkpoint["torch_cuda_rng_state"] = torch.cuda.get_rng_state_all()
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path, map_location=None, hparams_file=None, strict=None,
@@ -291,12 +352,19 @@ class BodySchema(L.LightningModule):
         if hparams_file is not None or strict is False or weights_only is False:
             raise BodySchemaInputError("load_from_checkpoint: hparams_file, strict=False and weights_only=False are "
                                        "not supported (a checkpoint carries its hyperparameters and is checked whole)")
+        if map_location is not None and not isinstance(map_location, (str, torch.device)):
+            raise BodySchemaInputError(f"load_from_checkpoint: map_location={map_location!r}; give a device "
+                                       "('cpu', 'cuda:0', torch.device) or None")
         schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
         return schema if map_location is None else schema.to(map_location)
 
     def on_load_checkpoint(self, checkpoint):
         if "torch_rng_state" in checkpoint:
             torch.set_rng_state(checkpoint["torch_rng_state"])
+        cuda_states = checkpoint.get("torch_cuda_rng_state")
+        if cuda_states is not None and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(cuda_states)
+        _drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()
@@ -320,7 +388,7 @@ class BodySchema(L.LightningModule):
         eq = np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau_bias, axis=1)
         length = np.abs(l_motor + elongation_from_tension(f, self.spring) - l_geo)
         x_true = x_true.cpu().numpy()
-        return {"eq_residual_nm": float(np.median(eq)),
+        return {"eq_residual_N_m": float(np.median(eq)),  # newton metres (the old "_nm" read as nanometres)
                 "length_residual_mm": 1e3 * float(np.median(length)),
                 "l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
                 "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}

@@ -9,9 +9,9 @@ them for every entry point (``load_schema``, ``load_datamodule``, ``BodySchema.l
    subclassing ``BodySchema``) or the one the caller passes; nothing a checkpoint names is ever imported;
 3. the hyperparameters: against the class's signature (unknown or missing keys, types, sizes in sane ranges);
 4. the robot: required entries, spring constants, XML free of file references and of oversized allocations
-   (``check_robot_xml``, before MuJoCo sees it), and its hash;
-5. the weights: every tensor's name, dtype and shape against a skeleton built on the ``meta`` device (no memory),
-   before the real schema is allocated.
+   (``check_robot_xml``, before MuJoCo sees it);
+5. a skeleton of the schema built on the ``meta`` device (no memory; MuJoCo compiles the checked XML here): the
+   robot's hash, then every tensor's name, dtype and shape, before the real schema is allocated.
 
 Each problem is one ``BodySchemaInputError`` naming the checkpoint and the field. Non-finite weight values are not
 refused here: adaptation answers them with the status ``non_finite``.
@@ -46,7 +46,10 @@ MAX_WEIGHT_ELEMENTS = 50_000_000  # parameters + buffers a schema may hold (200 
 MAX_DATASET_SAMPLES = 10_000_000  # n_samples of a checkpoint's data module (load_datamodule regenerates it)
 
 ROBOT_ENTRIES = ("model_xml", "muscles", "spring")  # BodySchema(robot=...) reads exactly these
-SPRING_ENTRIES = ("k_n", "alpha_per_m", "f_max_n")
+# highest spring constants a checkpoint may carry (the paper's: 1000 N, 20 1/m, 150 N; MyoSuite's strongest muscle
+# ~2200 N): far beyond any body, and low enough that the physics QP stays well conditioned (f_max_n = 1e300 made
+# one feasibility check take a minute)
+SPRING_LIMITS = {"k_n": 1e9, "alpha_per_m": 1e6, "f_max_n": 1e6}
 
 # robot XML limits, checked on the text before MuJoCo parses it
 MAX_XML_CHARS = 32_000_000
@@ -348,11 +351,9 @@ def _check_memory(text: str, where: str):
                                    f"{MAX_SIZE_MEMORY_BYTES} (1G)")
 
 
-def check_robot(robot, recorded_sha256: str | None, where: str):
-    """The robot a checkpoint carries: entries, spring, self-contained XML (``check_robot_xml``), then the
-    compiled model and its hash. Returns the ``MusculoskeletalModel``."""
-    from ..sim import MusculoskeletalModel
-
+def check_robot(robot, where: str) -> None:
+    """The robot a checkpoint carries, as data: entries, spring, self-contained XML (``check_robot_xml``). MuJoCo
+    compiles it afterwards, inside the meta-device skeleton (``check_weights``), where its hash is compared."""
     if not isinstance(robot, dict):
         raise BodySchemaInputError(f"{where}: hyper_parameters.robot is a {type(robot).__name__}; expected a dict "
                                    f"with {list(ROBOT_ENTRIES)}")
@@ -367,14 +368,6 @@ def check_robot(robot, recorded_sha256: str | None, where: str):
         raise BodySchemaInputError(f"{where}: robot.muscles names a muscle twice: {muscles}")
     _check_spring(_entry(robot, "spring", dict, f"{where}: robot"), len(muscles), where)
     check_robot_xml(xml, f"{where}: robot.model_xml")
-    try:
-        model = MusculoskeletalModel(xml, muscles=muscles)
-    except BodySchemaInputError as err:
-        raise BodySchemaInputError(f"{where}: robot: {err}") from None
-    if recorded_sha256 is not None and model.xml_hash != recorded_sha256:
-        raise BodySchemaInputError(f"{where}: its robot XML does not match its recorded hash "
-                                   f"({model.xml_hash[:12]} != {recorded_sha256[:12]})")
-    return model
 
 
 def _check_spring(spring: dict, n_muscles: int, where: str):
@@ -385,27 +378,34 @@ def _check_spring(spring: dict, n_muscles: int, where: str):
         if name not in allowed:
             raise BodySchemaInputError(f"{where}: robot.spring has unknown entry {name!r}; allowed: {allowed}")
     for name in allowed:
+        limit = SPRING_LIMITS.get(name, sys.float_info.max)
         value = _entry(spring, name, (int, float, list), f"{where}: robot.spring")
         values = value if isinstance(value, list) else [value]
         good = (len(values) in (1, n_muscles) if isinstance(value, list) else True) and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in values)
+            isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= limit for v in values)
         if not good:
-            raise BodySchemaInputError(f"{where}: robot.spring.{name} = {str(value)[:80]}; expected a finite number "
-                                       f"> 0, or a list of {n_muscles} (one per muscle)")
+            raise BodySchemaInputError(f"{where}: robot.spring.{name} = {str(value)[:80]}; expected a number in "
+                                       f"(0, {limit:g}], or a list of {n_muscles} (one per muscle)")
 
 
 # ---------------------------------------------------------------------------- 5. the weights
-def check_weights(cls, hparams: dict, state_dict, where: str):
+def check_weights(cls, hparams: dict, state_dict, where: str, recorded_sha256: str | None = None):
     """Every tensor of ``state_dict`` against a skeleton of ``cls(**hparams)`` built on the ``meta`` device (no memory
-    allocated): names, dtypes (a float may be any float width: it is cast as before), shapes."""
+    allocated): names, dtypes (a float may be any float width: it is cast as before), shapes. Before the weights,
+    the skeleton's compiled robot must have the hash the checkpoint recorded (``recorded_sha256``)."""
     try:
         with torch.device("meta"):
-            expected = cls(**hparams).state_dict()
-    except BodySchemaInputError as err:  # a value the class itself refuses (e.g. sample_steps > n_timesteps)
-        raise BodySchemaInputError(f"{where}: hyper_parameters: {err}") from None
+            skeleton = cls(**hparams)
+    except BodySchemaInputError as err:  # the robot does not compile, or a value the class refuses
+        raise BodySchemaInputError(f"{where}: {err}") from None
     except (TypeError, ValueError, RuntimeError, NotImplementedError) as err:
         raise BodySchemaInputError(f"{where}: {cls.__name__} cannot be built from its hyperparameters on the meta "
                                    f"device ({type(err).__name__}: {str(err).splitlines()[0][:200]})") from None
+    built_sha256 = skeleton.robot_model.xml_hash
+    if recorded_sha256 is not None and built_sha256 != recorded_sha256:
+        raise BodySchemaInputError(f"{where}: its robot XML does not match its recorded hash "
+                                   f"({built_sha256[:12]} != {recorded_sha256[:12]})")
+    expected = skeleton.state_dict()
     n_elements = sum(t.numel() for t in expected.values())
     if n_elements > MAX_WEIGHT_ELEMENTS:
         raise BodySchemaInputError(f"{where}: its hyperparameters ask for {n_elements} weights; at most "
@@ -443,7 +443,6 @@ class CheckedCheckpoint:
     cls: type
     hparams: dict
     checkpoint: dict
-    robot_model: object
 
 
 def check_checkpoint(checkpoint: dict, path: str, cls=None, overrides: dict | None = None) -> CheckedCheckpoint:
@@ -453,9 +452,9 @@ def check_checkpoint(checkpoint: dict, path: str, cls=None, overrides: dict | No
     vouched = cls is not None
     cls = schema_class(meta["class_path"], cls, where)
     hparams = check_hparams(cls, checkpoint["hyper_parameters"], where, overrides, vouched)
-    model = check_robot(hparams["robot"], meta["model_xml_sha256"], where)
-    check_weights(cls, hparams, checkpoint["state_dict"], where)
-    return CheckedCheckpoint(cls, hparams, checkpoint, model)
+    check_robot(hparams["robot"], where)
+    check_weights(cls, hparams, checkpoint["state_dict"], where, meta["model_xml_sha256"])
+    return CheckedCheckpoint(cls, hparams, checkpoint)
 
 
 def load_schema(path: str, expected_model_xml_sha256: str | None = None, cls=None, overrides: dict | None = None):

@@ -46,6 +46,7 @@ SCHEMA_CONFIGS = {"AE": "ae-10", "VAE": "vae-10", "Diffusion": "diff"}
 EPOCHS = 60
 VARIANTS = ("default", "literal")
 KINDS = ("none", "paper", "random", "all_but_one_cut", "all_jammed")
+MIN_JAM_M = 1e-4  # a jam at or below 0 m is refused as input (test_checkpoint_forged.py); far below stays 0.1 mm
 # where a jammed motor stopped, relative to the healthy motor length at q_ref [m]
 OFFSETS = ("near", "below", "far_below", "above", "far_above")
 QUICK = (8, 128)  # examples x cases per example: ~1,000 cases per schema
@@ -146,14 +147,12 @@ def make_cases(schema, spec: BatchSpec, batch: int) -> tuple[FaultCases, np.ndar
             "far_below": -(10.0 ** rng.uniform(-1, 3, (batch, m))), "above": rng.uniform(0.0, 0.05, (batch, m)),
             "far_above": 10.0 ** rng.uniform(-1, 3, (batch, m))}
     delta = np.select([offset == OFFSETS.index(k) for k in OFFSETS], [size[k] for k in OFFSETS])
-    l_fixed = np.where(fix, l_healthy + delta, np.nan)
+    l_fixed = np.where(fix, np.maximum(l_healthy + delta, MIN_JAM_M), np.nan)
 
     for b, (q_b, states, l_fixed_b) in enumerate(spec.explicit[:batch]):
         q[b] = q_b
         cut[b], fix[b] = np.array(states) == "cut", np.array(states) == "jam"
-        l_fixed[b] = np.where(fix[b], l_fixed_b, np.nan)
-    # a jam length <= 0 m is refused as input (tests/faults); the fuzz keeps the absurd-but-valid 1 um instead
-    l_fixed = np.where(fix & (l_fixed <= 0), 1e-6, l_fixed)
+        l_fixed[b] = np.where(fix[b], np.maximum(l_fixed_b, MIN_JAM_M), np.nan)
     labels = np.array(KINDS + ("explicit",))[np.where(np.arange(batch) < len(spec.explicit), len(KINDS), kind)]
     cond = np.where(cut.any(1) & fix.any(1), "BOTH", np.where(cut.any(1), "CUT", np.where(fix.any(1), "FIX", "NONE")))
     return FaultCases(q, cut, fix, l_fixed, cond), labels
@@ -270,7 +269,7 @@ def test_infeasible_cases_are_counted(schemas):
     cut[:20, 1:] = True  # only muscle 0 left: cannot hold two loaded joints
     fix = np.zeros((40, m), bool)
     fix[20:, 0] = True
-    l_fixed = np.where(fix, schema.infer(q)[0] - 0.1, np.nan)  # jammed 10 cm short: the spring would need ~40x f_max
+    l_fixed = np.where(fix, MIN_JAM_M, np.nan)  # jammed at 0.1 mm, ~0.2 m short: the spring would need >> f_max
     cases = FaultCases(q, cut, fix, l_fixed, np.array(["CUT"] * 20 + ["FIX"] * 20))
     feasible, f_star = check_feasible(model, cases, schema.spring)
     assert not feasible.any() and np.isnan(f_star).all()

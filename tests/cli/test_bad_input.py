@@ -11,8 +11,9 @@ imports. Rows marked ``process=True`` run as real subprocesses, all started at o
 code and the one line reach the shell. ``ROWS_LIBRARY`` holds the same checks one level down, for code
 that calls the library directly (``Faults.from_names``, ``BodySchema.adapt``, ``load_schema``).
 
-jsonargparse refuses unknown options/keys itself (rows with ``usage=True``): it prints the usage before
-its ``error:`` line; the row asserts that line names the bad key.
+jsonargparse refuses unknown options/keys itself (rows with ``usage=True``): the CLI's parser
+(``cli_parser.OneLineErrorParser``) prints its ``error:`` line first, naming the bad key, then one line
+pointing at ``--help``, never the usage.
 """
 from __future__ import annotations
 
@@ -132,7 +133,7 @@ class Row:
     entry: str  # "cli" (bodyschema), "make_dataset", "make_cases", "adapt_cases"
     args: Callable[[dict, Path], list]  # (ctx, out) -> argv; every output under ``out``
     words: tuple[str, ...]  # must all be in the error line: the bad value and what is allowed
-    usage: bool = False  # jsonargparse/argparse usage text is allowed before the error line
+    usage: bool = False  # a parser error: the error line, then one "(... --help lists every option)" line
     process: bool = False  # run as a real subprocess
     note: str = field(default="")
 
@@ -201,12 +202,14 @@ ROWS = [
     Row("case_file_of_another_robot", "adapt_cases", adapt(other_robot_cases),
         ("cut has shape (12, 8)", "expected (12, 6)", "2 joints ['shoulder', 'elbow'] and 6 muscles")),
     # ---- configuration
-    Row("config_flag_typo", "cli", fit("--trainer.max_epoch=3"), ("--trainer.max_epoch=3",), usage=True),
+    Row("config_flag_typo", "cli", fit("--trainer.max_epoch=3"),
+        ("--trainer.max_epoch=3", "did you mean --trainer.max_epochs?"), usage=True),
     Row("config_yaml_unknown_key", "cli", fit(lambda c: f"--config={file('typo.yaml')(c)}"),
-        ("trainer.max_epoch",), usage=True),
+        ("'trainer.max_epoch'", "did you mean --trainer.max_epochs?"), usage=True),
     Row("config_yaml_unknown_init_arg", "cli", fit(lambda c: f"--config={file('typo_init_arg.yaml')(c)}", model=""),
-        ("n_timestep", "not accepted"), usage=True),
-    Row("unknown_schema_class", "cli", fit(model="--model=NoSuchSchema"), ("NoSuchSchema",), usage=True),
+        ("DiffusionSchema does not accept option 'n_timestep'", "did you mean --model.n_timesteps?"), usage=True),
+    Row("unknown_schema_class", "cli", fit(model="--model=NoSuchSchema"),
+        ("--model NoSuchSchema is not a schema class", "DiffusionSchema"), usage=True),
     Row("epochs_zero", "cli", fit("--trainer.max_epochs=0"), ("--trainer.max_epochs=0", "positive number")),
     Row("epochs_negative", "cli", fit("--trainer.max_epochs=-2"), ("--trainer.max_epochs=-2", "positive number")),
     Row("epochs_endless_with_annealing", "cli", fit("--trainer.max_epochs=-1"),
@@ -265,12 +268,13 @@ def assert_refused(row: Row, code, err: str, out: Path):
     lines = [line for line in err.splitlines() if line.strip() and not line.startswith(NOTICES)]
     errors = [i for i, line in enumerate(lines) if line.startswith("error: ")]
     assert len(errors) == 1, f"expected one 'error: ' line, got:\n{err[-3000:]}"
-    if row.usage:  # jsonargparse: usage, then its error; the key is named in the error's text
-        message = " ".join(lines[errors[0]:])
+    if row.usage:  # the parser's error first, then only the pointer to --help (no usage dump)
+        assert errors == [0] and len(lines) == 2 and lines[1].endswith("--help lists every option)"), err
+        message = lines[0]
     else:
         assert lines == [lines[errors[0]]], f"expected exactly one line, got:\n{err}"
         message = lines[0]
-    print(f"\n[{row.id}] {message[-400:] if row.usage else message}")  # shown with -s: the table's messages
+    print(f"\n[{row.id}] {message}")  # shown with -s: the table's messages
     for word in row.words:
         assert word in message, f"{word!r} not in {message!r}"
     leftovers = [p for p in out.rglob("*") if p.is_file()] if out.exists() else []

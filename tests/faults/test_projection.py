@@ -66,7 +66,7 @@ def test_a_feasible_command_is_left_exactly_as_it_is_and_the_projection_is_idemp
     for mode in ("box", "spring"):
         proj = _projection(faults, mode)
         x = _normalized(l, f)
-        assert (proj.offset(x) == 0).all(), mode
+        assert proj.offset(x).abs().max() < 1e-12, mode  # exactly 0 in box mode, rounding in spring mode
         bad = _normalized(l + 0.02, f)
         once = proj(bad)
         torch.testing.assert_close(proj(once), once, rtol=0, atol=1e-12)

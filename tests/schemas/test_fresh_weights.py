@@ -38,11 +38,11 @@ def test_each_validation_sees_the_current_weights_and_matches_bodyschema_validat
               "--faults.every_n_epochs=0", "--progress.enabled=false"]
     _cli("fit", *common, "--trainer.max_epochs=40", "--trainer.check_val_every_n_epoch=20")
     log_dir = glob.glob(f"{tmp_path}/lightning_logs/version_0")[0]
-    first, second = _scalars(log_dir, "val/eq_residual_nm")
+    first, second = _scalars(log_dir, "val/eq_residual_N_m")
     assert first != second  # the second validation ran on trained-further weights
     ckpt = glob.glob(f"{log_dir}/checkpoints/last.ckpt")[0]
     cli = _cli("validate", *common, f"--ckpt_path={ckpt}")
-    assert float(cli.trainer.callback_metrics["val/eq_residual_nm"]) == pytest.approx(second, rel=1e-6)
+    assert float(cli.trainer.callback_metrics["val/eq_residual_N_m"]) == pytest.approx(second, rel=1e-6)
 
 
 @pytest.mark.parametrize("cls", list(SCHEMAS.values()), ids=list(SCHEMAS))

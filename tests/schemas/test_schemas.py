@@ -78,11 +78,11 @@ def test_tensorboard_has_scalars_and_the_figure(tmp_path):
     events = EventAccumulator(logdir, size_guidance={"images": 0, "scalars": 0})
     events.Reload()
     scalars = set(events.Tags()["scalars"])
-    for tag in ("train/loss", "train/lr", "val/loss", "val/eq_residual_nm", "val/length_residual_mm",
+    for tag in ("train/loss", "train/lr", "val/loss", "val/eq_residual_N_m", "val/length_residual_mm",
                 "val/f_err_n", "val/l_motor_err_mm"):
         assert tag in scalars, f"{tag} missing from {sorted(scalars)}"
     assert "val/reconstruction" in events.Tags()["images"]
-    assert np.isfinite(events.Scalars("val/eq_residual_nm")[-1].value)
+    assert np.isfinite(events.Scalars("val/eq_residual_N_m")[-1].value)
 
 
 def test_subclass_example_trains_through_the_cli(tmp_path):

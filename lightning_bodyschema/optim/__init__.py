@@ -1,3 +1,0 @@
-from .lean_adam import LeanFusedAdam
-
-__all__ = ["LeanFusedAdam"]

@@ -1,0 +1,141 @@
+"""What a new user of ``bodyschema`` sees: short errors with a "did you mean", a help text that says what the
+tool is, no ``predict`` subcommand, a clean exit code, outputs under runs/, and physical metrics at the end
+of every fit whatever the validation interval.
+
+Every check runs the real CLI (``lightning_bodyschema.cli.main``, in-process; one subprocess for the
+console-script exit code).
+"""
+from __future__ import annotations
+
+import glob
+import subprocess
+import sys
+import warnings
+
+import numpy as np
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from lightning_bodyschema.cli import main as cli_main
+
+TINY = ["--model=DiffusionSchema", "--data.n_samples=200", "--faults.every_n_epochs=0", "--progress.enabled=false"]
+
+
+def run_cli(args, capsys) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of ``bodyschema args`` run in-process."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        cli_main(args)
+    out, err = capsys.readouterr()
+    return info.value.code, out, err
+
+
+def error_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.strip() and not line.startswith("Seed set to")]
+
+
+# ---------------------------------------------------------------------------- errors: one line, did you mean
+@pytest.mark.parametrize("args, bad, suggestion", [
+    (["fit", "--trainer.max_epoch=3"], "--trainer.max_epoch", "did you mean --trainer.max_epochs?"),
+    (["fit", "--trainer.check_val_every_n_epochs", "5"], "--trainer.check_val_every_n_epochs",
+     "did you mean --trainer.check_val_every_n_epoch?"),
+    (["fit", "--data.n_sample=100"], "--data.n_sample", "did you mean --data.n_samples?"),
+    (["fit", "--model.hiden=32"], "'hiden'", "did you mean --model.hidden?"),
+    (["fit", "--model=DifusionSchema"], "DifusionSchema", "did you mean DiffusionSchema?"),
+])
+def test_a_typo_is_one_error_line_with_a_suggestion_then_a_pointer_to_help(args, bad, suggestion, capsys):
+    model = [] if any(a.startswith("--model=") for a in args) else ["--model=DiffusionSchema"]
+    code, _, err = run_cli([args[0], *model, *args[1:]], capsys)
+    lines = error_lines(err)
+    assert code == 2
+    assert "usage:" not in err and "Traceback" not in err
+    assert len(lines) == 2, err  # was ~90 lines of usage before the error
+    assert lines[0].startswith("error: ") and bad in lines[0] and lines[0].endswith(suggestion), lines[0]
+    assert lines[1] == "(bodyschema fit --help lists every option)"
+
+
+def test_an_option_nothing_resembles_gets_no_suggestion(capsys):
+    code, _, err = run_cli(["fit", "--model=DiffusionSchema", "--zzz.qqq=1"], capsys)
+    lines = error_lines(err)
+    assert code == 2 and len(lines) == 2 and "--zzz.qqq" in lines[0] and "did you mean" not in lines[0]
+
+
+def test_help_describes_the_tool_and_lists_no_predict(capsys):
+    code, out, _ = run_cli(["--help"], capsys)
+    assert code == 0
+    assert "Lightning Trainer command line tool" not in out
+    assert "body schema" in out and "musculoskeletal" in out and "tools/predict.py" in out
+    assert "{fit,validate,test}" in out  # the subcommands, without predict
+
+
+def test_predict_is_refused_naming_the_tool_that_serves_requests(capsys):
+    code, _, err = run_cli(["predict", "--model=DiffusionSchema"], capsys)
+    lines = error_lines(err)
+    assert code == 2 and "Traceback" not in err and len(lines) == 2, err
+    assert "'predict'" in lines[0] and "python tools/predict.py" in lines[0]
+
+
+def test_main_with_args_never_reads_sys_argv(monkeypatch, capsys):
+    """pytest's own argv used to reach LightningCLI (a warning per call); a bogus argv must change nothing."""
+    monkeypatch.setattr(sys, "argv", ["pytest", "--this-is-not-a-bodyschema-option", "tests/"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # "args and sys.argv both given" would fail here
+        code, out, _ = run_cli(["--help"], capsys)
+    assert code == 0 and "bodyschema" in out
+
+
+# ---------------------------------------------------------------------------- a short fit
+@pytest.fixture(scope="module")
+def short_fit(tmp_path_factory):
+    """A 7-epoch fit validating every 5 epochs, run from an empty folder with no output option at all."""
+    folder = tmp_path_factory.mktemp("short_fit")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(folder)
+        cli = cli_main(["fit", *TINY, "--trainer.max_epochs=7", "--trainer.check_val_every_n_epoch=5"])
+    return folder, cli
+
+
+def test_outputs_land_under_runs(short_fit):
+    folder, cli = short_fit
+    written = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+    assert written and all(path.startswith("runs/") for path in written), written
+    assert any(path.startswith("runs/cache/") for path in written)  # the dataset cache, was data/cache
+    assert glob.glob(str(folder / "runs/lightning_logs/version_0/checkpoints/last.ckpt"))
+
+
+def test_every_fit_validates_at_its_end(short_fit):
+    """Validation at epoch 5 (the interval) and at epoch 7 (the end), with the end weights' metrics."""
+    folder, cli = short_fit
+    events = EventAccumulator(str(folder / "runs/lightning_logs/version_0"))
+    events.Reload()
+    scalars = events.Scalars("val/eq_residual_N_m")
+    assert [s.step for s in scalars] == [4, 6]  # current_epoch at validation: epochs 5 and 7
+    batch = cli.datamodule.splits["val"]
+    final = cli.model.physical_errors(batch[0], batch[1])["eq_residual_N_m"]
+    assert scalars[-1].value == pytest.approx(final, rel=1e-5)  # the last weights, not epoch 5's
+    assert scalars[0].value != pytest.approx(scalars[-1].value, rel=1e-6)
+    assert cli.trainer.check_val_every_n_epoch == 5  # the user's interval is back after the fit
+
+
+def test_a_fit_shorter_than_the_interval_still_validates(tmp_path, capsys):
+    cli = cli_main(["fit", *TINY, "--trainer.max_epochs=2", "--trainer.check_val_every_n_epoch=500",
+                    f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
+    metric = float(cli.trainer.callback_metrics["val/eq_residual_N_m"])
+    assert np.isfinite(metric) and metric > 0
+
+
+def test_final_validation_can_be_turned_off(tmp_path):
+    cli = cli_main(["fit", *TINY, "--trainer.max_epochs=2", "--trainer.check_val_every_n_epoch=500",
+                    "--final_validation.enabled=false", f"--trainer.default_root_dir={tmp_path}",
+                    f"--data.cache_dir={tmp_path}/cache"])
+    assert "val/eq_residual_N_m" not in cli.trainer.callback_metrics
+
+
+def test_the_console_script_exits_0_after_a_fit(tmp_path):
+    """``sys.exit(main())`` is what the installed ``bodyschema`` script runs: a returned object exits 1."""
+    script = ("import sys; from lightning_bodyschema.cli import main; "
+              f"sys.argv = ['bodyschema', 'fit', *{TINY!r}, '--trainer.max_epochs=1', "
+              f"'--trainer.default_root_dir={tmp_path}', '--data.cache_dir={tmp_path}/cache']; sys.exit(main())")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "BodySchemaCLI object" not in done.stderr

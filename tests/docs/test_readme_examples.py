@@ -1,0 +1,155 @@
+"""The README's Python and YAML examples run, and return commands.
+
+Every fenced ``python`` and ``yaml`` block of README.md is extracted and either run against a small trained
+checkpoint or listed in ``NOT_RUN`` with the reason; a new block that is neither fails
+``test_every_block_is_run_or_explained``. Feasibility is physics (the QP on the true arm at q_ref), not the
+network, so a few-epoch checkpoint decides ``ok`` / ``infeasible`` as a 10000-epoch one does: the README's
+faults were chosen feasible, and its infeasible example infeasible, on the real thing.
+
+The Python blocks run in README order in one namespace, from a folder where the README's checkpoint path
+exists, with ``send`` recording what the controller would receive.
+"""
+from __future__ import annotations
+
+import inspect
+import json
+import re
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from physics_checks import fit_tiny_checkpoint, torque_residual, train_schema
+
+from lightning_bodyschema.apps.predict import predict_main
+from lightning_bodyschema.data import EquilibriumDataModule
+
+ROOT = Path(__file__).resolve().parents[2]
+README_CKPT = "runs/diff/lightning_logs/version_0/checkpoints/last.ckpt"  # the path the README loads
+# fenced blocks, possibly indented (inside a list item): indent, language, body
+_FENCE = re.compile(r"^( *)```(\w+)\n(.*?)^\1```", re.MULTILINE | re.DOTALL)
+
+# blocks identified by a line they contain
+FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA = ("schema.adapt(q_ref, faults)", "too_short = Faults",
+                                                "schema.adapter(", "class RegressionSchema")
+REQUESTS, OWN_ROBOT = ("- q_ref:", "model: path/to/my_robot.xml")
+RUN = {"python": (FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA), "yaml": (REQUESTS, OWN_ROBOT)}
+NOT_RUN: dict[str, str] = {}  # marker -> why a block cannot run (none today)
+
+
+def readme_blocks(language: str) -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    return [textwrap.dedent(textwrap.indent(body, indent)) if indent else body
+            for indent, lang, body in _FENCE.findall(text) if lang == language]
+
+
+def block(language: str, marker: str) -> str:
+    found = [b for b in readme_blocks(language) if marker in b]
+    assert len(found) == 1, f"expected one README {language} block containing {marker!r}, found {len(found)}"
+    return found[0]
+
+
+def test_every_block_is_run_or_explained():
+    for language in ("python", "yaml"):
+        for body in readme_blocks(language):
+            markers = [m for m in (*RUN[language], *NOT_RUN) if m in body]
+            assert len(markers) == 1, f"README {language} block neither run by this file nor in NOT_RUN:\n{body}"
+
+
+# ---------------------------------------------------------------------------- the checkpoint and the namespace
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    """A folder holding the README's checkpoint path: a 3-epoch diffusion fit of the paper arm."""
+    folder = tmp_path_factory.mktemp("readme")
+    ckpt = fit_tiny_checkpoint(folder / "runs" / "diff", "--data.n_samples=200", "--faults.every_n_epochs=0",
+                               "--progress.enabled=false")
+    assert Path(ckpt) == folder / README_CKPT
+    return folder
+
+
+@pytest.fixture(scope="module")
+def readme_python(workdir):
+    """The namespace after the "From Python" block, and what it sent."""
+    sent = []
+    namespace = {"send": lambda l_motor_m, f_n: sent.append((np.asarray(l_motor_m), np.asarray(f_n)))}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(workdir)
+        exec(compile(block("python", FROM_PYTHON), "README.md:From Python", "exec"), namespace)
+    return namespace, sent
+
+
+def test_from_python_sends_a_command_that_holds_the_posture(readme_python):
+    namespace, sent = readme_python
+    result, schema = namespace["result"], namespace["schema"]
+    assert list(result.status) == ["ok"]
+    assert len(sent) == 1  # send() ran: the example returns a command
+    l_motor_m, f_n = sent[0]
+    assert np.isfinite(l_motor_m).all() and np.isfinite(f_n).all()
+    assert f_n[0] == 0.0  # the cut shoulder flexor pulls nothing (tensions are clipped into [0, f_max])
+    assert (0.0 <= f_n).all() and (f_n <= schema.spring.f_max_n).all()
+    assert result.diagnostics["feasible"][0]  # the physics says a command exists at all
+
+
+def test_the_infeasible_example_is_infeasible(readme_python):
+    namespace, _ = readme_python
+    exec(compile(block("python", INFEASIBLE), "README.md:infeasible", "exec"), namespace)  # its assert holds
+    result = namespace["result"]
+    assert not result.diagnostics["feasible"][0]
+    assert np.isnan(result.l_motor_m).all() and np.isnan(result.f_n).all()
+    assert np.isfinite(namespace["best_effort"]).all()
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_the_prepared_adapter_returns_what_adapt_returns(readme_python, compiled):
+    """The block as written compiles the loop (~20 s on first use): the default run uses the eager loop."""
+    namespace, _ = readme_python
+    source = block("python", ADAPTER)
+    if not compiled:
+        assert "compiled=True" in source
+        source = source.replace("compiled=True", "compiled=False")
+    ns = dict(namespace)
+    exec(compile(source, "README.md:adapter", "exec"), ns)
+    reference = ns["schema"].adapt(ns["q_ref"], ns["faults"], n_steps=20)
+    assert list(ns["result"].status) == list(reference.status) == ["ok"]
+    np.testing.assert_allclose(ns["result"].l_motor_m, reference.l_motor_m, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(ns["result"].f_n, reference.f_n, rtol=0, atol=1e-3)
+
+
+def test_the_new_architecture_block_learns_the_body_schema(dm):
+    """The README's RegressionSchema (with the imports of examples/regression_schema.py) trains through the base
+    class: after 40 epochs its healthy commands hold the arm far better than the mean command of the data."""
+    namespace = {}
+    exec("from typing import Optional\nfrom torch import nn\nfrom lightning_bodyschema.schemas import BodySchema\n"
+         + block("python", NEW_SCHEMA), namespace)
+    schema, _, _ = train_schema(namespace["RegressionSchema"], 40, dm)
+    q, x = dm.splits["val"]
+    learned = schema.physical_errors(q, x)["eq_residual_N_m"]
+    mean_f = np.broadcast_to(dm.splits["train"][1][:, schema.n_muscles:].numpy().mean(0), (len(q), schema.n_muscles))
+    baseline = float(np.median(torque_residual(schema.robot_model, q.numpy(), mean_f)))
+    assert learned < 0.5 * baseline, (learned, baseline)
+
+
+# ---------------------------------------------------------------------------- YAML
+def test_the_request_block_is_examples_requests_yaml():
+    shown = yaml.safe_load(block("yaml", REQUESTS))
+    assert shown == yaml.safe_load((ROOT / "examples" / "requests.yaml").read_text())
+
+
+def test_every_request_of_examples_requests_yaml_returns_a_command(workdir, tmp_path):
+    out = tmp_path / "commands.json"
+    predict_main(["--ckpt", str(workdir / README_CKPT), "--requests", str(ROOT / "examples" / "requests.yaml"),
+                  "--out", str(out)])
+    results = json.loads(out.read_text())["results"]
+    assert [r["status"] for r in results] == ["ok"] * len(results) and len(results) == 2
+    for r in results:
+        assert all(np.isfinite(r["l_motor"])) and all(np.isfinite(r["f"]))
+    weak = results[1]
+    assert weak["f"][2] <= 60.0  # the weakened elbow flexor's tension stays within its f_max'
+
+
+def test_the_own_robot_block_names_real_data_options():
+    """The "Bring your own robot" block has a placeholder path, so it cannot run; its keys must be real options."""
+    shown = yaml.safe_load(block("yaml", OWN_ROBOT))
+    options = set(inspect.signature(EquilibriumDataModule.__init__).parameters) - {"self"}
+    assert set(shown["data"]) <= options, set(shown["data"]) - options

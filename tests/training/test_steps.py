@@ -1,0 +1,151 @@
+"""Training through Lightning's automatic optimization: one training step per minibatch, so the Trainer's options
+mean what Lightning documents (global_step = optimizer steps, max_steps, val_check_interval, log_every_n_steps,
+ModelCheckpoint(every_n_train_steps), gradient_clip_val, accumulate_grad_batches) for every schema."""
+import csv
+import glob
+import os
+import warnings
+
+import lightning as L
+import pytest
+import torch
+from lightning.pytorch.callbacks import Callback, EarlyStopping, ModelCheckpoint
+from lightning.pytorch.loggers import CSVLogger
+
+from lightning_bodyschema.data.datamodule import MinibatchLoader, ShardSampler
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema
+
+SCHEMAS = {"diff": DiffusionSchema, "ae": AutoEncoderSchema, "vae": VAESchema}
+warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+
+
+def trainer(**options):
+    defaults = dict(logger=False, enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                    num_sanity_val_steps=0, check_val_every_n_epoch=10 ** 6)
+    return L.Trainer(**{**defaults, **options})
+
+
+def adam_steps(schema) -> int:
+    """Optimizer steps Adam has taken (its per-parameter step count)."""
+    optimizer = schema.trainer.optimizers[0]
+    return int(next(iter(optimizer.state.values()))["step"])
+
+
+# ------------------------------------------------------------------------------------------ serving minibatches
+def test_shards_are_disjoint_cover_the_split_and_reshuffle_per_epoch():
+    n = 640
+    shards = [ShardSampler(n, seed=3, rank=r, world_size=2) for r in range(2)]
+    first = [s.indices() for s in shards]
+    assert len(first[0]) == len(first[1]) == n // 2
+    assert set(first[0].tolist()).isdisjoint(first[1].tolist())
+    assert sorted(first[0].tolist() + first[1].tolist()) == list(range(n))
+    for s in shards:
+        s.set_epoch(1)
+    second = [s.indices() for s in shards]
+    assert not torch.equal(first[0], second[0])  # a new permutation each epoch
+    again = ShardSampler(n, seed=3, rank=0, world_size=2)
+    again.set_epoch(1)
+    assert torch.equal(again.indices(), second[0])  # from the seed and the epoch alone
+    odd = [ShardSampler(641, seed=0, rank=r, world_size=2).indices() for r in range(2)]
+    assert len(odd[0]) == len(odd[1]) == 321  # equal step counts on every rank (DistributedSampler's padding)
+    assert set(odd[0].tolist()) | set(odd[1].tolist()) == set(range(641))
+
+
+def test_minibatches_slice_the_split_in_the_shards_order():
+    q, x = torch.arange(10.0)[:, None], torch.arange(10.0)[:, None] * 10
+    loader = MinibatchLoader(q, x, 4, ShardSampler(10, seed=0))
+    batches = list(loader)
+    assert len(loader) == len(batches) == 3 and [len(b[0]) for b in batches] == [4, 4, 2]
+    order = torch.cat([b[0][:, 0] for b in batches])
+    assert torch.equal(order, ShardSampler(10, seed=0).indices().double())
+    assert all(torch.equal(bx, 10 * bq) for bq, bx in batches)  # q and x rows stay paired
+    with pytest.raises(BodySchemaInputError, match="batch_size"):
+        MinibatchLoader(q, x, 0, ShardSampler(10, seed=0))
+
+
+# ------------------------------------------------------------------------------------------ steps as Lightning means them
+@pytest.mark.parametrize("name", SCHEMAS)
+def test_global_step_counts_optimizer_steps_and_max_steps_ends_the_fit(dm, name):
+    L.seed_everything(0)
+    schema = SCHEMAS[name](robot=dm.robot)
+    fit = trainer(max_steps=25, max_epochs=100)
+    fit.fit(schema, dm)
+    assert fit.global_step == 25 and adam_steps(schema) == 25
+    assert fit.num_training_batches == 10  # 640 samples in batches of 64: the fit stopped inside its third epoch
+    (config,) = fit.lr_scheduler_configs
+    assert config.scheduler.T_max == 3  # the cosine spans the epochs max_steps allows, not max_epochs
+
+
+@pytest.fixture(scope="module")
+def logged_fit(dm, tmp_path_factory):
+    """A 20-step diffusion fit validating every 5 steps, logging every 3, checkpointing every 7."""
+    root = tmp_path_factory.mktemp("steps")
+
+    class CountValidations(Callback):
+        steps = []
+
+        def on_validation_end(self, trainer, pl_module):
+            self.steps.append(trainer.global_step)
+
+    L.seed_everything(0)
+    schema = DiffusionSchema(robot=dm.robot)
+    every7 = ModelCheckpoint(dirpath=root / "ckpt", every_n_train_steps=7, save_top_k=-1, filename="{step}")
+    counter = CountValidations()
+    fit = trainer(max_steps=20, val_check_interval=5, check_val_every_n_epoch=None, log_every_n_steps=3,
+                  logger=CSVLogger(root, name="csv"), enable_checkpointing=True, callbacks=[every7, counter])
+    fit.fit(schema, dm)
+    return fit, counter.steps, root
+
+
+def test_val_check_interval_counts_training_steps(logged_fit):
+    _, validated_at, _ = logged_fit
+    assert validated_at == [5, 10, 15, 20]
+
+
+def test_log_every_n_steps_writes_train_loss_every_n_optimizer_steps(logged_fit):
+    fit, _, _ = logged_fit
+    with open(os.path.join(fit.logger.log_dir, "metrics.csv")) as f:
+        rows = [r for r in csv.DictReader(f) if r.get("train/loss")]
+    assert [int(r["step"]) for r in rows] == [2, 5, 8, 11, 14, 17]  # steps 3, 6, ..., 18 (0-based in the file)
+    assert all(float(r["train/loss"]) > 0 for r in rows)
+
+
+def test_checkpoint_every_n_train_steps(logged_fit):
+    _, _, root = logged_fit
+    names = sorted(os.path.basename(p) for p in glob.glob(str(root / "ckpt" / "*.ckpt")))
+    assert names == ["step=14.ckpt", "step=7.ckpt"]
+
+
+def test_gradient_clip_val_bounds_every_step(dm):
+    class GradNorms(Callback):
+        norms = []
+
+        def on_train_start(self, trainer, pl_module):  # the gradients the optimizer used (the closure runs in step)
+            trainer.optimizers[0].register_step_post_hook(lambda opt, *_: self.norms.append(float(torch.linalg.vector_norm(
+                torch.stack([p.grad.norm() for p in pl_module.parameters() if p.grad is not None])))))
+
+    L.seed_everything(0)
+    schema = DiffusionSchema(robot=dm.robot)
+    recorder = GradNorms()
+    trainer(max_steps=12, gradient_clip_val=1e-3, callbacks=[recorder]).fit(schema, dm)
+    assert len(recorder.norms) == 12 and max(recorder.norms) <= 1e-3 * (1 + 1e-5)
+
+
+def test_accumulate_grad_batches_steps_once_per_n_batches(dm):
+    L.seed_everything(0)
+    schema = VAESchema(robot=dm.robot)
+    fit = trainer(max_epochs=3, accumulate_grad_batches=2)
+    fit.fit(schema, dm)
+    assert fit.global_step == 15 and adam_steps(schema) == 15
+
+
+def test_early_stopping_on_the_validation_residual_stops_a_fit(dm):
+    L.seed_everything(0)
+    schema = AutoEncoderSchema(robot=dm.robot)
+    # an improvement of 1e3 N m per validation is impossible: the fit stops after patience + 1 validations
+    stop = EarlyStopping(monitor="val/eq_residual_N_m", mode="min", patience=1, min_delta=1e3)
+    fit = trainer(max_epochs=50, check_val_every_n_epoch=2, callbacks=[stop])
+    fit.fit(schema, dm)
+    assert fit.should_stop and stop.stopped_epoch == 3 and fit.current_epoch == 4
+    assert "val/eq_residual_N_m" in fit.callback_metrics
