@@ -30,7 +30,8 @@ _CLOSE_ENOUGH = 0.75  # difflib ratio: max_epoch -> max_epochs is 0.95; unrelate
 _BAD_FLAG = re.compile(r"(--[\w.\-]+)")
 _BAD_KEY = re.compile(r"(?:option|key|Key)\s+'([\w.\-]+)'")
 _INVALID_CHOICE = re.compile(r"invalid choice: '([^']*)'")
-# a class's init argument that does not exist: jsonargparse lists it inside a multi-line Union error
+# jsonargparse's multi-line Union errors, reduced to their one fact: an unknown --model class, or an init argument
+# the class does not have
 _UNKNOWN_CLASS = re.compile(r"Parser key \"model\": - Expected a path but (\S+) either not accessible")
 _CLASS_OPTION = re.compile(r"Parser key \"([\w.]+)\".*class_path '([\w.]+)': Option '([\w.]+)' is not accepted")
 

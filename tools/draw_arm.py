@@ -6,7 +6,9 @@
     python tools/draw_arm.py --model myo:myoelbow_2dof --site r_radius_styloid --out docs/myoelbow.png
 
 The default output is under runs/ (git-ignored): docs/arm.png is the README's tracked figure and is
-replaced only when asked for (``--out docs/arm.png``). Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
+replaced only when asked for (``--out docs/arm.png``).
+
+Without --q, three postures placed in each joint's own range (mid-range and two bent ones; for the
 paper arm's [-1, 1] ranges: 0,0  0.8,0.6  -0.7,-0.9).
 
 Exit status 2 with one line on stderr for bad input (unknown model, posture out of range, ...).

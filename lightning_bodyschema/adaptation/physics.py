@@ -11,7 +11,8 @@ def flag_infeasible(result: AdaptationResult, robot_model, q: np.ndarray, faults
     """Status ``infeasible`` and NaN rows where no command can hold ``q (B, N)`` under ``faults`` (jammed wires pull:
     ``evaluation.feasibility``, ~60 us per case). The schema's best effort stays in ``diagnostics``."""
     feasible, _ = feasible_tensions(robot_model, q, faults, spring)
-    bad = ~feasible & (result.status == "ok")
+    # the physical reason wins: a case no command can hold is infeasible even where the sampler also diverged
+    bad = ~feasible & np.isin(result.status, ("ok", "non_finite", "out_of_range"))
     result.diagnostics.update(feasible=feasible, best_effort_l_motor_m=result.l_motor_m.copy(),
                               best_effort_f_n=result.f_n.copy())
     result.status[bad] = "infeasible"

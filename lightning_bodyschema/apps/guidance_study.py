@@ -66,7 +66,8 @@ def table(cases, runs: dict, keep=None, seed: int = 0) -> list[dict]:
             sel = (cases.cond == cond) & keep
             if not sel.any():
                 continue
-            row = {"variant": name, "condition": cond, "n": int(sel.sum()), "ms_per_case": run["ms_per_case"]}
+            row = {"variant": name, "condition": cond, "n": int(sel.sum()), "ms_per_case": run["ms_per_case"],
+                   "not_ok": int((run["status"][sel] != "ok").sum())}  # NaN rows: left out of the medians
             for k in METRICS:
                 values = np.asarray(run["metrics"][k], float)[sel]
                 row[k] = float(np.nanmedian(values)) if np.isfinite(values).any() else None
@@ -79,10 +80,11 @@ def table(cases, runs: dict, keep=None, seed: int = 0) -> list[dict]:
 
 def markdown(rows: list[dict]) -> str:
     fmt = lambda v: "-" if v is None else f"{v:.3g}"  # noqa: E731
-    out = ["| variant | cond | n | " + " | ".join(METRICS) + " | dE_tau 95% | dE_q 95% | ms/case |",
-           "|---|---|---|" + "---|" * (len(METRICS) + 3)]
+    out = ["| variant | cond | n | not ok | " + " | ".join(METRICS) + " | dE_tau 95% | dE_q 95% | ms/case |",
+           "|---|---|---|---|" + "---|" * (len(METRICS) + 3)]
     for r in rows:
-        out.append(f"| {r['variant']} | {r['condition']} | {r['n']} | " + " | ".join(fmt(r[k]) for k in METRICS)
+        out.append(f"| {r['variant']} | {r['condition']} | {r['n']} | {r['not_ok']} | "
+                   + " | ".join(fmt(r[k]) for k in METRICS)
                    + " | " + " | ".join("[{:+.3g}, {:+.3g}]".format(*r[f"d{k}_95"]) for k in ("E_tau", "E_q"))
                    + f" | {r['ms_per_case']:.3g} |")
     return "\n".join(out)
@@ -126,7 +128,8 @@ def main(argv=None):
         start = time.perf_counter()
         result = schema.adapt(cases.q_ref, cases.faults, variant=variant, check_physics=False, **options)
         ms = 1e3 * (time.perf_counter() - start) / len(cases.q_ref)
-        runs[label] = {"metrics": score(schema, cases, result.l_motor_m, result.f_n), "ms_per_case": ms}
+        runs[label] = {"metrics": score(schema, cases, result.l_motor_m, result.f_n), "ms_per_case": ms,
+                       "status": result.status}
     keep = None
     if args.subset == "feasible":
         from ..evaluation.feasibility import check_feasible

@@ -17,14 +17,21 @@ class FinalValidation(Callback):
         """enabled: False keeps Lightning's plain interval (no validation at the end unless it falls due)."""
         self.enabled = enabled
         self._interval = None  # the user's check_val_every_n_epoch while the last epoch is forced
+        self._epoch_start_step = None  # global_step when the current epoch started
+        self._steps_per_epoch = None  # optimizer steps the last epoch took (a schema may step once per minibatch)
 
     def on_train_epoch_start(self, trainer, pl_module):
-        if not self.enabled or trainer.check_val_every_n_epoch is None or not _is_last_epoch(trainer):
+        self._epoch_start_step = trainer.global_step
+        steps = self._steps_per_epoch or trainer.num_training_batches
+        if not self.enabled or trainer.check_val_every_n_epoch is None or not _is_last_epoch(trainer, steps):
             return
         epoch = trainer.current_epoch + 1  # epochs completed when this one ends
         if epoch % trainer.check_val_every_n_epoch != 0:  # Lightning would skip validation here
             self._interval = trainer.check_val_every_n_epoch
             trainer.check_val_every_n_epoch = epoch  # epoch % epoch == 0: this epoch validates
+
+    def on_train_epoch_end(self, trainer, pl_module):
+        self._steps_per_epoch = trainer.global_step - self._epoch_start_step
 
     def on_train_end(self, trainer, pl_module):
         self._restore(trainer)
@@ -37,10 +44,10 @@ class FinalValidation(Callback):
             trainer.check_val_every_n_epoch, self._interval = self._interval, None
 
 
-def _is_last_epoch(trainer) -> bool:
-    """True when the epoch starting now is the fit's last (``max_epochs`` reached, or ``max_steps`` at its end)."""
+def _is_last_epoch(trainer, steps_per_epoch) -> bool:
+    """True when the epoch starting now is the fit's last: ``max_epochs`` reached, or ``max_steps`` reached within it
+    (``steps_per_epoch``: optimizer steps an epoch takes, as the previous epoch did)."""
     if trainer.max_epochs is not None and trainer.max_epochs > 0 and trainer.current_epoch + 1 >= trainer.max_epochs:
         return True
-    steps_per_epoch = trainer.num_training_batches  # one optimizer step per batch (one batch per epoch here)
-    return (trainer.max_steps is not None and trainer.max_steps > 0 and steps_per_epoch != float("inf")
+    return (trainer.max_steps is not None and trainer.max_steps > 0 and steps_per_epoch not in (None, float("inf"))
             and trainer.global_step + steps_per_epoch >= trainer.max_steps)

@@ -48,9 +48,14 @@ class BenchmarkResult:
 
     def summary(self) -> dict:
         """{kind: {reading: {cond: {subset: {metric: median}}}}} with subsets "all" and "feasible"."""
+        # the same metric keys for every command kind (None where a kind has no finite value, e.g. every adapted
+        # command failed), so the summary's shape depends on the cases, not on how a schema did
+        names = [m for m in SUMMARY_METRICS if any(m in values and _defined(values[m])
+                                                   for by_reading in self.metrics.values()
+                                                   for values in by_reading.values())]
         out = {}
         for kind, by_reading in self.metrics.items():
-            out[kind] = {reading: self._by_condition(values, self.feasible[reading])
+            out[kind] = {reading: self._by_condition(values, self.feasible[reading], names)
                          for reading, values in by_reading.items()}
         return out
 
@@ -63,15 +68,14 @@ class BenchmarkResult:
         plain = self.metrics["unadapted"]["phys"]
         return (np.nan_to_num(plain["E_cut"]) > ACTIVE_CUT_N) | (np.nan_to_num(plain["E_fix"]) > ACTIVE_FIX_M)
 
-    def _by_condition(self, values, feasible):
+    def _by_condition(self, values, feasible, names):
         table = {}
         subsets = (("all", np.ones(len(self.cases), bool)), ("feasible", feasible),
                    ("feasible_active", feasible & self.active))
         for cond in dict.fromkeys(self.cases.cond.tolist()):
             rows = self.cases.cond == cond
-            names = [m for m in SUMMARY_METRICS if m in values and _defined(values[m])]
-            table[cond] = {subset: {m: _median(values[m][rows & mask]) for m in names} | {"n": int((rows & mask).sum())}
-                           for subset, mask in subsets}
+            table[cond] = {subset: {m: _median(values[m][rows & mask]) if m in values else None for m in names}
+                           | {"n": int((rows & mask).sum())} for subset, mask in subsets}
         return table
 
 

@@ -47,6 +47,9 @@ class GuidanceConfig:
     inpaint_min_abar: inpaint only where abar_t >= inpaint_min_abar (0: at every guided step). At the noisier
       steps the predicted x0 is still far from the data, and snapping it costs accuracy in conditions where the
       faults need little change (RESULTS.md, binding study).
+    inpaint_n_guide: guidance steps per timestep where the step inpaints (at least ``n_guide``). With one, the eps the
+      step keeps was predicted before the guidance moved x_t, and on faults no command can meet that stale pair
+      diverged (4 of 500 binding cases, most infeasible paper cases); the second re-predicts eps at the guided x_t.
     recurrence: denoise t -> t' then re-noise t' -> t with fresh seeded noise, ``recurrence`` times per step
       (universal guidance's recurrence; 1: none). Autograd reference loop only.
     project_xt: also project x_t itself (scaled to x0 units) after every step, as projected diffusion models do.
@@ -59,6 +62,7 @@ class GuidanceConfig:
     min_abar: float = 0.0
     inpaint: str = "none"
     inpaint_min_abar: float = 0.0
+    inpaint_n_guide: int = 2
     recurrence: int = 1
     project_xt: bool = False
 
@@ -67,7 +71,7 @@ class GuidanceConfig:
             raise BodySchemaInputError(f"unknown step_scale {self.step_scale!r}; allowed: {list(STEP_SCALES)}")
         if self.inpaint not in INPAINT:
             raise BodySchemaInputError(f"unknown inpaint {self.inpaint!r}; allowed: {list(INPAINT)}")
-        for name in ("n_guide", "recurrence"):
+        for name in ("n_guide", "inpaint_n_guide", "recurrence"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise BodySchemaInputError(f"{name}={value!r} must be an integer >= 1")
@@ -82,11 +86,13 @@ class GuidanceConfig:
         return {"none": 1.0, "sqrt_abar": math.sqrt(abar), "abar": abar}[self.step_scale]
 
     def n_guide_at(self, abar: float) -> int:
-        return self.n_guide if abar >= self.min_abar else 0
+        if abar < self.min_abar:
+            return 0
+        return max(self.n_guide, self.inpaint_n_guide) if self.inpaints_at(abar) else self.n_guide
 
     def inpaints_at(self, abar: float) -> bool:
         """True where a guided step at alpha_bar_t = ``abar`` inpaints its x0."""
-        return self.inpaint != "none" and abar >= self.inpaint_min_abar and self.n_guide_at(abar) > 0
+        return self.inpaint != "none" and abar >= max(self.inpaint_min_abar, self.min_abar)
 
 
 def _check_steps(schedule, timesteps: Optional[Sequence[int]]) -> list[int]:

@@ -135,7 +135,8 @@ class DiffusionSchema(BodySchema):
 
     def adapt_normalized(self, q_n, penalty, variant, lr=None, step_scale=None, n_steps=None, n_guide=None,
                          fast=True, eta=None, spacing=None, min_abar=None, compiled=None, inference_mode=True,
-                         inpaint=None, inpaint_min_abar=None, recurrence=None, project_xt=None, projection=None):
+                         inpaint=None, inpaint_min_abar=None, inpaint_n_guide=None, recurrence=None, project_xt=None,
+                         projection=None):
         """Gradient-guided denoising (eq:diff-1, eq:diff-adapt, eq:diff-2) of ``penalty`` from the same x_T as
         ``generate``.
 
@@ -145,13 +146,13 @@ class DiffusionSchema(BodySchema):
         see ``GuidanceConfig``). fast: the autograd-free loop (default) or the autograd reference
         (``fast=False``); same commands. compiled: ``torch.compile`` the fast loop (None: ``compile_sampler``).
         inference_mode: run the fast loop under ``torch.inference_mode`` (False: for benchmarks of that choice).
-        inpaint, inpaint_min_abar, recurrence, project_xt: see ``GuidanceConfig``; projection: the ``fault_projection`` of the faults
+        inpaint, inpaint_min_abar, inpaint_n_guide, recurrence, project_xt: see ``GuidanceConfig``; projection: the ``fault_projection`` of the faults
         (the adapter builds it once; None with inpainting on: built here from ``penalty``).
         """
         steps = self._timesteps(n_steps, spacing)
         guidance = self._guidance(steps, variant, lr=lr, step_scale=step_scale, n_guide=n_guide, min_abar=min_abar,
-                                  inpaint=inpaint, inpaint_min_abar=inpaint_min_abar, recurrence=recurrence,
-                                  project_xt=project_xt)
+                                  inpaint=inpaint, inpaint_min_abar=inpaint_min_abar, inpaint_n_guide=inpaint_n_guide,
+                                  recurrence=recurrence, project_xt=project_xt)
         if projection is None and (guidance.inpaint != "none" or guidance.project_xt):
             projection = self.fault_projection(variant, penalty, guidance.inpaint)
         return self._denoise(q_n, penalty, steps, self.STRIDED["eta"] if eta is None else eta, guidance, fast, compiled,

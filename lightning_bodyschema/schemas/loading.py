@@ -108,6 +108,11 @@ def _check_entries(checkpoint: dict, where: str) -> dict:
             shape = tuple(rng.shape) if torch.is_tensor(rng) else type(rng).__name__
             raise BodySchemaInputError(f"{where}: torch_rng_state is {shape}; expected a {like.dtype} tensor of "
                                        f"shape {tuple(like.shape)}")
+    cuda = checkpoint.get("torch_cuda_rng_state")  # one uint8 state per GPU, for torch.cuda.set_rng_state_all
+    if cuda is not None and not (isinstance(cuda, list) and len(cuda) <= 1024 and all(
+            torch.is_tensor(t) and t.dtype == torch.uint8 and t.ndim == 1 for t in cuda)):
+        raise BodySchemaInputError(f"{where}: torch_cuda_rng_state is {_describe(cuda)}; expected a list of 1-D "
+                                   "uint8 tensors (one per GPU)")
     version = checkpoint.get("pytorch-lightning_version")
     if version is not None and not (isinstance(version, str) and re.fullmatch(r"\d+(\.\d+){0,3}\S{0,32}", version)):
         raise BodySchemaInputError(f"{where}: pytorch-lightning_version = {str(version)[:80]!r} is not a version")

@@ -64,3 +64,18 @@ def test_the_physics_check_blanks_commands_no_physics_can_realize(diff60, dm):
                              schema.robot_model, q, faults, schema.spring)
     assert result.status.tolist() == ["infeasible", "ok"] and np.isnan(result.f_n[0]).all()
     assert np.isfinite(result.diagnostics["best_effort_f_n"][0]).all()
+
+
+def test_infeasible_is_reported_before_a_diverged_or_absurd_row(diff60, dm):
+    """The physical reason wins: a case no command can hold is infeasible, whatever the sampler returned for it."""
+    schema = diff60[0]
+    q = check_postures(schema, dm.splits["val"][0][:3].numpy(), 3)
+    names = schema.robot_model.muscle_names
+    faults = Faults.from_names(names, cut=[names[:5], names[:5], []])  # five of six cut: nothing holds the arm
+    x = schema.decode(schema.generate(schema.encode_q(torch.as_tensor(q))))
+    x[0, 0], x[1, 0] = float("nan"), 1e3  # a diverged row and an absurd one
+    l_range = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
+    raw = safe_command(x, faults, faults.f_limit(schema.spring.f_max_n), l_range)
+    assert raw.status.tolist() == ["non_finite", "out_of_range", "ok"]
+    checked = flag_infeasible(raw, schema.robot_model, q, faults, schema.spring)
+    assert checked.status.tolist() == ["infeasible", "infeasible", "ok"]

@@ -31,7 +31,8 @@ def finish(process):
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory):
-    return fit_tiny_checkpoint(tmp_path_factory.mktemp("fit"))
+    # 30 epochs: a 3-epoch schema's motor lengths are metres off, and adapt rightly answers out_of_range
+    return fit_tiny_checkpoint(tmp_path_factory.mktemp("fit"), "--faults.every_n_epochs=0", epochs=30)
 
 
 @pytest.fixture(scope="module")
@@ -276,9 +277,9 @@ def test_l_fixed_zero_where_not_jammed_adapts_exactly_as_nan(ckpt, made, tmp_pat
     for name, path in (("nan", made[0]["seed0"]), ("zero", lenient)):
         outs[name] = tmp_path / f"adapted_{name}.npz"
         adapt_cases_main(["--ckpt", ckpt, "--cases", str(path), "--out", str(outs[name])])
-    nan_run, zero_run = load_npz(str(outs["nan"])), load_npz(str(outs["zero"]))
-    for name in ("l_motor", "f", "status", "l_fixed"):
-        np.testing.assert_array_equal(zero_run[name], nan_run[name])  # bit for bit (NaN == NaN here)
+    assert outs["zero"].read_bytes() == outs["nan"].read_bytes()  # commands, statuses and the cases written back
+    nan_run = load_npz(str(outs["nan"]))
+    np.testing.assert_array_equal(np.isfinite(nan_run["l_fixed"]), nan_run["fix"])  # NaN where not jammed
 
 
 def test_jammed_muscle_without_l_fixed_is_a_clean_error(ckpt, made, tmp_path, capsys):

@@ -31,7 +31,8 @@ def ckpt(tmp_path_factory):
     schema = DiffusionSchema(robot=dm.robot)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        trainer = L.Trainer(max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+        # 40 epochs: a 3-epoch schema's motor lengths are metres off, and adapt rightly answers out_of_range
+        trainer = L.Trainer(max_epochs=40, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                             enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0)
         trainer.fit(schema, dm)
     path = root / "tiny.ckpt"

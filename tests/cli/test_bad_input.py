@@ -245,7 +245,7 @@ ROWS = [
         ("was trained on another robot", "spring differ")),
     # ---- adaptation options
     Row("unknown_variant", "adapt_cases", adapt(extra=("--variant", "fancy")),
-        ("--variant 'fancy'", "allowed: ['default', 'literal']")),
+        ("--variant 'fancy'", "allowed: [", "'default'", "'literal'")),
     Row("unknown_sampler", "adapt_cases", adapt(extra=("--sampler", "ddim")), ("--sampler 'ddim'", "allowed: ['ddpm'")),
 ]
 assert len({row.id for row in ROWS}) == len(ROWS)
@@ -354,7 +354,7 @@ ROWS_LIBRARY = {  # id: (call(schema, ctx), words in the BodySchemaInputError me
     "adapt_nan_q_ref": (lambda s, c: _adapt(s, [[0.1, np.nan]]), ("NaN",)),
     "adapt_q_ref_wrong_width": (lambda s, c: _adapt(s, [[0.1, 0.2, 0.3]]), ("(1, 3)", "(B, 2)")),
     "adapt_unknown_variant": (lambda s, c: _adapt(s, [[0.1, 0.2]], variant="fancy"),
-                              ("'fancy'", "['default', 'literal']")),
+                              ("'fancy'", "'default'", "'literal'")),
     "adapt_fault_rows_mismatch": (lambda s, c: s.adapt(np.zeros((3, 2)), _faults(s, cut=[[0], [1]])),
                                   ("3 postures but 2 fault rows",)),
     "check_q_outside_range": (lambda s, c: s.robot_model.check_q([[0.0, -1.2]], within_range=True),

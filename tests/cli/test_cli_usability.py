@@ -109,7 +109,9 @@ def test_every_fit_validates_at_its_end(short_fit):
     events = EventAccumulator(str(folder / "runs/lightning_logs/version_0"))
     events.Reload()
     scalars = events.Scalars("val/eq_residual_N_m")
-    assert [s.step for s in scalars] == [4, 6]  # current_epoch at validation: epochs 5 and 7
+    steps_per_epoch = cli.trainer.global_step // 7  # logged at the optimizer step count, one per minibatch
+    assert cli.trainer.global_step == 7 * steps_per_epoch
+    assert [s.step for s in scalars] == [5 * steps_per_epoch - 1, 7 * steps_per_epoch - 1]  # ends of epochs 5 and 7
     batch = cli.datamodule.splits["val"]
     final = cli.model.physical_errors(batch[0], batch[1])["eq_residual_N_m"]
     assert scalars[-1].value == pytest.approx(final, rel=1e-5)  # the last weights, not epoch 5's
@@ -139,3 +141,16 @@ def test_the_console_script_exits_0_after_a_fit(tmp_path):
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "BodySchemaCLI object" not in done.stderr
+
+
+def test_a_fit_ended_by_max_steps_validates_at_its_end(tmp_path):
+    """However many optimizer steps an epoch takes, the epoch that reaches max_steps validates."""
+    common = [*TINY, "--trainer.check_val_every_n_epoch=500", f"--data.cache_dir={tmp_path}/cache",
+              "--final_validation.enabled=false"]
+    one = cli_main(["fit", *common, "--trainer.max_epochs=1", f"--trainer.default_root_dir={tmp_path}/one"])
+    steps_per_epoch = one.trainer.global_step
+    cli = cli_main(["fit", *TINY, "--trainer.check_val_every_n_epoch=500", f"--data.cache_dir={tmp_path}/cache",
+                    "--trainer.max_epochs=50", f"--trainer.max_steps={3 * steps_per_epoch}",
+                    f"--trainer.default_root_dir={tmp_path}/three"])
+    assert cli.trainer.current_epoch == 3 and cli.trainer.global_step == 3 * steps_per_epoch  # stopped by max_steps
+    assert "val/eq_residual_N_m" in cli.trainer.callback_metrics
