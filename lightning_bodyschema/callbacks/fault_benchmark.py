@@ -45,6 +45,7 @@ from ..evaluation import BenchmarkResult, make_fault_cases, run_fault_benchmark
 from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
 from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
+from .steps import validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
 METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0),
@@ -111,7 +112,7 @@ class FaultBenchmark(Callback):
         if result is None:
             return
         self._last_period = (trainer.current_epoch + 1) // self.every_n_epochs
-        step = trainer.current_epoch
+        step = validation_log_step(trainer)
         self._log_scalars(trainer, result, step)
         self._log_figure(trainer, pl_module, result, step)
 
@@ -124,7 +125,7 @@ class FaultBenchmark(Callback):
             if result is None:
                 return
             if protocol == "paper":
-                self._log_scalars(trainer, result, trainer.current_epoch)
+                self._log_scalars(trainer, result, trainer.global_step)
             json_path, md_path = self.write(result, folder, pl_module, protocol)
             print(f"\nfault benchmark, {protocol} protocol ({len(result.cases)} cases, "
                   f"{sum(result.seconds.values()):.2f} s): {json_path}\n"
@@ -211,7 +212,7 @@ class FaultBenchmark(Callback):
 
         name = type(pl_module).__name__
         fig = fault_boxplots({name: result}, reading="phys", subset="all", kind=("unadapted", "adapted"),
-                             title=f"{name}, epoch {step}: fault benchmark (phys reading, all cases)")
+                             title=f"{name}, step {step}: fault benchmark (phys reading, all cases)")
         for experiment in experiments:
             experiment.add_figure("fault/boxplots", fig, global_step=step, close=False)
 

@@ -6,6 +6,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_only
 
 from ..plots.reconstruction import reconstruction_figure
+from .steps import validation_log_step
 
 
 class ReconstructionFigure(Callback):
@@ -32,5 +33,5 @@ class ReconstructionFigure(Callback):
         m = pl_module.n_muscles
         fig = reconstruction_figure(x[:, :m].numpy(), l_motor, x[:, m:].numpy(), f,
                                     title=f"{type(pl_module).__name__}, epoch {trainer.current_epoch}")
-        experiment.add_figure("val/reconstruction", fig, global_step=trainer.current_epoch)
+        experiment.add_figure("val/reconstruction", fig, global_step=validation_log_step(trainer))
         plt.close(fig)

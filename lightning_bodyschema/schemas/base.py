@@ -290,8 +290,7 @@ class BodySchema(L.LightningModule):
         params = [p for p in self.parameters() if p.grad is not None]
         if not params:
             return
-        total = torch.stack(torch._foreach_norm([p.grad for p in params])).sum()
-        if not torch.isfinite(total):
+        if not torch.isfinite(torch.nn.utils.get_total_norm([p.grad for p in params])):  # one foreach kernel
             for p in params:
                 p.grad = None
             self.skipped_steps += 1
@@ -301,7 +300,8 @@ class BodySchema(L.LightningModule):
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
             # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
-            # pair its shard with the same noise. Deterministic: the seed plus the rank.
+            # pair its shard with the same noise. Deterministic: the seed plus the rank. (A resumed DDP fit
+            # therefore restarts these streams; a single-process fit continues the checkpoint's.)
             torch.manual_seed(torch.initial_seed() + self.global_rank)
 
     def on_train_epoch_end(self):
