@@ -29,9 +29,9 @@ from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
 
-from .callbacks import EpochProgressBar, FaultBenchmark, FinalValidation, ReconstructionFigure
+from .callbacks import EpochProgressBar, FaultBenchmark, FinalValidation, InitFrom, ReconstructionFigure
 from .cli_parser import OneLineErrorParser
-from .data import EquilibriumDataModule
+from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
@@ -57,9 +57,13 @@ class BodySchemaCLI(LightningCLI):
         parser.add_lightning_class_args(FaultBenchmark, "faults")
         # physical metrics at the end of every fit, whatever check_val_every_n_epoch
         parser.add_lightning_class_args(FinalValidation, "final_validation")
+        # fine-tune: --init_from.ckpt OLD.ckpt starts from its weights and normalizer (a fresh optimizer and schedule)
+        parser.add_lightning_class_args(InitFrom, "init_from")
         # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({"checkpoint.save_last": True})
+        # --data is a class option (EquilibriumDataModule or RecordedDataModule): the simulation module by default
+        parser.set_defaults({"data": {"class_path": "lightning_bodyschema.data.EquilibriumDataModule"}})
 
     # ---------------------------------------------------------------- input checks (exit 2, one line)
     def parse_arguments(self, parser, args):
@@ -88,8 +92,19 @@ class BodySchemaCLI(LightningCLI):
                     "--optimizer Adam --optimizer.lr 1e-3); without --optimizer the schema trains with Adam and "
                     "its cosine schedule from --model.lr to --model.lr_final")
         if self._checkpoint is not None:  # before the trainer exists: nothing printed, nothing written
-            data = EquilibriumDataModule(**config["data"].as_dict())  # light: the robot only, no dataset yet
+            data = _data_module(config["data"])  # light: the robot only (a recorded file is read), no dataset yet
             _check_same_robot(self._checkpoint, config.get("ckpt_path"), data)
+
+
+def _data_module(data_config):
+    """The configured data module (``--data`` is a subclass of EquilibriumDataModule: RecordedDataModule too)."""
+    classes = {cls.__name__: cls for cls in (EquilibriumDataModule, RecordedDataModule)}
+    name = str(data_config["class_path"]).rpartition(".")[2]
+    cls = classes.get(name)
+    if cls is None:
+        raise BodySchemaInputError(f"--data {data_config['class_path']!r}: --ckpt_path is checked against "
+                                   f"{list(classes)} only")
+    return cls(**data_config["init_args"].as_dict())
 
 
 # a misspelt flag is an error, not a prefix of some option (argparse's default would run
@@ -127,7 +142,8 @@ def main(args: Optional[list[str]] = None) -> Optional["BodySchemaCLI"]:
     # --optimizer / --lr_scheduler replace the schema's default Adam + cosine by design (README, Lightning)
     warnings.filterwarnings("ignore", message=".*configure_optimizers` will be overridden by.*")
     try:
-        cli = BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, args=args,
+        cli = BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, subclass_mode_data=True,
+                            args=args,
                             seed_everything_default=0, save_config_kwargs={"overwrite": True},
                             trainer_defaults=_trainer_defaults(),
                             parser_kwargs={**_NO_ABBREVIATIONS, "prog": "bodyschema", "description": DESCRIPTION},

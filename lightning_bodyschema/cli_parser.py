@@ -51,7 +51,7 @@ class OneLineErrorParser(LightningArgumentParser):
         class_option = _CLASS_OPTION.search(line)
         if class_option:  # the one fact in a page-long Union error
             key, class_path, option = class_option.groups()
-            line = f"--{key}: {class_path} does not accept option {option!r}"
+            line = f"--{key}.{option}: {class_path} does not accept option {option!r}"
             hint = _did_you_mean(f"--{key}.{option}", _init_options(key, class_path))
         elif _UNKNOWN_CLASS.search(line):  # --model=NoSuchSchema: name the schemas there are
             name, known = _UNKNOWN_CLASS.search(line).group(1), [c for c in _schema_classes() if c != "BodySchema"]
@@ -94,8 +94,12 @@ def _schema_classes() -> dict[str, type]:
 
 
 def _init_options(key: str, class_path: str) -> list[str]:
-    """``--key.<argument>`` for every ``__init__`` argument of the schema class ``class_path``."""
-    cls = _schema_classes().get(class_path.rsplit(".", 1)[-1])  # jsonargparse may name it by its package
+    """``--key.<argument>`` for every ``__init__`` argument of the schema or data-module class ``class_path``."""
+    from .data import EquilibriumDataModule, RecordedDataModule  # --data is a subclass option too
+
+    classes = {**_schema_classes(), "EquilibriumDataModule": EquilibriumDataModule,
+               "RecordedDataModule": RecordedDataModule}
+    cls = classes.get(class_path.rsplit(".", 1)[-1])  # jsonargparse may name it by its package
     return [] if cls is None else [f"--{key}.{name}" for name in inspect.signature(cls.__init__).parameters
                                    if name != "self"]
 

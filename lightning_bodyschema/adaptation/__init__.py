@@ -5,7 +5,8 @@ check postures -> encode -> the schema's ``adapt_normalized`` -> decode -> safe 
 Never imports Lightning; takes the schema as an object with the ``BodySchema`` interface.
 """
 from .command import STATUSES, AdaptationResult, safe_command
-from .physics import flag_infeasible
+from .physics import flag_infeasible, mark_unchecked
 from .pipeline import Adapter, check_postures
 
-__all__ = ["Adapter", "AdaptationResult", "STATUSES", "safe_command", "flag_infeasible", "check_postures"]
+__all__ = ["Adapter", "AdaptationResult", "STATUSES", "safe_command", "flag_infeasible", "mark_unchecked",
+           "check_postures"]

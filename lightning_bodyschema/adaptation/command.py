@@ -11,7 +11,9 @@ import torch
 # at q_ref under these faults (check_physics). unreachable: a task-space target out of reach (adapt_to_target).
 # out_of_range: adaptation diverged to finite but absurd motor lengths (beyond ``LENGTH_SPREADS`` spreads of the
 # healthy data): no motor may be sent there.
-STATUSES = ("ok", "non_finite", "infeasible", "unreachable", "out_of_range")
+# unchecked: a finite command, but the physics check was asked for and could not run (a schema trained on recorded
+# data has no model); a controller decides whether to send it. Never ``ok``: ok means checked or check turned off.
+STATUSES = ("ok", "non_finite", "infeasible", "unreachable", "out_of_range", "unchecked")
 # healthy motor lengths span a few spreads around their mean; a diverged guidance reaches metres (1e2-1e118 spreads)
 LENGTH_SPREADS = 20.0
 

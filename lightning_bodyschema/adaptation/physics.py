@@ -18,3 +18,11 @@ def flag_infeasible(result: AdaptationResult, robot_model, q: np.ndarray, faults
     result.status[bad] = "infeasible"
     result.l_motor_m[bad], result.f_n[bad] = np.nan, np.nan
     return result
+
+
+def mark_unchecked(result: AdaptationResult) -> AdaptationResult:
+    """Status ``unchecked`` where the physics check was asked for but the robot has no model to run it on (recorded
+    data): the command stays, so a controller can choose to send it, but it never reads ``ok``."""
+    result.status[result.status == "ok"] = "unchecked"
+    result.diagnostics["physics_checked"] = np.zeros(len(result.status), bool)
+    return result

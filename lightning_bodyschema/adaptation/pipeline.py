@@ -6,7 +6,7 @@ import torch
 
 from ..errors import BodySchemaInputError
 from .command import AdaptationResult, motor_length_range, safe_command
-from .physics import flag_infeasible
+from .physics import flag_infeasible, mark_unchecked
 
 
 def real_array(value, name: str) -> np.ndarray:
@@ -33,7 +33,8 @@ def check_postures(schema, q_ref, n_cases: int) -> np.ndarray:
 class Adapter:
     """Prepare once (validate the faults, build the penalty L_adapt of eq:latent-opt), then per call
     ``adapter(q_ref (B, N))`` [rad] -> ``AdaptationResult``: check postures -> encode -> the schema's
-    ``adapt_normalized`` -> decode -> ``safe_command`` -> ``flag_infeasible`` (when ``check_physics``).
+    ``adapt_normalized`` -> decode -> ``safe_command`` -> ``flag_infeasible`` (when ``check_physics``; ``mark_unchecked``
+    when the schema has no model to check on).
 
     Lifetime: the penalty is built from the schema's normalizer, dtype and device as they are now; the networks
     are the schema's current weights at each call (through its inference cache). Build a new adapter after
@@ -64,4 +65,6 @@ class Adapter:
         result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n, self.l_range_m)
         if not self.check_physics:
             return result
+        if not schema.has_physics:
+            return mark_unchecked(result)
         return flag_infeasible(result, schema.robot_model, q, self.faults, schema.spring)

@@ -172,6 +172,11 @@ class FaultBenchmark(Callback):
                 rank_zero_info(f"FaultBenchmark: {type(pl_module).__name__} implements no adaptation; skipped")
                 self._warned = True
             return None
+        if not pl_module.has_physics:  # recorded data: no model to score commands on (tools/robustness.py takes one)
+            if not self._warned:
+                rank_zero_info(f"FaultBenchmark: {pl_module.robot_model} has no model to evaluate on; skipped")
+                self._warned = True
+            return None
         cases = self.cases_for(trainer, pl_module, protocol)
         if cases is None:
             return None

@@ -22,6 +22,7 @@ import torch
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
 from ..data.normalizer import Normalizer
+from ..data.recorded import robot_model_from_dict
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
@@ -60,9 +61,9 @@ class BodySchema(L.LightningModule):
     """Base LightningModule of all body schemas.
 
     Args:
-        robot: what the data module's ``robot`` property gives (model XML, muscles, spring); the CLI
-            links it automatically. It is saved with the hyperparameters, so a checkpoint rebuilds
-            the robot on any machine.
+        robot: what the data module's ``robot`` property gives (model XML, muscles, spring; or, for recorded
+            data, joint and muscle names, limits and spring with no model); the CLI links it automatically. It is
+            saved with the hyperparameters, so a checkpoint rebuilds the robot on any machine.
         lr: Adam learning rate (the default optimizer; the CLI's ``--optimizer`` replaces it).
         lr_final: learning rate reached at the last epoch by cosine annealing (None: constant).
         batch_size: minibatch size per optimizer step and process (the data module serves batches of it).
@@ -79,7 +80,7 @@ class BodySchema(L.LightningModule):
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
         self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
-        self.robot_model = MusculoskeletalModel(robot["model_xml"], muscles=robot["muscles"])
+        self.robot_model = robot_model_from_dict(robot)  # a MusculoskeletalModel, or a ModelFreeRobot
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
         self.x_dim = 2 * self.n_muscles
@@ -103,6 +104,12 @@ class BodySchema(L.LightningModule):
         ``faults.penalty.BoxPenalty``: call it for the loss, ``grad``/``residual`` for its gradient); what each
         architecture implements."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
+
+    @property
+    def has_physics(self) -> bool:
+        """True when the robot comes with a model (MJCF): the physics check, kinematics and evaluation can run.
+        A schema trained on recorded data alone has none; its ``adapt`` reports ``unchecked`` instead of ``ok``."""
+        return isinstance(self.robot_model, MusculoskeletalModel)
 
     # ------------------------------------------------------------------ adaptation (paper section III)
     VARIANTS = ("default", "literal")
@@ -128,7 +135,8 @@ class BodySchema(L.LightningModule):
         check_physics: also ask the robot's true physics (MuJoCo + a QP, ~60 us per case) whether any command
             can hold q_ref under these faults; where none can, the status is ``infeasible`` and the row NaN
             (the schema's best effort stays in ``diagnostics``). The paper's benchmark scores every command
-            and turns it off.
+            and turns it off. A schema without a model (recorded data) cannot run the check: its commands get
+            status ``unchecked`` unless the caller turns the check off (``check_physics=False``).
         ``options`` override the variant's settings (e.g. ``lr=``, ``n_steps=``).
         Cases are adapted together in one batch; each case gets a status, and only ``ok`` rows hold a command.
         """
@@ -163,6 +171,9 @@ class BodySchema(L.LightningModule):
 
     def kinematic_twin(self):
         """The robot's ``TorchKinematicTwin`` (built once, on first use: pytorch-kinematics IK and frames)."""
+        if not self.has_physics:
+            raise BodySchemaInputError(f"this schema was trained without a robot model ({self.robot_model}): "
+                                       "kinematics and hand targets need an MJCF")
         if getattr(self, "_twin", None) is None:
             from ..sim.twin import TorchKinematicTwin
 
@@ -279,8 +290,7 @@ class BodySchema(L.LightningModule):
         params = [p for p in self.parameters() if p.grad is not None]
         if not params:
             return
-        total = torch.stack(torch._foreach_norm([p.grad for p in params])).sum()
-        if not torch.isfinite(total):
+        if not torch.isfinite(torch.nn.utils.get_total_norm([p.grad for p in params])):  # one foreach kernel
             for p in params:
                 p.grad = None
             self.skipped_steps += 1
@@ -290,7 +300,8 @@ class BodySchema(L.LightningModule):
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
             # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
-            # pair its shard with the same noise. Deterministic: the seed plus the rank.
+            # pair its shard with the same noise. Deterministic: the seed plus the rank. (A resumed DDP fit
+            # therefore restarts these streams; a single-process fit continues the checkpoint's.)
             torch.manual_seed(torch.initial_seed() + self.global_rank)
 
     def on_train_epoch_end(self):
@@ -384,14 +395,16 @@ class BodySchema(L.LightningModule):
     def physical_errors(self, q: torch.Tensor, x_true: torch.Tensor) -> dict[str, float]:
         """Healthy-command quality in physical units at postures q (medians over the batch)."""
         l_motor, f = self.infer(q)
+        x_true = x_true.cpu().numpy()
+        errors = {"l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
+                  "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}
+        if not self.has_physics:  # recorded data, no model: only the distance to the recorded commands
+            return errors
         l_geo, G, tau_bias = self._physics(q.cpu().numpy())
         eq = np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau_bias, axis=1)
         length = np.abs(l_motor + elongation_from_tension(f, self.spring) - l_geo)
-        x_true = x_true.cpu().numpy()
         return {"eq_residual_N_m": float(np.median(eq)),  # newton metres (the old "_nm" read as nanometres)
-                "length_residual_mm": 1e3 * float(np.median(length)),
-                "l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
-                "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}
+                "length_residual_mm": 1e3 * float(np.median(length)), **errors}
 
     def _physics(self, q: np.ndarray):
         """MuJoCo kinematics at q, cached: validation postures are the same every time."""

@@ -14,8 +14,8 @@ them for every entry point (``load_schema``, ``load_datamodule``, ``BodySchema.l
    robot's hash, then every tensor's name, dtype and shape, before the real schema is allocated.
 
 Each problem is one ``BodySchemaInputError`` naming the checkpoint and the field. Non-finite weight values are not
-refused here: adaptation answers them with the status ``non_finite``. Checks 2-5 live in ``checks.py``; this module
-reads the file and builds the schema.
+refused here: adaptation answers them with the status ``non_finite``. Checks 2, 3 and 5 live in ``checks.py``,
+check 4 in ``robot_checks.py``; this module reads the file and builds the schema.
 """
 from __future__ import annotations
 
@@ -27,11 +27,13 @@ from dataclasses import dataclass
 import torch
 
 from ..errors import BodySchemaInputError
-from .checks import _describe, _entry, check_hparams, check_robot, check_weights, schema_class
-# the checks' limits and entry points, importable from here as before the checks got their own module
-from .checks import (LIGHTNING_INSTANTIATOR, MAX_SIZE_ATTRIBUTE, MAX_SIZE_MEMORY_BYTES,  # noqa: F401
-                     MAX_WEIGHT_ELEMENTS, MAX_XML_ALLOCATION, MAX_XML_CHARS, PRIVATE_HPARAMS, ROBOT_ENTRIES,
-                     SEED_LIMITS, SIZE_LIMITS, SPRING_LIMITS, check_robot_xml)
+from .checks import _describe, check_hparams, check_weights, schema_class
+from .robot_checks import _entry, check_robot
+# the checks' limits and entry points, importable from here as before the checks got their own modules
+from .checks import (LIGHTNING_INSTANTIATOR, MAX_WEIGHT_ELEMENTS, PRIVATE_HPARAMS, SEED_LIMITS,  # noqa: F401
+                     SIZE_LIMITS)
+from .robot_checks import (MAX_SIZE_ATTRIBUTE, MAX_SIZE_MEMORY_BYTES, MAX_XML_ALLOCATION,  # noqa: F401
+                           MAX_XML_CHARS, MODEL_FREE_ROBOT_ENTRIES, ROBOT_ENTRIES, SPRING_LIMITS, check_robot_xml)
 
 MAX_DATASET_SAMPLES = 10_000_000  # n_samples of a checkpoint's data module (load_datamodule regenerates it)
 
@@ -133,6 +135,12 @@ def load_datamodule(path: str, cache_dir: str | None = None):
     robot = checked.hparams["robot"]
     where = f"checkpoint {path!r}: datamodule_hyper_parameters"
     saved = dict(checkpoint.get("datamodule_hyper_parameters") or {})
+    if "model_xml" not in robot:  # trained on recorded data: the file it was read from rebuilds the splits
+        from ..data import RecordedDataModule
+
+        datamodule = RecordedDataModule(**check_hparams(RecordedDataModule, saved, where))
+        datamodule.setup("test")
+        return datamodule
     robot_args = dict(model=robot["model_xml"], muscles=robot["muscles"], gravity=None, cache_dir=cache_dir,
                       **robot["spring"])
     hparams = check_hparams(EquilibriumDataModule, saved, where, overrides=robot_args)

@@ -48,10 +48,24 @@ def _muscle_forces(spec: mujoco.MjSpec) -> dict[str, float]:
     return {name: (f if f > 0 else float("nan")) for name, f in forces.items()}
 
 
+def _check_same_lock(eq, joint: str, offset: float):
+    """A joint already constrained may be "locked" again only at the value it is locked at."""
+    if eq.name2:
+        raise BodySchemaInputError(f"joint {joint!r} follows {eq.name2!r} through an <equality joint> coupling; "
+                                   f"lock {eq.name2!r} instead")
+    if abs(float(eq.data[0]) - offset) > 1e-12 or np.any(np.asarray(eq.data[1:5]) != 0):
+        raise BodySchemaInputError(f"joint {joint!r} is already locked at {float(eq.data[0]):.6g} (from its reference) "
+                                   f"by equality {eq.name!r}; it cannot be locked at another value")
+
+
 def _add_locks(spec: mujoco.MjSpec, locked: Mapping[str, float]):
     """Lock joints at absolute values [rad or m] as ``<equality joint>`` constraints without joint2."""
     joints = {j.name: j for j in spec.joints}
+    constrained = {e.name1: e for e in spec.equalities if e.type == mujoco.mjtEq.mjEQ_JOINT}
     for name, value in locked.items():
+        if name in constrained:  # a model rebuilt from its stored XML already holds its locks
+            _check_same_lock(constrained[name], name, float(value) - float(joints[name].ref) if name in joints else 0.0)
+            continue
         if name not in joints:
             raise BodySchemaInputError(f"locked joint {name!r} is not a joint of the model; joints are {sorted(joints)}")
         joint, value = joints[name], float(value)

@@ -3,6 +3,7 @@ import numpy as np
 
 from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.data.dataset import load_or_build_dataset
+from lightning_bodyschema.data.recorded import read_recorded
 from lightning_bodyschema.npz import load_npz, save_npz
 from lightning_bodyschema.sim import SpringParams
 
@@ -14,8 +15,9 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path):
         make_dataset_main(["--model", "paper_arm", "--n", "200", "--seed", str(seed), "--out", str(paths[name])])
     assert paths["a"].read_bytes() == paths["b"].read_bytes()
     assert paths["a"].read_bytes() != paths["c"].read_bytes()
-    data = load_npz(str(paths["a"]), required=("q", "l_motor", "f", "model_xml"))
-    assert data["q"].shape == (200, 2) and data["f"].shape == (200, 6) and "<mujoco" in str(data["model_xml"])
+    table = read_recorded(str(paths["a"]))  # the recorded-data format: q_<joint>, l_<muscle>, f_<muscle> columns
+    assert table.q.shape == (200, 2) and table.f.shape == (200, 6) and table.joints == ["shoulder", "elbow"]
+    assert "<mujoco" in str(load_npz(str(paths["a"]))["meta_model_xml"])
 
 
 def _cache_file(tmp_path):

@@ -287,3 +287,17 @@ def test_a_stiff_passive_tendon_pulls_in_the_equilibrium_and_in_the_settle_check
     assert np.abs(tau_with - tau_without).max() > 0.5  # the ligament's pull is in the torque to balance [N m]
     out = settle(model, samples.l_motor, samples.f, samples.q, spring=SpringParams(f_max_n=300.0))
     assert out.settled.all() and out.E_q_phys.max() < 1e-6
+
+
+def test_locking_again_a_rebuilt_model_is_idempotent_and_followers_cannot_be_locked():
+    model = MusculoskeletalModel(COUPLED_ARM, locked_joints={"elbow": 0.3})
+    again = MusculoskeletalModel(model.xml, locked_joints={"elbow": 0.3})  # what reloading a checkpoint does
+    assert again.xml == model.xml and again.locked_joints == model.locked_joints
+    with pytest.raises(BodySchemaInputError, match="'elbow' is already locked"):
+        MusculoskeletalModel(model.xml, locked_joints={"elbow": 0.1})
+    with pytest.raises(BodySchemaInputError, match="'girdle' follows 'shoulder'.*lock 'shoulder' instead"):
+        MusculoskeletalModel(COUPLED_ARM, locked_joints={"girdle": 0.0})
+    with pytest.raises(BodySchemaInputError, match="locked joint 'nope' is not a joint"):
+        MusculoskeletalModel(COUPLED_ARM, locked_joints={"nope": 0.0})
+    with pytest.raises(BodySchemaInputError, match="outside its range"):
+        MusculoskeletalModel(COUPLED_ARM, locked_joints={"elbow": 2.0})

@@ -1,0 +1,409 @@
+"""Recorded data: a robot's own logs (joint angles, motor lengths, tensions) as a dataset, with no MJCF.
+
+File format (CSV or NPZ), one row per static posture, SI units (rad or m for joints, m, N):
+
+* columns ``q_<joint>`` (one per joint), ``l_<muscle>`` (motor length) and ``f_<muscle>`` (tension), one
+  ``l_`` and one ``f_`` column per muscle; the header names the joints and muscles, and their order is
+  the order of the schema's inputs and outputs;
+* optional limits of any column: a CSV comment line ``# range <column> <lo> <hi>``; in an NPZ an array
+  ``range_<column>`` = ``[lo, hi]``;
+* optional units flag: ``# units: SI`` (CSV) or a string array ``units`` = ``"SI"`` (NPZ); any other
+  value is refused (convert degrees, millimetres or kgf to SI first);
+* CSV: other lines starting with ``#`` are comments; NPZ: each column is a 1-D array, in the order of an optional
+  string array ``columns`` (else the archive's order), and arrays named ``meta_*`` are ignored
+  (``tools/make_dataset.py`` keeps the generating model and settings there).
+
+Rows with NaN/inf or a value outside a limit are dropped and counted. Joint ranges default to the kept
+data's min/max, tension limits to [0, f_max] (``f_max_n``, paper: 150 N). A file that is not such a
+table (missing column, unknown muscle, text in a number column, empty, other units) is refused with one
+``BodySchemaInputError`` naming the problem.
+
+``ModelFreeRobot`` is what a schema knows about a robot without a model: names, limits and spring
+constants. It stands in for ``MusculoskeletalModel`` wherever no physics is needed (infer, adapt,
+checkpoints); everything that needs physics (the feasibility check, evaluation, inverse kinematics) needs
+an MJCF, given separately.
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import re
+from dataclasses import dataclass
+from typing import Mapping, Optional, Sequence
+
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from ..npz import atomic_write_bytes, load_npz, save_npz
+from ..sim import MusculoskeletalModel, SpringParams
+from .datamodule import EquilibriumDataModule
+from .normalizer import Normalizer
+
+UNITS = "SI"  # the one accepted units flag: rad (or m for slide joints), m, N
+PAPER_F_MAX_N = 150.0  # tension limit when neither the file nor the config gives one (the paper's f_max)
+_COLUMN = re.compile(r"^([qlf])_(.+)$")
+_MIN_ROWS = 10  # fewer kept rows cannot make a train and a validation split
+
+
+class ModelFreeRobot:
+    """A robot known by names and limits only: joints with ranges, muscles with tension limits and a spring.
+
+    Provides the part of ``MusculoskeletalModel``'s interface that needs no physics (``n_joints``,
+    ``n_muscles``, ``joint_names``, ``muscle_names``, ``q_range``, ``check_q``, ``xml_hash``); ``xml`` is None.
+    """
+
+    xml = None
+
+    def __init__(self, joints: Sequence[str], q_range, muscles: Sequence[str], l_range=None, f_range=None):
+        self.joint_names, self.muscle_names = list(joints), list(muscles)
+        self._q_range = np.asarray(q_range, dtype=np.float64).reshape(len(self.joint_names), 2)
+        inf = np.array([-np.inf, np.inf])
+        self.l_range = np.tile(inf, (self.n_muscles, 1)) if l_range is None else np.asarray(l_range, float)
+        self.f_range = np.tile(inf, (self.n_muscles, 1)) if f_range is None else np.asarray(f_range, float)
+
+    def check_q(self, q, within_range: bool = False) -> np.ndarray:
+        """q as a (B, N) float64 array; refuses other widths, NaN/inf and (``within_range``) postures outside
+        ``q_range``, naming the first bad value, as ``MusculoskeletalModel.check_q`` does."""
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        if q.ndim != 2 or q.shape[1] != self.n_joints:
+            raise BodySchemaInputError(f"q has shape {q.shape}; expected (B, {self.n_joints}) for joints "
+                                       f"{self.joint_names}")
+        if not np.all(np.isfinite(q)):
+            raise BodySchemaInputError("q contains NaN or inf")
+        outside = (q < self._q_range[:, 0]) | (q > self._q_range[:, 1]) if within_range else np.zeros(q.shape, bool)
+        if outside.any():
+            b, j = np.argwhere(outside)[0]
+            raise BodySchemaInputError(f"q[{b}] of joint {self.joint_names[j]!r} is {q[b, j]:.6g}, outside its range "
+                                       f"{self._q_range[j].tolist()} ({int(outside.any(1).sum())} posture(s) out "
+                                       "of range)")
+        return q
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_muscles(self) -> int:
+        return len(self.muscle_names)
+
+    @property
+    def q_range(self) -> np.ndarray:
+        return self._q_range.copy()
+
+    def as_dict(self) -> dict:
+        """Plain lists (checkpoint hyperparameters): names and limits."""
+        return {"joints": self.joint_names, "q_range": self._q_range.tolist(), "muscles": self.muscle_names,
+                "l_range": self.l_range.tolist(), "f_range": self.f_range.tolist()}
+
+    @property
+    def xml_hash(self) -> str:
+        """sha256 of the description: identifies the robot in checkpoints as a model's XML hash does."""
+        return hashlib.sha256(json.dumps(self.as_dict(), sort_keys=True).encode()).hexdigest()
+
+    def __repr__(self):
+        return (f"ModelFreeRobot({self.n_joints} joints {self.joint_names}, "
+                f"{self.n_muscles} muscles {self.muscle_names})")
+
+
+def robot_model_from_dict(robot: dict):
+    """The robot a schema's ``robot`` hyperparameter describes: a ``MusculoskeletalModel`` when it carries
+    ``model_xml``, else a ``ModelFreeRobot`` (``joints``, ``q_range``, ``muscles``, limits)."""
+    if robot.get("model_xml"):
+        return MusculoskeletalModel(robot["model_xml"], muscles=robot["muscles"])
+    missing = [key for key in ("joints", "q_range", "muscles") if key not in robot]
+    if missing:
+        raise BodySchemaInputError(f"robot description lacks {missing}: give model_xml (an MJCF), or joints, "
+                                   "q_range and muscles (recorded data)")
+    return ModelFreeRobot(robot["joints"], robot["q_range"], robot["muscles"], robot.get("l_range"),
+                          robot.get("f_range"))
+
+
+# ---------------------------------------------------------------------------- reading files
+@dataclass
+class RecordedTable:
+    """A recorded file as read: columns (n, ...) in SI units, names in header order, limits found in the file."""
+
+    q: np.ndarray
+    l_motor: np.ndarray
+    f: np.ndarray
+    joints: list
+    muscles: list
+    ranges: dict  # column name -> (lo, hi)
+
+
+def read_recorded(path: str) -> RecordedTable:
+    """Read a recorded CSV or NPZ file (module docstring), every row, NaN included; refuse a malformed one."""
+    if not os.path.isfile(path):
+        raise BodySchemaInputError(f"recorded data file {path!r} does not exist")
+    if path.endswith(".npz"):
+        columns, ranges, units = _read_npz_columns(path)
+    else:
+        columns, ranges, units = _read_csv_columns(path)
+    if units is not None and units != UNITS:
+        raise BodySchemaInputError(f"{path}: units flag {units!r} is not supported; the file must be in SI units "
+                                   f"(rad, m, N) and say so with units {UNITS!r} (or give no units flag)")
+    return _as_table(path, columns, ranges)
+
+
+def _read_csv_columns(path):
+    ranges, units, header, rows = {}, None, None, []
+    with open(path, newline="") as fh:
+        for line_no, line in enumerate(fh, start=1):
+            text = line.strip()
+            if not text:
+                continue
+            if text.startswith("#"):
+                units = _csv_directive(path, line_no, text[1:].strip(), ranges, units)
+                continue
+            fields = next(csv.reader([text]))
+            if header is None:
+                header = [name.strip() for name in fields]
+                continue
+            if len(fields) != len(header):
+                raise BodySchemaInputError(f"{path}, line {line_no}: {len(fields)} fields, but the header has "
+                                           f"{len(header)} columns")
+            rows.append((line_no, fields))
+    if header is None:
+        raise BodySchemaInputError(f"{path} is empty: expected a header line of q_<joint>, l_<muscle>, "
+                                   "f_<muscle> columns and one row per posture")
+    values = _numbers(path, header, rows)
+    return {name: values[:, i] for i, name in enumerate(header)}, ranges, units
+
+
+def _csv_directive(path, line_no, text, ranges, units):
+    """Parse ``units: SI`` and ``range <column> <lo> <hi>``; other comment lines are free text."""
+    if text.lower().startswith("units"):
+        return text.split(":", 1)[-1].strip() if ":" in text else text[5:].strip()
+    if text.startswith("range "):
+        parts = text.split()
+        try:
+            ranges[parts[1]] = (float(parts[2]), float(parts[3]))
+        except (IndexError, ValueError):
+            raise BodySchemaInputError(f"{path}, line {line_no}: {text!r} is not 'range <column> <lo> <hi>' "
+                                       "with two numbers") from None
+    return units
+
+
+def _numbers(path, header, rows) -> np.ndarray:
+    """The rows as floats (empty cells are NaN); a cell that is not a number is named with its line."""
+    if not rows:
+        return np.empty((0, len(header)))
+    cells = np.array([fields for _, fields in rows], dtype=str)
+    cells = np.where(np.char.strip(cells) == "", "nan", cells)
+    try:
+        return cells.astype(np.float64)
+    except ValueError:
+        pass
+    for (line_no, fields), row in zip(rows, cells):  # error path only: find the first bad cell
+        for name, cell in zip(header, row):
+            try:
+                float(cell)
+            except ValueError:
+                raise BodySchemaInputError(f"{path}, line {line_no}, column {name!r}: {cell.strip()!r} is not a "
+                                           "number (give numbers in SI units; empty or nan marks a missing value)"
+                                           ) from None
+    raise AssertionError("unreachable: a cell failed to convert but none fails alone")
+
+
+def _read_npz_columns(path):
+    arrays = load_npz(path)
+    columns, ranges, units = {}, {}, None
+    for name, value in _in_column_order(path, arrays).items():
+        if name.startswith("meta_") or name == "columns":
+            continue
+        if name == "units":
+            units = str(value)
+        elif name.startswith("range_"):
+            value = np.asarray(value)
+            if value.shape != (2,) or value.dtype.kind not in "fiu":
+                raise BodySchemaInputError(f"{path}: array {name!r} must be [lo, hi], two numbers; it has shape "
+                                           f"{value.shape}, dtype {value.dtype}")
+            ranges[name[len("range_"):]] = (float(value[0]), float(value[1]))
+        else:
+            if value.ndim != 1 or value.dtype.kind not in "fiu":
+                raise BodySchemaInputError(f"{path}: column {name!r} must be a 1-D array of numbers; it has shape "
+                                           f"{value.shape}, dtype {value.dtype}")
+            columns[name] = value.astype(np.float64)
+    if not columns:
+        raise BodySchemaInputError(f"{path} holds no columns: expected arrays q_<joint>, l_<muscle>, f_<muscle>")
+    lengths = {name: len(v) for name, v in columns.items()}
+    if len(set(lengths.values())) > 1:
+        raise BodySchemaInputError(f"{path}: columns have different lengths {lengths}")
+    return columns, ranges, units
+
+
+def _in_column_order(path, arrays: dict) -> dict:
+    """The arrays with the columns first, in the order the ``columns`` array names (joint and muscle order)."""
+    if "columns" not in arrays:
+        return arrays
+    order = [str(name) for name in np.atleast_1d(arrays["columns"])]
+    missing = [name for name in order if name not in arrays]
+    if missing:
+        raise BodySchemaInputError(f"{path}: missing column {missing} (named in its 'columns' array)")
+    return {**{name: arrays[name] for name in order}, **arrays}
+
+
+def _as_table(path, columns: dict, ranges: dict) -> RecordedTable:
+    groups = {"q": [], "l": [], "f": []}
+    for name in columns:
+        match = _COLUMN.match(name)
+        if match is None:
+            raise BodySchemaInputError(f"{path}: column {name!r} is not q_<joint>, l_<muscle> or f_<muscle>")
+        groups[match.group(1)].append(match.group(2))
+    joints, muscles = groups["q"], groups["l"]
+    if not joints:
+        raise BodySchemaInputError(f"{path}: no q_<joint> column; the header names the joints as q_<joint>")
+    for have, need, kind in ((groups["f"], muscles, "f"), (muscles, groups["f"], "l")):
+        missing = [name for name in need if name not in have]
+        if missing:
+            raise BodySchemaInputError(f"{path}: missing column {[f'{kind}_{m}' for m in missing]}; every muscle "
+                                       "needs an l_<muscle> (motor length) and an f_<muscle> (tension) column")
+    if not muscles:
+        raise BodySchemaInputError(f"{path}: no l_<muscle>/f_<muscle> columns; the header names the muscles")
+    unknown = [name for name in ranges if name not in columns]
+    if unknown:
+        raise BodySchemaInputError(f"{path}: a range is given for {unknown}, which are not columns")
+    n_rows = len(next(iter(columns.values())))
+    if n_rows == 0:
+        raise BodySchemaInputError(f"{path} has a header but no rows")
+
+    def stack(prefix, names):
+        return np.stack([columns[f"{prefix}_{name}"] for name in names], axis=1)
+
+    return RecordedTable(stack("q", joints), stack("l", muscles), stack("f", muscles), joints, muscles, dict(ranges))
+
+
+# ---------------------------------------------------------------------------- writing files
+def write_recorded(path: str, q, l_motor, f, joints: Sequence[str], muscles: Sequence[str],
+                   ranges: Optional[Mapping[str, Sequence[float]]] = None, meta: Optional[dict] = None) -> None:
+    """Write the format ``read_recorded`` reads: CSV for ``*.csv`` (17 significant digits: reads back exactly),
+    else NPZ; deterministic bytes, written atomically. ``meta``: NPZ ``meta_*`` arrays / CSV comment lines."""
+    columns = {f"q_{j}": q[:, i] for i, j in enumerate(joints)}
+    columns.update({f"l_{m}": l_motor[:, i] for i, m in enumerate(muscles)})
+    columns.update({f"f_{m}": f[:, i] for i, m in enumerate(muscles)})
+    ranges, meta = dict(ranges or {}), dict(meta or {})
+    if not path.endswith(".csv"):
+        save_npz(path, units=np.array(UNITS), columns=np.array(list(columns)), **columns,
+                 **{f"range_{name}": np.asarray(lim, np.float64) for name, lim in ranges.items()},
+                 **{f"meta_{name}": np.asarray(value) for name, value in meta.items()})
+        return
+    lines = [f"# units: {UNITS}"]
+    lines += [f"# range {name} {float(lo)!r} {float(hi)!r}" for name, (lo, hi) in ranges.items()]
+    lines += [f"# {name}: {' '.join(str(value).split())}" for name, value in meta.items() if name != "model_xml"]
+    lines.append(",".join(columns))
+    table = np.stack(list(columns.values()), axis=1)
+    lines += [",".join(f"{v:.17g}" for v in row) for row in table]
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+
+
+# ---------------------------------------------------------------------------- the data module
+def _limits(names, prefix, config, file_ranges, default):
+    """(n, 2) limits per name: the config's (a dict name -> [lo, hi]) over the file's over ``default (n, 2)``."""
+    config = dict(config or {})
+    unknown = [name for name in config if name not in names]
+    if unknown:
+        raise BodySchemaInputError(f"limits given for unknown {'joint' if prefix == 'q' else 'muscle'} {unknown}; "
+                                   f"the file's are {list(names)}")
+    out = np.array(default, dtype=np.float64)
+    for i, name in enumerate(names):
+        lim = config.get(name, file_ranges.get(f"{prefix}_{name}"))
+        if lim is not None:
+            out[i] = lim
+    bad = [names[i] for i in range(len(names)) if not out[i, 0] < out[i, 1]]
+    if bad:
+        raise BodySchemaInputError(f"{prefix} limits of {bad} are not [lo, hi] with lo < hi: {out.tolist()}")
+    return out
+
+
+class RecordedDataModule(EquilibriumDataModule):
+    """A robot's recorded (q, l_motor, f) samples from a CSV or NPZ file (format: module docstring); no MJCF.
+
+    ``bodyschema fit --data RecordedDataModule --data.path logs.csv``. Splits, normalizer and loaders are the
+    simulation module's; the schema's ``robot`` is a ``ModelFreeRobot`` (names, limits, spring), so the
+    checkpoint carries the joint and muscle names and limits instead of a model.
+
+    Args:
+        path: the recorded file (``.csv`` or ``.npz``).
+        seed, val_fraction: the split, as in ``EquilibriumDataModule``.
+        joints, muscles: the expected names (the robot's); the file must have exactly these columns. Default: the
+            file's header decides.
+        q_range: {joint: [lo, hi]} joint limits; default: the file's ``range`` lines, else the kept data's min/max.
+        l_range, f_range: {muscle: [lo, hi]} motor-length [m] and tension [N] limits; default: the file's, else
+            no length limit and tensions in [0, f_max_n].
+        units: the units of the file; only ``"SI"``.
+        k_n, alpha_per_m: spring constants (paper: 1000 N, 20 1/m), scalar or per muscle.
+        f_max_n: tension limit [N], scalar or per muscle; default: the upper tension limits, else 150 N.
+    """
+
+    def __init__(self, path: str, seed: int = 0, val_fraction: float = 0.2, joints: Optional[Sequence[str]] = None,
+                 muscles: Optional[Sequence[str]] = None, q_range: Optional[dict] = None,
+                 l_range: Optional[dict] = None, f_range: Optional[dict] = None, units: str = UNITS,
+                 k_n: float | list[float] = 1000.0, alpha_per_m: float | list[float] = 20.0,
+                 f_max_n: float | list[float] | None = None):
+        super(EquilibriumDataModule, self).__init__()  # the simulation module's __init__ builds an MJCF model
+        if units != UNITS:
+            raise BodySchemaInputError(f"units={units!r} is not supported; recorded data must be in SI units "
+                                       f"(rad, m, N): units {UNITS!r}")
+        if int(seed) != seed or seed < 0:
+            raise BodySchemaInputError(f"seed={seed!r} must be an integer >= 0")
+        if not 0.0 < val_fraction < 1.0:
+            raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
+        self.save_hyperparameters()
+        table = read_recorded(str(path))
+        _check_names(path, "joint", joints, table.joints)
+        _check_names(path, "muscle", muscles, table.muscles)
+        self.robot_model, self.spring, self.arrays, self.n_dropped = _robot_and_rows(
+            path, table, q_range, l_range, f_range, k_n, alpha_per_m, f_max_n)
+        self.normalizer = Normalizer(2 * self.robot_model.n_muscles, self.robot_model.n_joints)
+
+    @property
+    def robot(self) -> dict:
+        """Names, limits and spring constants: a schema rebuilds the robot from these, with no model."""
+        return {**self.robot_model.as_dict(), "spring": self.spring.as_dict()}
+
+    def _load(self):
+        return self.arrays
+
+
+def _check_names(path, kind, expected, found):
+    if expected is None:
+        return
+    unknown = [name for name in found if name not in expected]
+    if unknown:
+        raise BodySchemaInputError(f"{path}: unknown {kind} {unknown}; the robot's {kind}s are {list(expected)}")
+    missing = [name for name in expected if name not in found]
+    if missing:
+        raise BodySchemaInputError(f"{path}: missing columns for {kind}s {missing}")
+    if list(expected) != list(found):
+        raise BodySchemaInputError(f"{path}: {kind} columns in the order {found}; the robot's order is "
+                                   f"{list(expected)}")
+
+
+def _robot_and_rows(path, table: RecordedTable, q_range, l_range, f_range, k_n, alpha_per_m, f_max_n):
+    """The robot (names, limits, spring) and the kept rows; prints how many rows were dropped and why."""
+    n, m = len(table.q), len(table.muscles)
+    finite = np.isfinite(table.q).all(1) & np.isfinite(table.l_motor).all(1) & np.isfinite(table.f).all(1)
+    q_lim = _limits(table.joints, "q", q_range, table.ranges, np.tile([-np.inf, np.inf], (len(table.joints), 1)))
+    l_lim = _limits(table.muscles, "l", l_range, table.ranges, np.tile([-np.inf, np.inf], (m, 1)))
+    f_default = np.zeros((m, 2))
+    f_default[:, 1] = np.broadcast_to(np.asarray(PAPER_F_MAX_N if f_max_n is None else f_max_n, float), (m,))
+    f_lim = _limits(table.muscles, "f", f_range, table.ranges, f_default)
+    spring = SpringParams(k_n, alpha_per_m, f_lim[:, 1].tolist() if f_max_n is None else f_max_n)
+    with np.errstate(invalid="ignore"):
+        inside = ((table.q >= q_lim[:, 0]) & (table.q <= q_lim[:, 1])).all(1) \
+            & ((table.l_motor >= l_lim[:, 0]) & (table.l_motor <= l_lim[:, 1])).all(1) \
+            & ((table.f >= f_lim[:, 0]) & (table.f <= f_lim[:, 1])).all(1)
+    keep = finite & inside
+    unbounded = np.isinf(q_lim).any(1)  # a joint with no range given: the kept rows' span is its range
+    if keep.any():
+        q_lim[unbounded] = np.stack([table.q[keep].min(0), table.q[keep].max(0)], axis=1)[unbounded]
+    print(f"recorded data {path}: {n} rows, kept {int(keep.sum())}; dropped {int((~finite).sum())} with NaN/inf and "
+          f"{int((finite & ~inside).sum())} outside the limits")
+    if keep.sum() < _MIN_ROWS:
+        raise BodySchemaInputError(f"{path}: only {int(keep.sum())} of {n} rows are finite and inside the limits; "
+                                   f"need at least {_MIN_ROWS}")
+    robot = ModelFreeRobot(table.joints, q_lim, table.muscles, l_lim, f_lim)
+    arrays = {"q": table.q[keep], "l_motor": table.l_motor[keep], "f": table.f[keep]}
+    return robot, spring, arrays, int(n - keep.sum())
