@@ -25,7 +25,7 @@ TARGETS = {  # condition -> {metric: bound}, the issue's (E_* in N, m, N m, rad)
 def paper_diffusion(tmp_path_factory):
     root = tmp_path_factory.mktemp("diff")
     cli = bodyschema(["fit", "--config", CONFIG, "--trainer.default_root_dir", str(root),
-                      "--trainer.enable_progress_bar", "false", "--data.cache_dir", str(root / "cache")])
+                      "--progress.enabled", "false", "--data.cache_dir", str(root / "cache")])
     return cli.model.eval(), cli.datamodule
 
 
