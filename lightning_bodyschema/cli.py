@@ -83,6 +83,11 @@ class BodySchemaCLI(LightningCLI):
 
     def before_instantiate_classes(self):
         config = self.config[self.subcommand]
+        if config["trainer"].get("enable_progress_bar") is False:
+            # Lightning refuses a progress-bar callback beside enable_progress_bar=False; ours is always in the
+            # callbacks, so the Trainer flag switches it off instead (same effect: no bar)
+            config["progress"]["enabled"] = False
+            config["trainer"]["enable_progress_bar"] = True
         if self.subcommand == "fit":
             _check_max_epochs(config)
             if config.get("lr_scheduler") and not config.get("optimizer"):

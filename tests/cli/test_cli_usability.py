@@ -154,3 +154,13 @@ def test_a_fit_ended_by_max_steps_validates_at_its_end(tmp_path):
                     f"--trainer.default_root_dir={tmp_path}/three"])
     assert cli.trainer.current_epoch == 3 and cli.trainer.global_step == 3 * steps_per_epoch  # stopped by max_steps
     assert "val/eq_residual_N_m" in cli.trainer.callback_metrics
+
+
+def test_trainer_enable_progress_bar_false_turns_the_bar_off(tmp_path, capsys):
+    """Lightning's own flag works: it used to exit 2 ("found EpochProgressBar in callbacks list")."""
+    tiny = [arg for arg in TINY if not arg.startswith("--progress.")]
+    cli = cli_main(["fit", *tiny, "--trainer.max_epochs=3", "--trainer.enable_progress_bar=false",
+                    f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
+    assert cli.trainer.current_epoch == 3
+    assert not cli.trainer.progress_bar_callback.is_enabled
+    assert "Epoch" not in capsys.readouterr().err  # no bar drawn
