@@ -88,6 +88,11 @@ class BodySchemaCLI(LightningCLI):
             # callbacks, so the Trainer flag switches it off instead (same effect: no bar)
             config["progress"]["enabled"] = False
             config["trainer"]["enable_progress_bar"] = True
+        if config["trainer"].get("enable_checkpointing") is False and config.get("checkpoint") is not None:
+            # likewise for the always-present ModelCheckpoint: it keeps nothing instead
+            config["checkpoint"]["save_top_k"] = 0
+            config["checkpoint"]["save_last"] = False
+            config["trainer"]["enable_checkpointing"] = True
         if self.subcommand == "fit":
             _check_max_epochs(config)
             if config.get("lr_scheduler") and not config.get("optimizer"):

@@ -3,7 +3,9 @@
 
 Both run the same maths (same network, fused Adam, minibatches of 64 from the 640 train samples, cosine
 LR), side by side in one process, alternating, several repeats; prints medians and the ratio. Lightning
-runs one training step per minibatch (automatic optimization, the 32-true precision plugin).
+runs one training step per minibatch (automatic optimization, the 32-true precision plugin). Beside them, a
+one-weight module through the same Trainer setup and through a plain loop: the difference is Lightning's own
+per-step cost (its floor), which bounds the ratio any Lightning step of this maths can reach.
 
     python tools/bench_training.py --epochs 2000 --repeats 3
 """
@@ -51,6 +53,56 @@ def lightning_fit(dm, epochs, logdir):
     return schema
 
 
+class _TrivialModule(L.LightningModule):
+    """One weight, one multiply: a step with almost no maths, so its cost is Lightning's own per-step work."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.ones(1))
+
+    def training_step(self, batch, batch_idx):
+        return (self.weight * batch).sum()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=1e-9)
+
+
+class _Batches:
+    """A re-iterable loader of ``n`` one-element batches (a plain list would be read as n data loaders)."""
+
+    def __init__(self, n):
+        self.batches = [torch.ones(1)] * n
+
+    def __iter__(self):
+        return iter(self.batches)
+
+    def __len__(self):
+        return len(self.batches)
+
+
+def floor_runs(epochs, steps_per_epoch, logdir):
+    """(plain, Lightning) runs of the trivial module: their difference per step is the least any Lightning
+    step costs beyond its maths with this Trainer setup (same logger, progress bar, callbacks)."""
+    batches = _Batches(steps_per_epoch)
+
+    def plain():
+        module = _TrivialModule()
+        opt = torch.optim.SGD(module.parameters(), lr=1e-9)
+        for _ in range(epochs):
+            for batch in batches:
+                loss = module.training_step(batch, 0)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+
+    def lightning():
+        trainer = L.Trainer(max_epochs=epochs, logger=L.pytorch.loggers.TensorBoardLogger(logdir), log_every_n_steps=50,
+                            num_sanity_val_steps=0, enable_model_summary=False, enable_checkpointing=False,
+                            callbacks=[EpochProgressBar()], enable_progress_bar=True)
+        trainer.fit(_TrivialModule(), train_dataloaders=batches)
+    return plain, lightning
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=1000)
@@ -62,8 +114,11 @@ def main():
     dm = EquilibriumDataModule(cache_dir=None)
     dm.prepare_data()
     dm.setup("fit")
+    steps_per_epoch = len(dm.train_dataloader())
+    floor_plain, floor_lightning = floor_runs(args.epochs, steps_per_epoch, tempfile.gettempdir())
     runs = [("plain", lambda: plain_loop(dm, args.epochs)),
-            ("lightning", lambda: lightning_fit(dm, args.epochs, logdir))]
+            ("lightning", lambda: lightning_fit(dm, args.epochs, logdir)),
+            ("floor_plain", floor_plain), ("floor_lightning", floor_lightning)]
     times = {name: [] for name, _ in runs}
     cpu = {name: [] for name, _ in runs}  # CPU seconds of this (one-thread) process: steadier on a shared machine
     with tempfile.TemporaryDirectory() as logdir:
@@ -86,6 +141,12 @@ def main():
               f"(runs: {', '.join(f'{t:.2f}' for t in cpu[name])})")
     print(f"ratio lightning/plain = {med['lightning'] / med['plain']:.3f} wall clock, "
           f"{med_cpu['lightning'] / med_cpu['plain']:.3f} CPU time  (goal <= 1.2)")
+    steps = args.epochs * steps_per_epoch
+    floor_ms = 1e3 * (med_cpu["floor_lightning"] - med_cpu["floor_plain"]) / steps
+    plain_ms, ours_ms = 1e3 * med_cpu["plain"] / steps, 1e3 * (med_cpu["lightning"] - med_cpu["plain"]) / steps
+    print(f"per optimizer step (CPU): maths {plain_ms:.3f} ms; Lightning adds {ours_ms:.3f} ms to it, and "
+          f"{floor_ms:.3f} ms to a trivial module with the same Trainer setup (its floor): the least ratio a "
+          f"Lightning step of this maths can reach is {(plain_ms + floor_ms) / plain_ms:.3f}")
     per_epoch = (med["lightning"] - startup) / (args.epochs - 1)
     print(f"fit start-up {startup:.2f} s; per epoch {1e3 * per_epoch:.2f} ms vs plain {1e3 * med['plain'] / args.epochs:.2f}"
           f" ms (ratio {per_epoch * args.epochs / med['plain']:.3f})")

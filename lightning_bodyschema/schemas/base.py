@@ -287,10 +287,11 @@ class BodySchema(L.LightningModule):
         scaler = getattr(self.trainer.precision_plugin, "scaler", None)
         if scaler is not None:
             return
-        params = [p for p in self.parameters() if p.grad is not None]
+        # the optimizer's own parameter list: what it is about to step, and cheaper than walking the modules
+        params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
         if not params:
             return
-        if not torch.isfinite(torch.nn.utils.get_total_norm([p.grad for p in params])):  # one foreach kernel
+        if not torch.isfinite(torch.nn.utils.get_total_norm([p.grad for p in params], foreach=True)):  # one kernel
             for p in params:
                 p.grad = None
             self.skipped_steps += 1

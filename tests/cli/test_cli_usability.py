@@ -164,3 +164,14 @@ def test_trainer_enable_progress_bar_false_turns_the_bar_off(tmp_path, capsys):
     assert cli.trainer.current_epoch == 3
     assert not cli.trainer.progress_bar_callback.is_enabled
     assert "Epoch" not in capsys.readouterr().err  # no bar drawn
+
+
+def test_trainer_enable_checkpointing_false_writes_no_checkpoint(tmp_path):
+    """Lightning's own flag works: it used to exit 2 ("found ModelCheckpoint in callbacks list")."""
+    cli_main(["fit", *TINY, "--trainer.max_epochs=2", "--trainer.enable_checkpointing=false",
+              f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
+    assert not glob.glob(f"{tmp_path}/**/*.ckpt", recursive=True)
+    # and the default still keeps last.ckpt beside the epoch file
+    cli_main(["fit", *TINY, "--trainer.max_epochs=2", f"--trainer.default_root_dir={tmp_path}/on",
+              f"--data.cache_dir={tmp_path}/cache"])
+    assert {p.rsplit("/", 1)[1] for p in glob.glob(f"{tmp_path}/on/**/*.ckpt", recursive=True)} >= {"last.ckpt"}
