@@ -150,7 +150,7 @@ class SettleResult:
     ``SettleStatus`` ints; time_s (B,) simulated time when the case stopped [s]; qvel_rad_s (B, N)
     final joint velocity; f_settle_n (B, M) muscle tensions in the final state [N] (0 for cut muscles).
     Rows of NONFINITE_COMMAND cases are NaN (time_s 0). UNSTABLE rows hold the last state that passed a
-    check (q_ref at rest, f NaN, if the case blew up before its first check).
+    check (q_ref at rest, f NaN, if the case blew up before its first check) for diagnosis, and E_q_phys +inf.
     """
 
     q_settle: np.ndarray
@@ -390,5 +390,8 @@ def settle(model: MusculoskeletalModel, l_motor, f, cases_or_q_ref, cut=None, fi
         out.q_settle[rows], out.qvel_rad_s[rows], out.f_settle_n[rows] = res.q, res.qvel, res.f
         out.status[rows], out.time_s[rows] = res.status, res.time_s
     out.E_q_phys = np.linalg.norm(out.q_settle - q_ref, axis=1)
+    # a blown-up case rests nowhere: its last checked state (possibly q_ref itself) must not read as a small
+    # error, so its E_q_phys is +inf (medians then count it as the worst case; JSON writes null)
+    out.E_q_phys[out.status == SettleStatus.UNSTABLE] = np.inf
     _mark_beyond_limits(out, model.q_range, params.limit_tol_rad)
     return out

@@ -135,6 +135,8 @@ def test_absurd_stretch_is_reported_not_printed(arm, healthy, capfd):
     l_motor[1, 0] -= 0.1
     res = settle(arm, l_motor, healthy.f[:2], healthy.q[:2])
     assert res.status[0] == SettleStatus.UNSTABLE and np.all(np.isfinite(res.q_settle[0]))
+    # its last checked state may be q_ref itself (it blew up before the first check): never a small error
+    assert res.E_q_phys[0] == np.inf and np.isfinite(res.E_q_phys[1])
     assert res.status[1] in (SettleStatus.BEYOND_LIMIT, SettleStatus.SETTLED)
     out = capfd.readouterr()
     assert out.out == "" and out.err == ""  # MuJoCo never gets to print its blow-up warning
