@@ -117,6 +117,20 @@ def test_checkpoint_every_n_train_steps(logged_fit):
     assert names == ["step=14.ckpt", "step=7.ckpt"]
 
 
+@pytest.mark.parametrize("ckpt", ["step=7.ckpt", "step=14.ckpt"])
+def test_a_fit_resumed_mid_epoch_ends_with_the_weights_of_the_uninterrupted_fit(logged_fit, dm, ckpt):
+    """Both checkpoints fall inside an epoch (10 batches each): the resumed epoch continues with the batches not yet
+    trained on, in the same order, with the same diffusion noise, validating at the same steps."""
+    fit, _, root = logged_fit
+    L.seed_everything(123)  # a different start: everything must come from the checkpoint
+    resumed = DiffusionSchema(robot=dm.robot)
+    again = trainer(max_steps=20, val_check_interval=5, check_val_every_n_epoch=None)
+    again.fit(resumed, dm, ckpt_path=str(root / "ckpt" / ckpt))
+    assert again.global_step == 20
+    expected = fit.lightning_module.state_dict()
+    assert all(torch.equal(expected[k], v) for k, v in resumed.state_dict().items())
+
+
 def test_gradient_clip_val_bounds_every_step(dm):
     class GradNorms(Callback):
         norms = []
