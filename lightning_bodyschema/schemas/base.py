@@ -18,6 +18,7 @@ from typing import Optional
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.trainer.states import TrainerFn
 
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
@@ -49,8 +50,6 @@ def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) ->
     version folder, so Lightning would find another dirpath and warn that best_model_score "won't be reloaded",
     which is right and irrelevant there. The weights, hyperparameters and RNG state are untouched.
     """
-    from lightning.pytorch.trainer.states import TrainerFn
-
     if trainer is None or trainer.state.fn in (None, TrainerFn.FITTING) or "callbacks" not in checkpoint:
         return
     checkpoint["callbacks"] = {key: state for key, state in checkpoint["callbacks"].items()
@@ -305,18 +304,43 @@ class BodySchema(L.LightningModule):
             # therefore restarts these streams; a single-process fit continues the checkpoint's.)
             torch.manual_seed(torch.initial_seed() + self.global_rank)
 
+    def _train_split_normalized(self):
+        """(q_n, x_n) of the data module's whole train split on this device, or None (no data module)."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is None or getattr(datamodule, "splits", None) is None:
+            return None
+        q, x = datamodule.splits["train"]
+        return self._normalized((q.to(self.device), x.to(self.device)))
+
     def on_train_epoch_end(self):
         if type(self).on_epoch_trained is BodySchema.on_epoch_trained:
             return
-        datamodule = getattr(self.trainer, "datamodule", None)
-        if datamodule is not None and getattr(datamodule, "splits", None) is not None:
-            q, x = datamodule.splits["train"]
-            q_n, x_n = self._normalized((q.to(self.device), x.to(self.device)))
-            self.on_epoch_trained(q_n, x_n)
+        split = self._train_split_normalized()
+        if split is not None:
+            self.on_epoch_trained(*split)
 
     def on_epoch_trained(self, q_n, x_n):
         """Hook after each epoch's updates with the whole (normalized) train split, the same on every rank
-        (e.g. refresh a latent reference); default: nothing."""
+        (e.g. refresh a latent reference now and then); default: nothing."""
+
+    def refresh_from_train_split(self, q_n, x_n) -> None:
+        """Bring state derived from the weights and the train split up to date (e.g. a latent reference).
+
+        Called during fit before every validation and before every checkpoint is written, so what is validated
+        and what is saved match the weights (Lightning validates and saves before ``on_train_epoch_end``, and
+        EarlyStopping may end a fit right after a validation); default: nothing."""
+
+    def _refresh_derived_state(self) -> bool:
+        overridden = type(self).refresh_from_train_split is not BodySchema.refresh_from_train_split
+        if not overridden or self._trainer is None or self.trainer.state.fn != TrainerFn.FITTING:
+            return False
+        split = self._train_split_normalized()
+        if split is not None:
+            self.refresh_from_train_split(*split)
+        return split is not None
+
+    def on_validation_epoch_start(self):
+        self._refresh_derived_state()
 
     def _common_step(self, batch, stage: str):
         q_n, x_n = self._normalized(batch)
@@ -343,6 +367,9 @@ class BodySchema(L.LightningModule):
         return {"q": batch[0].cpu().numpy(), "l_motor": l_motor, "f": f}
 
     def on_save_checkpoint(self, checkpoint):
+        if self._refresh_derived_state():  # Lightning took the state_dict before this hook: update its buffers
+            state = checkpoint.get("state_dict", {})
+            state.update({name: buf.detach().clone() for name, buf in self.named_buffers() if name in state})
         checkpoint["bodyschema"] = {"class_path": schema_class_path(type(self)),
                                     "model_xml_sha256": self.robot_model.xml_hash}
         # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue

@@ -163,3 +163,31 @@ def test_early_stopping_on_the_validation_residual_stops_a_fit(dm):
     fit.fit(schema, dm)
     assert fit.should_stop and stop.stopped_epoch == 3 and fit.current_epoch == 4
     assert "val/eq_residual_N_m" in fit.callback_metrics
+
+
+def _fresh_latent_reference(schema, dm):
+    q_n, x_n = schema._normalized(dm.splits["train"])
+    with torch.no_grad():
+        return schema.latent_reference(x_n)
+
+
+def test_every_checkpoint_and_an_early_stopped_fit_carry_the_latent_reference_of_their_weights(dm, tmp_path):
+    """Lightning validates and saves before on_train_epoch_end, where the AE refreshes z_ref every 10 epochs: the
+    saved and the early-stopped z_ref used to lag the weights (by up to 0.04 here)."""
+    L.seed_everything(0)
+    schema = AutoEncoderSchema(robot=dm.robot)
+    saves = ModelCheckpoint(dirpath=tmp_path, every_n_train_steps=7, save_top_k=-1, save_last=True, filename="{step}")
+    trainer(max_epochs=5, check_val_every_n_epoch=5, enable_checkpointing=True, callbacks=[saves]).fit(schema, dm)
+    for name in ("step=7.ckpt", "step=49.ckpt", "last.ckpt"):  # mid-epoch, late, and after the last validation
+        saved = torch.load(tmp_path / name, weights_only=True)["state_dict"]
+        probe = AutoEncoderSchema(robot=dm.robot)
+        probe.load_state_dict(saved)
+        probe.normalizer.load_state_dict(dm.normalizer.state_dict())
+        assert torch.allclose(saved["z_latent_ref"], _fresh_latent_reference(probe, dm), atol=1e-6), name
+
+    L.seed_everything(0)
+    stopped = AutoEncoderSchema(robot=dm.robot)
+    stop = EarlyStopping(monitor="val/eq_residual_N_m", mode="min", patience=0, min_delta=1e3)
+    trainer(max_epochs=50, check_val_every_n_epoch=1, callbacks=[stop]).fit(stopped, dm)
+    assert stop.stopped_epoch == 1  # not a multiple of 10: only the validation-time refresh can be fresh
+    assert torch.allclose(stopped.z_latent_ref, _fresh_latent_reference(stopped, dm), atol=1e-6)
