@@ -239,7 +239,10 @@ class BodySchema(L.LightningModule):
         """Adam (fused: ~25 % faster per step than the default on this tiny CPU workload, measured) with the
         cosine schedule from ``lr`` to ``lr_final`` over the fit's epochs, stepped once per epoch. The CLI's
         ``--optimizer`` / ``--lr_scheduler`` replace both (LightningCLI's own mechanism)."""
-        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=True)
+        # under a GradScaler (16-mixed) not fused: a fused Adam unscales inside its own step, so Lightning could
+        # neither clip (it refuses) nor show the hooks unscaled gradients
+        scaler = getattr(self.trainer.precision_plugin, "scaler", None) if self._trainer is not None else None
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=scaler is None)
         if self.hparams.lr_final is None:
             return optimizer
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=self._epochs_of_fit(),
@@ -252,8 +255,10 @@ class BodySchema(L.LightningModule):
         epochs = int(trainer.max_epochs) if trainer.max_epochs not in (None, -1) else None
         if trainer.max_steps not in (None, -1):
             batches = trainer.num_training_batches
-            if batches in (None, float("inf")) or batches == 0:
+            if batches in (None, float("inf")) or batches == 0:  # not known yet when optimizers are configured
                 batches = len(trainer.datamodule.train_dataloader()) if trainer.datamodule is not None else 1
+                limit = trainer.limit_train_batches  # as Lightning applies it: a count, or a fraction
+                batches = min(batches, limit) if isinstance(limit, int) else max(1, int(batches * limit))
             steps_per_epoch = max(1, math.ceil(batches / trainer.accumulate_grad_batches))
             by_steps = math.ceil(trainer.max_steps / steps_per_epoch)
             epochs = by_steps if epochs is None else min(epochs, by_steps)

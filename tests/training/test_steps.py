@@ -77,6 +77,20 @@ def test_global_step_counts_optimizer_steps_and_max_steps_ends_the_fit(dm, name)
     assert config.scheduler.T_max == 3  # the cosine spans the epochs max_steps allows, not max_epochs
 
 
+@pytest.mark.parametrize("limit, epochs", [(5, 8), (0.5, 8), (3, 14)])
+def test_the_cosine_schedule_spans_the_epochs_max_steps_allows_under_limit_train_batches(dm, limit, epochs):
+    """It counted the full 10 batches per epoch, so T_max came out too short and the rate rose again."""
+    L.seed_everything(0)
+    schema = VAESchema(robot=dm.robot)
+    fit = trainer(max_steps=40, max_epochs=100, limit_train_batches=limit)
+    fit.fit(schema, dm)
+    (config,) = fit.lr_scheduler_configs
+    assert fit.current_epoch == epochs and config.scheduler.T_max == epochs
+    assert config.scheduler.last_epoch <= epochs  # never past the cosine's period, where the rate rises again
+    if 40 % (limit if isinstance(limit, int) else 5) == 0:  # the last epoch completes: the schedule ends at lr_final
+        assert fit.optimizers[0].param_groups[0]["lr"] == pytest.approx(schema.hparams.lr_final)
+
+
 @pytest.fixture(scope="module")
 def logged_fit(dm, tmp_path_factory):
     """A 20-step diffusion fit validating every 5 steps, logging every 3, checkpointing every 7."""
