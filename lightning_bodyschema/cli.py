@@ -178,11 +178,13 @@ def _check_max_epochs(config):
     if epochs != -1:
         raise BodySchemaInputError(f"--trainer.max_epochs={epochs} trains nothing; give a positive number of "
                                    "epochs (or -1 for endless training with a constant learning rate)")
+    if config["trainer"].get("max_steps") not in (None, -1):
+        return  # bounded by steps, as Lightning documents: the schedule spans the epochs those steps take
     init_args = config["model"].get("init_args") if config.get("model") is not None else None
     if init_args is not None and init_args.get("lr_final") is not None:
         raise BodySchemaInputError(
             f"--trainer.max_epochs=-1 (endless training) cannot anneal the learning rate to "
-            f"--model.lr_final={init_args.get('lr_final')} over max_epochs; give a positive max_epochs, "
+            f"--model.lr_final={init_args.get('lr_final')}; give a positive max_epochs or max_steps, "
             "or --model.lr_final=null for a constant learning rate")
 
 

@@ -47,7 +47,7 @@ class AutoEncoderSchema(BodySchema):
 
     def on_epoch_trained(self, q_n, x_n):
         trainer = self.trainer
-        last = ((trainer.max_epochs is not None and self.current_epoch + 1 >= trainer.max_epochs) or trainer.should_stop
+        last = ((trainer.max_epochs is not None and 0 < trainer.max_epochs <= self.current_epoch + 1) or trainer.should_stop
                 or (trainer.max_steps not in (None, -1) and trainer.global_step >= trainer.max_steps))
         if self.current_epoch % 10 == 0 or last:  # cheap, and exact at the end of training
             self.refresh_from_train_split(q_n, x_n)

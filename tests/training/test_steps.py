@@ -205,3 +205,24 @@ def test_every_checkpoint_and_an_early_stopped_fit_carry_the_latent_reference_of
     trainer(max_epochs=50, check_val_every_n_epoch=1, callbacks=[stop]).fit(stopped, dm)
     assert stop.stopped_epoch == 1  # not a multiple of 10: only the validation-time refresh can be fresh
     assert torch.allclose(stopped.z_latent_ref, _fresh_latent_reference(stopped, dm), atol=1e-6)
+
+
+@pytest.mark.parametrize("max_steps", [25, 30])  # inside the third epoch, and at its end
+def test_a_fit_ended_by_max_steps_validates_and_benchmarks_at_its_end(dm, tmp_path, max_steps):
+    """Lightning validates at an epoch's last batch only: a fit stopped by max_steps inside an epoch ended with no
+    physical metric, and the end-of-fit fault benchmark and figure looked at max_epochs only."""
+    from lightning_bodyschema.callbacks import FaultBenchmark, FinalValidation, ReconstructionFigure
+
+    L.seed_everything(0)
+    schema = AutoEncoderSchema(robot=dm.robot)
+    callbacks = [FaultBenchmark(every_n_epochs=100, n_per_condition=2, settle_check=False), FinalValidation(),
+                 ReconstructionFigure(every_n_validations=100)]
+    logger = L.pytorch.loggers.TensorBoardLogger(tmp_path)
+    fit = trainer(max_steps=max_steps, max_epochs=100, check_val_every_n_epoch=1000, logger=logger, callbacks=callbacks)
+    fit.fit(schema, dm)
+    assert fit.global_step == max_steps and "val/eq_residual_N_m" in fit.callback_metrics
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    events = EventAccumulator(fit.logger.log_dir, size_guidance={"images": 0, "scalars": 0})
+    events.Reload()
+    assert any(tag.startswith("fault/") for tag in events.Tags()["scalars"])
+    assert "val/reconstruction" in events.Tags()["images"]
