@@ -34,6 +34,7 @@ from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
+from .schemas.base import half_precision_refusal
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
@@ -93,6 +94,8 @@ class BodySchemaCLI(LightningCLI):
             config["checkpoint"]["save_top_k"] = 0
             config["checkpoint"]["save_last"] = False
             config["trainer"]["enable_checkpointing"] = True
+        if str(config["trainer"].get("precision")) in ("16-true", "bf16-true"):  # before any file is written
+            raise BodySchemaInputError(half_precision_refusal(config["trainer"]["precision"]))
         if self.subcommand == "fit":
             _check_max_epochs(config)
             if config.get("lr_scheduler") and not config.get("optimizer"):

@@ -18,6 +18,7 @@ from typing import Optional
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.plugins.precision import HalfPrecision
 from lightning.pytorch.trainer.states import TrainerFn
 
 from ..adaptation import AdaptationResult, Adapter
@@ -41,6 +42,13 @@ def schema_class_path(cls) -> str:
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
+
+
+def half_precision_refusal(precision) -> str:
+    """Why ``16-true`` / ``bf16-true`` are refused (Lightning casts every input batch to that dtype first)."""
+    return (f"--trainer.precision={precision} casts the SI data themselves (lengths in m, tensions in N) to a "
+            "16-bit float before the schema sees them (bfloat16 keeps ~3 digits: 0.5 mm steps on a 0.15 m "
+            "length); use 16-mixed or bf16-mixed (float32 weights and data, 16-bit matmuls), 32-true or 64-true")
 
 
 def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) -> None:
@@ -228,6 +236,8 @@ class BodySchema(L.LightningModule):
             super().__setattr__(name, value)
 
     def setup(self, stage: str):
+        if self._trainer is not None and isinstance(self.trainer.precision_plugin, HalfPrecision):
+            raise BodySchemaInputError(half_precision_refusal(self.trainer.precision))
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if datamodule is not None and stage == "fit":
             if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:

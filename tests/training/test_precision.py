@@ -112,3 +112,13 @@ def test_16_mixed_clips_unscaled_gradients(dm, name):
     trainer = fit(SCHEMAS[name](robot=dm.robot), dm, "16-mixed", [recorder], max_steps=8, gradient_clip_val=1e-3)
     assert trainer.global_step == 8 and len(recorder.norms) == 8
     assert max(recorder.norms) <= 1e-3 * (1 + 1e-3)
+
+
+@pytest.mark.parametrize("precision", ["bf16-true", "16-true"])
+def test_half_true_precisions_are_refused_before_they_quantise_the_si_data(dm, precision):
+    """Lightning casts every input batch to the 16-bit dtype first: lengths of ~0.15 m in 0.5 mm steps (bf16), and
+    validation then died on ``.numpy()`` of a bfloat16 tensor. One clear error instead."""
+    from lightning_bodyschema.errors import BodySchemaInputError
+
+    with pytest.raises(BodySchemaInputError, match=f"precision={precision}.*bf16-mixed"):
+        fit(DiffusionSchema(robot=dm.robot), dm, precision, max_steps=2)
