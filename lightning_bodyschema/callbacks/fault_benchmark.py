@@ -187,9 +187,11 @@ class FaultBenchmark(Callback):
         pl_module.eval()
         # Lightning validates and tests under torch.inference_mode(); adaptation differentiates through the
         # network (BodySchema.adapt leaves inference mode itself; this keeps infer's tensors normal too).
-        # fork_rng: the benchmark must not shift the training RNG stream (same run with or without it).
+        # fork_rng: the benchmark must not shift the training RNG streams (same run with or without it); manual_seed
+        # seeds every CUDA device too, so their states are forked as well when CUDA is in use
+        cuda = list(range(torch.cuda.device_count())) if torch.cuda.is_available() and torch.cuda.is_initialized() else []
         try:
-            with torch.inference_mode(False), torch.random.fork_rng(devices=[]):
+            with torch.inference_mode(False), torch.random.fork_rng(devices=cuda):
                 torch.manual_seed(self.seed)
                 return run_fault_benchmark(pl_module.robot_model, pl_module.spring, cases, pl_module.infer, adapt,
                                            settle_check=settle_check, oracle=oracle)
