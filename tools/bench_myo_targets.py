@@ -1,13 +1,15 @@
 #!/usr/bin/env python
 """Issue-15 targets of a trained checkpoint: healthy accuracy at its test postures and prepared-adapter latency.
 
-    python tools/bench_myo_targets.py --ckpt CKPT --cases cases.npz [--steps 20] [--repeats 9]
+    python tools/bench_myo_targets.py --ckpt CKPT --cases cases.npz [--steps 20] [--repeats 9] [--compiled]
 
 Prints (1) the median equilibrium residual ||-G^T f - tau_bias|| of the healthy commands at the test split, the
 median ||tau_bias|| there and their ratio (target <= 5 %), and the median length residual (target <= 1 mm);
 (2) the median time per case of a prepared ``--steps``-step adapter (``schema.adapter(faults)(q)``, no physics
-check) on the BOTH cases of ``--cases`` at batch 1 and batch 4000 (cases repeated), one torch thread.
-Timings depend on the machine's load: the load average is printed with them.
+check) on the BOTH cases of ``--cases`` at batch 1 and batch 4000 (cases repeated), one torch thread; with
+``--compiled`` also through ``torch.compile`` (the sampler's ``compiled=True``, as BENCHMARKS.md's "Diff-fast
+prepared+compiled"; the first call per batch size compiles for ~20-60 s and is not timed).
+Timings depend on the machine's load: the load average and the CPU time per case are printed with them.
 """
 import argparse
 import os
@@ -32,25 +34,28 @@ def healthy(schema, ckpt):
           f"median length residual {errors['length_residual_mm']:.4g} mm (target <= 1)")
 
 
-def latency(schema, cases, steps, repeats):
+def latency(schema, cases, steps, repeats, compiled=False):
     from lightning_bodyschema.faults import Faults
 
     schema.hparams.sample_steps = steps
     both = np.flatnonzero(np.array([str(c) == "BOTH" for c in cases["cond"]]))
+    kind = "prepared+compiled" if compiled else "prepared"
     for n, inner in ((1, 20), (4000, 1)):
         idx = np.resize(both, n)
         adapter = schema.adapter(Faults(cases["cut"][idx], cases["fix"][idx], cases["l_fixed"][idx]),
-                                 check_physics=False)
+                                 check_physics=False, compiled=compiled)
         q = cases["q_ref"][idx]
-        adapter(q)  # warm-up
-        times = []
+        adapter(q)  # warm-up (and, compiled, the compilation)
+        times, cpu = [], []
         for _ in range(repeats):
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             for _ in range(inner):
                 adapter(q)
             times.append((time.perf_counter() - start) / inner / n)
-        print(f"prepared {steps}-step adapter, batch {n}: median {1e3 * statistics.median(times):.3f} ms per case "
-              f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
+            cpu.append((time.process_time() - start_cpu) / inner / n)
+        print(f"{kind} {steps}-step adapter, batch {n}: median {1e3 * statistics.median(times):.3f} ms per case "
+              f"(CPU {1e3 * statistics.median(cpu):.3f} ms; load average {os.getloadavg()[0]:.1f} on "
+              f"{os.cpu_count()} cores)")
 
 
 def main():
@@ -59,6 +64,7 @@ def main():
     parser.add_argument("--cases", required=True, help="a tools/make_cases.py file of this checkpoint")
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--compiled", action="store_true", help="also time the torch.compile'd sampler")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
@@ -67,7 +73,10 @@ def main():
     schema = load_schema(args.ckpt)
     schema.eval()
     healthy(schema, args.ckpt)
-    latency(schema, np.load(args.cases), args.steps, args.repeats)
+    cases = np.load(args.cases)
+    latency(schema, cases, args.steps, args.repeats)
+    if args.compiled:
+        latency(schema, cases, args.steps, args.repeats, compiled=True)
 
 
 if __name__ == "__main__":
