@@ -34,6 +34,7 @@ from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
+from .schemas.base import half_precision_refusal
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
@@ -93,6 +94,8 @@ class BodySchemaCLI(LightningCLI):
             config["checkpoint"]["save_top_k"] = 0
             config["checkpoint"]["save_last"] = False
             config["trainer"]["enable_checkpointing"] = True
+        if str(config["trainer"].get("precision")) in ("16-true", "bf16-true"):  # before any file is written
+            raise BodySchemaInputError(half_precision_refusal(config["trainer"]["precision"]))
         if self.subcommand == "fit":
             _check_max_epochs(config)
             if config.get("lr_scheduler") and not config.get("optimizer"):
@@ -178,11 +181,13 @@ def _check_max_epochs(config):
     if epochs != -1:
         raise BodySchemaInputError(f"--trainer.max_epochs={epochs} trains nothing; give a positive number of "
                                    "epochs (or -1 for endless training with a constant learning rate)")
+    if config["trainer"].get("max_steps") not in (None, -1):
+        return  # bounded by steps, as Lightning documents: the schedule spans the epochs those steps take
     init_args = config["model"].get("init_args") if config.get("model") is not None else None
     if init_args is not None and init_args.get("lr_final") is not None:
         raise BodySchemaInputError(
             f"--trainer.max_epochs=-1 (endless training) cannot anneal the learning rate to "
-            f"--model.lr_final={init_args.get('lr_final')} over max_epochs; give a positive max_epochs, "
+            f"--model.lr_final={init_args.get('lr_final')}; give a positive max_epochs or max_steps, "
             "or --model.lr_final=null for a constant learning rate")
 
 

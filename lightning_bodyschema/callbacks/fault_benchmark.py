@@ -45,7 +45,7 @@ from ..evaluation import BenchmarkResult, make_fault_cases, run_fault_benchmark
 from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
 from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
-from .steps import validation_log_step
+from .steps import fit_ends_with_this_validation, validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
 METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0),
@@ -139,9 +139,8 @@ class FaultBenchmark(Callback):
         if not trainer.loggers:  # nothing to log to (--trainer.logger=false): don't spend the time
             return False
         epoch = trainer.current_epoch + 1  # epochs completed
-        last = (trainer.max_epochs is not None and epoch >= trainer.max_epochs) or trainer.should_stop
         # "at or after each multiple": works whatever check_val_every_n_epoch is
-        return last or epoch // self.every_n_epochs > self._last_period
+        return fit_ends_with_this_validation(trainer) or epoch // self.every_n_epochs > self._last_period
 
     # ------------------------------------------------------------------ the benchmark
     def cases_for(self, trainer, pl_module, protocol: str = "paper"):
@@ -188,9 +187,11 @@ class FaultBenchmark(Callback):
         pl_module.eval()
         # Lightning validates and tests under torch.inference_mode(); adaptation differentiates through the
         # network (BodySchema.adapt leaves inference mode itself; this keeps infer's tensors normal too).
-        # fork_rng: the benchmark must not shift the training RNG stream (same run with or without it).
+        # fork_rng: the benchmark must not shift the training RNG streams (same run with or without it); manual_seed
+        # seeds every CUDA device too, so their states are forked as well when CUDA is in use
+        cuda = list(range(torch.cuda.device_count())) if torch.cuda.is_available() and torch.cuda.is_initialized() else []
         try:
-            with torch.inference_mode(False), torch.random.fork_rng(devices=[]):
+            with torch.inference_mode(False), torch.random.fork_rng(devices=cuda):
                 torch.manual_seed(self.seed)
                 return run_fault_benchmark(pl_module.robot_model, pl_module.spring, cases, pl_module.infer, adapt,
                                            settle_check=settle_check, oracle=oracle)

@@ -30,6 +30,13 @@ class FinalValidation(Callback):
             self._interval = trainer.check_val_every_n_epoch
             trainer.check_val_every_n_epoch = epoch  # epoch % epoch == 0: this epoch validates
 
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        # max_steps reached inside an epoch: Lightning validates at an epoch's last batch or on a requested stop
+        # only, so request the stop (the fit ends here anyway) and the epoch's validation runs
+        if (self.enabled and trainer.max_steps is not None and trainer.max_steps > 0
+                and trainer.global_step >= trainer.max_steps and not trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
+            trainer.should_stop = True
+
     def on_train_epoch_end(self, trainer, pl_module):
         self._steps_per_epoch = trainer.global_step - self._epoch_start_step
 

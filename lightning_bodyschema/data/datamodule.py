@@ -9,7 +9,7 @@ than the maths (docs/design.md, data and training). Validation and test get the 
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import lightning as L
 import numpy as np
@@ -71,22 +71,42 @@ class MinibatchLoader:
     """The minibatches ``(q, x)`` of one rank's shard for one epoch, sliced from in-memory tensors.
 
     Not a ``DataLoader`` (Lightning leaves other iterables alone: it injects no sampler of its own), but it
-    has what Lightning looks for: ``len`` (batches per epoch) and ``sampler.set_epoch``.
+    has what Lightning looks for: ``len`` (batches per epoch), ``sampler.set_epoch``, and ``state_dict`` /
+    ``load_state_dict``, so a fit resumed from a mid-epoch checkpoint continues the epoch where it stopped
+    (same order, the remaining batches) instead of replaying its start.
+
+    batches_done: how many of this epoch's batches have been trained on (the trainer's count; without it the
+        loader's own count of batches handed out, which runs ahead of training by Lightning's prefetch).
     """
 
-    def __init__(self, q: torch.Tensor, x: torch.Tensor, batch_size: int, sampler: ShardSampler):
+    def __init__(self, q: torch.Tensor, x: torch.Tensor, batch_size: int, sampler: ShardSampler,
+                 batches_done: Optional[Callable[[], int]] = None):
         if int(batch_size) != batch_size or batch_size <= 0:
             raise BodySchemaInputError(f"batch_size={batch_size!r} must be a positive integer")
         self.q, self.x, self.batch_size, self.sampler = q, x, int(batch_size), sampler
+        self._batches_done, self._handed_out = batches_done, 0
+        self._resume_at: Optional[tuple[int, int]] = None  # (epoch, batches already trained) from a checkpoint
 
     def __len__(self) -> int:
         return math.ceil(len(self.sampler) / self.batch_size)
+
+    def state_dict(self) -> dict:
+        done = self._batches_done() if self._batches_done is not None else self._handed_out
+        return {"epoch": self.sampler.epoch, "batches_done": int(done)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._resume_at = (int(state["epoch"]), int(state["batches_done"]))
 
     def __iter__(self):
         # one gather per epoch, then each minibatch is a view (a gather per minibatch cost ~0.1 ms per step)
         idx = self.sampler.indices()
         q, x = self.q[idx], self.x[idx]
-        for start in range(0, len(idx), self.batch_size):
+        first = 0
+        if self._resume_at is not None and self._resume_at[0] == self.sampler.epoch:
+            first = self._resume_at[1]  # the resumed epoch: its order, minus the batches already trained on
+        self._resume_at, self._handed_out = None, first
+        for start in range(first * self.batch_size, len(idx), self.batch_size):
+            self._handed_out += 1
             yield q[start:start + self.batch_size], x[start:start + self.batch_size]
 
 
@@ -171,7 +191,12 @@ class EquilibriumDataModule(L.LightningDataModule):
         batch_size = module.hparams.get("batch_size", 64) if module is not None else 64
         shards = (trainer.distributed_sampler_kwargs if trainer is not None else None) or {}
         sampler = ShardSampler(len(q), self.hparams.seed, shards.get("rank", 0), shards.get("num_replicas", 1))
-        return MinibatchLoader(q, x, batch_size, sampler)
+        progress = self._batches_trained_this_epoch if trainer is not None else None
+        return MinibatchLoader(q, x, batch_size, sampler, batches_done=progress)
+
+    def _batches_trained_this_epoch(self) -> int:
+        """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""
+        return self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
 
     def val_dataloader(self):
         return self._loader("val")

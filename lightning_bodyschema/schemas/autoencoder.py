@@ -47,11 +47,15 @@ class AutoEncoderSchema(BodySchema):
 
     def on_epoch_trained(self, q_n, x_n):
         trainer = self.trainer
-        last = ((trainer.max_epochs is not None and self.current_epoch + 1 >= trainer.max_epochs) or trainer.should_stop
+        last = ((trainer.max_epochs is not None and 0 < trainer.max_epochs <= self.current_epoch + 1) or trainer.should_stop
                 or (trainer.max_steps not in (None, -1) and trainer.global_step >= trainer.max_steps))
         if self.current_epoch % 10 == 0 or last:  # cheap, and exact at the end of training
-            with torch.no_grad():
-                self.z_latent_ref.copy_(self.latent_reference(x_n))
+            self.refresh_from_train_split(q_n, x_n)
+
+    @torch.no_grad()
+    def refresh_from_train_split(self, q_n, x_n):
+        """z_ref: before every validation and checkpoint of a fit too (BodySchema.refresh_from_train_split)."""
+        self.z_latent_ref.copy_(self.latent_reference(x_n))
 
     def latent_reference(self, x_n):
         """Mean z_latent of the train split: where latent adaptation starts."""

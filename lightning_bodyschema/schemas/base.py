@@ -18,6 +18,8 @@ from typing import Optional
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.plugins.precision import HalfPrecision
+from lightning.pytorch.trainer.states import TrainerFn
 
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
@@ -42,6 +44,13 @@ def schema_class_path(cls) -> str:
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
 
 
+def half_precision_refusal(precision) -> str:
+    """Why ``16-true`` / ``bf16-true`` are refused (Lightning casts every input batch to that dtype first)."""
+    return (f"--trainer.precision={precision} casts the SI data themselves (lengths in m, tensions in N) to a "
+            "16-bit float before the schema sees them (bfloat16 keeps ~3 digits: 0.5 mm steps on a 0.15 m "
+            "length); use 16-mixed or bf16-mixed (float32 weights and data, 16-bit matmuls), 32-true or 64-true")
+
+
 def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) -> None:
     """Forget the saved ``ModelCheckpoint`` state when a checkpoint is only evaluated (validate / test).
 
@@ -49,8 +58,6 @@ def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) ->
     version folder, so Lightning would find another dirpath and warn that best_model_score "won't be reloaded",
     which is right and irrelevant there. The weights, hyperparameters and RNG state are untouched.
     """
-    from lightning.pytorch.trainer.states import TrainerFn
-
     if trainer is None or trainer.state.fn in (None, TrainerFn.FITTING) or "callbacks" not in checkpoint:
         return
     checkpoint["callbacks"] = {key: state for key, state in checkpoint["callbacks"].items()
@@ -229,6 +236,8 @@ class BodySchema(L.LightningModule):
             super().__setattr__(name, value)
 
     def setup(self, stage: str):
+        if self._trainer is not None and isinstance(self.trainer.precision_plugin, HalfPrecision):
+            raise BodySchemaInputError(half_precision_refusal(self.trainer.precision))
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if datamodule is not None and stage == "fit":
             if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:
@@ -240,7 +249,10 @@ class BodySchema(L.LightningModule):
         """Adam (fused: ~25 % faster per step than the default on this tiny CPU workload, measured) with the
         cosine schedule from ``lr`` to ``lr_final`` over the fit's epochs, stepped once per epoch. The CLI's
         ``--optimizer`` / ``--lr_scheduler`` replace both (LightningCLI's own mechanism)."""
-        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=True)
+        # under a GradScaler (16-mixed) not fused: a fused Adam unscales inside its own step, so Lightning could
+        # neither clip (it refuses) nor show the hooks unscaled gradients
+        scaler = getattr(self.trainer.precision_plugin, "scaler", None) if self._trainer is not None else None
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=scaler is None)
         if self.hparams.lr_final is None:
             return optimizer
         schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=self._epochs_of_fit(),
@@ -253,8 +265,10 @@ class BodySchema(L.LightningModule):
         epochs = int(trainer.max_epochs) if trainer.max_epochs not in (None, -1) else None
         if trainer.max_steps not in (None, -1):
             batches = trainer.num_training_batches
-            if batches in (None, float("inf")) or batches == 0:
+            if batches in (None, float("inf")) or batches == 0:  # not known yet when optimizers are configured
                 batches = len(trainer.datamodule.train_dataloader()) if trainer.datamodule is not None else 1
+                limit = trainer.limit_train_batches  # as Lightning applies it: a count, or a fraction
+                batches = min(batches, limit) if isinstance(limit, int) else max(1, int(batches * limit))
             steps_per_epoch = max(1, math.ceil(batches / trainer.accumulate_grad_batches))
             by_steps = math.ceil(trainer.max_steps / steps_per_epoch)
             epochs = by_steps if epochs is None else min(epochs, by_steps)
@@ -305,18 +319,43 @@ class BodySchema(L.LightningModule):
             # therefore restarts these streams; a single-process fit continues the checkpoint's.)
             torch.manual_seed(torch.initial_seed() + self.global_rank)
 
+    def _train_split_normalized(self):
+        """(q_n, x_n) of the data module's whole train split on this device, or None (no data module)."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is None or getattr(datamodule, "splits", None) is None:
+            return None
+        q, x = datamodule.splits["train"]
+        return self._normalized((q.to(self.device), x.to(self.device)))
+
     def on_train_epoch_end(self):
         if type(self).on_epoch_trained is BodySchema.on_epoch_trained:
             return
-        datamodule = getattr(self.trainer, "datamodule", None)
-        if datamodule is not None and getattr(datamodule, "splits", None) is not None:
-            q, x = datamodule.splits["train"]
-            q_n, x_n = self._normalized((q.to(self.device), x.to(self.device)))
-            self.on_epoch_trained(q_n, x_n)
+        split = self._train_split_normalized()
+        if split is not None:
+            self.on_epoch_trained(*split)
 
     def on_epoch_trained(self, q_n, x_n):
         """Hook after each epoch's updates with the whole (normalized) train split, the same on every rank
-        (e.g. refresh a latent reference); default: nothing."""
+        (e.g. refresh a latent reference now and then); default: nothing."""
+
+    def refresh_from_train_split(self, q_n, x_n) -> None:
+        """Bring state derived from the weights and the train split up to date (e.g. a latent reference).
+
+        Called during fit before every validation and before every checkpoint is written, so what is validated
+        and what is saved match the weights (Lightning validates and saves before ``on_train_epoch_end``, and
+        EarlyStopping may end a fit right after a validation); default: nothing."""
+
+    def _refresh_derived_state(self) -> bool:
+        overridden = type(self).refresh_from_train_split is not BodySchema.refresh_from_train_split
+        if not overridden or self._trainer is None or self.trainer.state.fn != TrainerFn.FITTING:
+            return False
+        split = self._train_split_normalized()
+        if split is not None:
+            self.refresh_from_train_split(*split)
+        return split is not None
+
+    def on_validation_epoch_start(self):
+        self._refresh_derived_state()
 
     def _common_step(self, batch, stage: str):
         q_n, x_n = self._normalized(batch)
@@ -343,6 +382,9 @@ class BodySchema(L.LightningModule):
         return {"q": batch[0].cpu().numpy(), "l_motor": l_motor, "f": f}
 
     def on_save_checkpoint(self, checkpoint):
+        if self._refresh_derived_state():  # Lightning took the state_dict before this hook: update its buffers
+            state = checkpoint.get("state_dict", {})
+            state.update({name: buf.detach().clone() for name, buf in self.named_buffers() if name in state})
         checkpoint["bodyschema"] = {"class_path": schema_class_path(type(self)),
                                     "model_xml_sha256": self.robot_model.xml_hash}
         # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue

@@ -214,6 +214,8 @@ ROWS = [
     Row("epochs_negative", "cli", fit("--trainer.max_epochs=-2"), ("--trainer.max_epochs=-2", "positive number")),
     Row("epochs_endless_with_annealing", "cli", fit("--trainer.max_epochs=-1"),
         ("--trainer.max_epochs=-1", "lr_final=1e-05", "--model.lr_final=null")),
+    Row("precision_bf16_true", "cli", fit("--trainer.precision=bf16-true"),
+        ("--trainer.precision=bf16-true", "bf16-mixed", "32-true")),
     Row("dataset_size_zero", "cli", fit("--data.n_samples=0"), ("n_samples=0", "integer >= 10")),
     Row("dataset_size_zero_make_dataset", "make_dataset",
         lambda c, out: ["--n", "0", "--out", str(out / "data.npz")], ("n=0", "positive integer")),

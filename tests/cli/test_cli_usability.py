@@ -175,3 +175,15 @@ def test_trainer_enable_checkpointing_false_writes_no_checkpoint(tmp_path):
     cli_main(["fit", *TINY, "--trainer.max_epochs=2", f"--trainer.default_root_dir={tmp_path}/on",
               f"--data.cache_dir={tmp_path}/cache"])
     assert {p.rsplit("/", 1)[1] for p in glob.glob(f"{tmp_path}/on/**/*.ckpt", recursive=True)} >= {"last.ckpt"}
+
+
+def test_endless_epochs_bounded_by_max_steps_anneal_over_those_steps(tmp_path):
+    """``--trainer.max_epochs=-1 --trainer.max_steps=N`` is how Lightning bounds a fit by steps; it was refused
+    whenever lr_final was set. The cosine spans the epochs the steps take and ends at lr_final."""
+    cli = cli_main(["fit", *TINY, "--trainer.max_epochs=-1", "--trainer.max_steps=6",
+                    f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
+    steps_per_epoch = cli.trainer.num_training_batches  # 160 train samples in batches of 64: 3
+    assert cli.trainer.global_step == 6 and cli.trainer.current_epoch == 6 // steps_per_epoch
+    (config,) = cli.trainer.lr_scheduler_configs
+    assert config.scheduler.T_max == 6 // steps_per_epoch
+    assert cli.trainer.optimizers[0].param_groups[0]["lr"] == pytest.approx(cli.model.hparams.lr_final)

@@ -94,3 +94,31 @@ def test_an_overflowing_loss_is_skipped_not_applied(dm, name, precision):
     w_next, _ = snaps.after[4]
     assert any(not torch.equal(w_after[k], w_next[k]) for k in w_after if k.startswith(("decoder", "eps_model")))
     assert all(torch.isfinite(p).all() for p in schema.parameters())
+
+
+@pytest.mark.parametrize("name", ["diff", "ae"])
+def test_16_mixed_clips_unscaled_gradients(dm, name):
+    """The default optimizer was a fused Adam, which unscales inside its step: Lightning refused to clip under a
+    GradScaler ("does not allow for gradient clipping"). The clipped norm is of the unscaled gradients."""
+    class GradNorms(Callback):
+        norms = []
+
+        def on_train_start(self, trainer, pl_module):  # what the optimizer steps with: unscaled, then clipped
+            trainer.optimizers[0].register_step_pre_hook(lambda *_: self.norms.append(float(
+                torch.nn.utils.get_total_norm([p.grad for p in pl_module.parameters() if p.grad is not None]))))
+
+    L.seed_everything(0)
+    recorder = GradNorms()
+    trainer = fit(SCHEMAS[name](robot=dm.robot), dm, "16-mixed", [recorder], max_steps=8, gradient_clip_val=1e-3)
+    assert trainer.global_step == 8 and len(recorder.norms) == 8
+    assert max(recorder.norms) <= 1e-3 * (1 + 1e-3)
+
+
+@pytest.mark.parametrize("precision", ["bf16-true", "16-true"])
+def test_half_true_precisions_are_refused_before_they_quantise_the_si_data(dm, precision):
+    """Lightning casts every input batch to the 16-bit dtype first: lengths of ~0.15 m in 0.5 mm steps (bf16), and
+    validation then died on ``.numpy()`` of a bfloat16 tensor. One clear error instead."""
+    from lightning_bodyschema.errors import BodySchemaInputError
+
+    with pytest.raises(BodySchemaInputError, match=f"precision={precision}.*bf16-mixed"):
+        fit(DiffusionSchema(robot=dm.robot), dm, precision, max_steps=2)

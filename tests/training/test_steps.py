@@ -77,6 +77,20 @@ def test_global_step_counts_optimizer_steps_and_max_steps_ends_the_fit(dm, name)
     assert config.scheduler.T_max == 3  # the cosine spans the epochs max_steps allows, not max_epochs
 
 
+@pytest.mark.parametrize("limit, epochs", [(5, 8), (0.5, 8), (3, 14)])
+def test_the_cosine_schedule_spans_the_epochs_max_steps_allows_under_limit_train_batches(dm, limit, epochs):
+    """It counted the full 10 batches per epoch, so T_max came out too short and the rate rose again."""
+    L.seed_everything(0)
+    schema = VAESchema(robot=dm.robot)
+    fit = trainer(max_steps=40, max_epochs=100, limit_train_batches=limit)
+    fit.fit(schema, dm)
+    (config,) = fit.lr_scheduler_configs
+    assert fit.current_epoch == epochs and config.scheduler.T_max == epochs
+    assert config.scheduler.last_epoch <= epochs  # never past the cosine's period, where the rate rises again
+    if 40 % (limit if isinstance(limit, int) else 5) == 0:  # the last epoch completes: the schedule ends at lr_final
+        assert fit.optimizers[0].param_groups[0]["lr"] == pytest.approx(schema.hparams.lr_final)
+
+
 @pytest.fixture(scope="module")
 def logged_fit(dm, tmp_path_factory):
     """A 20-step diffusion fit validating every 5 steps, logging every 3, checkpointing every 7."""
@@ -117,6 +131,20 @@ def test_checkpoint_every_n_train_steps(logged_fit):
     assert names == ["step=14.ckpt", "step=7.ckpt"]
 
 
+@pytest.mark.parametrize("ckpt", ["step=7.ckpt", "step=14.ckpt"])
+def test_a_fit_resumed_mid_epoch_ends_with_the_weights_of_the_uninterrupted_fit(logged_fit, dm, ckpt):
+    """Both checkpoints fall inside an epoch (10 batches each): the resumed epoch continues with the batches not yet
+    trained on, in the same order, with the same diffusion noise, validating at the same steps."""
+    fit, _, root = logged_fit
+    L.seed_everything(123)  # a different start: everything must come from the checkpoint
+    resumed = DiffusionSchema(robot=dm.robot)
+    again = trainer(max_steps=20, val_check_interval=5, check_val_every_n_epoch=None)
+    again.fit(resumed, dm, ckpt_path=str(root / "ckpt" / ckpt))
+    assert again.global_step == 20
+    expected = fit.lightning_module.state_dict()
+    assert all(torch.equal(expected[k], v) for k, v in resumed.state_dict().items())
+
+
 def test_gradient_clip_val_bounds_every_step(dm):
     class GradNorms(Callback):
         norms = []
@@ -149,3 +177,52 @@ def test_early_stopping_on_the_validation_residual_stops_a_fit(dm):
     fit.fit(schema, dm)
     assert fit.should_stop and stop.stopped_epoch == 3 and fit.current_epoch == 4
     assert "val/eq_residual_N_m" in fit.callback_metrics
+
+
+def _fresh_latent_reference(schema, dm):
+    q_n, x_n = schema._normalized(dm.splits["train"])
+    with torch.no_grad():
+        return schema.latent_reference(x_n)
+
+
+def test_every_checkpoint_and_an_early_stopped_fit_carry_the_latent_reference_of_their_weights(dm, tmp_path):
+    """Lightning validates and saves before on_train_epoch_end, where the AE refreshes z_ref every 10 epochs: the
+    saved and the early-stopped z_ref used to lag the weights (by up to 0.04 here)."""
+    L.seed_everything(0)
+    schema = AutoEncoderSchema(robot=dm.robot)
+    saves = ModelCheckpoint(dirpath=tmp_path, every_n_train_steps=7, save_top_k=-1, save_last=True, filename="{step}")
+    trainer(max_epochs=5, check_val_every_n_epoch=5, enable_checkpointing=True, callbacks=[saves]).fit(schema, dm)
+    for name in ("step=7.ckpt", "step=49.ckpt", "last.ckpt"):  # mid-epoch, late, and after the last validation
+        saved = torch.load(tmp_path / name, weights_only=True)["state_dict"]
+        probe = AutoEncoderSchema(robot=dm.robot)
+        probe.load_state_dict(saved)
+        probe.normalizer.load_state_dict(dm.normalizer.state_dict())
+        assert torch.allclose(saved["z_latent_ref"], _fresh_latent_reference(probe, dm), atol=1e-6), name
+
+    L.seed_everything(0)
+    stopped = AutoEncoderSchema(robot=dm.robot)
+    stop = EarlyStopping(monitor="val/eq_residual_N_m", mode="min", patience=0, min_delta=1e3)
+    trainer(max_epochs=50, check_val_every_n_epoch=1, callbacks=[stop]).fit(stopped, dm)
+    assert stop.stopped_epoch == 1  # not a multiple of 10: only the validation-time refresh can be fresh
+    assert torch.allclose(stopped.z_latent_ref, _fresh_latent_reference(stopped, dm), atol=1e-6)
+
+
+@pytest.mark.parametrize("max_steps", [25, 30])  # inside the third epoch, and at its end
+def test_a_fit_ended_by_max_steps_validates_and_benchmarks_at_its_end(dm, tmp_path, max_steps):
+    """Lightning validates at an epoch's last batch only: a fit stopped by max_steps inside an epoch ended with no
+    physical metric, and the end-of-fit fault benchmark and figure looked at max_epochs only."""
+    from lightning_bodyschema.callbacks import FaultBenchmark, FinalValidation, ReconstructionFigure
+
+    L.seed_everything(0)
+    schema = AutoEncoderSchema(robot=dm.robot)
+    callbacks = [FaultBenchmark(every_n_epochs=100, n_per_condition=2, settle_check=False), FinalValidation(),
+                 ReconstructionFigure(every_n_validations=100)]
+    logger = L.pytorch.loggers.TensorBoardLogger(tmp_path)
+    fit = trainer(max_steps=max_steps, max_epochs=100, check_val_every_n_epoch=1000, logger=logger, callbacks=callbacks)
+    fit.fit(schema, dm)
+    assert fit.global_step == max_steps and "val/eq_residual_N_m" in fit.callback_metrics
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    events = EventAccumulator(fit.logger.log_dir, size_guidance={"images": 0, "scalars": 0})
+    events.Reload()
+    assert any(tag.startswith("fault/") for tag in events.Tags()["scalars"])
+    assert "val/reconstruction" in events.Tags()["images"]
