@@ -18,6 +18,9 @@ import time
 import numpy as np
 import yaml
 
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
+
 
 def _chunk(args):
     xml, muscles, spring_dict, n, seed = args
@@ -33,13 +36,19 @@ def _chunk(args):
     return len(samples.q), samples.n_redrawn, float(residual)
 
 
-def main():
+@exits_cleanly
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="configs/myoarm-diff.yaml")
     parser.add_argument("--n", type=int, default=100_000)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if not os.path.isfile(args.config):
+        raise BodySchemaInputError(f"--config {args.config!r} does not exist; give a config with a data: section")
+    if args.n < 1 or args.processes < 1 or args.repeats < 1:
+        raise BodySchemaInputError(f"--n {args.n}, --processes {args.processes} and --repeats {args.repeats} must "
+                                   "each be >= 1")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from lightning_bodyschema.sim import MusculoskeletalModel
     from lightning_bodyschema.sim.spring import spring_for_model

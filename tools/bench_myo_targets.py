@@ -19,6 +19,9 @@ import time
 import numpy as np
 import torch
 
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
+
 
 def healthy(schema, ckpt):
     from lightning_bodyschema.schemas.loading import load_datamodule
@@ -58,14 +61,17 @@ def latency(schema, cases, steps, repeats, compiled=False):
               f"{os.cpu_count()} cores)")
 
 
-def main():
+@exits_cleanly
+def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--ckpt", required=True)
     parser.add_argument("--cases", required=True, help="a tools/make_cases.py file of this checkpoint")
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--compiled", action="store_true", help="also time the torch.compile'd sampler")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    if not os.path.isfile(args.cases):
+        raise BodySchemaInputError(f"--cases {args.cases!r} does not exist; give a tools/make_cases.py file (.npz)")
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
     from lightning_bodyschema.schemas.loading import load_schema

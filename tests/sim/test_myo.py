@@ -301,3 +301,15 @@ def test_locking_again_a_rebuilt_model_is_idempotent_and_followers_cannot_be_loc
         MusculoskeletalModel(COUPLED_ARM, locked_joints={"nope": 0.0})
     with pytest.raises(BodySchemaInputError, match="outside its range"):
         MusculoskeletalModel(COUPLED_ARM, locked_joints={"elbow": 2.0})
+
+
+@pytest.mark.parametrize("args, named", [
+    (["tools/bench_myo_targets.py", "--ckpt", "no-such.ckpt", "--cases", "no-such.npz"], "--cases 'no-such.npz'"),
+    (["tools/bench_myo_dataset.py", "--config", "no-such.yaml"], "--config 'no-such.yaml'"),
+    (["tools/bench_myo_dataset.py", "--n", "0"], "--n 0"),
+])
+def test_myo_benchmarks_refuse_bad_input_with_one_line_and_exit_2(args, named):
+    env = {**os.environ, "PYTHONPATH": REPO, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
+    errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
+    assert out.returncode == 2 and len(errors) == 1 and named in errors[0] and "Traceback" not in out.stderr
