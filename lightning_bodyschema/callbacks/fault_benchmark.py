@@ -45,7 +45,8 @@ from ..evaluation import BenchmarkResult, make_fault_cases, run_fault_benchmark
 from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
 from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
-from .steps import fit_ends_with_this_validation, validation_log_step
+from ..schemas.base import fit_ends_with_this_epoch
+from .steps import validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
 METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0),
@@ -140,7 +141,7 @@ class FaultBenchmark(Callback):
             return False
         epoch = trainer.current_epoch + 1  # epochs completed
         # "at or after each multiple": works whatever check_val_every_n_epoch is
-        return fit_ends_with_this_validation(trainer) or epoch // self.every_n_epochs > self._last_period
+        return fit_ends_with_this_epoch(trainer) or epoch // self.every_n_epochs > self._last_period
 
     # ------------------------------------------------------------------ the benchmark
     def cases_for(self, trainer, pl_module, protocol: str = "paper"):

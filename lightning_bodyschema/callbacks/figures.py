@@ -6,7 +6,8 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_only
 
 from ..plots.reconstruction import reconstruction_figure
-from .steps import fit_ends_with_this_validation, validation_log_step
+from ..schemas.base import fit_ends_with_this_epoch
+from .steps import validation_log_step
 
 
 class ReconstructionFigure(Callback):
@@ -19,7 +20,7 @@ class ReconstructionFigure(Callback):
     @rank_zero_only
     def on_validation_epoch_end(self, trainer, pl_module):
         self._count += 1
-        last = fit_ends_with_this_validation(trainer)
+        last = fit_ends_with_this_epoch(trainer)
         if trainer.sanity_checking or (self._count % self.every_n_validations and not last):
             return
         self.log_figure(trainer, pl_module)

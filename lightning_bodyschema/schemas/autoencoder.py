@@ -7,7 +7,7 @@ import torch
 
 from ..networks import build_autoencoder
 from ..samplers import LatentConfig, latent_descent, reference_latent_descent
-from .base import BodySchema
+from .base import BodySchema, fit_ends_with_this_epoch
 
 
 class AutoEncoderSchema(BodySchema):
@@ -46,10 +46,7 @@ class AutoEncoderSchema(BodySchema):
         return loss, {"recon": recon.detach(), "joint": joint.detach(), **{k: v.detach() for k, v in extra.items()}}
 
     def on_epoch_trained(self, q_n, x_n):
-        trainer = self.trainer
-        last = ((trainer.max_epochs is not None and 0 < trainer.max_epochs <= self.current_epoch + 1) or trainer.should_stop
-                or (trainer.max_steps not in (None, -1) and trainer.global_step >= trainer.max_steps))
-        if self.current_epoch % 10 == 0 or last:  # cheap, and exact at the end of training
+        if self.current_epoch % 10 == 0 or fit_ends_with_this_epoch(self.trainer):  # cheap, and exact at the end of training
             self.refresh_from_train_split(q_n, x_n)
 
     @torch.no_grad()

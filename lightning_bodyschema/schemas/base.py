@@ -44,6 +44,15 @@ def schema_class_path(cls) -> str:
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
 
 
+def fit_ends_with_this_epoch(trainer) -> bool:
+    """True in an epoch (at its validation or its training end) after which the fit stops: the last epoch of
+    ``max_epochs``, ``max_steps`` reached (also inside an epoch), or a stop requested (EarlyStopping).
+    ``max_epochs=-1`` (endless) never ends by epochs."""
+    by_epochs = trainer.max_epochs is not None and 0 < trainer.max_epochs <= trainer.current_epoch + 1
+    by_steps = trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
+    return bool(by_epochs or by_steps or trainer.should_stop)
+
+
 def half_precision_refusal(precision) -> str:
     """Why ``16-true`` / ``bf16-true`` are refused (Lightning casts every input batch to that dtype first)."""
     return (f"--trainer.precision={precision} casts the SI data themselves (lengths in m, tensions in N) to a "
