@@ -75,6 +75,9 @@ class BodySchemaCLI(LightningCLI):
         self._checkpoint = None
         subcommand = self.config.get("subcommand")
         ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if ckpt_path is not None and not str(ckpt_path).strip():  # `--ckpt_path "$CKPT"` with CKPT unset
+            raise BodySchemaInputError(f"--ckpt_path {str(ckpt_path)!r} is empty: give a checkpoint file, one of "
+                                       f"{', '.join(_LIGHTNING_CKPT_KEYWORDS)}, or leave the option out")
         if ckpt_path and str(ckpt_path) not in _LIGHTNING_CKPT_KEYWORDS:
             # the loader's every check (schemas/loading.py): Lightning then imports the checkpoint's _class_path
             # and loads its hyperparameters and weights, which must have passed first

@@ -7,6 +7,8 @@ checkpoint monitors and callbacks), not a side run: only the interval changes, f
 """
 from __future__ import annotations
 
+import math
+
 from lightning.pytorch.callbacks import Callback
 
 
@@ -17,17 +19,20 @@ class FinalValidation(Callback):
         """enabled: False keeps Lightning's plain interval (no validation at the end unless it falls due)."""
         self.enabled = enabled
         self._interval = None  # the user's check_val_every_n_epoch while the last epoch is forced
-        self._epoch_start_step = None  # global_step when the current epoch started
-        self._steps_per_epoch = None  # optimizer steps the last epoch took (a schema may step once per minibatch)
+        self._decided_epoch = None  # the epoch whose first batch (in this fit) was looked at
 
-    def on_train_epoch_start(self, trainer, pl_module):
-        self._epoch_start_step = trainer.global_step
-        steps = self._steps_per_epoch or trainer.num_training_batches
-        if not self.enabled or trainer.check_val_every_n_epoch is None or not _is_last_epoch(trainer, steps):
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        # decided at an epoch's first batch of this fit, not in on_train_epoch_start: a fit resumed from a
+        # checkpoint starts inside (or right at) an epoch without that hook, and batch_idx says what is left
+        if not self.enabled or trainer.current_epoch == self._decided_epoch:
             return
+        self._decided_epoch = trainer.current_epoch
+        if trainer.check_val_every_n_epoch is None:
+            return
+        remaining = math.ceil((trainer.num_training_batches - batch_idx) / trainer.accumulate_grad_batches)
         epoch = trainer.current_epoch + 1  # epochs completed when this one ends
-        if epoch % trainer.check_val_every_n_epoch != 0:  # Lightning would skip validation here
-            self._interval = trainer.check_val_every_n_epoch
+        if _is_last_epoch(trainer, remaining) and epoch % trainer.check_val_every_n_epoch != 0:
+            self._interval = trainer.check_val_every_n_epoch  # Lightning would skip validation here
             trainer.check_val_every_n_epoch = epoch  # epoch % epoch == 0: this epoch validates
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
@@ -36,9 +41,6 @@ class FinalValidation(Callback):
         if (self.enabled and trainer.max_steps is not None and trainer.max_steps > 0
                 and trainer.global_step >= trainer.max_steps and not trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
             trainer.should_stop = True
-
-    def on_train_epoch_end(self, trainer, pl_module):
-        self._steps_per_epoch = trainer.global_step - self._epoch_start_step
 
     def on_train_end(self, trainer, pl_module):
         self._restore(trainer)
@@ -51,10 +53,10 @@ class FinalValidation(Callback):
             trainer.check_val_every_n_epoch, self._interval = self._interval, None
 
 
-def _is_last_epoch(trainer, steps_per_epoch) -> bool:
-    """True when the epoch starting now is the fit's last: ``max_epochs`` reached, or ``max_steps`` reached within it
-    (``steps_per_epoch``: optimizer steps an epoch takes, as the previous epoch did)."""
+def _is_last_epoch(trainer, steps_left) -> bool:
+    """True when the epoch under way is the fit's last: ``max_epochs`` reached, or ``max_steps`` reached within the
+    ``steps_left`` optimizer steps it still has."""
     if trainer.max_epochs is not None and trainer.max_epochs > 0 and trainer.current_epoch + 1 >= trainer.max_epochs:
         return True
-    return (trainer.max_steps is not None and trainer.max_steps > 0 and steps_per_epoch not in (None, float("inf"))
-            and trainer.global_step + steps_per_epoch >= trainer.max_steps)
+    return (trainer.max_steps is not None and trainer.max_steps > 0 and steps_left not in (None, float("inf"))
+            and trainer.global_step + steps_left >= trainer.max_steps)

@@ -228,6 +228,8 @@ ROWS = [
     # ---- checkpoints
     Row("checkpoint_missing", "cli", bodyschema_test(missing("model.ckpt"), "--model=DiffusionSchema"),
         ("model.ckpt", "does not exist")),
+    Row("checkpoint_path_empty", "cli", bodyschema_test(lambda c: "", "--model=DiffusionSchema"),
+        ("--ckpt_path ''", "is empty", "last, best")),
     Row("checkpoint_truncated", "cli", bodyschema_test(file("truncated.ckpt"), "--model=DiffusionSchema"),
         ("truncated.ckpt", "cannot be read", "truncated or not a checkpoint"), process=True),
     Row("checkpoint_is_an_npz", "cli", bodyschema_test(file("arrays.npz"), "--model=DiffusionSchema"),

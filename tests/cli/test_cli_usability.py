@@ -187,3 +187,21 @@ def test_endless_epochs_bounded_by_max_steps_anneal_over_those_steps(tmp_path):
     (config,) = cli.trainer.lr_scheduler_configs
     assert config.scheduler.T_max == 6 // steps_per_epoch
     assert cli.trainer.optimizers[0].param_groups[0]["lr"] == pytest.approx(cli.model.hparams.lr_final)
+
+
+@pytest.mark.parametrize("every", [4, 6])  # inside an epoch (3 steps each), and at an epoch's last batch
+def test_a_cli_fit_resumed_from_a_step_checkpoint_ends_with_the_uninterrupted_weights(tmp_path, every):
+    """``--ckpt_path`` of an ``every_n_train_steps`` checkpoint: FinalValidation crashed on the resumed epoch
+    (it had seen no epoch start), and the resumed epoch used to replay its first batches."""
+    import torch
+
+    common = [*TINY, "--trainer.max_steps=9", "--trainer.max_epochs=100", f"--data.cache_dir={tmp_path}/cache"]
+    full = cli_main(["fit", *common, f"--checkpoint.every_n_train_steps={every}", "--checkpoint.save_top_k=-1",
+                     f"--trainer.default_root_dir={tmp_path}/full"])
+    (step_ckpt,) = glob.glob(f"{tmp_path}/full/**/*step={every}.ckpt", recursive=True)
+    resumed = cli_main(["fit", *common, f"--ckpt_path={step_ckpt}", f"--trainer.default_root_dir={tmp_path}/resumed"])
+    assert resumed.trainer.global_step == 9 and "val/eq_residual_N_m" in resumed.trainer.callback_metrics
+    expected = full.model.state_dict()
+    assert all(torch.equal(expected[k], v) for k, v in resumed.model.state_dict().items())
+    assert float(resumed.trainer.callback_metrics["val/eq_residual_N_m"]) == float(
+        full.trainer.callback_metrics["val/eq_residual_N_m"])
