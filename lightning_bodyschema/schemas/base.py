@@ -29,6 +29,7 @@ from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights
 from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
 from .cache import InferenceCache
+from .finite import all_finite
 
 # class path -> schema class, filled by subclassing: the classes a checkpoint may name (schemas/loading.py). A class
 # is known once the user's code has defined (imported) it; a checkpoint never makes anything get imported.
@@ -314,7 +315,7 @@ class BodySchema(L.LightningModule):
         params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
         if not params:
             return
-        if not torch.isfinite(torch.nn.utils.get_total_norm([p.grad for p in params], foreach=True)):  # one kernel
+        if not all_finite([p.grad for p in params]):  # one kernel
             for p in params:
                 p.grad = None
             self.skipped_steps += 1
