@@ -161,10 +161,26 @@ def test_bad_input_raises_naming_the_value(arm, healthy, kwargs, match):
 @pytest.mark.parametrize("kwargs, match", [
     ({"mode": "force"}, "mode"), ({"jam": "stuck"}, "jam"), ({"max_time_s": 0.0}, "max_time_s"),
     ({"mass_damping_per_s": -1.0}, "mass_damping_per_s"), ({"chunk_size": 2.5}, "chunk_size"),
+    ({"n_threads": 0}, "n_threads"), ({"n_threads": 1.5}, "n_threads"),
 ])
 def test_bad_params_raise(kwargs, match):
     with pytest.raises(BodySchemaInputError, match=match):
         SettleParams(**kwargs)
+
+
+@pytest.mark.parametrize("chunk_size, n_threads", [(128, 1), (128, 2), (7, 3)])
+def test_a_case_settles_the_same_whatever_runs_beside_it(arm, healthy, chunk_size, n_threads):
+    """Blow-ups mid-interval used to make every case of their chunk check its rest there and then: a case's
+    result depended on its chunk. Each case alone (chunk_size=1) is the reference, byte for byte."""
+    b = np.arange(24)
+    l_motor = healthy.l_motor[b].copy()
+    l_motor[::3] -= 0.4  # 8 km/s^2-class forces: these blow up within a few steps, between checks
+    args = (l_motor, healthy.f[b], healthy.q[b])
+    alone = settle(arm, *args, params=SettleParams(chunk_size=1, n_threads=1))
+    together = settle(arm, *args, params=SettleParams(chunk_size=chunk_size, n_threads=n_threads))
+    assert np.sum(alone.status == SettleStatus.UNSTABLE) >= 4 and np.sum(alone.settled) >= 8
+    for name in ("q_settle", "E_q_phys", "status", "time_s", "qvel_rad_s", "f_settle_n"):
+        np.testing.assert_array_equal(getattr(together, name), getattr(alone, name), err_msg=name)
 
 
 def test_chunking_does_not_change_results(arm, healthy):
