@@ -16,10 +16,14 @@ requests carry their own faults; ``tools/predict.py`` serves those. Beyond what 
 * ``--trainer.max_epochs`` must be positive, or -1 (endless) with ``--model.lr_final=null``;
 * ``--lr_scheduler`` needs ``--optimizer`` (without it the schema's Adam + cosine schedule train);
 * ``--ckpt_path`` must be a readable lightning_bodyschema checkpoint of the data's robot (model XML,
-  muscles and spring), checked before Lightning loads it.
+  muscles and spring), checked before Lightning loads it; ``last`` is the newest ``last.ckpt`` under
+  ``--trainer.default_root_dir``; ``best`` (only known inside one Python process) is refused;
+* ``--trainer.max_steps`` must be positive or -1;
 """
 from __future__ import annotations
 
+import glob
+import os
 import sys
 import warnings
 from typing import Optional
@@ -34,7 +38,7 @@ from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
-from .schemas.base import half_precision_refusal
+from .schemas.base import check_val_check_interval, half_precision_refusal
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
@@ -74,10 +78,7 @@ class BodySchemaCLI(LightningCLI):
         # before Lightning's own torch.load of --ckpt_path, which dies with a traceback on a bad file
         self._checkpoint = None
         subcommand = self.config.get("subcommand")
-        ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
-        if ckpt_path is not None and not str(ckpt_path).strip():  # `--ckpt_path "$CKPT"` with CKPT unset
-            raise BodySchemaInputError(f"--ckpt_path {str(ckpt_path)!r} is empty: give a checkpoint file, one of "
-                                       f"{', '.join(_LIGHTNING_CKPT_KEYWORDS)}, or leave the option out")
+        ckpt_path = _resolve_ckpt_keyword(self.config[subcommand]) if subcommand else None
         if ckpt_path and str(ckpt_path) not in _LIGHTNING_CKPT_KEYWORDS:
             # the loader's every check (schemas/loading.py): Lightning then imports the checkpoint's _class_path
             # and loads its hyperparameters and weights, which must have passed first
@@ -110,6 +111,13 @@ class BodySchemaCLI(LightningCLI):
         if self._checkpoint is not None:  # before the trainer exists: nothing printed, nothing written
             data = _data_module(config["data"])  # light: the robot only (a recorded file is read), no dataset yet
             _check_same_robot(self._checkpoint, config.get("ckpt_path"), data)
+
+
+    def before_fit(self):
+        # before the dataset is built and the run folder written (Lightning checks this only once the fit loop starts)
+        if hasattr(self.datamodule, "train_batches_per_epoch"):
+            check_val_check_interval(self.trainer, self.datamodule.train_batches_per_epoch(
+                self.model.hparams.get("batch_size", 64), self.trainer.world_size))
 
 
 def _data_module(data_config):
@@ -173,11 +181,38 @@ def main(args: Optional[list[str]] = None) -> Optional["BodySchemaCLI"]:
     return None if from_command_line else cli
 
 
-_LIGHTNING_CKPT_KEYWORDS = ("last", "best", "hpc", "registry")  # --ckpt_path values that are not file paths
+_LIGHTNING_CKPT_KEYWORDS = ("hpc", "registry")  # --ckpt_path values left to Lightning (not file paths)
+
+
+def _resolve_ckpt_keyword(config):
+    """``--ckpt_path last``: the newest ``last.ckpt`` under ``--trainer.default_root_dir`` (Lightning looks only in
+    this run's new version folder, finds nothing and silently starts over); ``best`` and an empty path: one line."""
+    ckpt_path = config.get("ckpt_path")
+    if ckpt_path is None or str(ckpt_path) not in ("", "best", "last") and str(ckpt_path).strip():
+        return ckpt_path
+    if not str(ckpt_path).strip():  # `--ckpt_path "$CKPT"` with CKPT unset
+        raise BodySchemaInputError(f"--ckpt_path {str(ckpt_path)!r} is empty: give a checkpoint file, last (the "
+                                   "newest last.ckpt under --trainer.default_root_dir), or leave the option out")
+    root = config["trainer"].get("default_root_dir") or os.getcwd()
+    if ckpt_path == "best":
+        raise BodySchemaInputError("--ckpt_path best is the best checkpoint of a fit run earlier in the same Python "
+                                   "process, which a new bodyschema run has not; give its file (under "
+                                   f"{os.path.join(root, 'lightning_logs', 'version_*', 'checkpoints')}) or last")
+    found = glob.glob(os.path.join(glob.escape(str(root)), "**", "checkpoints", "last.ckpt"), recursive=True)
+    if not found:
+        raise BodySchemaInputError(f"--ckpt_path last: no .../checkpoints/last.ckpt under --trainer.default_root_dir "
+                                   f"{str(root)!r}; give the checkpoint file, or the root of the earlier fit")
+    config["ckpt_path"] = max(found, key=os.path.getmtime)
+    print(f"--ckpt_path last: {config['ckpt_path']}")
+    return config["ckpt_path"]
 
 
 def _check_max_epochs(config):
     """Refuse epoch counts that train nothing, or forever under a schedule that needs an end."""
+    steps = config["trainer"].get("max_steps")
+    if steps is not None and steps != -1 and steps <= 0:
+        raise BodySchemaInputError(f"--trainer.max_steps={steps} trains nothing; give a positive number of optimizer "
+                                   "steps, or -1 (the default) to let max_epochs end the fit")
     epochs = config["trainer"].get("max_epochs")
     if epochs is None or epochs > 0:
         return

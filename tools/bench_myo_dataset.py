@@ -16,9 +16,8 @@ import statistics
 import time
 
 import numpy as np
-import yaml
 
-from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.apps.common import exits_cleanly, robot_from_config
 from lightning_bodyschema.errors import BodySchemaInputError
 
 
@@ -44,20 +43,12 @@ def main(argv=None):
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1)
     args = parser.parse_args(argv)
-    if not os.path.isfile(args.config):
-        raise BodySchemaInputError(f"--config {args.config!r} does not exist; give a config with a data: section")
     if args.n < 1 or args.processes < 1 or args.repeats < 1:
         raise BodySchemaInputError(f"--n {args.n}, --processes {args.processes} and --repeats {args.repeats} must "
                                    "each be >= 1")
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    from lightning_bodyschema.sim import MusculoskeletalModel
-    from lightning_bodyschema.sim.spring import spring_for_model
-
-    with open(args.config) as fh:
-        data = yaml.safe_load(fh)["data"]
     start = time.perf_counter()
-    model = MusculoskeletalModel(data["model"], muscles=data.get("muscles"), locked_joints=data.get("locked_joints"))
-    spring = spring_for_model(model, data.get("k_n"), data.get("alpha_per_m", 20.0), data.get("f_max_n"))
+    model, spring, data = robot_from_config(args.config)
     print(f"robot {model.n_joints} free joints {model.joint_names}, {model.n_muscles} muscles; "
           f"built in {time.perf_counter() - start:.1f} s")
     sizes = np.diff(np.linspace(0, args.n, args.processes + 1).astype(int))

@@ -146,3 +146,22 @@ def check_schema_options(schema, variant: str, sampler: str, options: dict):
     if options and not isinstance(schema, DiffusionSchema):
         raise BodySchemaInputError(f"--sampler {sampler!r} needs a diffusion schema; the checkpoint holds a "
                                    f"{type(schema).__name__} (use --sampler ddpm)")
+
+
+def robot_from_config(path: str):
+    """(model, spring, data section) of a config's robot, resolved as the data module resolves them (data.model,
+    data.muscles, data.locked_joints, spring constants), without building a dataset. For the benchmark tools."""
+    import yaml
+
+    from ..sim import MusculoskeletalModel
+    from ..sim.spring import spring_for_model
+
+    if not os.path.isfile(path):
+        raise BodySchemaInputError(f"--config {path!r} does not exist; give a config with a data: section")
+    with open(path) as fh:
+        data = (yaml.safe_load(fh) or {}).get("data") or {}
+    data = data.get("init_args", data)  # `data: {class_path, init_args}` or plain keys
+    model = MusculoskeletalModel(data.get("model", "paper_arm"), muscles=data.get("muscles"),
+                                 locked_joints=data.get("locked_joints"))
+    spring = spring_for_model(model, data.get("k_n"), data.get("alpha_per_m", 20.0), data.get("f_max_n"))
+    return model, spring, data

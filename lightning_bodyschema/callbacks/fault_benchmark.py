@@ -99,6 +99,7 @@ class FaultBenchmark(Callback):
         self.protocols, self.binding_n_per_condition = tuple(dict.fromkeys(protocols)), int(binding_n_per_condition)
         self._cases, self._warned = {}, False  # protocol -> (key of the split, cases)
         self._last_period = 0  # index of the last every_n_epochs period benchmarked during fit
+        self._validated_at = self._benchmarked_at = None  # log steps of the last validation and benchmark of a fit
 
     # ------------------------------------------------------------------ Lightning hooks
     def on_fit_start(self, trainer, pl_module):
@@ -107,13 +108,25 @@ class FaultBenchmark(Callback):
 
     @rank_zero_only
     def on_validation_epoch_end(self, trainer, pl_module):
-        if not self._due_in_fit(trainer):
-            return
+        if not trainer.sanity_checking:
+            self._validated_at = validation_log_step(trainer)
+        if self._due_in_fit(trainer):
+            self._benchmark_in_fit(trainer, pl_module)
+
+    @rank_zero_only
+    def on_train_end(self, trainer, pl_module):
+        # EarlyStopping requests its stop after this callback's on_validation_epoch_end: benchmark the weights the
+        # fit stopped with, at the step of that validation, unless that validation already did
+        if (trainer.should_stop and self._validated_at == validation_log_step(trainer) != self._benchmarked_at
+                and self.every_n_epochs and trainer.loggers):
+            self._benchmark_in_fit(trainer, pl_module)
+
+    def _benchmark_in_fit(self, trainer, pl_module):
         result = self.run(trainer, pl_module, settle_check=self.settle_check)
         if result is None:
             return
         self._last_period = (trainer.current_epoch + 1) // self.every_n_epochs
-        step = validation_log_step(trainer)
+        step = self._benchmarked_at = validation_log_step(trainer)
         self._log_scalars(trainer, result, step)
         self._log_figure(trainer, pl_module, result, step)
 

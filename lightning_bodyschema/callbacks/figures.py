@@ -15,15 +15,23 @@ class ReconstructionFigure(Callback):
 
     def __init__(self, every_n_validations: int = 5):
         self.every_n_validations = every_n_validations
-        self._count = 0
+        self._count = 0  # validations seen (Lightning's sanity check is not one)
+        self._validated_at = self._logged_at = None  # log steps of the last validation and figure
 
     @rank_zero_only
     def on_validation_epoch_end(self, trainer, pl_module):
-        self._count += 1
-        last = fit_ends_with_this_epoch(trainer)
-        if trainer.sanity_checking or (self._count % self.every_n_validations and not last):
+        if trainer.sanity_checking:
             return
-        self.log_figure(trainer, pl_module)
+        self._count += 1
+        self._validated_at = validation_log_step(trainer)
+        if self._count % self.every_n_validations == 0 or fit_ends_with_this_epoch(trainer):
+            self.log_figure(trainer, pl_module)
+
+    @rank_zero_only
+    def on_train_end(self, trainer, pl_module):
+        # a stop EarlyStopping requested after on_validation_epoch_end: the figure of the weights the fit ended with
+        if trainer.should_stop and self._validated_at == validation_log_step(trainer) != self._logged_at:
+            self.log_figure(trainer, pl_module)
 
     def log_figure(self, trainer, pl_module):
         experiment = getattr(trainer.logger, "experiment", None)
@@ -34,5 +42,6 @@ class ReconstructionFigure(Callback):
         m = pl_module.n_muscles
         fig = reconstruction_figure(x[:, :m].numpy(), l_motor, x[:, m:].numpy(), f,
                                     title=f"{type(pl_module).__name__}, epoch {trainer.current_epoch}")
-        experiment.add_figure("val/reconstruction", fig, global_step=validation_log_step(trainer))
+        self._logged_at = validation_log_step(trainer)
+        experiment.add_figure("val/reconstruction", fig, global_step=self._logged_at)
         plt.close(fig)

@@ -1,4 +1,4 @@
-"""Validate at the end of every fit, whatever ``check_val_every_n_epoch``.
+"""Validate at the end of every fit, whatever ``check_val_every_n_epoch`` or ``val_check_interval``.
 
 The paper's configs validate every 500 epochs, so a 300-epoch run (``configs/quick.yaml`` over a 10000-epoch
 config) would end without a single physical metric, figure or fault benchmark. This callback makes the last
@@ -36,10 +36,15 @@ class FinalValidation(Callback):
             trainer.check_val_every_n_epoch = epoch  # epoch % epoch == 0: this epoch validates
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        # max_steps reached inside an epoch: Lightning validates at an epoch's last batch or on a requested stop
-        # only, so request the stop (the fit ends here anyway) and the epoch's validation runs
-        if (self.enabled and trainer.max_steps is not None and trainer.max_steps > 0
-                and trainer.global_step >= trainer.max_steps and not trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
+        # Lightning validates at an epoch's last batch (epoch-counted validation, made due above), at a step-counted
+        # interval, or on a requested stop. Where the fit ends otherwise, request the stop (the fit ends here anyway)
+        # and Lightning validates: max_steps reached inside an epoch, or the last batch of a step-counted fit
+        if not self.enabled:
+            return
+        last_batch = trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
+        by_steps = trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
+        by_epochs = last_batch and _is_last_epoch(trainer, steps_left=None)
+        if (by_steps and not last_batch) or (trainer.check_val_every_n_epoch is None and (by_steps or by_epochs)):
             trainer.should_stop = True
 
     def on_train_end(self, trainer, pl_module):

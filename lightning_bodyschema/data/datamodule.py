@@ -67,6 +67,20 @@ class ShardSampler:
         return order[self.rank::self.world_size]
 
 
+def _n_train(n_samples: int, val_fraction: float) -> int:
+    """Rows of the train split; the rest validate."""
+    return int(round(n_samples * (1.0 - val_fraction)))
+
+
+def check_split(n_samples: int, val_fraction: float) -> None:
+    """Refuse a split that leaves a side empty (the normalizer needs 2 train rows; validation needs 1)."""
+    n_train = _n_train(n_samples, val_fraction)
+    if not 2 <= n_train <= n_samples - 1:
+        raise BodySchemaInputError(
+            f"val_fraction={val_fraction!r} of {n_samples} samples leaves {n_train} train and {n_samples - n_train} "
+            f"validation samples; both splits need samples (train at least 2)")
+
+
 class MinibatchLoader:
     """The minibatches ``(q, x)`` of one rank's shard for one epoch, sliced from in-memory tensors.
 
@@ -144,6 +158,7 @@ class EquilibriumDataModule(L.LightningDataModule):
             raise BodySchemaInputError(f"seed={seed!r} must be an integer >= 0")
         if not 0.0 < val_fraction < 1.0:
             raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
+        check_split(int(n_samples), val_fraction)
         self.save_hyperparameters()
         self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity, locked_joints=locked_joints)
         self.spring = spring_for_model(self.robot_model, k_n, alpha_per_m, f_max_n)
@@ -171,7 +186,7 @@ class EquilibriumDataModule(L.LightningDataModule):
         q = torch.as_tensor(arrays["q"], dtype=torch.float64)
         x = torch.as_tensor(np.concatenate([arrays["l_motor"], arrays["f"]], axis=1), dtype=torch.float64)
         order = torch.randperm(len(q), generator=torch.Generator().manual_seed(self.hparams.seed))
-        n_train = int(round(len(q) * (1.0 - self.hparams.val_fraction)))
+        n_train = _n_train(len(q), self.hparams.val_fraction)
         self.train_idx, self.val_idx = order[:n_train], order[n_train:]
         self.splits = {"train": (q[self.train_idx], x[self.train_idx]), "val": (q[self.val_idx], x[self.val_idx])}
         self.normalizer.fit(self.splits["train"][1], self.robot_model.q_range)
@@ -193,6 +208,11 @@ class EquilibriumDataModule(L.LightningDataModule):
         sampler = ShardSampler(len(q), self.hparams.seed, shards.get("rank", 0), shards.get("num_replicas", 1))
         progress = self._batches_trained_this_epoch if trainer is not None else None
         return MinibatchLoader(q, x, batch_size, sampler, batches_done=progress)
+
+    def train_batches_per_epoch(self, batch_size: int, world_size: int = 1) -> int:
+        """Minibatches of one rank's shard per epoch (what ``train_dataloader`` serves), known before any data."""
+        n_samples = len(self.arrays["q"]) if self.arrays is not None else int(self.hparams.n_samples)
+        return math.ceil(math.ceil(_n_train(n_samples, self.hparams.val_fraction) / world_size) / batch_size)
 
     def _batches_trained_this_epoch(self) -> int:
         """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""

@@ -38,7 +38,7 @@ import numpy as np
 from ..errors import BodySchemaInputError
 from ..npz import atomic_write_bytes, load_npz, save_npz
 from ..sim import MusculoskeletalModel, SpringParams
-from .datamodule import EquilibriumDataModule
+from .datamodule import EquilibriumDataModule, check_split
 from .normalizer import Normalizer
 
 UNITS = "SI"  # the one accepted units flag: rad (or m for slide joints), m, N
@@ -356,6 +356,7 @@ class RecordedDataModule(EquilibriumDataModule):
         _check_names(path, "muscle", muscles, table.muscles)
         self.robot_model, self.spring, self.arrays, self.n_dropped = _robot_and_rows(
             path, table, q_range, l_range, f_range, k_n, alpha_per_m, f_max_n)
+        check_split(len(self.arrays["q"]), val_fraction)
         self.normalizer = Normalizer(2 * self.robot_model.n_muscles, self.robot_model.n_joints)
 
     @property

@@ -46,12 +46,37 @@ DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
 
 
 def fit_ends_with_this_epoch(trainer) -> bool:
-    """True in an epoch (at its validation or its training end) after which the fit stops: the last epoch of
-    ``max_epochs``, ``max_steps`` reached (also inside an epoch), or a stop requested (EarlyStopping).
-    ``max_epochs=-1`` (endless) never ends by epochs."""
-    by_epochs = trainer.max_epochs is not None and 0 < trainer.max_epochs <= trainer.current_epoch + 1
+    """True at a validation (or an epoch's training end) after which the fit stops: the last batch of the last
+    epoch of ``max_epochs`` (not a validation earlier in that epoch), ``max_steps`` reached (also inside an epoch),
+    or a stop already requested. ``max_epochs=-1`` (endless) never ends by epochs. A stop that EarlyStopping
+    requests after this validation is caught by ``on_train_end`` of the callbacks that ask."""
+    last_batch = trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
+    by_epochs = last_batch and trainer.max_epochs is not None and 0 < trainer.max_epochs <= trainer.current_epoch + 1
     by_steps = trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
     return bool(by_epochs or by_steps or trainer.should_stop)
+
+
+def check_val_check_interval(trainer, batches_per_epoch: int) -> None:
+    """An int ``val_check_interval`` counts batches within an epoch (unless ``check_val_every_n_epoch`` is None):
+    refuse one longer than the epoch in one line (the CLI before anything is written), not with Lightning's
+    ValueError once the fit loop starts."""
+    interval = trainer.val_check_interval
+    if not isinstance(interval, int) or isinstance(interval, bool) or trainer.check_val_every_n_epoch is None:
+        return
+    limit = trainer.limit_train_batches
+    batches = min(batches_per_epoch, limit) if isinstance(limit, int) else max(1, int(batches_per_epoch * limit))
+    if interval > batches:
+        raise BodySchemaInputError(
+            f"--trainer.val_check_interval={interval} is more than the {batches} training batches of an epoch; give "
+            f"at most {batches}, a fraction of an epoch (e.g. 0.5), or --trainer.check_val_every_n_epoch=null to "
+            f"count {interval} steps across epochs")
+
+
+def _monitors_train_metrics(trainer) -> bool:
+    """Does a callback or a scheduler monitor a ``train/*`` metric (which then must be fresh at every epoch end)?"""
+    monitors = [getattr(cb, "monitor", None) for cb in trainer.callbacks]
+    monitors += [config.monitor for config in trainer.lr_scheduler_configs]
+    return any(isinstance(m, str) and m.startswith("train/") for m in monitors)
 
 
 def half_precision_refusal(precision) -> str:
@@ -97,6 +122,7 @@ class BodySchema(L.LightningModule):
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
         self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
+        self._monitors_train_metrics = False  # set when a fit starts: log train/* at every epoch end too
         self.robot_model = robot_model_from_dict(robot)  # a MusculoskeletalModel, or a ModelFreeRobot
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
@@ -254,6 +280,9 @@ class BodySchema(L.LightningModule):
                 raise BodySchemaInputError("the schema's robot differs from the data module's robot")
             self.normalizer.load_state_dict(datamodule.normalizer.state_dict())
             self.clear_caches()  # the penalty builder depends on the normalizer
+            if hasattr(datamodule, "train_batches_per_epoch"):
+                check_val_check_interval(self.trainer, datamodule.train_batches_per_epoch(
+                    self.hparams.get("batch_size", 64), self.trainer.world_size))
 
     def configure_optimizers(self):
         """Adam (fused: ~25 % faster per step than the default on this tiny CPU workload, measured) with the
@@ -295,10 +324,13 @@ class BodySchema(L.LightningModule):
         q_n, x_n = self._normalized(batch)
         loss, _ = self.training_loss(q_n, x_n)
         # a self.log call costs ~0.3 ms, a quarter of a minibatch step here (measured): call it only on the
-        # steps the logger writes (Lightning's own test, so log_every_n_steps means what it documents)
-        if self.trainer._logger_connector.should_update_logs:
+        # steps the logger writes (Lightning's own test, so log_every_n_steps means what it documents), and at
+        # each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint, ReduceLROnPlateau) reads train/*
+        trainer = self.trainer
+        if trainer._logger_connector.should_update_logs or (
+                self._monitors_train_metrics and trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
             self.log("train/loss", loss.detach(), prog_bar=True)
-            self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"])
+            self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
         return loss
 
     def on_before_optimizer_step(self, optimizer):
@@ -322,6 +354,7 @@ class BodySchema(L.LightningModule):
 
     def on_train_start(self):
         self.skipped_steps = 0
+        self._monitors_train_metrics = _monitors_train_metrics(self.trainer)
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
             # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would

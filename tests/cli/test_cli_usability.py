@@ -205,3 +205,18 @@ def test_a_cli_fit_resumed_from_a_step_checkpoint_ends_with_the_uninterrupted_we
     assert all(torch.equal(expected[k], v) for k, v in resumed.model.state_dict().items())
     assert float(resumed.trainer.callback_metrics["val/eq_residual_N_m"]) == float(
         full.trainer.callback_metrics["val/eq_residual_N_m"])
+
+
+def test_ckpt_path_last_resumes_from_the_newest_last_ckpt_under_the_root(tmp_path, capsys):
+    """Lightning looks for ``last`` only in the new run's version folder: it found nothing and silently trained from
+    scratch (and ``validate --ckpt_path last`` scored random weights)."""
+    common = [*TINY, f"--data.cache_dir={tmp_path}/cache", f"--trainer.default_root_dir={tmp_path}/runs"]
+    first = cli_main(["fit", *common, "--trainer.max_epochs=2"])
+    (last,) = glob.glob(f"{tmp_path}/runs/**/checkpoints/last.ckpt", recursive=True)
+    resumed = cli_main(["fit", *common, "--trainer.max_epochs=3", "--ckpt_path=last"])
+    assert f"--ckpt_path last: {last}" in capsys.readouterr().out
+    assert resumed.trainer.ckpt_path == last and resumed.trainer.global_step == 3 * first.trainer.global_step // 2
+    validated = cli_main(["validate", *common, "--ckpt_path=last"])  # now the resumed fit's last.ckpt: the newest
+    assert validated.trainer.ckpt_path != last and validated.trainer.ckpt_path.endswith("last.ckpt")
+    assert float(validated.trainer.callback_metrics["val/eq_residual_N_m"]) == pytest.approx(
+        float(resumed.trainer.callback_metrics["val/eq_residual_N_m"]), rel=1e-6)
