@@ -17,8 +17,7 @@ import time
 
 import numpy as np
 
-from lightning_bodyschema.apps.common import exits_cleanly, robot_from_config
-from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.apps.common import exits_cleanly, require_positive, robot_from_config
 
 
 def _chunk(args):
@@ -43,9 +42,7 @@ def main(argv=None):
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=1)
     args = parser.parse_args(argv)
-    if args.n < 1 or args.processes < 1 or args.repeats < 1:
-        raise BodySchemaInputError(f"--n {args.n}, --processes {args.processes} and --repeats {args.repeats} must "
-                                   "each be >= 1")
+    require_positive(n=args.n, processes=args.processes, repeats=args.repeats)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     start = time.perf_counter()
     model, spring, data = robot_from_config(args.config)

@@ -17,8 +17,7 @@ import time
 
 import numpy as np
 
-from lightning_bodyschema.apps.common import exits_cleanly, robot_from_config
-from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.apps.common import exits_cleanly, require_positive, robot_from_config
 
 FIELDS = ("q_settle", "E_q_phys", "status", "time_s", "qvel_rad_s", "f_settle_n")
 
@@ -32,9 +31,7 @@ def main(argv=None):
     parser.add_argument("--offset-mm", type=float, default=1.0)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
-    if args.n < 1 or args.threads < 1 or args.repeats < 1:
-        raise BodySchemaInputError(f"--n {args.n}, --threads {args.threads} and --repeats {args.repeats} must each "
-                                   "be >= 1")
+    require_positive(n=args.n, threads=args.threads, repeats=args.repeats)
     from lightning_bodyschema.sim import generate_equilibrium_samples
     from lightning_bodyschema.sim.settle import SettleParams, settle
 

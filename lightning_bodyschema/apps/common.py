@@ -148,6 +148,13 @@ def check_schema_options(schema, variant: str, sampler: str, options: dict):
                                    f"{type(schema).__name__} (use --sampler ddpm)")
 
 
+def require_positive(**options: int) -> None:
+    """Refuse, in one line naming them, the integer options (``--name``) below 1."""
+    bad = [f"--{name.replace('_', '-')} {value}" for name, value in options.items() if value < 1]
+    if bad:
+        raise BodySchemaInputError(f"{', '.join(bad)}: must be >= 1")
+
+
 def robot_from_config(path: str):
     """(model, spring, data section) of a config's robot, resolved as the data module resolves them (data.model,
     data.muscles, data.locked_joints, spring constants), without building a dataset. For the benchmark tools."""

@@ -307,6 +307,8 @@ def test_locking_again_a_rebuilt_model_is_idempotent_and_followers_cannot_be_loc
     (["tools/bench_myo_targets.py", "--ckpt", "no-such.ckpt", "--cases", "no-such.npz"], "--cases 'no-such.npz'"),
     (["tools/bench_myo_dataset.py", "--config", "no-such.yaml"], "--config 'no-such.yaml'"),
     (["tools/bench_myo_dataset.py", "--n", "0"], "--n 0"),
+    (["tools/bench_settle.py", "--config", "no-such.yaml"], "--config 'no-such.yaml'"),
+    (["tools/bench_settle.py", "--threads", "0"], "--threads 0"),
 ])
 def test_myo_benchmarks_refuse_bad_input_with_one_line_and_exit_2(args, named):
     env = {**os.environ, "PYTHONPATH": REPO, "OMP_NUM_THREADS": "1"}
