@@ -122,7 +122,7 @@ class BodySchema(L.LightningModule):
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
         self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
-        self._monitors_train_metrics = False  # set when a fit starts: log train/* at every epoch end too
+        self._log_train_at_epoch_end = False  # set when a fit starts: log train/* at every epoch end too
         self.robot_model = robot_model_from_dict(robot)  # a MusculoskeletalModel, or a ModelFreeRobot
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
@@ -328,7 +328,7 @@ class BodySchema(L.LightningModule):
         # each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint, ReduceLROnPlateau) reads train/*
         trainer = self.trainer
         if trainer._logger_connector.should_update_logs or (
-                self._monitors_train_metrics and trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
+                self._log_train_at_epoch_end and trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
             self.log("train/loss", loss.detach(), prog_bar=True)
             self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
         return loss
@@ -354,7 +354,7 @@ class BodySchema(L.LightningModule):
 
     def on_train_start(self):
         self.skipped_steps = 0
-        self._monitors_train_metrics = _monitors_train_metrics(self.trainer)
+        self._log_train_at_epoch_end = _monitors_train_metrics(self.trainer)
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
             # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
