@@ -111,15 +111,7 @@ def test_print_config_and_rerun_in_same_folder(tmp_path):
         assert done.returncode == 0, done.stderr[-2000:]
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--data.model=/no/such.xml"], "does not exist"),
-    (["--data.n_samples=0"], "n_samples"),
-    (["--model.latent_dim=2"], "latent_dim"),
-])
-def test_bad_cli_input_exits_2_without_traceback(tmp_path, args, message):
-    out = run_cli("fit", "--model=AutoEncoderSchema", "--trainer.max_epochs=1", *args, cwd=tmp_path)
-    assert out.returncode == 2, out.stderr[-2000:]
-    assert message in out.stderr and "Traceback" not in out.stderr
+# Bad CLI input (exit 2, one line, no traceback, nothing written; real subprocesses too): tests/cli/test_bad_input.py
 
 
 @pytest.mark.slow

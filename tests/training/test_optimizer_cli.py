@@ -46,3 +46,14 @@ def test_lr_scheduler_without_optimizer_exits_2(tmp_path):
                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert out.returncode == 2 and "--lr_scheduler" in out.stderr and "--optimizer" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_optimizer_and_lr_scheduler_from_a_yaml_config(tmp_path):
+    config = tmp_path / "opt.yaml"
+    config.write_text("optimizer:\n  class_path: torch.optim.AdamW\n  init_args:\n    lr: 0.0003\n"
+                      "lr_scheduler:\n  class_path: torch.optim.lr_scheduler.StepLR\n  init_args:\n    step_size: 1\n"
+                      "    gamma: 0.5\n")
+    cli = fit(tmp_path, f"--config={config}")
+    optimizer = cli.trainer.optimizers[0]
+    assert type(optimizer) is torch.optim.AdamW and optimizer.param_groups[0]["initial_lr"] == 3e-4
+    assert optimizer.param_groups[0]["lr"] == pytest.approx(3e-4 * 0.5 ** 3)  # halved after each of 3 epochs

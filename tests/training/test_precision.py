@@ -78,7 +78,7 @@ class Snapshots(Callback):
 
 
 @pytest.mark.parametrize("precision", PRECISIONS + ["16-mixed"])
-@pytest.mark.parametrize("name", ["diff", "vae"])
+@pytest.mark.parametrize("name", ["diff", "ae", "vae"])
 def test_an_overflowing_loss_is_skipped_not_applied(dm, name, precision):
     L.seed_everything(0)
     schema = overflowing(SCHEMAS[name], at_step=3)(robot=dm.robot)

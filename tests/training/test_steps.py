@@ -160,6 +160,16 @@ def test_gradient_clip_val_bounds_every_step(dm):
     assert len(recorder.norms) == 12 and max(recorder.norms) <= 1e-3 * (1 + 1e-5)
 
 
+def test_accumulate_grad_batches_with_max_steps(dm):
+    L.seed_everything(0)
+    schema = AutoEncoderSchema(robot=dm.robot)
+    fit = trainer(max_steps=7, max_epochs=100, accumulate_grad_batches=2)
+    fit.fit(schema, dm)
+    assert fit.global_step == 7 and adam_steps(schema) == 7  # 14 batches: into the second epoch (5 steps each)
+    (config,) = fit.lr_scheduler_configs
+    assert config.scheduler.T_max == 2
+
+
 def test_accumulate_grad_batches_steps_once_per_n_batches(dm):
     L.seed_everything(0)
     schema = VAESchema(robot=dm.robot)
@@ -168,15 +178,17 @@ def test_accumulate_grad_batches_steps_once_per_n_batches(dm):
     assert fit.global_step == 15 and adam_steps(schema) == 15
 
 
-def test_early_stopping_on_the_validation_residual_stops_a_fit(dm):
+@pytest.mark.parametrize("name, metric", [("ae", "val/eq_residual_N_m"), ("diff", "val/eq_residual_nm"),
+                                          ("vae", "val/eq_residual_nm")])  # the name is the deprecated alias
+def test_early_stopping_on_the_validation_residual_stops_a_fit(dm, name, metric):
     L.seed_everything(0)
-    schema = AutoEncoderSchema(robot=dm.robot)
+    schema = SCHEMAS[name](robot=dm.robot)
     # an improvement of 1e3 N m per validation is impossible: the fit stops after patience + 1 validations
-    stop = EarlyStopping(monitor="val/eq_residual_N_m", mode="min", patience=1, min_delta=1e3)
+    stop = EarlyStopping(monitor=metric, mode="min", patience=1, min_delta=1e3)
     fit = trainer(max_epochs=50, check_val_every_n_epoch=2, callbacks=[stop])
     fit.fit(schema, dm)
     assert fit.should_stop and stop.stopped_epoch == 3 and fit.current_epoch == 4
-    assert "val/eq_residual_N_m" in fit.callback_metrics
+    assert metric in fit.callback_metrics
 
 
 def _fresh_latent_reference(schema, dm):
