@@ -17,12 +17,14 @@ class RecordRank(Callback):
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if trainer.current_epoch == 0:
             self.rows.append(batch[0].detach().cpu())
+            if batch_idx == 0:  # the stream the loss draws its noise and timesteps from
+                self.rng_state = torch.random.get_rng_state()
 
     def on_train_end(self, trainer, pl_module):
         record = {"rows": torch.cat(self.rows), "world_size": trainer.world_size, "global_step": trainer.global_step,
                   "state_dict": {k: v.detach().cpu() for k, v in pl_module.state_dict().items()},
                   "val_eq_residual": float(trainer.callback_metrics["val/eq_residual_N_m"]),
-                  "val_rows": getattr(self, "val_rows", 0)}
+                  "val_rows": getattr(self, "val_rows", 0), "rng_state": self.rng_state}
         path = os.path.join(self.out_dir, f"rank{trainer.global_rank}.pt")
         torch.save(record, path + ".tmp")
         os.replace(path + ".tmp", path)

@@ -46,6 +46,8 @@ def test_ddp_two_cpu_ranks_shard_the_data_and_keep_identical_weights(tmp_path):
     assert all(len(r["rows"]) == len(train_q) // 2 for r in ranks)
     for key, value in ranks[0]["state_dict"].items():
         assert torch.equal(value, ranks[1]["state_dict"][key]), f"{key} differs between the ranks"
+    # the same seed on every rank, re-seeded with the rank at train start: each rank draws its own noise
+    assert not torch.equal(ranks[0]["rng_state"], ranks[1]["rng_state"]), "the ranks draw the same diffusion noise"
     # gradients averaged over 2 x 32 samples: as many optimizer steps as one rank with batches of 64
     assert ranks[0]["global_step"] == ranks[1]["global_step"] == epochs * len(train_q) // 64
     # every rank validates the whole held-out split (a median does not average over shards), so the reduced value
