@@ -14,11 +14,12 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 DDP = ("--trainer.strategy=ddp", "--trainer.devices=2", "--trainer.accelerator=cpu")
 
 
-def run_fit(tmp_path, name, batch_size, epochs, *extra):
-    """``bodyschema fit`` of the diffusion schema in a subprocess; returns (seconds, one record per rank)."""
+def run_fit(tmp_path, name, batch_size, epochs, *extra, model="DiffusionSchema"):
+    """``bodyschema fit`` of a schema (the diffusion one by default) in a subprocess; returns (seconds, one record
+    per rank)."""
     out = tmp_path / name
     out.mkdir()
-    args = [sys.executable, "-m", "lightning_bodyschema.cli", "fit", "--model=DiffusionSchema",
+    args = [sys.executable, "-m", "lightning_bodyschema.cli", "fit", f"--model={model}",
             f"--model.batch_size={batch_size}", f"--trainer.max_epochs={epochs}",
             f"--trainer.check_val_every_n_epoch={epochs}", "--trainer.logger=false",
             "--progress.enabled=false", "--faults.every_n_epochs=0",
@@ -32,9 +33,11 @@ def run_fit(tmp_path, name, batch_size, epochs, *extra):
     return time.perf_counter() - start, [torch.load(p, weights_only=True) for p in sorted(out.glob("rank*.pt"))]
 
 
-def test_ddp_two_cpu_ranks_shard_the_data_and_keep_identical_weights(tmp_path):
+@pytest.mark.parametrize("model", ["DiffusionSchema", pytest.param("AutoEncoderSchema", marks=pytest.mark.slow),
+                                   pytest.param("VAESchema", marks=pytest.mark.slow)])  # ~10 s each
+def test_ddp_two_cpu_ranks_shard_the_data_and_keep_identical_weights(tmp_path, model):
     epochs = 5
-    seconds, ranks = run_fit(tmp_path, "ddp", 32, epochs, *DDP)
+    seconds, ranks = run_fit(tmp_path, "ddp", 32, epochs, *DDP, model=model)
     print(f"2-rank DDP fit, {epochs} epochs: {seconds:.1f} s wall clock")
     assert [r["world_size"] for r in ranks] == [2, 2]
     dm = EquilibriumDataModule(cache_dir=str(tmp_path / "cache"))
@@ -47,7 +50,7 @@ def test_ddp_two_cpu_ranks_shard_the_data_and_keep_identical_weights(tmp_path):
     for key, value in ranks[0]["state_dict"].items():
         assert torch.equal(value, ranks[1]["state_dict"][key]), f"{key} differs between the ranks"
     # the same seed on every rank, re-seeded with the rank at train start: each rank draws its own noise
-    assert not torch.equal(ranks[0]["rng_state"], ranks[1]["rng_state"]), "the ranks draw the same diffusion noise"
+    assert not torch.equal(ranks[0]["rng_state"], ranks[1]["rng_state"]), "the ranks draw the same noise"
     # gradients averaged over 2 x 32 samples: as many optimizer steps as one rank with batches of 64
     assert ranks[0]["global_step"] == ranks[1]["global_step"] == epochs * len(train_q) // 64
     # every rank validates the whole held-out split (a median does not average over shards), so the reduced value
