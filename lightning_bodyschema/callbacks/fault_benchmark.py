@@ -168,12 +168,16 @@ class FaultBenchmark(Callback):
         n_muscles = pl_module.n_muscles
         key = hashlib.sha256(q.tobytes() + x.tobytes()).hexdigest()
         if self._cases.get(protocol, (None,))[0] != key:
-            if protocol == "binding":
-                pool = HealthyPool(q, x[:, :n_muscles], x[:, n_muscles:2 * n_muscles])
-                cases = make_binding_cases(pl_module.robot_model, pool, self.binding_n_per_condition, self.seed,
-                                           pl_module.spring)[0]
-            else:
-                cases = make_fault_cases(q, x[:, :n_muscles], self.n_per_condition, self.seed)
+            try:
+                if protocol == "binding":
+                    pool = HealthyPool(q, x[:, :n_muscles], x[:, n_muscles:2 * n_muscles])
+                    cases = make_binding_cases(pl_module.robot_model, pool, self.binding_n_per_condition,
+                                               self.seed, pl_module.spring)[0]
+                else:
+                    cases = make_fault_cases(q, x[:, :n_muscles], self.n_per_condition, self.seed)
+            except BodySchemaInputError as err:  # e.g. a 2-muscle robot: the fit and its checkpoint must not die here
+                rank_zero_warn(f"FaultBenchmark: the {protocol} protocol is skipped for this robot: {err}")
+                cases = None
             self._cases[protocol] = (key, cases)
         return self._cases[protocol][1]
 

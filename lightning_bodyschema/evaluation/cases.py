@@ -215,7 +215,9 @@ def _other_index(rng, pool_idx, n_pool):
 
 def _one_condition(rng, q_pool, l_motor_pool, n, n_cut, n_fix):
     n_pool, n_muscles = l_motor_pool.shape
-    _require(n_cut + n_fix <= n_muscles, f"{n_cut} cut + {n_fix} jammed > {n_muscles} muscles")
+    _require(n_cut < n_muscles and n_cut + n_fix <= n_muscles,
+             f"{n_cut} cut + {n_fix} jammed muscles do not fit a robot of {n_muscles} muscles (at least one must be "
+             f"left uncut to hold the arm)")
     pick = rng.choice(n_pool, size=n, replace=n > n_pool)  # distinct postures while the pool allows
     cut, fix = _random_faults(rng, n, n_muscles, n_cut, n_fix)
     l_fixed = np.where(fix, l_motor_pool[_other_index(rng, pick, n_pool)], np.nan)

@@ -119,7 +119,7 @@ class MusculoskeletalModel:
         self._build(spec)
         self.muscle_ids = self._select_muscles(muscles)
         if lock_uncrossed:
-            self._lock_uncrossed(spec, muscles)
+            self._lock_uncrossed(muscles)
         if muscles is None and self._actuator_forces:
             self._drop_muscles_crossing_nothing()
         if not allow_unloaded:
@@ -137,7 +137,7 @@ class MusculoskeletalModel:
         self._data = mujoco.MjData(m)
         self._dense_index = self._tendon_jacobian_index()
 
-    def _lock_uncrossed(self, spec, muscles):
+    def _lock_uncrossed(self, muscles):
         """Lock the free joints no muscle moves (|G| = 0 at probed postures), then rebuild."""
         q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(0), 8)])
         crossed = np.abs(self.kinematics(q)[1]).max(axis=(0, 1)) > 1e-12
@@ -147,6 +147,9 @@ class MusculoskeletalModel:
         names = self.joint_names
         ref = np.clip(self.joint_map.qpos0[self.joint_map.free], lo, hi)
         locks = {names[c]: float(ref[c]) for c in np.flatnonzero(~crossed)}
+        # from the stored XML, not ``spec``: making a MyoSuite model self-contained stripped ``spec``'s materials
+        # and meshes in place, and only the stored XML also dropped every reference to them
+        spec = mujoco.MjSpec.from_string(self.xml)
         _add_locks(spec, locks)
         self._build(spec)
         self.muscle_ids = self._select_muscles(muscles)

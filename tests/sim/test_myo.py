@@ -125,6 +125,35 @@ def test_peak_forces_come_from_the_actuators(myoelbow):
     assert len(set(myoelbow.actuator_f_max_n)) > 1  # per muscle, not one value
 
 
+def test_a_muscle_subset_that_crosses_no_shoulder_locks_it_on_a_myosuite_model(myoelbow, capfd):
+    """Locking rebuilt the model from a spec whose materials had been stripped in place: "material not found"."""
+    triceps = ["TRImed_tendon", "TRIlat_tendon", "BRA_tendon"]
+    sub = MusculoskeletalModel("myo:myoelbow_2dof", muscles=triceps)
+    assert "locked 1 joint(s)" in capfd.readouterr().err and sub.joint_names == ["r_elbow_flex"]
+    elbow = np.linspace(*sub.q_range[0], 7)[:, None]
+    (shoulder,) = sub.joint_map.locked.values()  # joint 0, r_shoulder_elev, locked at its reference
+    full_q = np.hstack([np.full_like(elbow, shoulder), elbow])
+    assert myoelbow.joint_names == ["r_shoulder_elev", "r_elbow_flex"]
+    cols = [myoelbow.muscle_names.index(n) for n in triceps]
+    np.testing.assert_allclose(sub.kinematics(elbow)[0], myoelbow.kinematics(full_q)[0][:, cols], atol=1e-9)
+
+
+def test_a_fit_on_a_two_muscle_body_keeps_its_checkpoint(tmp_path):
+    """The paper protocol cuts 2 muscles: on a 2-muscle body the in-fit benchmark raised and the fit exited 2
+    without a checkpoint. The protocol is skipped with a warning instead."""
+    pytest.importorskip("myo_sim")
+    from lightning_bodyschema.cli import main as cli_main
+
+    with pytest.warns(UserWarning, match="paper protocol is skipped for this robot: 2 cut"):
+        cli = cli_main(["fit", f"--config={REPO}/configs/myoelbow-diff.yaml", "--data.n_samples=200",
+                        "--trainer.max_epochs=1", "--data.muscles=[BRA_tendon,TRIlong_tendon]",
+                        "--faults.n_per_condition=2", "--progress.enabled=false",
+                        f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
+    last = cli.trainer.checkpoint_callback.last_model_path
+    assert last and os.path.isfile(last)
+    assert "val/eq_residual_N_m" in cli.trainer.callback_metrics
+
+
 # ---------------------------------------------------------------------------- couplings and locks (no myo-sim)
 COUPLED_ARM = """<mujoco><compiler angle="radian"/><option gravity="0 0 -9.81"/>
   <worldbody><site name="base_up" pos="0 0 0.1"/><site name="base_dn" pos="0 0 -0.1"/>
