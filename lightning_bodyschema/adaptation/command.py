@@ -50,9 +50,12 @@ def safe_command(x_si: torch.Tensor, faults, f_limit_n: np.ndarray, l_range_m=No
     l_motor, f = x[:, :m], x[:, m:]
     finite = np.isfinite(x).all(1)
     f_safe = np.clip(f, 0.0, f_limit_n)  # non-finite rows are replaced by NaN below
-    outside = np.zeros(len(x)) if l_range_m is None else np.maximum(
-        np.maximum(l_range_m[0] - l_motor, l_motor - l_range_m[1]), 0.0).max(1)
-    status = np.where(finite, np.where(outside > 0, "out_of_range", "ok"), "non_finite").astype("<U16")
+    # a motor length is positive whatever the plausible range says (mean - 20 spreads can lie below 0)
+    lo_m, hi_m = (0.0, np.inf) if l_range_m is None else (np.maximum(l_range_m[0], 0.0), l_range_m[1])
+    with np.errstate(invalid="ignore"):  # NaN rows are non_finite
+        outside = np.maximum(np.maximum(lo_m - l_motor, l_motor - hi_m), 0.0).max(1)
+        bad = (outside > 0) | (l_motor <= 0).any(1)
+    status = np.where(finite, np.where(bad, "out_of_range", "ok"), "non_finite").astype("<U16")
     lo, hi = (np.zeros((2,) + f.shape) if faults.l_band_m is None else np.moveaxis(faults.l_band_m, -1, 0))
     with np.errstate(invalid="ignore"):  # NaN off the faults is masked
         worst = {"f_clipped_n": np.abs(f_safe - f).max(1),

@@ -130,6 +130,7 @@ class Faults:
             _refuse_cases(band & ~(np.isfinite(lo) & np.isfinite(hi)), "a length band has a NaN/inf bound")
             with np.errstate(invalid="ignore"):
                 _refuse_cases(band & (lo > hi), "a length band has lo > hi")
+                _refuse_cases(band & (hi <= 0), "a length band lies at or below 0 m (a motor length is positive)")
             _refuse_cases(band & self.cut, "the same muscle is both cut and length-banded")
         return self
 

@@ -53,6 +53,20 @@ def test_a_finite_but_absurd_motor_length_is_out_of_range_never_ok():
     np.testing.assert_allclose(result.diagnostics["l_motor_out_of_range_m"], [0.0, 4.3, 4.0])
 
 
+def test_a_motor_length_at_or_below_zero_is_never_ok():
+    """The plausible range (mean -+ 20 spreads) reaches below 0 m for widely spread muscles; a length does not."""
+    faults = Faults.from_names(["a", "b"], n_cases=3)
+    l_range = motor_length_range(np.array([0.05, 0.3, 50.0, 50.0]), np.array([0.01, 0.01, 20.0, 20.0]), 2)
+    assert l_range[0, 0] < 0
+    x = torch.tensor([[0.01, 0.3, 5.0, 80.0], [-0.04, 0.3, 5.0, 80.0], [0.0, 0.3, 5.0, 80.0]], dtype=torch.float64)
+    limit = faults.f_limit(150.0)
+    for result in (safe_command(x, faults, limit, l_range), safe_command(x, faults, limit)):  # with or without range
+        assert result.status.tolist() == ["ok", "out_of_range", "out_of_range"]
+        assert np.isnan(result.l_motor_m[1:]).all() and np.isnan(result.f_n[1:]).all()
+    with pytest.raises(BodySchemaInputError, match="at or below 0 m"):
+        Faults.from_names(["a", "b"], band={"a": [-0.05, -0.04]}, n_cases=1)
+
+
 def test_the_physics_check_blanks_commands_no_physics_can_realize(diff60, dm):
     schema = diff60[0]
     q = dm.splits["val"][0][:2].numpy()
