@@ -4,8 +4,9 @@ from __future__ import annotations
 import time
 
 from ..errors import BodySchemaInputError
-from .common import (ADAPT_SAMPLERS, argument_parser, check_out, check_schema_options, count_values, exits_cleanly,
-                     import_user_modules, load_checked_schema, resolve_sampler, torch_one_thread, write_npz)
+from .common import (ADAPT_SAMPLERS, NAME_ARRAYS, argument_parser, check_out, check_robot_names, check_schema_options,
+                     count_values, exits_cleanly, import_user_modules, load_checked_schema, resolve_sampler,
+                     robot_names, torch_one_thread, write_npz)
 
 # ---------------------------------------------------------------------------- fault-case tools
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
@@ -38,8 +39,8 @@ def make_cases_main(argv=None):
     q, x = datamodule.splits["val"]  # the held-out split is the test split (docs/design.md, evaluation)
     cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, q.numpy(), x.numpy(),
                                  n_per_condition, args.seed)
-    write_npz(args.out, cases.arrays() if args.protocol == "binding" else
-              {name: getattr(cases, name) for name in CASE_ARRAYS})
+    arrays = cases.arrays() if args.protocol == "binding" else {name: getattr(cases, name) for name in CASE_ARRAYS}
+    write_npz(args.out, {**arrays, **robot_names(datamodule.robot_model)})
     print(f"wrote {args.out}: {len(cases)} fault cases ({count_values(cases.cond)}), protocol {args.protocol}, seed "
           f"{args.seed}, postures from the {len(q)}-sample test split of {args.ckpt}")
     for cond, reasons in (rejected or {}).items():
@@ -76,20 +77,24 @@ def draw_cases(protocol: str, model, spring, q_pool, x_pool, n_per_condition: in
 
 
 def load_cases(path: str):
-    """A case file checked on its own (file, arrays, dtypes, NaN/inf, cut/jam consistency): no model needed."""
+    """A case file checked on its own (file, arrays, dtypes, NaN/inf, cut/jam consistency): no model needed.
+    Returns (cases, the robot's names the file was drawn for: {} in files without them)."""
     from ..evaluation.cases import FaultCases
+    from ..npz import load_npz
 
     cases = FaultCases.load(path)
     if len(cases) == 0:
         raise BodySchemaInputError(f"case file {path}: it holds no cases")
-    return cases
+    names = {k: [str(n) for n in v] for k, v in load_npz(path).items() if k in NAME_ARRAYS}
+    return cases, names
 
 
-
-def check_cases_fit(cases, path: str, model):
-    """The cases against the checkpoint's robot: joint and muscle counts, q_ref inside the joint ranges."""
+def check_cases_fit(cases, path: str, model, names: dict | None = None):
+    """The cases against the checkpoint's robot: joint and muscle names (when the file has them) and counts, q_ref
+    inside the joint ranges."""
     from ..evaluation.cases import validate_cases
 
+    check_robot_names(names or {}, model, f"case file {path}")
     try:
         validate_cases(cases, model.n_joints, model.n_muscles)
     except BodySchemaInputError as err:
@@ -126,15 +131,15 @@ def adapt_cases_main(argv=None):
     args.sampler, options = resolve_sampler(args.sampler)
     check_out(args.out, args.ckpt)
     torch_one_thread()
-    cases = load_cases(args.cases)  # before the checkpoint: a bad case file is reported without the heavy imports
+    cases, names = load_cases(args.cases)  # before the checkpoint: a bad case file is reported without heavy imports
     schema = load_checked_schema(args)
     check_schema_options(schema, args.variant, args.sampler, options)
-    check_cases_fit(cases, args.cases, schema.robot_model)
+    check_cases_fit(cases, args.cases, schema.robot_model, names)
     adapt_start = time.perf_counter()
     result = adapt_cases(schema, cases, args.variant, options, args.ckpt)
     adapt_seconds = time.perf_counter() - adapt_start
     arrays = cases.arrays()  # the five case arrays, and f_max / l_band when the file has them
-    arrays.update(l_motor=result.l_motor_m, f=result.f_n, status=result.status)
+    arrays.update(l_motor=result.l_motor_m, f=result.f_n, status=result.status, **robot_names(schema.robot_model))
     write_npz(args.out, arrays)
     print(f"wrote {args.out}: {len(cases)} cases, {int(result.ok.sum())} ok (status: {count_values(result.status)}); "
           f"{type(schema).__name__}, variant {args.variant}, sampler {args.sampler}; adapted in {adapt_seconds:.2f} s "

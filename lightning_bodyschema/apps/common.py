@@ -172,3 +172,23 @@ def robot_from_config(path: str):
                                  locked_joints=data.get("locked_joints"))
     spring = spring_for_model(model, data.get("k_n"), data.get("alpha_per_m", 20.0), data.get("f_max_n"))
     return model, spring, data
+
+
+# the robot a case file was drawn for: a mask column means a muscle by its position, so a file must not meet a robot
+# whose joints or muscles are ordered (or named) otherwise. Files without these arrays are checked by counts only.
+NAME_ARRAYS = ("joints", "muscles")
+
+
+def check_robot_names(names: dict, model, what: str) -> None:
+    """Refuse a file whose ``joints`` / ``muscles`` arrays (when it has them) are not the model's, in order."""
+    for key, expected in robot_names(model).items():
+        if key in names and [str(n) for n in names[key]] != expected.tolist():
+            raise BodySchemaInputError(f"{what} was written for {key} {[str(n) for n in names[key]]}, but the "
+                                       f"checkpoint's robot has {expected.tolist()} (a fault mask names a muscle by its "
+                                       f"position); draw the cases for this checkpoint")
+
+
+def robot_names(model) -> dict:
+    """{joints, muscles}: the names of ``model``, written beside the cases (as tools/predict.py writes them)."""
+    return {"joints": np.array(model.joint_names, dtype=str),
+            "muscles": np.array(model.muscle_names, dtype=str)}

@@ -34,15 +34,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .common import (argument_parser, check_out, check_schema_options, count_values, exits_cleanly,
-                     load_checked_schema, resolve_sampler, torch_one_thread)
+from .common import (argument_parser, check_out, check_robot_names, check_schema_options, count_values, exits_cleanly,
+                     load_checked_schema, resolve_sampler, robot_names, torch_one_thread)
 from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.faults import muscle_index
 from ..npz import atomic_write_bytes, load_npz, save_npz
 
 REQUEST_KEYS = ("q_ref", "target", "cut", "jam", "weak", "band")
-NPZ_ARRAYS = ("q_ref", "target", "cut", "fix", "l_fixed", "f_max", "l_band", "cond")
+NPZ_ARRAYS = ("q_ref", "target", "cut", "fix", "l_fixed", "f_max", "l_band", "cond", "joints", "muscles")
 OUT_FORMATS = (".npz", ".json")
 REQUEST_FORMATS = (".yaml", ".yml", ".json", ".npz")
 READINGS = ("phys", "paper")  # evaluation.benchmark.READINGS: how the evaluator treats jammed muscles
@@ -169,6 +169,7 @@ def _from_npz(path: str, model) -> Requests:
         raise BodySchemaInputError(f"unknown arrays {unknown}; allowed: {list(NPZ_ARRAYS)}")
     if "q_ref" not in arrays and "target" not in arrays:
         raise BodySchemaInputError("needs a q_ref (B, N) or a target (B, 3) array")
+    check_robot_names(arrays, model, "the request file")  # a make_cases.py file names its robot's joints and muscles
     batch = len(arrays.get("q_ref", arrays.get("target")))
     shapes = {"q_ref": (batch, model.n_joints), "target": (batch, 3), "cut": (batch, model.n_muscles),
               "fix": (batch, model.n_muscles), "l_fixed": (batch, model.n_muscles),
@@ -266,7 +267,7 @@ def evaluate_predictions(schema, out: dict, faults: Faults, jammed_pull: bool) -
 # ---------------------------------------------------------------------------- writing
 def write_predictions(path: str, out: dict, schema, meta: dict) -> None:
     """Atomic ``.npz`` (arrays, plus ``muscles`` / ``joints`` names) or ``.json`` (one entry per request)."""
-    names = {"muscles": np.array(schema.robot_model.muscle_names), "joints": np.array(schema.robot_model.joint_names)}
+    names = robot_names(schema.robot_model)
     try:
         if path.lower().endswith(".npz"):
             save_npz(path, **out, **names)

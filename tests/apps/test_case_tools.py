@@ -70,7 +70,9 @@ def test_make_cases_writes_the_papers_cases_from_the_test_split(ckpt, made):
         assert code == 0, err
         assert len(out.strip().splitlines()) == 1 and "120 fault cases (CUT 40, FIX 40, BOTH 40)" in out
     arrays = load_npz(str(paths["seed0"]))
-    assert sorted(arrays) == sorted(CASE_ARRAYS)
+    assert sorted(arrays) == sorted(CASE_ARRAYS + ("joints", "muscles"))  # the robot the masks' columns mean
+    model = load_datamodule(ckpt).robot_model
+    assert arrays["joints"].tolist() == model.joint_names and arrays["muscles"].tolist() == model.muscle_names
     b = 3 * PER_CONDITION
     assert arrays["q_ref"].shape == (b, N_JOINTS) and arrays["q_ref"].dtype == np.float64
     for name in ("cut", "fix"):
@@ -108,7 +110,7 @@ def test_adapt_cases_writes_safe_commands_beside_the_unchanged_cases(made, adapt
     assert code == 0, err
     assert len(stdout.strip().splitlines()) == 1 and "120 cases" in stdout and " ok" in stdout
     cases, result = load_npz(str(made[0]["seed0"])), load_npz(str(out))
-    assert sorted(result) == sorted(CASE_ARRAYS + ("l_motor", "f", "status"))
+    assert sorted(result) == sorted(CASE_ARRAYS + ("l_motor", "f", "status", "joints", "muscles"))
     for name in CASE_ARRAYS:
         assert result[name].dtype == cases[name].dtype
         np.testing.assert_array_equal(result[name], cases[name])  # NaN == NaN here

@@ -78,6 +78,11 @@ def case_file(ctx, out_dir: Path, edit) -> str:
 
 
 # ---------------------------------------------------------------------------- case-file edits
+def muscles_in_another_order(a):
+    """The file names its robot's muscles: the same six in another order mean other muscles for every mask."""
+    a["muscles"] = a["muscles"][::-1].copy()
+
+
 def nan_q_ref(a):
     a["q_ref"][3, 1] = np.nan
 
@@ -199,6 +204,9 @@ ROWS = [
     Row("case_file_missing", "adapt_cases", lambda c, out: [
         "--ckpt", c["ckpt"], "--cases", missing("cases.npz")(c), "--out", str(out / "adapted.npz")],
         ("cases.npz", "does not exist")),
+    Row("case_file_of_another_muscle_order", "adapt_cases", adapt(muscles_in_another_order),
+        ("was written for muscles ['biarticular_extensor'", "the checkpoint's robot has ['shoulder_flexor'",
+         "draw the cases for this checkpoint")),
     Row("case_file_of_another_robot", "adapt_cases", adapt(other_robot_cases),
         ("cut has shape (12, 8)", "expected (12, 6)", "2 joints ['shoulder', 'elbow'] and 6 muscles")),
     # ---- configuration
