@@ -149,7 +149,7 @@ def read_recorded(path: str) -> RecordedTable:
 
 def _read_csv_columns(path):
     ranges, units, header, rows = {}, None, None, []
-    with open(path, newline="") as fh:
+    with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a byte-order mark (Excel's "CSV UTF-8")
         for line_no, line in enumerate(fh, start=1):
             text = line.strip()
             if not text:
@@ -160,6 +160,10 @@ def _read_csv_columns(path):
             fields = next(csv.reader([text]))
             if header is None:
                 header = [name.strip() for name in fields]
+                repeated = sorted({name for name in header if header.count(name) > 1})
+                if repeated:
+                    raise BodySchemaInputError(f"{path}, line {line_no}: columns {repeated} appear more than once; "
+                                               "each column must be named once")
                 continue
             if len(fields) != len(header):
                 raise BodySchemaInputError(f"{path}, line {line_no}: {len(fields)} fields, but the header has "

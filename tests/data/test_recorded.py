@@ -49,6 +49,8 @@ BAD_FILES = {
     "column_not_q_l_f": (lambda p: _csv(p, header="q_a,q_b,l_m1,l_m2,f_m1,time", rows=_rows()), (),
                          ("column 'time'", "q_<joint>")),
     "ragged_row": (lambda p: _csv(p, extra_rows=("0.1,0.2,0.15",)), (), ("3 fields", "6 columns")),
+    "repeated_column": (lambda p: _csv(p, header="q_a,q_b,l_m1,l_m1,f_m1,f_m2", rows=_rows()), (),
+                        ("columns ['l_m1'] appear more than once",)),
     "npz_not_columns": (lambda p: (save_npz(str(p.with_suffix(".npz")), q=np.zeros((5, 2))),
                                    str(p.with_suffix(".npz")))[1], (), ("column 'q'",)),
 }
@@ -69,6 +71,16 @@ def test_bad_recorded_file_is_one_clear_error_exit_2(name, tmp_path, capsys, mon
     for word in words:
         assert word in lines[0], f"{word!r} not in {lines[0]!r}"
     assert not list(tmp_path.glob("lightning_logs")), "nothing may be written for a bad file"
+
+
+def test_a_csv_saved_with_a_byte_order_mark_reads_like_one_without(tmp_path):
+    """Excel's "CSV UTF-8" starts with a BOM, which made the header one unknown column."""
+    plain = read_recorded(_csv(tmp_path / "plain.csv"))
+    marked = tmp_path / "bom.csv"
+    marked.write_bytes(b"\xef\xbb\xbf" + (tmp_path / "plain.csv").read_bytes())
+    table = read_recorded(str(marked))
+    assert table.joints == plain.joints and table.muscles == plain.muscles
+    np.testing.assert_array_equal(table.q, plain.q)
 
 
 def test_nan_and_out_of_range_rows_are_dropped_and_counted(tmp_path, capsys):
