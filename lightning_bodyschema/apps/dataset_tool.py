@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from ..errors import BodySchemaInputError
-from .common import argument_parser, exits_cleanly
+from .common import argument_parser, exits_cleanly, robot_from_config
 
 
 def add_sensor_noise(arrays: dict, noise_q_rad, noise_l_m, noise_f_n, seed: int) -> dict:
@@ -43,12 +43,16 @@ def _check_args(args):
 def make_dataset_main(argv=None):
     from ..data.dataset import build_dataset
     from ..data.recorded import write_recorded
-    from ..sim import MusculoskeletalModel, SpringParams
+    from ..sim import MusculoskeletalModel
     from ..sim.mismatch import mismatched_robot
+    from ..sim.spring import spring_for_model
 
     parser = argument_parser("Generate a healthy static-equilibrium dataset in the recorded-data format "
                              "(q_<joint>, l_<muscle>, f_<muscle> columns, SI units; .csv or .npz).")
-    parser.add_argument("--model", default="paper_arm", help="'paper_arm' or a path to an MJCF with spatial tendons")
+    parser.add_argument("--model", default="paper_arm", help="'paper_arm', myo:<name> (the [myo] extra) or a path to an "
+                        "MJCF with spatial tendons")
+    parser.add_argument("--config", help="take the robot from a config's data section instead of --model (model, "
+                        "muscles, locked_joints, spring constants), e.g. configs/myoarm-diff.yaml")
     parser.add_argument("--n", type=int, default=800, help="number of samples (default 800, the paper's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output file: .csv, else .npz")
@@ -62,7 +66,11 @@ def make_dataset_main(argv=None):
     parser.add_argument("--mismatch-seed", type=int, default=0, metavar="S", help="seed of the mismatch draw")
     args = parser.parse_args(argv)
     _check_args(args)
-    model, spring = MusculoskeletalModel(args.model), SpringParams()
+    if args.config:
+        model, spring, _ = robot_from_config(args.config)
+    else:  # the data module's defaults: the actuators' peak forces for MyoSuite bodies, the paper's 150 N otherwise
+        model = MusculoskeletalModel(args.model)
+        spring = spring_for_model(model, None, 20.0, None)
     source = model
     if args.mismatch > 0:
         source, spring = mismatched_robot(model, spring, args.mismatch, args.mismatch_seed)
@@ -70,6 +78,8 @@ def make_dataset_main(argv=None):
     arrays = build_dataset(source, args.n, args.seed, spring, args.qp_solver)
     arrays = add_sensor_noise(arrays, args.noise_q, args.noise_l, args.noise_f, args.seed)
     ranges = {f"q_{j}": lim for j, lim in zip(model.joint_names, model.q_range.tolist())}
+    f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), (model.n_muscles,))
+    ranges.update({f"f_{m}": (0.0, float(hi)) for m, hi in zip(model.muscle_names, f_max)})  # read back as f_range
     meta = {"model_xml": model.xml, "n_redrawn": int(arrays["n_redrawn"]), "seed": args.seed,
             "noise_q_rad": args.noise_q, "noise_l_m": args.noise_l, "noise_f_n": args.noise_f,
             "mismatch": args.mismatch, "mismatch_seed": args.mismatch_seed}

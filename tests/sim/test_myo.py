@@ -154,6 +154,23 @@ def test_a_fit_on_a_two_muscle_body_keeps_its_checkpoint(tmp_path):
     assert "val/eq_residual_N_m" in cli.trainer.callback_metrics
 
 
+def test_make_dataset_takes_a_myosuite_bodys_strength_and_a_configs_locks(myoelbow, tmp_path):
+    """tools/make_dataset.py used the paper's 150 N for every muscle (25 % of elbow postures held) and could not
+    lock joints (1 % of myoArm postures held, then an error asking for locks it had no option for)."""
+    from lightning_bodyschema.apps.dataset_tool import make_dataset_main
+    from lightning_bodyschema.data import read_recorded
+
+    make_dataset_main(["--model", "myo:myoelbow_2dof", "--n", "30", "--out", str(tmp_path / "elbow.csv")])
+    table = read_recorded(str(tmp_path / "elbow.csv"))
+    f_max = dict(zip(myoelbow.muscle_names, myoelbow.actuator_f_max_n))
+    assert {m: table.ranges[f"f_{m}"][1] for m in table.muscles} == pytest.approx(f_max)
+    assert table.f.max() > 150.0 and np.all(table.f <= np.array([f_max[m] for m in table.muscles]) + 1e-9)
+    _, G, tau = myoelbow.kinematics(table.q)
+    assert np.abs(np.einsum("bmn,bm->bn", -G, table.f) - tau).max() <= 1e-6  # healthy static equilibria
+    make_dataset_main(["--config", f"{REPO}/configs/myoarm-diff.yaml", "--n", "10", "--out", str(tmp_path / "a.npz")])
+    assert len(read_recorded(str(tmp_path / "a.npz")).joints) == 7  # the hand locked as the config says
+
+
 # ---------------------------------------------------------------------------- couplings and locks (no myo-sim)
 COUPLED_ARM = """<mujoco><compiler angle="radian"/><option gravity="0 0 -9.81"/>
   <worldbody><site name="base_up" pos="0 0 0.1"/><site name="base_dn" pos="0 0 -0.1"/>
