@@ -116,8 +116,9 @@ class DiffusionSchema(BodySchema):
     def initial_noise(self, n: int, like: torch.Tensor) -> torch.Tensor:
         """x_T for n cases: ONE seeded draw shared by every case.
 
-        A command then depends only on its own q (and faults), never on the batch it was computed in: torch draws
-        different normals for a (6, D) and a (1, D) request from the same seed.
+        A command then depends only on its own q (and faults), never on the batch it was computed in (up to the
+        rounding of matrix products of another batch size: ~1e-7 m, 1e-3 N in float32): torch draws different
+        normals for a (6, D) and a (1, D) request from the same seed.
         """
         def draw():
             gen = torch.Generator().manual_seed(self.hparams.sample_seed)
