@@ -92,13 +92,11 @@ def load_checked_schema(args):
     return load_schema(args.ckpt)
 
 
-
 def torch_one_thread():
     import torch
 
     torch.set_num_threads(1)  # one thread is fastest for these tiny MLPs on the shared cores (docs/design.md)
     torch.set_flush_denormal(True)
-
 
 
 def check_out(path: str, ckpt: str):
@@ -107,7 +105,6 @@ def check_out(path: str, ckpt: str):
         raise BodySchemaInputError(f"--out {path!r} is a directory; give a file path such as cases.npz")
     if os.path.abspath(path) == os.path.abspath(ckpt):
         raise BodySchemaInputError(f"--out {path!r} is the checkpoint itself; give another file")
-
 
 
 def write_npz(path: str, arrays: dict):
@@ -120,13 +117,11 @@ def write_npz(path: str, arrays: dict):
         raise BodySchemaInputError(f"cannot write --out {path!r}: {err.strerror or err}") from None
 
 
-
 def count_values(values: np.ndarray) -> str:
     """``"CUT 40, FIX 40, BOTH 40"``: each distinct value and its count, in order of first appearance."""
     names, first, counts = np.unique(values, return_index=True, return_counts=True)
     order = np.argsort(first)
     return ", ".join(f"{names[i]} {counts[i]}" for i in order)
-
 
 
 def resolve_sampler(name: str) -> tuple[str, dict]:
