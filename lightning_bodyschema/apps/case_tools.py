@@ -106,13 +106,11 @@ def check_cases_fit(cases, path: str, model, names: dict | None = None):
         raise BodySchemaInputError(f"case file {path}: q_ref: {err}") from None
 
 
-
 def adapt_cases(schema, cases, variant: str, options: dict, ckpt: str):
     try:
         return schema.adapt(cases.q_ref, cases.faults, variant=variant, **options)
     except NotImplementedError as err:  # a custom schema without adaptation
         raise BodySchemaInputError(f"checkpoint {ckpt!r}: {err}") from None
-
 
 
 @exits_cleanly
