@@ -46,7 +46,7 @@ from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
 from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
 from ..schemas.base import fit_ends_with_this_epoch
-from .steps import validation_log_step
+from .steps import stopped_after_last_validation, validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
 METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0),
@@ -117,8 +117,8 @@ class FaultBenchmark(Callback):
     def on_train_end(self, trainer, pl_module):
         # EarlyStopping requests its stop after this callback's on_validation_epoch_end: benchmark the weights the
         # fit stopped with, at the step of that validation, unless that validation already did
-        if (trainer.should_stop and self._validated_at == validation_log_step(trainer) != self._benchmarked_at
-                and self.every_n_epochs and trainer.loggers):
+        if stopped_after_last_validation(trainer, self._validated_at, self._benchmarked_at) and self.every_n_epochs \
+                and trainer.loggers:
             self._benchmark_in_fit(trainer, pl_module)
 
     def _benchmark_in_fit(self, trainer, pl_module):

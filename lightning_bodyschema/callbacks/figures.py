@@ -7,7 +7,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from ..plots.reconstruction import reconstruction_figure
 from ..schemas.base import fit_ends_with_this_epoch
-from .steps import validation_log_step
+from .steps import stopped_after_last_validation, validation_log_step
 
 
 class ReconstructionFigure(Callback):
@@ -30,7 +30,7 @@ class ReconstructionFigure(Callback):
     @rank_zero_only
     def on_train_end(self, trainer, pl_module):
         # a stop EarlyStopping requested after on_validation_epoch_end: the figure of the weights the fit ended with
-        if trainer.should_stop and self._validated_at == validation_log_step(trainer) != self._logged_at:
+        if stopped_after_last_validation(trainer, self._validated_at, self._logged_at):
             self.log_figure(trainer, pl_module)
 
     def log_figure(self, trainer, pl_module):

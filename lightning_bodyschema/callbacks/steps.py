@@ -7,3 +7,9 @@ def validation_log_step(trainer) -> int:
     that logged by epoch, or one step later, lost its earlier figures once steps counted optimizer steps."""
     return max(int(trainer.global_step) - 1, 0)
 
+
+
+def stopped_after_last_validation(trainer, validated_at, done_at) -> bool:
+    """In ``on_train_end``: EarlyStopping requested the stop after the callbacks' validation hooks of the fit's last
+    validation (logged at ``validated_at``), and the end-of-fit work was not done there (``done_at``)."""
+    return trainer.should_stop and validated_at == validation_log_step(trainer) != done_at

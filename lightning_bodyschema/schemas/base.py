@@ -56,6 +56,12 @@ def fit_ends_with_this_epoch(trainer) -> bool:
     return bool(by_epochs or by_steps or trainer.should_stop)
 
 
+def limited_batches(trainer, batches: int) -> int:
+    """The training batches of an epoch as Lightning runs them: ``limit_train_batches`` is a count or a fraction."""
+    limit = trainer.limit_train_batches
+    return min(batches, limit) if isinstance(limit, int) else max(1, int(batches * limit))
+
+
 def check_val_check_interval(trainer, batches_per_epoch: int) -> None:
     """An int ``val_check_interval`` counts batches within an epoch (unless ``check_val_every_n_epoch`` is None):
     refuse one longer than the epoch in one line (the CLI before anything is written), not with Lightning's
@@ -63,8 +69,7 @@ def check_val_check_interval(trainer, batches_per_epoch: int) -> None:
     interval = trainer.val_check_interval
     if not isinstance(interval, int) or isinstance(interval, bool) or trainer.check_val_every_n_epoch is None:
         return
-    limit = trainer.limit_train_batches
-    batches = min(batches_per_epoch, limit) if isinstance(limit, int) else max(1, int(batches_per_epoch * limit))
+    batches = limited_batches(trainer, batches_per_epoch)
     if interval > batches:
         raise BodySchemaInputError(
             f"--trainer.val_check_interval={interval} is more than the {batches} training batches of an epoch; give "
@@ -305,9 +310,8 @@ class BodySchema(L.LightningModule):
         if trainer.max_steps not in (None, -1):
             batches = trainer.num_training_batches
             if batches in (None, float("inf")) or batches == 0:  # not known yet when optimizers are configured
-                batches = len(trainer.datamodule.train_dataloader()) if trainer.datamodule is not None else 1
-                limit = trainer.limit_train_batches  # as Lightning applies it: a count, or a fraction
-                batches = min(batches, limit) if isinstance(limit, int) else max(1, int(batches * limit))
+                batches = limited_batches(
+                    trainer, len(trainer.datamodule.train_dataloader()) if trainer.datamodule is not None else 1)
             steps_per_epoch = max(1, math.ceil(batches / trainer.accumulate_grad_batches))
             by_steps = math.ceil(trainer.max_steps / steps_per_epoch)
             epochs = by_steps if epochs is None else min(epochs, by_steps)
