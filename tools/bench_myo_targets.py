@@ -8,7 +8,7 @@ median ||tau_bias|| there and their ratio (target <= 5 %), and the median length
 (2) the median time per case of a prepared ``--steps``-step adapter (``schema.adapter(faults)(q)``, no physics
 check) on the BOTH cases of ``--cases`` at batch 1 and batch 4000 (cases repeated), one torch thread; with
 ``--compiled`` also through ``torch.compile`` (the sampler's ``compiled=True``, as BENCHMARKS.md's "Diff-fast
-prepared+compiled"; the first call per batch size compiles for ~20-60 s and is not timed).
+prepared+compiled"; the first call per batch size compiles and is not timed).
 Timings depend on the machine's load: the load average and the CPU time per case are printed with them.
 """
 import argparse

@@ -28,7 +28,7 @@ from ..faults import Faults
 from .case_tools import draw_cases
 from .results_figures import write_figures
 from .results_md import write_results_md
-# the tables, claims and figures, importable from here as before they got their own modules
+# re-exported: the tables, claims and figures are importable from this module too
 from .results_figures import TIMING_FORMATS, timing_figure  # noqa: F401
 from .results_md import (BINDING_COLUMNS, BINDING_CONDS, CONDS, FAULT_METRICS, HAND_WRITTEN,  # noqa: F401
                          PAPER_COLUMNS, TARGETS, UNITS, binding_claims, claims, results_table)
@@ -60,7 +60,8 @@ class RunSpec:
                 f"--data.cache_dir={cache_dir}"]
 
 
-# relative seconds per epoch on one thread (1000-epoch fits, paper configs): VAE 16.8 ms, AE 15.0, Diff 12.2
+# relative CPU cost of one training epoch per schema family (paper configs, one thread), VAE = 1; the per-epoch
+# times behind it are in BENCHMARKS.md (full reproduction)
 _EPOCH_COST = {"vae": 1.0, "ae": 0.89, "diff": 0.73}
 
 
@@ -70,9 +71,9 @@ def train_all(specs: list[RunSpec], config_dir: str, cache_dir: str, jobs: int =
 
     The runs are split into one queue per slot so that the longest queue is as short as possible by the
     expected cost (``_EPOCH_COST``): on two slots the paper's 7 runs become VAE-3/10/30 and AE-3/10/30 + Diff,
-    ~35 s shorter than handing the next run to whichever slot frees first. Where ``os.fork`` exists each
+    shorter than handing the next run to whichever slot frees first. Where ``os.fork`` exists each
     training is a forked child that runs the CLI in-process: it inherits the already imported torch and
-    Lightning (~5 s of imports per run saved); elsewhere a ``bodyschema fit`` subprocess.
+    Lightning (no import per run); elsewhere a ``bodyschema fit`` subprocess.
     ``when_idle(name, checkpoint)``: called for each finished run while a slot has nothing left to train
     (the tail of the schedule, when a core would idle), so its benchmark overlaps the last trainings.
     """

@@ -114,7 +114,7 @@ def score_commands(model, spring, cases, l_motor, f) -> dict:
 
     metrics = evaluate_commands(model, cases, l_motor, f, spring, ForwardSolverParams(jammed_tension_in_torque=True))
     settled = settle(model, l_motor, f, cases, spring=spring)
-    # a simulation that blew up has no rest posture (settle reports its distance as 0): not a score, left out
+    # a simulation that blew up (UNSTABLE) has no rest posture (settle reports E_q_phys +inf): not a score, left out
     metrics["E_q_phys"] = np.where(settled.status == int(SettleStatus.UNSTABLE), np.nan, settled.E_q_phys)
     return metrics
 

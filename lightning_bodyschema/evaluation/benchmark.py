@@ -135,8 +135,8 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
     """Adapt and score every case; unadapted (healthy) and, with ``oracle``, physics-oracle commands are scored
     beside them (the baseline and the physical limit).
 
-    settle_check: also drop every command into MuJoCo (``settle.settle``, a few seconds for 120 cases) and
-    report ``E_q_phys``, the distance of the posture the arm really settles in from q_ref, beside E_q.
+    settle_check: also drop every command into MuJoCo (``settle.settle``: one simulation per command) and report
+    ``E_q_phys`` (B,) [rad], the distance of the posture the arm really settles in from q_ref, beside E_q.
     oracle: True (score it here), False (feasibility only), or the ``oracle_scores`` of these cases (scored once
     for several schemas); ``seconds["oracle"]`` is the physical reading's oracle time.
     """

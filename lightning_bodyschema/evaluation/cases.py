@@ -12,7 +12,7 @@ pool, i.e. the arm was elsewhere when the motor jammed and must now reach q_ref.
 
 Beyond the paper, two optional arrays: ``f_max`` (B, M) a weakened muscle's own tension limit [N]
 (NaN where not weakened) and ``l_band`` (B, M, 2) a motor that can move only inside [lo, hi] [m] (NaN
-where free). Files without them load as before, and cases without them save the five arrays only.
+where free). Files without them load with both None, and cases without them save the five arrays only.
 
 Files written by other programs often fill "no fault here" with 0 instead of NaN, so a value is
 ignored (set to NaN) where the muscle has no such fault: ``l_fixed`` where ``fix`` is False, ``f_max`` on

@@ -2,7 +2,7 @@
 
 MuJoCo stays the source of truth (``MusculoskeletalModel``); this twin, built with
 pytorch-kinematics, gives site positions ``(B, 3)`` [m] with autograd Jacobians for inverse
-kinematics and gradient-based planning. ``tests/test_twin.py`` checks it against MuJoCo.
+kinematics and gradient-based planning. ``tests/sim/test_twin.py`` checks it against MuJoCo.
 
 pytorch-kinematics 0.10 needs four work-arounds, all handled here:
 
@@ -157,7 +157,7 @@ class TorchKinematicTwin:
 
     Args:
         model: the MuJoCo model; joint order, ranges and reference angles come from it.
-        dtype: torch dtype of every computation (float64 matches MuJoCo to ~1e-15 m).
+        dtype: torch dtype of every computation (float64 matches MuJoCo's site positions to rounding).
     """
 
     def __init__(self, model: MusculoskeletalModel, dtype: torch.dtype = torch.float64):
