@@ -23,6 +23,7 @@ from lightning.pytorch.trainer.states import TrainerFn
 
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
+from ..contract import ADAPTATION_CAPABILITIES, EPOCH_HOOK, REFRESHES_DERIVED_STATE, check_capabilities
 from ..data.normalizer import Normalizer
 from ..data.recorded import robot_model_from_dict
 from ..errors import BodySchemaInputError
@@ -138,9 +139,13 @@ class BodySchema(L.LightningModule):
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
+        check_capabilities(cls, BodySchema)
         SCHEMA_CLASSES[schema_class_path(cls)] = cls
 
-    # ------------------------------------------------------------------ what subclasses implement
+    # ------------------------------------------------------------------ what subclasses implement (see contract.py)
+    # what the architecture does beyond training_loss and generate: ``contract`` capability names
+    capabilities: frozenset = frozenset()
+
     def training_loss(self, q_n: torch.Tensor, x_n: torch.Tensor) -> tuple[torch.Tensor, dict]:
         raise NotImplementedError
 
@@ -149,8 +154,13 @@ class BodySchema(L.LightningModule):
 
     def adapt_normalized(self, q_n: torch.Tensor, penalty, variant: str, **options) -> torch.Tensor:
         """Adapted normalized x (B, D) minimizing ``penalty`` per case (L_adapt of eq:latent-opt on normalized x, a
-        ``faults.penalty.BoxPenalty``: call it for the loss, ``grad``/``residual`` for its gradient); what each
-        architecture implements."""
+        ``faults.penalty.BoxPenalty``: call it for the loss, ``grad``/``residual`` for its gradient); capability
+        ``adapts_normalized``."""
+        raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
+
+    def adapt_si(self, q_rad: torch.Tensor, constraints: list, variant: str, **options):
+        """Adapted ``(l_motor_m, f_n)`` (B, M) float64 tensors at postures ``q_rad (B, N)`` [rad] under the faults'
+        SI ``constraints`` (``Faults.constraints``); capability ``adapts_in_si``."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
     @property
@@ -169,8 +179,8 @@ class BodySchema(L.LightningModule):
 
     @property
     def supports_adaptation(self) -> bool:
-        """True when the architecture implements ``adapt_normalized`` (a plain regressor need not)."""
-        return type(self).adapt_normalized is not BodySchema.adapt_normalized
+        """True when the architecture declares a way to adapt (a plain regressor need not)."""
+        return bool(self.capabilities & ADAPTATION_CAPABILITIES)
 
     def adapt(self, q_ref, faults, variant: str = "default", check_physics: bool = True,
               **options) -> AdaptationResult:
@@ -375,7 +385,7 @@ class BodySchema(L.LightningModule):
         return self._normalized((q.to(self.device), x.to(self.device)))
 
     def on_train_epoch_end(self):
-        if type(self).on_epoch_trained is BodySchema.on_epoch_trained:
+        if EPOCH_HOOK not in self.capabilities:
             return
         split = self._train_split_normalized()
         if split is not None:
@@ -393,8 +403,7 @@ class BodySchema(L.LightningModule):
         EarlyStopping may end a fit right after a validation); default: nothing."""
 
     def _refresh_derived_state(self) -> bool:
-        overridden = type(self).refresh_from_train_split is not BodySchema.refresh_from_train_split
-        if not overridden or self._trainer is None or self.trainer.state.fn != TrainerFn.FITTING:
+        if REFRESHES_DERIVED_STATE not in self.capabilities or self._trainer is None or self.trainer.state.fn != TrainerFn.FITTING:
             return False
         split = self._train_split_normalized()
         if split is not None:
