@@ -38,7 +38,7 @@ from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
-from .schemas.base import check_val_check_interval, half_precision_refusal
+from .training.fit_loop import check_val_check_interval, half_precision_refusal
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 

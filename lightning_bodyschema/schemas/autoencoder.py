@@ -8,7 +8,8 @@ import torch
 from ..networks import build_autoencoder
 from ..samplers import LatentConfig, latent_descent, reference_latent_descent
 from ..contract import ADAPTS_NORMALIZED, EPOCH_HOOK, REFRESHES_DERIVED_STATE
-from .base import BodySchema, fit_ends_with_this_epoch
+from ..training.fit_loop import fit_ends_with_this_epoch
+from .base import BodySchema
 
 
 class AutoEncoderSchema(BodySchema):
