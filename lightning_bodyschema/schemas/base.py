@@ -19,10 +19,10 @@ from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
 from ..contract import ADAPTATION_CAPABILITIES, check_capabilities
 from ..data.normalizer import Normalizer
-from ..data.recorded import robot_model_from_dict
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights
-from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
+from ..sim import SpringParams, elongation_from_tension
+from ..sim.robot import robot_model_from_dict
 from ..training.lightning_module import SchemaLightningModule
 from .cache import InferenceCache
 from .registry import SCHEMA_CLASSES, register, register_root, schema_class_path  # noqa: F401 (re-export)
@@ -38,7 +38,8 @@ class BodySchema(SchemaLightningModule):
             saved with the hyperparameters, so a checkpoint rebuilds the robot on any machine.
         lr: Adam learning rate (the default optimizer; the CLI's ``--optimizer`` replaces it).
         lr_final: learning rate reached at the last epoch by cosine annealing (None: constant).
-        batch_size: minibatch size per optimizer step and process (the data module serves batches of it).
+        batch_size: minibatch size per optimizer step and process, recorded in the checkpoint; the data module
+            serves the batches and must have the same ``batch_size`` (the CLI links ``--model.batch_size`` to it).
     """
 
     def __init__(self, robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
@@ -51,7 +52,7 @@ class BodySchema(SchemaLightningModule):
             raise BodySchemaInputError(f"batch_size={batch_size!r} must be a positive integer")
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
-        self.robot_model = robot_model_from_dict(robot)  # a MusculoskeletalModel, or a ModelFreeRobot
+        self.robot_model = robot_model_from_dict(robot)  # a sim.robot.RobotModel
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
         self.x_dim = 2 * self.n_muscles
@@ -89,7 +90,7 @@ class BodySchema(SchemaLightningModule):
     def has_physics(self) -> bool:
         """True when the robot comes with a model (MJCF): the physics check, kinematics and evaluation can run.
         A schema trained on recorded data alone has none; its ``adapt`` reports ``unchecked`` instead of ``ok``."""
-        return isinstance(self.robot_model, MusculoskeletalModel)
+        return self.robot_model.has_physics
 
     # ------------------------------------------------------------------ adaptation (paper section III)
     VARIANTS = ("default", "literal")

@@ -33,6 +33,11 @@ def logs_this_step(trainer) -> bool:
     return trainer._logger_connector.should_update_logs
 
 
+def batches_trained_this_epoch(trainer) -> int:
+    """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""
+    return trainer.fit_loop.epoch_loop.batch_progress.current.processed
+
+
 def limited_batches(trainer, batches: int) -> int:
     """The training batches of an epoch as Lightning runs them: ``limit_train_batches`` is a count or a fraction."""
     limit = trainer.limit_train_batches
@@ -52,6 +57,15 @@ def check_val_check_interval(trainer, batches_per_epoch: int) -> None:
             f"--trainer.val_check_interval={interval} is more than the {batches} training batches of an epoch; give "
             f"at most {batches}, a fraction of an epoch (e.g. 0.5), or --trainer.check_val_every_n_epoch=null to "
             f"count {interval} steps across epochs")
+
+
+def check_same_batch_size(schema_batch_size, data_batch_size) -> None:
+    """The data module serves the minibatches; the schema's ``batch_size`` (which its checkpoint records) must be
+    the same number. The CLI links ``--model.batch_size`` to the data module; in Python give both."""
+    if None not in (schema_batch_size, data_batch_size) and schema_batch_size != data_batch_size:
+        raise BodySchemaInputError(f"the schema's batch_size={schema_batch_size} differs from the data module's "
+                                   f"batch_size={data_batch_size}; give both the same (the CLI links "
+                                   "--model.batch_size to the data)")
 
 
 def monitors_train_metrics(trainer) -> bool:

@@ -16,8 +16,9 @@ from lightning.pytorch.plugins.precision import HalfPrecision
 from ..contract import EPOCH_HOOK, REFRESHES_DERIVED_STATE
 from ..errors import BodySchemaInputError
 from .finite import all_finite
-from .fit_loop import (check_val_check_interval, drop_checkpoint_callback_state_unless_fitting, epochs_of_fit,
-                       half_precision_refusal, is_fitting, is_last_batch, logs_this_step, monitors_train_metrics)
+from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
+                       epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
+                       monitors_train_metrics)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
@@ -51,9 +52,9 @@ class SchemaLightningModule(L.LightningModule):
                 raise BodySchemaInputError("the schema's robot differs from the data module's robot")
             self.normalizer.load_state_dict(datamodule.normalizer.state_dict())
             self.clear_caches()  # the penalty builder depends on the normalizer
+            check_same_batch_size(self.hparams.get("batch_size"), getattr(datamodule, "batch_size", None))
             if hasattr(datamodule, "train_batches_per_epoch"):
-                check_val_check_interval(self.trainer, datamodule.train_batches_per_epoch(
-                    self.hparams.get("batch_size", 64), self.trainer.world_size))
+                check_val_check_interval(self.trainer, datamodule.train_batches_per_epoch(self.trainer.world_size))
 
     def configure_optimizers(self):
         """Adam (fused, unless a GradScaler runs) with the cosine schedule from ``lr`` to ``lr_final`` over the

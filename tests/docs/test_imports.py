@@ -69,7 +69,7 @@ def internal_edges(files: dict[str, Path]) -> dict[str, set[str]]:
             for k in range(1, len(parts) + 1):
                 target = ".".join(parts[:k])
                 inside = module == target or module.startswith(target + ".")  # its own package: already running
-                if target in files and target != PACKAGE and not inside:
+                if target in files and not inside:
                     edges.add(target)
         graph[module] = edges
     return graph
