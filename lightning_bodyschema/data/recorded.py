@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import BodySchemaInputError
 from ..npz import atomic_write_bytes, load_npz, save_npz
 from ..sim import SpringParams
-from ..sim.robot import ModelFreeRobot, robot_model_from_dict  # noqa: F401 (robot_model_from_dict: re-export)
+from ..sim.robot import ModelFreeRobot
 from .datamodule import EquilibriumDataModule, check_loader_args, check_split
 from .normalizer import Normalizer
 
