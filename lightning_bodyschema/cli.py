@@ -38,7 +38,7 @@ from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
 from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
-from .schemas.base import check_val_check_interval, half_precision_refusal
+from .training.fit_loop import check_val_check_interval, half_precision_refusal
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
@@ -56,6 +56,8 @@ class BodySchemaCLI(LightningCLI):
 
     def add_arguments_to_parser(self, parser):
         parser.link_arguments("data.robot", "model.init_args.robot", apply_on="instantiate")
+        # the data module serves the minibatches; --model.batch_size (recorded in the checkpoint) sets its size
+        parser.link_arguments("model.init_args.batch_size", "data.init_args.batch_size")
         # always-on callbacks, configurable as --progress.*, --figures.* and --faults.*
         parser.add_lightning_class_args(EpochProgressBar, "progress")
         parser.add_lightning_class_args(ReconstructionFigure, "figures")
@@ -116,8 +118,7 @@ class BodySchemaCLI(LightningCLI):
     def before_fit(self):
         # before the dataset is built and the run folder written (Lightning checks this only once the fit loop starts)
         if hasattr(self.datamodule, "train_batches_per_epoch"):
-            check_val_check_interval(self.trainer, self.datamodule.train_batches_per_epoch(
-                self.model.hparams.get("batch_size", 64), self.trainer.world_size))
+            check_val_check_interval(self.trainer, self.datamodule.train_batches_per_epoch(self.trainer.world_size))
 
 
 def _data_module(data_config):

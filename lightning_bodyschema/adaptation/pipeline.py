@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..contract import ADAPTATION_CAPABILITIES, ADAPTS_IN_SI
 from ..errors import BodySchemaInputError
 from .command import AdaptationResult, motor_length_range, safe_command
 from .physics import flag_infeasible, mark_unchecked
@@ -31,10 +32,13 @@ def check_postures(schema, q_ref, n_cases: int) -> np.ndarray:
 
 
 class Adapter:
-    """Prepare once (validate the faults, build the penalty L_adapt of eq:latent-opt), then per call
-    ``adapter(q_ref (B, N))`` [rad] -> ``AdaptationResult``: check postures -> encode -> the schema's
-    ``adapt_normalized`` -> decode -> ``safe_command`` -> ``flag_infeasible`` (when ``check_physics``; ``mark_unchecked``
-    when the schema has no model to check on).
+    """Prepare once, then per call ``adapter(q_ref (B, N))`` [rad] -> ``AdaptationResult``.
+
+    The schema (a ``contract.SchemaContract``) declares how it adapts, and the adapter dispatches on it:
+    ``adapts_normalized``: prepare the penalty L_adapt of eq:latent-opt (and the variant's fault projection); per call
+    check postures -> encode -> ``adapt_normalized`` -> decode. ``adapts_in_si``: prepare the faults' SI constraints;
+    per call check postures -> ``adapt_si`` on q [rad]. Then, either way, ``safe_command`` -> ``flag_infeasible``
+    (when ``check_physics``; ``mark_unchecked`` when the robot has no model to check on).
 
     Lifetime: the penalty is built from the schema's normalizer, dtype and device as they are now; the networks
     are the schema's current weights at each call (through its inference cache). Build a new adapter after
@@ -45,10 +49,20 @@ class Adapter:
         if variant not in schema.VARIANTS:
             raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
         faults.validate(schema.n_muscles, schema.spring.f_max_n)
+        if not schema.capabilities & ADAPTATION_CAPABILITIES:
+            raise NotImplementedError(f"{type(schema).__name__} does not implement adaptation (its capabilities "
+                                      f"declare none of {sorted(ADAPTATION_CAPABILITIES)})")
         self.schema, self.faults, self.variant = schema, faults, variant
         self.check_physics, self.options = check_physics, dict(options or {})
+        self.in_si = ADAPTS_IN_SI in schema.capabilities
         self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
         self.l_range_m = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
+        if self.in_si:
+            self.constraints = faults.constraints(schema.spring.f_max_n)
+        else:
+            self._prepare_penalty(schema, faults, variant)
+
+    def _prepare_penalty(self, schema, faults, variant: str) -> None:
         # Lightning's val/test/predict loops run under inference_mode: the penalty must be an ordinary tensor
         with torch.inference_mode(False), torch.no_grad():
             self.penalty = schema.penalty_builder(variant)(faults.constraints(schema.spring.f_max_n))
@@ -56,13 +70,21 @@ class Adapter:
         if projection is not None:  # built once with the penalty; the sampler takes it as a value
             self.options["projection"] = projection
 
+    def _adapted_si(self, q: np.ndarray) -> torch.Tensor:
+        """The schema's adapted command [l_motor, f] (B, 2M) in SI units, float64."""
+        schema = self.schema
+        with torch.inference_mode(False), torch.no_grad():
+            if self.in_si:
+                l_motor_m, f_n = schema.adapt_si(torch.as_tensor(q), self.constraints, self.variant, **self.options)
+                return torch.cat([l_motor_m, f_n], dim=1).to(torch.float64)
+            x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.penalty, self.variant,
+                                          **self.options)
+        return schema.decode(x_n)
+
     def __call__(self, q_ref) -> AdaptationResult:
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
-        with torch.inference_mode(False), torch.no_grad():
-            x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.penalty, self.variant,
-                                          **self.options)
-        result = safe_command(schema.decode(x_n), self.faults, self.f_limit_n, self.l_range_m)
+        result = safe_command(self._adapted_si(q), self.faults, self.f_limit_n, self.l_range_m)
         if not self.check_physics:
             return result
         if not schema.has_physics:

@@ -45,7 +45,7 @@ from ..evaluation import BenchmarkResult, make_fault_cases, run_fault_benchmark
 from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
 from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
-from ..schemas.base import fit_ends_with_this_epoch
+from ..training.fit_loop import fit_ends_with_this_epoch
 from .steps import stopped_after_last_validation, validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")

@@ -6,7 +6,7 @@ from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_only
 
 from ..plots.reconstruction import reconstruction_figure
-from ..schemas.base import fit_ends_with_this_epoch
+from ..training.fit_loop import fit_ends_with_this_epoch
 from .steps import stopped_after_last_validation, validation_log_step
 
 

@@ -2,7 +2,7 @@
 
 The train split is served as Lightning batches, one per optimizer step: a seeded permutation per epoch, cut
 into one disjoint shard per process (``ShardSampler``: ``DistributedSampler``'s contract), then into
-minibatches of the schema's ``batch_size``, sliced from tensors held in memory (``MinibatchLoader``: index
+minibatches of the module's own ``batch_size``, sliced from tensors held in memory (``MinibatchLoader``: index
 tensors, no per-sample Python, no collate). On this tiny dataset a ``DataLoader`` over samples would cost more
 than the maths (docs/design.md, data and training). Validation and test get the whole held-out split as one batch.
 """
@@ -19,6 +19,7 @@ from torch.utils.data import DataLoader
 from ..errors import BodySchemaInputError
 from ..sim import MusculoskeletalModel
 from ..sim.spring import spring_for_model
+from ..training.fit_loop import batches_trained_this_epoch
 from .dataset import load_or_build_dataset
 from .normalizer import Normalizer
 
@@ -70,6 +71,16 @@ class ShardSampler:
 def _n_train(n_samples: int, val_fraction: float) -> int:
     """Rows of the train split; the rest validate."""
     return int(round(n_samples * (1.0 - val_fraction)))
+
+
+def check_loader_args(seed, val_fraction, batch_size) -> None:
+    """Refuse a negative or fractional seed, a ``val_fraction`` outside (0, 1) and a ``batch_size`` below 1."""
+    if int(seed) != seed or seed < 0:
+        raise BodySchemaInputError(f"seed={seed!r} must be an integer >= 0")
+    if not 0.0 < val_fraction < 1.0:
+        raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
+    if isinstance(batch_size, bool) or int(batch_size) != batch_size or batch_size <= 0:
+        raise BodySchemaInputError(f"batch_size={batch_size!r} must be a positive integer")
 
 
 def check_split(n_samples: int, val_fraction: float) -> None:
@@ -133,6 +144,8 @@ class EquilibriumDataModule(L.LightningDataModule):
         n_samples: dataset size (paper: 800).
         seed: seeds the postures, reference tensions and the split.
         val_fraction: share held out for validation/test (paper: 0.2).
+        batch_size: training minibatch size per optimizer step and process (the CLI links it to
+            ``--model.batch_size``, which a schema's checkpoint records).
         muscles: tendon names that are muscles (default: the tendons muscle actuators drive, else every
             spatial tendon).
         k_n, alpha_per_m, f_max_n: spring constants (paper: 1000 N, 20 1/m, 150 N); scalar or per muscle;
@@ -150,14 +163,12 @@ class EquilibriumDataModule(L.LightningDataModule):
                  muscles: Optional[Sequence[str]] = None, k_n: float | list[float] | str | None = None,
                  alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] | str | None = None,
                  gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
-                 cache_dir: Optional[str] = "runs/cache", locked_joints: Optional[dict[str, float]] = None):
+                 cache_dir: Optional[str] = "runs/cache", locked_joints: Optional[dict[str, float]] = None,
+                 batch_size: int = 64):
         super().__init__()
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
-        if int(seed) != seed or seed < 0:
-            raise BodySchemaInputError(f"seed={seed!r} must be an integer >= 0")
-        if not 0.0 < val_fraction < 1.0:
-            raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
+        check_loader_args(seed, val_fraction, batch_size)
         check_split(int(n_samples), val_fraction)
         self.save_hyperparameters()
         self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity, locked_joints=locked_joints)
@@ -197,26 +208,24 @@ class EquilibriumDataModule(L.LightningDataModule):
     def train_dataloader(self):
         """Minibatches of this process's shard of the train split, reshuffled every epoch (seeded by ``seed``).
 
-        The batch size is the schema's ``batch_size`` hyperparameter (64 without a schema); the rank and the
-        number of processes come from the trainer's strategy (one process, rank 0, without a trainer).
+        Minibatches of ``batch_size``; the rank and the number of processes come from the trainer's strategy (one
+        process, rank 0, without a trainer).
         """
         q, x = self.splits["train"]
         trainer = self.trainer
-        module = trainer.lightning_module if trainer is not None else None
-        batch_size = module.hparams.get("batch_size", 64) if module is not None else 64
         shards = (trainer.distributed_sampler_kwargs if trainer is not None else None) or {}
         sampler = ShardSampler(len(q), self.hparams.seed, shards.get("rank", 0), shards.get("num_replicas", 1))
-        progress = self._batches_trained_this_epoch if trainer is not None else None
-        return MinibatchLoader(q, x, batch_size, sampler, batches_done=progress)
+        progress = (lambda: batches_trained_this_epoch(trainer)) if trainer is not None else None
+        return MinibatchLoader(q, x, self.batch_size, sampler, batches_done=progress)
 
-    def train_batches_per_epoch(self, batch_size: int, world_size: int = 1) -> int:
+    @property
+    def batch_size(self) -> int:
+        return int(self.hparams.get("batch_size", 64))
+
+    def train_batches_per_epoch(self, world_size: int = 1) -> int:
         """Minibatches of one rank's shard per epoch (what ``train_dataloader`` serves), known before any data."""
         n_samples = len(self.arrays["q"]) if self.arrays is not None else int(self.hparams.n_samples)
-        return math.ceil(math.ceil(_n_train(n_samples, self.hparams.val_fraction) / world_size) / batch_size)
-
-    def _batches_trained_this_epoch(self) -> int:
-        """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""
-        return self.trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return math.ceil(math.ceil(_n_train(n_samples, self.hparams.val_fraction) / world_size) / self.batch_size)
 
     def val_dataloader(self):
         return self._loader("val")

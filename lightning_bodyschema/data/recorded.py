@@ -18,16 +18,13 @@ data's min/max, tension limits to [0, f_max] (``f_max_n``, paper: 150 N). A file
 table (missing column, unknown muscle, text in a number column, empty, other units) is refused with one
 ``BodySchemaInputError`` naming the problem.
 
-``ModelFreeRobot`` is what a schema knows about a robot without a model: names, limits and spring
-constants. It stands in for ``MusculoskeletalModel`` wherever no physics is needed (infer, adapt,
-checkpoints); everything that needs physics (the feasibility check, evaluation, inverse kinematics) needs
-an MJCF, given separately.
+The robot such a file describes is a ``sim.robot.ModelFreeRobot``: names, limits and spring constants, a
+``RobotModel`` without physics (infer, adapt, checkpoints); everything that needs physics (the feasibility check,
+evaluation, inverse kinematics) needs an MJCF, given separately.
 """
 from __future__ import annotations
 
 import csv
-import hashlib
-import json
 import os
 import re
 from dataclasses import dataclass
@@ -37,87 +34,15 @@ import numpy as np
 
 from ..errors import BodySchemaInputError
 from ..npz import atomic_write_bytes, load_npz, save_npz
-from ..sim import MusculoskeletalModel, SpringParams
-from .datamodule import EquilibriumDataModule, check_split
+from ..sim import SpringParams
+from ..sim.robot import ModelFreeRobot
+from .datamodule import EquilibriumDataModule, check_loader_args, check_split
 from .normalizer import Normalizer
 
 UNITS = "SI"  # the one accepted units flag: rad (or m for slide joints), m, N
 PAPER_F_MAX_N = 150.0  # tension limit when neither the file nor the config gives one (the paper's f_max)
 _COLUMN = re.compile(r"^([qlf])_(.+)$")
 _MIN_ROWS = 10  # fewer kept rows cannot make a train and a validation split
-
-
-class ModelFreeRobot:
-    """A robot known by names and limits only: joints with ranges, muscles with tension limits and a spring.
-
-    Provides the part of ``MusculoskeletalModel``'s interface that needs no physics (``n_joints``,
-    ``n_muscles``, ``joint_names``, ``muscle_names``, ``q_range``, ``check_q``, ``xml_hash``); ``xml`` is None.
-    """
-
-    xml = None
-
-    def __init__(self, joints: Sequence[str], q_range, muscles: Sequence[str], l_range=None, f_range=None):
-        self.joint_names, self.muscle_names = list(joints), list(muscles)
-        self._q_range = np.asarray(q_range, dtype=np.float64).reshape(len(self.joint_names), 2)
-        inf = np.array([-np.inf, np.inf])
-        self.l_range = np.tile(inf, (self.n_muscles, 1)) if l_range is None else np.asarray(l_range, float)
-        self.f_range = np.tile(inf, (self.n_muscles, 1)) if f_range is None else np.asarray(f_range, float)
-
-    def check_q(self, q, within_range: bool = False) -> np.ndarray:
-        """q as a (B, N) float64 array; refuses other widths, NaN/inf and (``within_range``) postures outside
-        ``q_range``, naming the first bad value, as ``MusculoskeletalModel.check_q`` does."""
-        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-        if q.ndim != 2 or q.shape[1] != self.n_joints:
-            raise BodySchemaInputError(f"q has shape {q.shape}; expected (B, {self.n_joints}) for joints "
-                                       f"{self.joint_names}")
-        if not np.all(np.isfinite(q)):
-            raise BodySchemaInputError("q contains NaN or inf")
-        outside = (q < self._q_range[:, 0]) | (q > self._q_range[:, 1]) if within_range else np.zeros(q.shape, bool)
-        if outside.any():
-            b, j = np.argwhere(outside)[0]
-            raise BodySchemaInputError(f"q[{b}] of joint {self.joint_names[j]!r} is {q[b, j]:.6g}, outside its range "
-                                       f"{self._q_range[j].tolist()} ({int(outside.any(1).sum())} posture(s) out "
-                                       "of range)")
-        return q
-
-    @property
-    def n_joints(self) -> int:
-        return len(self.joint_names)
-
-    @property
-    def n_muscles(self) -> int:
-        return len(self.muscle_names)
-
-    @property
-    def q_range(self) -> np.ndarray:
-        return self._q_range.copy()
-
-    def as_dict(self) -> dict:
-        """Plain lists (checkpoint hyperparameters): names and limits."""
-        return {"joints": self.joint_names, "q_range": self._q_range.tolist(), "muscles": self.muscle_names,
-                "l_range": self.l_range.tolist(), "f_range": self.f_range.tolist()}
-
-    @property
-    def xml_hash(self) -> str:
-        """sha256 of the description: identifies the robot in checkpoints as a model's XML hash does."""
-        return hashlib.sha256(json.dumps(self.as_dict(), sort_keys=True).encode()).hexdigest()
-
-    def __repr__(self):
-        return (f"ModelFreeRobot({self.n_joints} joints {self.joint_names}, "
-                f"{self.n_muscles} muscles {self.muscle_names})")
-
-
-def robot_model_from_dict(robot: dict):
-    """The robot a schema's ``robot`` hyperparameter describes: a ``MusculoskeletalModel`` when it carries
-    ``model_xml``, else a ``ModelFreeRobot`` (``joints``, ``q_range``, ``muscles``, limits)."""
-    if robot.get("model_xml"):
-        return MusculoskeletalModel(robot["model_xml"], muscles=robot["muscles"])
-    missing = [key for key in ("joints", "q_range", "muscles") if key not in robot]
-    if missing:
-        raise BodySchemaInputError(f"robot description lacks {missing}: give model_xml (an MJCF), or joints, "
-                                   "q_range and muscles (recorded data)")
-    return ModelFreeRobot(robot["joints"], robot["q_range"], robot["muscles"], robot.get("l_range"),
-                          robot.get("f_range"))
 
 
 # ---------------------------------------------------------------------------- reading files
@@ -330,7 +255,7 @@ class RecordedDataModule(EquilibriumDataModule):
 
     Args:
         path: the recorded file (``.csv`` or ``.npz``).
-        seed, val_fraction: the split, as in ``EquilibriumDataModule``.
+        seed, val_fraction, batch_size: the split and the minibatch size, as in ``EquilibriumDataModule``.
         joints, muscles: the expected names (the robot's); the file must have exactly these columns. Default: the
             file's header decides.
         q_range: {joint: [lo, hi]} joint limits; default: the file's ``range`` lines, else the kept data's min/max.
@@ -345,15 +270,12 @@ class RecordedDataModule(EquilibriumDataModule):
                  muscles: Optional[Sequence[str]] = None, q_range: Optional[dict] = None,
                  l_range: Optional[dict] = None, f_range: Optional[dict] = None, units: str = UNITS,
                  k_n: float | list[float] = 1000.0, alpha_per_m: float | list[float] = 20.0,
-                 f_max_n: float | list[float] | None = None):
+                 f_max_n: float | list[float] | None = None, batch_size: int = 64):
         super(EquilibriumDataModule, self).__init__()  # the simulation module's __init__ builds an MJCF model
         if units != UNITS:
             raise BodySchemaInputError(f"units={units!r} is not supported; recorded data must be in SI units "
                                        f"(rad, m, N): units {UNITS!r}")
-        if int(seed) != seed or seed < 0:
-            raise BodySchemaInputError(f"seed={seed!r} must be an integer >= 0")
-        if not 0.0 < val_fraction < 1.0:
-            raise BodySchemaInputError(f"val_fraction={val_fraction!r} must lie strictly between 0 and 1")
+        check_loader_args(seed, val_fraction, batch_size)
         self.save_hyperparameters()
         table = read_recorded(str(path))
         _check_names(path, "joint", joints, table.joints)

@@ -7,7 +7,9 @@ import torch
 
 from ..networks import build_autoencoder
 from ..samplers import LatentConfig, latent_descent, reference_latent_descent
-from .base import BodySchema, fit_ends_with_this_epoch
+from ..contract import ADAPTS_NORMALIZED, EPOCH_HOOK, REFRESHES_DERIVED_STATE
+from ..training.fit_loop import fit_ends_with_this_epoch
+from .base import BodySchema
 
 
 class AutoEncoderSchema(BodySchema):
@@ -20,6 +22,7 @@ class AutoEncoderSchema(BodySchema):
         The healthy command decodes (q, z_ref) where z_ref is the mean z_latent of the train split.
     """
 
+    capabilities = frozenset({ADAPTS_NORMALIZED, EPOCH_HOOK, REFRESHES_DERIVED_STATE})
     variational = False
     # eq:latent-opt settings per variant; see BodySchema.adapt and README "Design decisions"
     ADAPT = {"literal": LatentConfig(lr=0.01, n_steps=200, optimizer="sgd"),

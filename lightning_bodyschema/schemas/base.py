@@ -1,110 +1,35 @@
-"""``BodySchema``: the one interface every architecture implements (paper section II).
+"""``BodySchema``: the base class every architecture subclasses (paper section II).
 
-A schema maps a target posture q to a command (l_motor [m], f [N]) and can adapt that command to
-faults without retraining. Subclasses provide only the maths:
+A schema maps a target posture q to a command (l_motor [m], f [N]) and can adapt that command to faults without
+retraining. Subclasses provide the maths the contract names (``lightning_bodyschema/contract.py``:
+``training_loss``, the healthy command, and how it adapts, declared in ``capabilities``).
 
-* ``training_loss(q_n, x_n) -> (loss, logs)``   on normalized q and x = [l_motor, f]
-* ``generate(q_n) -> x_n``                       the healthy (unadapted) normalized estimate
-
-Everything else is shared: normalization, one Lightning training step per minibatch (automatic
-optimization: precision, clipping, accumulation and DDP as Lightning documents them), validation in
-physical units, checkpoints that carry the robot, ``infer``/``adapt``.
+This class holds what is shared: the robot and its normalization, ``infer``/``adapt``/``adapter`` in SI units,
+the penalty L_adapt's units, the inference cache's lifetime and what a checkpoint records. The Lightning loops
+(training step, validation in physical units, optimizer, RNG state) come from ``training.SchemaLightningModule``.
 """
 from __future__ import annotations
 
-import math
 from typing import Optional
 
-import lightning as L
 import numpy as np
 import torch
-from lightning.pytorch.plugins.precision import HalfPrecision
-from lightning.pytorch.trainer.states import TrainerFn
 
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
+from ..contract import ADAPTATION_CAPABILITIES, check_capabilities
 from ..data.normalizer import Normalizer
-from ..data.recorded import robot_model_from_dict
 from ..errors import BodySchemaInputError
 from ..faults import AdaptWeights
-from ..sim import MusculoskeletalModel, SpringParams, elongation_from_tension
+from ..sim import SpringParams, elongation_from_tension
+from ..sim.robot import robot_model_from_dict
+from ..training.lightning_module import SchemaLightningModule
 from .cache import InferenceCache
-from .finite import all_finite
-
-# class path -> schema class, filled by subclassing: the classes a checkpoint may name (schemas/loading.py). A class
-# is known once the user's code has defined (imported) it; a checkpoint never makes anything get imported.
-SCHEMA_CLASSES: dict[str, type] = {}
+from .registry import SCHEMA_CLASSES, register, register_root, schema_class_path  # noqa: F401 (re-export)
 
 
-def schema_class_path(cls) -> str:
-    """``module.QualName``: how checkpoints name a schema class."""
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
-# renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
-DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
-
-
-def fit_ends_with_this_epoch(trainer) -> bool:
-    """True at a validation (or an epoch's training end) after which the fit stops: the last batch of the last
-    epoch of ``max_epochs`` (not a validation earlier in that epoch), ``max_steps`` reached (also inside an epoch),
-    or a stop already requested. ``max_epochs=-1`` (endless) never ends by epochs. A stop that EarlyStopping
-    requests after this validation is caught by ``on_train_end`` of the callbacks that ask."""
-    last_batch = trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
-    by_epochs = last_batch and trainer.max_epochs is not None and 0 < trainer.max_epochs <= trainer.current_epoch + 1
-    by_steps = trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
-    return bool(by_epochs or by_steps or trainer.should_stop)
-
-
-def limited_batches(trainer, batches: int) -> int:
-    """The training batches of an epoch as Lightning runs them: ``limit_train_batches`` is a count or a fraction."""
-    limit = trainer.limit_train_batches
-    return min(batches, limit) if isinstance(limit, int) else max(1, int(batches * limit))
-
-
-def check_val_check_interval(trainer, batches_per_epoch: int) -> None:
-    """An int ``val_check_interval`` counts batches within an epoch (unless ``check_val_every_n_epoch`` is None):
-    refuse one longer than the epoch in one line (the CLI before anything is written), not with Lightning's
-    ValueError once the fit loop starts."""
-    interval = trainer.val_check_interval
-    if not isinstance(interval, int) or isinstance(interval, bool) or trainer.check_val_every_n_epoch is None:
-        return
-    batches = limited_batches(trainer, batches_per_epoch)
-    if interval > batches:
-        raise BodySchemaInputError(
-            f"--trainer.val_check_interval={interval} is more than the {batches} training batches of an epoch; give "
-            f"at most {batches}, a fraction of an epoch (e.g. 0.5), or --trainer.check_val_every_n_epoch=null to "
-            f"count {interval} steps across epochs")
-
-
-def _monitors_train_metrics(trainer) -> bool:
-    """Does a callback or a scheduler monitor a ``train/*`` metric (which then must be fresh at every epoch end)?"""
-    monitors = [getattr(cb, "monitor", None) for cb in trainer.callbacks]
-    monitors += [config.monitor for config in trainer.lr_scheduler_configs]
-    return any(isinstance(m, str) and m.startswith("train/") for m in monitors)
-
-
-def half_precision_refusal(precision) -> str:
-    """Why ``16-true`` / ``bf16-true`` are refused (Lightning casts every input batch to that dtype first)."""
-    return (f"--trainer.precision={precision} casts the SI data themselves (lengths in m, tensions in N) to a "
-            "16-bit float before the schema sees them (bfloat16 keeps ~3 digits: 0.5 mm steps on a 0.15 m "
-            "length); use 16-mixed or bf16-mixed (float32 weights and data, 16-bit matmuls), 32-true or 64-true")
-
-
-def _drop_checkpoint_callback_state_unless_fitting(trainer, checkpoint: dict) -> None:
-    """Forget the saved ``ModelCheckpoint`` state when a checkpoint is only evaluated (validate / test).
-
-    That state (best score, best paths) matters only to a resumed fit. A ``bodyschema test`` logs into a new
-    version folder, so Lightning would find another dirpath and warn that best_model_score "won't be reloaded",
-    which is right and irrelevant there. The weights, hyperparameters and RNG state are untouched.
-    """
-    if trainer is None or trainer.state.fn in (None, TrainerFn.FITTING) or "callbacks" not in checkpoint:
-        return
-    checkpoint["callbacks"] = {key: state for key, state in checkpoint["callbacks"].items()
-                               if not str(key).startswith("ModelCheckpoint")}
-
-
-class BodySchema(L.LightningModule):
+@register_root
+class BodySchema(SchemaLightningModule):
     """Base LightningModule of all body schemas.
 
     Args:
@@ -113,7 +38,8 @@ class BodySchema(L.LightningModule):
             saved with the hyperparameters, so a checkpoint rebuilds the robot on any machine.
         lr: Adam learning rate (the default optimizer; the CLI's ``--optimizer`` replaces it).
         lr_final: learning rate reached at the last epoch by cosine annealing (None: constant).
-        batch_size: minibatch size per optimizer step and process (the data module serves batches of it).
+        batch_size: minibatch size per optimizer step and process, recorded in the checkpoint; the data module
+            serves the batches and must have the same ``batch_size`` (the CLI links ``--model.batch_size`` to it).
     """
 
     def __init__(self, robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
@@ -126,9 +52,7 @@ class BodySchema(L.LightningModule):
             raise BodySchemaInputError(f"batch_size={batch_size!r} must be a positive integer")
         if not (0.0 < lr < float("inf")) or (lr_final is not None and not 0.0 <= lr_final < float("inf")):
             raise BodySchemaInputError(f"lr={lr!r}, lr_final={lr_final!r}: need lr > 0 and lr_final >= 0 (or None)")
-        self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
-        self._log_train_at_epoch_end = False  # set when a fit starts: log train/* at every epoch end too
-        self.robot_model = robot_model_from_dict(robot)  # a MusculoskeletalModel, or a ModelFreeRobot
+        self.robot_model = robot_model_from_dict(robot)  # a sim.robot.RobotModel
         self.spring = SpringParams(**robot["spring"])
         self.n_joints, self.n_muscles = self.robot_model.n_joints, self.robot_model.n_muscles
         self.x_dim = 2 * self.n_muscles
@@ -138,9 +62,13 @@ class BodySchema(L.LightningModule):
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        SCHEMA_CLASSES[schema_class_path(cls)] = cls
+        check_capabilities(cls, BodySchema)
+        register(cls)
 
-    # ------------------------------------------------------------------ what subclasses implement
+    # ------------------------------------------------------------------ what subclasses implement (see contract.py)
+    # what the architecture does beyond training_loss and generate: ``contract`` capability names
+    capabilities: frozenset = frozenset()
+
     def training_loss(self, q_n: torch.Tensor, x_n: torch.Tensor) -> tuple[torch.Tensor, dict]:
         raise NotImplementedError
 
@@ -149,15 +77,20 @@ class BodySchema(L.LightningModule):
 
     def adapt_normalized(self, q_n: torch.Tensor, penalty, variant: str, **options) -> torch.Tensor:
         """Adapted normalized x (B, D) minimizing ``penalty`` per case (L_adapt of eq:latent-opt on normalized x, a
-        ``faults.penalty.BoxPenalty``: call it for the loss, ``grad``/``residual`` for its gradient); what each
-        architecture implements."""
+        ``faults.penalty.BoxPenalty``: call it for the loss, ``grad``/``residual`` for its gradient); capability
+        ``adapts_normalized``."""
+        raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
+
+    def adapt_si(self, q_rad: torch.Tensor, constraints: list, variant: str, **options):
+        """Adapted ``(l_motor_m, f_n)`` (B, M) float64 tensors at postures ``q_rad (B, N)`` [rad] under the faults'
+        SI ``constraints`` (``Faults.constraints``); capability ``adapts_in_si``."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
     @property
     def has_physics(self) -> bool:
         """True when the robot comes with a model (MJCF): the physics check, kinematics and evaluation can run.
         A schema trained on recorded data alone has none; its ``adapt`` reports ``unchecked`` instead of ``ok``."""
-        return isinstance(self.robot_model, MusculoskeletalModel)
+        return self.robot_model.has_physics
 
     # ------------------------------------------------------------------ adaptation (paper section III)
     VARIANTS = ("default", "literal")
@@ -169,8 +102,8 @@ class BodySchema(L.LightningModule):
 
     @property
     def supports_adaptation(self) -> bool:
-        """True when the architecture implements ``adapt_normalized`` (a plain regressor need not)."""
-        return type(self).adapt_normalized is not BodySchema.adapt_normalized
+        """True when the architecture declares a way to adapt (a plain regressor need not)."""
+        return bool(self.capabilities & ADAPTATION_CAPABILITIES)
 
     def adapt(self, q_ref, faults, variant: str = "default", check_physics: bool = True,
               **options) -> AdaptationResult:
@@ -264,123 +197,7 @@ class BodySchema(L.LightningModule):
         self.inference_cache.clear()
         return super().load_state_dict(*args, **kwargs)
 
-    # ------------------------------------------------------------------ Lightning plumbing
-    # Lightning sets ``_current_fx_name`` twice around every hook it calls (~20 per optimizer step), and
-    # nn.Module.__setattr__ spends ~10 us each checking whether a string is a parameter, buffer or module
-    # (profiled: ~9 % of a training step here, ~15 % of Lightning's overhead). A plain string can be none of these.
-    _PLAIN_ATTRIBUTES = frozenset({"_current_fx_name"})
-
-    def __setattr__(self, name, value):
-        if name in BodySchema._PLAIN_ATTRIBUTES and (value is None or isinstance(value, str)):
-            object.__setattr__(self, name, value)
-        else:
-            super().__setattr__(name, value)
-
-    def setup(self, stage: str):
-        if self._trainer is not None and isinstance(self.trainer.precision_plugin, HalfPrecision):
-            raise BodySchemaInputError(half_precision_refusal(self.trainer.precision))
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        if datamodule is not None and stage == "fit":
-            if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:
-                raise BodySchemaInputError("the schema's robot differs from the data module's robot")
-            self.normalizer.load_state_dict(datamodule.normalizer.state_dict())
-            self.clear_caches()  # the penalty builder depends on the normalizer
-            if hasattr(datamodule, "train_batches_per_epoch"):
-                check_val_check_interval(self.trainer, datamodule.train_batches_per_epoch(
-                    self.hparams.get("batch_size", 64), self.trainer.world_size))
-
-    def configure_optimizers(self):
-        """Adam (fused: ~25 % faster per step than the default on this tiny CPU workload, measured) with the
-        cosine schedule from ``lr`` to ``lr_final`` over the fit's epochs, stepped once per epoch. The CLI's
-        ``--optimizer`` / ``--lr_scheduler`` replace both (LightningCLI's own mechanism)."""
-        # under a GradScaler (16-mixed) not fused: a fused Adam unscales inside its own step, so Lightning could
-        # neither clip (it refuses) nor show the hooks unscaled gradients
-        scaler = getattr(self.trainer.precision_plugin, "scaler", None) if self._trainer is not None else None
-        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=scaler is None)
-        if self.hparams.lr_final is None:
-            return optimizer
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=self._epochs_of_fit(),
-                                                              eta_min=self.hparams.lr_final)
-        return {"optimizer": optimizer, "lr_scheduler": schedule}
-
-    def _epochs_of_fit(self) -> int:
-        """Epochs this fit will run: ``max_epochs``, or fewer when ``max_steps`` ends it first."""
-        trainer = self.trainer
-        epochs = int(trainer.max_epochs) if trainer.max_epochs not in (None, -1) else None
-        if trainer.max_steps not in (None, -1):
-            batches = trainer.num_training_batches
-            if batches in (None, float("inf")) or batches == 0:  # not known yet when optimizers are configured
-                batches = limited_batches(
-                    trainer, len(trainer.datamodule.train_dataloader()) if trainer.datamodule is not None else 1)
-            steps_per_epoch = max(1, math.ceil(batches / trainer.accumulate_grad_batches))
-            by_steps = math.ceil(trainer.max_steps / steps_per_epoch)
-            epochs = by_steps if epochs is None else min(epochs, by_steps)
-        return max(1, epochs or 1)
-
-    def _normalized(self, batch):
-        q, x = batch
-        dtype = self.dtype
-        return self.normalizer.encode_q(q).to(dtype), self.normalizer.encode_x(x).to(dtype)
-
-    def training_step(self, batch, batch_idx):
-        """One minibatch: Lightning runs the backward, the precision plugin (scaling, unscaling, inf checks),
-        gradient clipping and accumulation, DDP's gradient averaging and the optimizer step."""
-        q_n, x_n = self._normalized(batch)
-        loss, _ = self.training_loss(q_n, x_n)
-        # a self.log call costs ~0.3 ms, a quarter of a minibatch step here (measured): call it only on the
-        # steps the logger writes (Lightning's own test, so log_every_n_steps means what it documents), and at
-        # each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint, ReduceLROnPlateau) reads train/*
-        trainer = self.trainer
-        if trainer._logger_connector.should_update_logs or (
-                self._log_train_at_epoch_end and trainer.fit_loop.epoch_loop.batch_progress.is_last_batch):
-            self.log("train/loss", loss.detach(), prog_bar=True)
-            self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
-        return loss
-
-    def on_before_optimizer_step(self, optimizer):
-        """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
-
-        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions
-        the gradients are dropped, so the optimizer leaves the weights and its state untouched. Under DDP
-        the gradients are already averaged here, so every rank takes the same decision.
-        """
-        scaler = getattr(self.trainer.precision_plugin, "scaler", None)
-        if scaler is not None:
-            return
-        # the optimizer's own parameter list: what it is about to step, and cheaper than walking the modules
-        params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
-        if not params:
-            return
-        if not all_finite([p.grad for p in params]):  # one kernel
-            for p in params:
-                p.grad = None
-            self.skipped_steps += 1
-
-    def on_train_start(self):
-        self.skipped_steps = 0
-        self._log_train_at_epoch_end = _monitors_train_metrics(self.trainer)
-        if self.trainer.world_size > 1:
-            # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
-            # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
-            # pair its shard with the same noise. Deterministic: the seed plus the rank. (A resumed DDP fit
-            # therefore restarts these streams; a single-process fit continues the checkpoint's.)
-            torch.manual_seed(torch.initial_seed() + self.global_rank)
-
-    def _train_split_normalized(self):
-        """(q_n, x_n) of the data module's whole train split on this device, or None (no data module)."""
-        datamodule = getattr(self.trainer, "datamodule", None)
-        if datamodule is None or getattr(datamodule, "splits", None) is None:
-            return None
-        q, x = datamodule.splits["train"]
-        return self._normalized((q.to(self.device), x.to(self.device)))
-
-    def on_train_epoch_end(self):
-        if type(self).on_epoch_trained is BodySchema.on_epoch_trained:
-            return
-        split = self._train_split_normalized()
-        if split is not None:
-            self.on_epoch_trained(*split)
-
+    # ------------------------------------------------------------------ optional hooks (declare them: contract.py)
     def on_epoch_trained(self, q_n, x_n):
         """Hook after each epoch's updates with the whole (normalized) train split, the same on every rank
         (e.g. refresh a latent reference now and then); default: nothing."""
@@ -392,53 +209,11 @@ class BodySchema(L.LightningModule):
         and what is saved match the weights (Lightning validates and saves before ``on_train_epoch_end``, and
         EarlyStopping may end a fit right after a validation); default: nothing."""
 
-    def _refresh_derived_state(self) -> bool:
-        overridden = type(self).refresh_from_train_split is not BodySchema.refresh_from_train_split
-        if not overridden or self._trainer is None or self.trainer.state.fn != TrainerFn.FITTING:
-            return False
-        split = self._train_split_normalized()
-        if split is not None:
-            self.refresh_from_train_split(*split)
-        return split is not None
-
-    def on_validation_epoch_start(self):
-        self._refresh_derived_state()
-
-    def _common_step(self, batch, stage: str):
-        q_n, x_n = self._normalized(batch)
-        loss, logs = self.training_loss(q_n, x_n)
-        self.log(f"{stage}/loss", loss, prog_bar=stage == "val", sync_dist=True)
-        for name, value in logs.items():
-            self.log(f"{stage}/{name}", value, sync_dist=True)
-        # every rank validates the whole held-out split (160 postures, a few ms): medians do not average
-        # across shards; sync_dist reduces the (then equal) figures so every rank's callbacks see the same
-        for name, value in self.physical_errors(batch[0], batch[1]).items():
-            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_N_m" and stage == "val", sync_dist=True)
-            if name in DEPRECATED_METRIC_NAMES:  # old monitors and dashboards keep working for one release
-                self.log(f"{stage}/{DEPRECATED_METRIC_NAMES[name]}", value, sync_dist=True)
-        return loss
-
-    def validation_step(self, batch, batch_idx):
-        return self._common_step(batch, "val")
-
-    def test_step(self, batch, batch_idx):
-        return self._common_step(batch, "test")
-
-    def predict_step(self, batch, batch_idx):
-        l_motor, f = self.infer(batch[0])
-        return {"q": batch[0].cpu().numpy(), "l_motor": l_motor, "f": f}
-
+    # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint):
-        if self._refresh_derived_state():  # Lightning took the state_dict before this hook: update its buffers
-            state = checkpoint.get("state_dict", {})
-            state.update({name: buf.detach().clone() for name, buf in self.named_buffers() if name in state})
+        super().on_save_checkpoint(checkpoint)
         checkpoint["bodyschema"] = {"class_path": schema_class_path(type(self)),
                                     "model_xml_sha256": self.robot_model.xml_hash}
-        # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue
-        # the same stream to end with the same weights as an uninterrupted one
-        checkpoint["torch_rng_state"] = torch.get_rng_state()
-        if torch.cuda.is_available() and torch.cuda.is_initialized():
-            checkpoint["torch_cuda_rng_state"] = torch.cuda.get_rng_state_all()
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path, map_location=None, hparams_file=None, strict=None,
@@ -458,14 +233,6 @@ class BodySchema(L.LightningModule):
                                        "('cpu', 'cuda:0', torch.device) or None")
         schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
         return schema if map_location is None else schema.to(map_location)
-
-    def on_load_checkpoint(self, checkpoint):
-        if "torch_rng_state" in checkpoint:
-            torch.set_rng_state(checkpoint["torch_rng_state"])
-        cuda_states = checkpoint.get("torch_cuda_rng_state")
-        if cuda_states is not None and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
-            torch.cuda.set_rng_state_all(cuda_states)
-        _drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()

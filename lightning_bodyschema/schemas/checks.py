@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from ..errors import BodySchemaInputError
+from .registry import SCHEMA_CLASSES, is_schema_class, schema_class_path
 from .robot_checks import MAX_SIZE_ATTRIBUTE
 
 # Lightning writes these two private hyperparameters when the CLI instantiates the model; its own loaders import
@@ -41,10 +42,8 @@ def schema_class(class_path: str, cls=None, where: str = "checkpoint"):
     ``cls``: the class the caller vouches for (``load_schema(path, cls=...)``); its name must be the checkpoint's
     (the module may differ: a file moved or imported under another package path).
     """
-    from .base import SCHEMA_CLASSES, BodySchema, schema_class_path
-
     if cls is not None:
-        if not (isinstance(cls, type) and issubclass(cls, BodySchema)):
+        if not is_schema_class(cls):
             raise BodySchemaInputError(f"cls={cls!r} is not a BodySchema subclass")
         if not _same_name(class_path, cls):
             raise BodySchemaInputError(f"{where} holds a {class_path!r}, not a {schema_class_path(cls)!r}")
@@ -65,8 +64,6 @@ def _same_name(class_path: str, cls) -> bool:
 def _already_imported(class_path: str):
     """A registered schema class reached through a module that is already imported (e.g. the re-export
     ``lightning_bodyschema.schemas.DiffusionSchema``), else None. Looks in ``sys.modules`` only."""
-    from .base import SCHEMA_CLASSES
-
     module_name, _, name = class_path.rpartition(".")
     value = getattr(sys.modules.get(module_name), name, None) if module_name else None
     return value if isinstance(value, type) and value in SCHEMA_CLASSES.values() else None
@@ -103,8 +100,6 @@ def check_hparams(cls, hparams: dict, where: str, overrides: dict | None = None,
 
 
 def _check_private(cls, hparams: dict, where: str, vouched: bool):
-    from .base import BodySchema, schema_class_path
-
     extra = [k for k in hparams if k.startswith("_") and k not in PRIVATE_HPARAMS]
     if extra:
         raise BodySchemaInputError(f"{where}: hyper_parameters has unknown key {extra[0]!r}")
@@ -116,7 +111,7 @@ def _check_private(cls, hparams: dict, where: str, vouched: bool):
         named = hparams["_class_path"]
         if not isinstance(named, str):
             same = False
-        elif vouched or not issubclass(cls, BodySchema):
+        elif vouched or not is_schema_class(cls):
             same = _same_name(named, cls)
         else:
             same = schema_class(named, where=where) is cls

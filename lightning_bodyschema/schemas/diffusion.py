@@ -43,6 +43,8 @@ class DiffusionSchema(BodySchema):
     same commands, see ``samplers.guided``).
     """
 
+    capabilities = frozenset({"adapts_normalized"})  # contract.ADAPTS_NORMALIZED
+
     STRIDED = {"spacing": "quad", "eta": 1.0, "n_guide": 2, "min_abar": 0.5}
     # with inpainting, guide and inpaint from abar_t >= 0.3: at 0.5 the 20 strided steps left BOTH's E_tau 1.54x the
     # 200-step sampler's on binding faults, at 0.3 1.42x (RESULTS.md)

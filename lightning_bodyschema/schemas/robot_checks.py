@@ -149,7 +149,7 @@ def _names(robot: dict, key: str, where: str) -> list:
 
 
 def _check_model_free_robot(robot: dict, where: str) -> None:
-    """A recorded-data robot (``data.recorded.ModelFreeRobot``), as data: names, [lo, hi] limits, spring. Its hash
+    """A recorded-data robot (``sim.robot.ModelFreeRobot``), as data: names, [lo, hi] limits, spring. Its hash
     is compared with the recorded one where the skeleton is built (``check_weights``), as a model's is."""
     unknown = [k for k in robot if k not in MODEL_FREE_ROBOT_ENTRIES]
     if unknown:

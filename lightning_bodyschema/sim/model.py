@@ -267,6 +267,8 @@ class MusculoskeletalModel:
         """Free joints' limits (N, 2) [rad or m], from the model (narrowed so coupled followers stay in range)."""
         return self._q_range.copy()
 
+    has_physics = True  # sim.robot.RobotModel: a compiled model (kinematics, feasibility, settle)
+
     @property
     def xml_hash(self) -> str:
         """sha256 of the compiled model's canonical XML: identifies the robot in caches and checkpoints."""

@@ -34,8 +34,9 @@ _FENCE = re.compile(r"^( *)```(\w+)\n(.*?)^\1```", re.MULTILINE | re.DOTALL)
 # blocks identified by a line they contain
 FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA = ("schema.adapt(q_ref, faults)", "too_short = Faults",
                                                 "schema.adapter(", "class RegressionSchema")
+ADAPTING_SCHEMA = "class AdaptingSchema"
 REQUESTS, OWN_ROBOT = ("- q_ref:", "model: path/to/my_robot.xml")
-RUN = {"python": (FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA), "yaml": (REQUESTS, OWN_ROBOT)}
+RUN = {"python": (FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA, ADAPTING_SCHEMA), "yaml": (REQUESTS, OWN_ROBOT)}
 NOT_RUN: dict[str, str] = {}  # marker -> why a block cannot run (none today)
 
 
@@ -135,6 +136,24 @@ def test_the_new_architecture_block_learns_the_body_schema(dm):
     mean_f = np.broadcast_to(dm.splits["train"][1][:, schema.n_muscles:].numpy().mean(0), (len(q), schema.n_muscles))
     baseline = float(np.median(torque_residual(schema.robot_model, q.numpy(), mean_f)))
     assert learned < 0.5 * baseline, (learned, baseline)
+
+
+def test_the_adapting_block_meets_a_cut_through_the_adapter(dm):
+    """The README's capability example: declared ``adapts_normalized``, the adapter runs its descent, and a cut
+    muscle's tension goes from what the healthy command asks to ~0."""
+    from lightning_bodyschema.faults import Faults
+
+    namespace = {}
+    exec("from typing import Optional\nfrom torch import nn\nfrom lightning_bodyschema.schemas import BodySchema\n"
+         + block("python", NEW_SCHEMA) + block("python", ADAPTING_SCHEMA), namespace)
+    schema, _, _ = train_schema(namespace["AdaptingSchema"], 5, dm)
+    q = dm.splits["val"][0][:4].numpy()
+    faults = Faults.from_names(schema.robot_model.muscle_names, cut=[["elbow_flexor"]] * 4)
+    cut = schema.robot_model.muscle_names.index("elbow_flexor")
+    healthy_f = schema.infer(q)[1][:, cut]
+    result = schema.adapt(q, faults, check_physics=False)
+    assert (result.status == "ok").all() and healthy_f.min() > 1.0
+    assert result.diagnostics["cut_violation_n"].max() < 0.01 * healthy_f.min()
 
 
 # ---------------------------------------------------------------------------- YAML

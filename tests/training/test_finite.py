@@ -1,17 +1,17 @@
-"""``schemas.finite.all_finite``: the per-step gradient check, on its fast path (a private torch op) and its public
+"""``training.finite.all_finite``: the per-step gradient check, on its fast path (a private torch op) and its public
 fallback. If torch changes or drops ``_amp_foreach_non_finite_check_and_unscale_``, the first test fails loudly:
 the fallback still gives correct answers (the second test), but each training step then pays ~6x for the check."""
 import pytest
 import torch
 
-from lightning_bodyschema.schemas import finite
-from lightning_bodyschema.schemas.finite import all_finite
+from lightning_bodyschema.training import finite
+from lightning_bodyschema.training.finite import all_finite
 
 DTYPES = [torch.float32, torch.float64, torch.bfloat16, torch.float16]
 
 
 def test_the_fast_path_exists_and_is_used(monkeypatch):
-    assert finite._AMP_CHECK is not None, "torch._amp_foreach_non_finite_check_and_unscale_ is gone: see schemas/finite.py"
+    assert finite._AMP_CHECK is not None, "torch._amp_foreach_non_finite_check_and_unscale_ is gone: see training/finite.py"
     calls = []
     op = torch._amp_foreach_non_finite_check_and_unscale_
     monkeypatch.setattr(finite, "_AMP_CHECK", lambda *args: calls.append(args) or op(*args))

@@ -1,0 +1,136 @@
+"""Does any physically valid command realize q_ref under the faults? (a QP on the true physics)
+
+The one feasibility computation: ``BodySchema.adapt``'s physics check (``adaptation.physics``), the benchmark's
+feasible subsets and the physics oracle (``evaluation.feasibility``) all ask it. It takes a robot with physics
+(``kinematics``) and a ``faults.Faults``-like batch (``cut``, ``fix``, ``l_fixed_m``, ``weak``, ``band``,
+``l_band_m``, ``f_limit``), and imports neither.
+
+At the fixed posture q_ref the unknowns are the tensions f (M,). A command (l_motor, f) with a perfect
+score (E_cut = E_fix = E_tau = E_q = 0) exists iff some f satisfies
+
+* static equilibrium      -G(q_ref)^T f = tau_bias(q_ref)
+* healthy muscle i:        0 <= f_i <= f_max             (then l_motor_i = l_geo_i - phi^-1(f_i))
+* ruptured muscle i:       f_i = 0
+* jammed muscle j:         phi(d_j) <= f_j <= f_max,  d_j = max(0, l_geo_j(q_ref) - l_fixed_j)
+* weakened muscle i:       f_max is its own f_max' (``cases.f_max``) in every bound above
+* banded motor j:          phi(l_geo_j - hi_j) <= f_j <= phi(l_geo_j - lo_j)   (phi = 0 for a slack spring)
+
+Why the jammed bound: the fault is ``l_motor_j <= l_fixed_j`` (paper eq. muscle-fix: the wire can
+still be reeled in, not paid out). Any such motor length stretches the spring by
+``delta_j = max(0, l_geo_j - l_motor_j) >= d_j``; phi is increasing, so f_j >= phi(d_j), and every
+tension in [phi(d_j), f_max] is reached by reeling in to ``l_motor_j = l_geo_j - phi^-1(f_j)``.
+When d_j > phi^-1(f_max) (~7 mm for the paper's spring) the arm would stretch the jammed muscle
+past its maximum tension: no command exists, whatever the other muscles do.
+
+``jam_model="immobile"`` instead treats the jammed motor as unable to move at all, so
+f_j = phi(d_j) exactly (a stricter reading). ``jammed_tension_in_torque=False`` mirrors the paper's
+literal E_tau, whose taut set excludes jammed muscles: then the other healthy muscles must hold the
+arm alone (jammed tensions are dropped from the equilibrium, the d_j <= phi^-1(f_max) test remains).
+Pair it with the same flag in ``ForwardSolverParams``: a command that is perfect under one torque
+convention is not under the other (see ``evaluation.feasibility.oracle_commands``).
+
+Why the band bound: the spring stretches by ``delta = l_geo - l_motor`` and f = phi(max(0, delta)) rises
+with delta, so ``lo <= l_motor <= hi`` is ``l_geo - hi <= delta <= l_geo - lo``. A band wholly above
+l_geo (the motor cannot reel in far enough to tighten the wire) allows only f = 0; a lower bound
+above the upper one (band or jam against f_max') leaves no command at all.
+"""
+from __future__ import annotations
+
+import itertools
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from .equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp
+from .spring import SpringParams, elongation_from_tension, tension_from_elongation
+
+if TYPE_CHECKING:
+    from ..faults.faults import Faults
+    from .robot import RobotModel
+
+JAM_MODELS = ("one_sided", "immobile")
+MAX_SCREEN_NORMALS = 256  # the torque-reach screen uses at most this many facet directions (else: QP only)
+
+
+def _facet_normals(G) -> np.ndarray | None:
+    """(B, K, N) unit normals of the facets of the torque zonotope {-G^T f : f in a box} (K = C(M, N-1)
+    subsets of N-1 muscle torque vectors, each normal orthogonal to them), or None when K is too large."""
+    batch, n_muscles, n_joints = G.shape
+    subsets = list(itertools.combinations(range(n_muscles), n_joints - 1))
+    if len(subsets) > MAX_SCREEN_NORMALS:
+        return None
+    if n_joints == 1:
+        return np.ones((batch, 1, 1))
+    spans = G[:, np.asarray(subsets), :]  # (B, K, N-1, N)
+    return np.linalg.svd(spans)[2][..., -1, :]  # the right singular vector of the zero singular value
+
+
+def outside_torque_reach(G, tau_bias, lo, hi) -> np.ndarray:
+    """(B,) True where no tension f in [lo, hi] (B, M) can give -G^T f = tau_bias (to EQUILIBRIUM_TOL_NM).
+
+    Why: the QP solver spends up to ~0.2 s per infeasible case before giving up; this batched test settles
+    most of them at once. The torques -G^T f over the box form a zonotope; tau_bias is outside it iff some
+    facet normal w has w . tau_bias > max_f w . (-G^T f) = sum_m max(lo_m c_m, hi_m c_m), c = -G w. Every
+    such inequality is valid for any w, so a True is always right (no feasible case is ever dropped); with
+    all facet normals the test is exact up to the tolerance, and cases it cannot settle go to the QP.
+    """
+    normals = _facet_normals(G)
+    if normals is None:
+        return np.zeros(len(G), bool)
+    normals = np.concatenate([normals, -normals], axis=1)  # both orientations of every facet
+    reach = np.einsum("bmn,bkn->bkm", -G, normals)  # c_m per direction
+    support = np.maximum(lo[:, None, :] * reach, hi[:, None, :] * reach).sum(-1)
+    gap = np.einsum("bn,bkn->bk", tau_bias, normals) - support
+    # a gap d forces |w . residual| >= d, so some joint's residual >= d / sqrt(N): the QP's own tolerance
+    return np.any(gap > np.sqrt(G.shape[2]) * EQUILIBRIUM_TOL_NM, axis=1)
+
+
+def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str = "one_sided",
+                   jammed_tension_in_torque: bool = True):
+    """Per-case tension bounds lo, hi (B, M) [N] at q_ref, the (B,) mask of cases whose jam (or band) lower
+    bound exceeds the upper one (f_max, a weakened muscle's f_max', a band's), and f_need (B, M) = phi(d_j)
+    on jammed muscles, raised to phi(l_geo - hi) on banded ones (0 elsewhere)."""
+    if jam_model not in JAM_MODELS:
+        raise BodySchemaInputError(f"jam_model={jam_model!r}; allowed: {list(JAM_MODELS)}")
+    f_max = faults.f_limit(spring.f_max_n)  # a weakened muscle's own limit, else the robot's
+    fix = faults.fix
+    with np.errstate(over="ignore"):  # an absurd jam stretch overflows phi to inf: infeasible, as it should be
+        stretch = np.where(fix, np.maximum(0.0, l_geo - np.where(fix, faults.l_fixed_m, 0.0)), 0.0)
+        f_need = np.where(fix, tension_from_elongation(stretch, spring), 0.0)
+        crossed = np.any(fix & (stretch > elongation_from_tension(f_max, spring)), axis=1)
+        if faults.l_band_m is not None:  # banded motor: f in [phi(l_geo - hi), phi(l_geo - lo)]
+            band = faults.band
+            band_lo, band_hi = (np.where(band, tension_from_elongation(l_geo - np.nan_to_num(faults.l_band_m[..., k]),
+                                                                      spring), v) for k, v in ((1, 0.0), (0, np.inf)))
+            f_need, f_max = np.maximum(f_need, band_lo), np.minimum(f_max, band_hi)
+            crossed |= np.any(band & (f_need > f_max), axis=1)
+    lo = np.minimum(f_need, f_max)  # keep lo <= hi so the QP is well posed; ``crossed`` remembers
+    hi = np.where(faults.cut, 0.0, f_max)
+    if jam_model == "immobile":
+        hi = np.where(fix, lo, hi)
+    if not jammed_tension_in_torque:
+        lo, hi = np.where(fix, 0.0, lo), np.where(fix, 0.0, hi)
+    return lo, hi, crossed, f_need
+
+
+def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: SpringParams = SpringParams(),
+                      jam_model: str = "one_sided", jammed_tension_in_torque: bool = True, solver: str = "proxqp"):
+    """(feasible (B,) bool, f_star (B, M) [N]): a perfect command's tensions at ``q_ref``, NaN rows if none exists.
+
+    f_star is the tension vector closest to f_max/2 (the QP's f_ref) within the bounds above. With
+    ``jammed_tension_in_torque=False`` its jammed entries are phi(d_j), the least tension that keeps
+    the paper's r_fix at zero (that evaluation ignores them in the torque balance).
+    """
+    l_geo, G, tau_bias = model.kinematics(q_ref)
+    lo, hi, crossed, f_need = tension_bounds(l_geo, faults, spring, jam_model, jammed_tension_in_torque)
+    f_ref = np.broadcast_to(np.asarray(spring.f_max_n, float) / 2.0, lo.shape)
+    f, ok = np.full(lo.shape, np.nan), np.zeros(len(lo), bool)
+    # skip hopeless cases: proxsuite takes up to ~0.2 s per case to give up on them
+    run = np.flatnonzero(~crossed & ~outside_torque_reach(G, tau_bias, lo, hi))
+    if run.size:
+        f[run], ok[run] = solve_equilibrium_qp(G[run], tau_bias[run], f_ref[run], hi[run], lo[run], solver=solver)
+    if not jammed_tension_in_torque:
+        f = np.where(faults.fix, f_need, f)
+    feasible = ok & ~crossed
+    return feasible, np.where(feasible[:, None], f, np.nan)

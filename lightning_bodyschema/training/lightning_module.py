@@ -1,0 +1,188 @@
+"""``SchemaLightningModule``: the Lightning side of every body schema (``schemas.BodySchema`` inherits it).
+
+What it does with the schema's contract (``contract.py``): one training step per minibatch on normalized data
+(``training_loss``), validation and test in physical units (``physical_errors``), ``predict`` through ``infer``,
+the declared hooks (``epoch_hook``, ``refreshes_derived_state``) at the points of the fit they need, Adam with a
+cosine schedule, a skipped step for non-finite gradients, and the RNG state in checkpoints. The schema supplies
+``normalizer``, ``robot_model``, ``capabilities``, ``training_loss``, ``physical_errors``, ``infer`` and
+``clear_caches``.
+"""
+from __future__ import annotations
+
+import lightning as L
+import torch
+from lightning.pytorch.plugins.precision import HalfPrecision
+
+from ..contract import EPOCH_HOOK, REFRESHES_DERIVED_STATE
+from ..errors import BodySchemaInputError
+from .finite import all_finite
+from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
+                       epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
+                       monitors_train_metrics)
+
+# renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
+DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
+
+
+class SchemaLightningModule(L.LightningModule):
+    """The fit, validation, test and predict loops of a body schema; see the module docstring."""
+
+    def __init__(self):
+        super().__init__()
+        self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
+        self._log_train_at_epoch_end = False  # set when a fit starts: log train/* at every epoch end too
+
+    # Lightning sets ``_current_fx_name`` twice around every hook it calls (~20 per optimizer step), and
+    # nn.Module.__setattr__ checks each time whether a string is a parameter, buffer or module. A plain string can
+    # be none of these.
+    _PLAIN_ATTRIBUTES = frozenset({"_current_fx_name"})
+
+    def __setattr__(self, name, value):
+        if name in SchemaLightningModule._PLAIN_ATTRIBUTES and (value is None or isinstance(value, str)):
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
+    def setup(self, stage: str):
+        if self._trainer is not None and isinstance(self.trainer.precision_plugin, HalfPrecision):
+            raise BodySchemaInputError(half_precision_refusal(self.trainer.precision))
+        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if datamodule is not None and stage == "fit":
+            if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:
+                raise BodySchemaInputError("the schema's robot differs from the data module's robot")
+            self.normalizer.load_state_dict(datamodule.normalizer.state_dict())
+            self.clear_caches()  # the penalty builder depends on the normalizer
+            check_same_batch_size(self.hparams.get("batch_size"), getattr(datamodule, "batch_size", None))
+            if hasattr(datamodule, "train_batches_per_epoch"):
+                check_val_check_interval(self.trainer, datamodule.train_batches_per_epoch(self.trainer.world_size))
+
+    def configure_optimizers(self):
+        """Adam (fused, unless a GradScaler runs) with the cosine schedule from ``lr`` to ``lr_final`` over the
+        fit's epochs, stepped once per epoch. The CLI's ``--optimizer`` / ``--lr_scheduler`` replace both
+        (LightningCLI's own mechanism)."""
+        # under a GradScaler (16-mixed) not fused: a fused Adam unscales inside its own step, so Lightning could
+        # neither clip (it refuses) nor show the hooks unscaled gradients
+        scaler = getattr(self.trainer.precision_plugin, "scaler", None) if self._trainer is not None else None
+        optimizer = torch.optim.Adam(self.parameters(), lr=self.hparams.lr, fused=scaler is None)
+        if self.hparams.lr_final is None:
+            return optimizer
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs_of_fit(self.trainer),
+                                                              eta_min=self.hparams.lr_final)
+        return {"optimizer": optimizer, "lr_scheduler": schedule}
+
+    def _normalized(self, batch):
+        q, x = batch
+        dtype = self.dtype
+        return self.normalizer.encode_q(q).to(dtype), self.normalizer.encode_x(x).to(dtype)
+
+    def training_step(self, batch, batch_idx):
+        """One minibatch: Lightning runs the backward, the precision plugin (scaling, unscaling, inf checks),
+        gradient clipping and accumulation, DDP's gradient averaging and the optimizer step."""
+        q_n, x_n = self._normalized(batch)
+        loss, _ = self.training_loss(q_n, x_n)
+        # a self.log call costs a sizeable share of a minibatch step here: call it only on the steps the logger
+        # writes, and at each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint,
+        # ReduceLROnPlateau) reads train/*
+        trainer = self.trainer
+        if logs_this_step(trainer) or (self._log_train_at_epoch_end and is_last_batch(trainer)):
+            self.log("train/loss", loss.detach(), prog_bar=True)
+            self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
+        return loss
+
+    def on_before_optimizer_step(self, optimizer):
+        """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
+
+        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions
+        the gradients are dropped, so the optimizer leaves the weights and its state untouched. Under DDP
+        the gradients are already averaged here, so every rank takes the same decision.
+        """
+        scaler = getattr(self.trainer.precision_plugin, "scaler", None)
+        if scaler is not None:
+            return
+        # the optimizer's own parameter list: what it is about to step, and cheaper than walking the modules
+        params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        if not params:
+            return
+        if not all_finite([p.grad for p in params]):  # one kernel
+            for p in params:
+                p.grad = None
+            self.skipped_steps += 1
+
+    def on_train_start(self):
+        self.skipped_steps = 0
+        self._log_train_at_epoch_end = monitors_train_metrics(self.trainer)
+        if self.trainer.world_size > 1:
+            # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
+            # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
+            # pair its shard with the same noise. Deterministic: the seed plus the rank. (A resumed DDP fit
+            # therefore restarts these streams; a single-process fit continues the checkpoint's.)
+            torch.manual_seed(torch.initial_seed() + self.global_rank)
+
+    def _train_split_normalized(self):
+        """(q_n, x_n) of the data module's whole train split on this device, or None (no data module)."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is None or getattr(datamodule, "splits", None) is None:
+            return None
+        q, x = datamodule.splits["train"]
+        return self._normalized((q.to(self.device), x.to(self.device)))
+
+    def on_train_epoch_end(self):
+        if EPOCH_HOOK not in self.capabilities:
+            return
+        split = self._train_split_normalized()
+        if split is not None:
+            self.on_epoch_trained(*split)
+
+    def _refresh_derived_state(self) -> bool:
+        """Run the declared ``refresh_from_train_split`` during a fit; True when it ran."""
+        if REFRESHES_DERIVED_STATE not in self.capabilities or not is_fitting(self._trainer):
+            return False
+        split = self._train_split_normalized()
+        if split is not None:
+            self.refresh_from_train_split(*split)
+        return split is not None
+
+    def on_validation_epoch_start(self):
+        self._refresh_derived_state()
+
+    def _common_step(self, batch, stage: str):
+        q_n, x_n = self._normalized(batch)
+        loss, logs = self.training_loss(q_n, x_n)
+        self.log(f"{stage}/loss", loss, prog_bar=stage == "val", sync_dist=True)
+        for name, value in logs.items():
+            self.log(f"{stage}/{name}", value, sync_dist=True)
+        # every rank validates the whole held-out split (a few ms): medians do not average across shards;
+        # sync_dist reduces the (then equal) figures so every rank's callbacks see the same
+        for name, value in self.physical_errors(batch[0], batch[1]).items():
+            self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_N_m" and stage == "val", sync_dist=True)
+            if name in DEPRECATED_METRIC_NAMES:  # old monitors and dashboards keep working for one release
+                self.log(f"{stage}/{DEPRECATED_METRIC_NAMES[name]}", value, sync_dist=True)
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        return self._common_step(batch, "val")
+
+    def test_step(self, batch, batch_idx):
+        return self._common_step(batch, "test")
+
+    def predict_step(self, batch, batch_idx):
+        l_motor, f = self.infer(batch[0])
+        return {"q": batch[0].cpu().numpy(), "l_motor": l_motor, "f": f}
+
+    def on_save_checkpoint(self, checkpoint):
+        if self._refresh_derived_state():  # Lightning took the state_dict before this hook: update its buffers
+            state = checkpoint.get("state_dict", {})
+            state.update({name: buf.detach().clone() for name, buf in self.named_buffers() if name in state})
+        # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue
+        # the same stream to end with the same weights as an uninterrupted one
+        checkpoint["torch_rng_state"] = torch.get_rng_state()
+        if torch.cuda.is_available() and torch.cuda.is_initialized():
+            checkpoint["torch_cuda_rng_state"] = torch.cuda.get_rng_state_all()
+
+    def on_load_checkpoint(self, checkpoint):
+        if "torch_rng_state" in checkpoint:
+            torch.set_rng_state(checkpoint["torch_rng_state"])
+        cuda_states = checkpoint.get("torch_cuda_rng_state")
+        if cuda_states is not None and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
+            torch.cuda.set_rng_state_all(cuda_states)
+        drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
