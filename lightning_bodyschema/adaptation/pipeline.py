@@ -6,6 +6,7 @@ import torch
 
 from ..errors import BodySchemaInputError
 from .command import AdaptationResult, motor_length_range, safe_command
+from ..variants import check_variant
 from .physics import flag_infeasible, mark_unchecked
 
 
@@ -42,8 +43,7 @@ class Adapter:
     """
 
     def __init__(self, schema, faults, variant: str = "default", check_physics: bool = True, options: dict = None):
-        if variant not in schema.VARIANTS:
-            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
+        check_variant(schema, variant, "adaptation variant")
         faults.validate(schema.n_muscles, schema.spring.f_max_n)
         self.schema, self.faults, self.variant = schema, faults, variant
         self.check_physics, self.options = check_physics, dict(options or {})

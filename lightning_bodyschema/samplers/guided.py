@@ -30,7 +30,7 @@ from ..errors import BodySchemaInputError
 from .schedule import check_prediction
 
 STEP_SCALES = ("none", "sqrt_abar", "abar")
-INPAINT = ("none", "box", "spring")  # faults.projection's modes
+INPAINT = ("none", "box", "spring")  # the inpainting modes, defined here once (faults.projection imports them)
 
 
 @dataclass(frozen=True)
