@@ -2,6 +2,7 @@
 denoising."""
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Optional
 
@@ -12,6 +13,7 @@ from ..faults.projection import projection_for
 from ..networks import EpsMLP
 from ..samplers import GuidanceConfig, NoiseSchedule, denoise, plan_denoising, reference_loop
 from ..samplers.presets import SamplerPreset, adapt_preset
+from ..samplers.schedule import check_prediction
 from ..variants import check_variant
 from .base import BodySchema
 
@@ -28,6 +30,11 @@ class DiffusionSchema(BodySchema):
             None (the paper's): all T deterministic DDPM mean steps (eq:diff-2 without its noise term), each
             variant's ``full`` preset. k < T: the strided sampler over k steps, each variant's ``strided`` preset
             (``ADAPT``). Per call: ``adapt(..., n_steps=k)``, ``generate(q_n, n_steps=k)``.
+        prediction: what the network outputs (``samplers.schedule.PREDICTIONS``): ``"eps"`` the noise (the paper's),
+            ``"x0"`` the clean command, ``"v"`` sqrt(abar_t) eps - sqrt(1 - abar_t) x0; trained with the squared error
+            to that target, converted for sampling by ``NoiseSchedule.split_output`` (every sampler path).
+        min_snr_gamma: min-SNR-gamma loss weighting (Hang et al. 2023, ``NoiseSchedule.min_snr_weight``): each
+            sample's squared error weighted by min(SNR_t, gamma) in its prediction's units; None: unweighted.
         compile_sampler: run the fast sampling loop through ``torch.compile`` (``samplers.guided.compiled_sampler``;
             per call: ``compiled=``). The first call per (step plan, batch size) compiles (tens of seconds); later
             calls save Python's per-op dispatch. Off by default: a controller that restarts pays the compile again.
@@ -64,9 +71,14 @@ class DiffusionSchema(BodySchema):
 
     def __init__(self, n_timesteps: int = 200, hidden: int = 91, n_hidden: int = 2, sample_seed: int = 0,
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
-                 batch_size: int = 64, sample_steps: Optional[int] = None, compile_sampler: bool = False):
+                 batch_size: int = 64, sample_steps: Optional[int] = None, compile_sampler: bool = False,
+                 prediction: str = "eps", min_snr_gamma: Optional[float] = None):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
+        check_prediction(prediction)
+        if min_snr_gamma is not None and (isinstance(min_snr_gamma, bool) or not 0.0 < float(min_snr_gamma) < math.inf):
+            raise BodySchemaInputError(f"min_snr_gamma={min_snr_gamma!r} must be a positive number or None (no weighting)")
         self.save_hyperparameters()
+        self.prediction = prediction
         self.eps_model = EpsMLP(self.x_dim, self.n_joints, hidden=hidden, n_hidden=n_hidden, n_timesteps=n_timesteps)
         self.schedule = NoiseSchedule(n_timesteps)
         self._n_steps(sample_steps)  # refuse a bad value at construction
@@ -75,8 +87,12 @@ class DiffusionSchema(BodySchema):
         t = torch.randint(0, self.schedule.n_timesteps, (len(x_n),), device=x_n.device)
         eps = torch.randn_like(x_n)
         x_t = self.schedule.add_noise(x_n, eps, t, check=False)  # t in 0..T-1 by construction
-        loss = (eps - self.eps_model(x_t, t, q_n)).pow(2).mean()
-        return loss, {}
+        target = self.schedule.training_target(x_n, eps, t, self.prediction)
+        gamma = self.hparams.get("min_snr_gamma")
+        if gamma is None:
+            return (target - self.eps_model(x_t, t, q_n)).pow(2).mean(), {}
+        weight = self.schedule.min_snr_weight(t, gamma, self.prediction).to(x_n.dtype)
+        return (weight * (target - self.eps_model(x_t, t, q_n)).pow(2).mean(-1)).mean(), {}
 
     # ------------------------------------------------------------------ sampler settings
     def _timesteps(self, n_steps: Optional[int], spacing: str) -> tuple[int, ...]:
@@ -164,11 +180,12 @@ class DiffusionSchema(BodySchema):
         x_T = self.initial_noise(len(q_n), q_n)
         frozen = self.inference_cache.get(("frozen_eps",), self.eps_model.frozen) if fast else None
         if frozen is None or guidance.reference_only:
-            return reference_loop(self.eps_model, self.schedule, q_n, x_T, penalty, guidance, steps, eta, projection)
+            return reference_loop(self.eps_model, self.schedule, q_n, x_T, penalty, guidance, steps, eta, projection,
+                                  self.prediction)
         c_w = 1.0 if penalty is None or penalty.uniform_weight is None else penalty.uniform_weight
         plan = self.inference_cache.get(("plan", steps, float(eta), guidance, c_w, penalty is not None),
                                         lambda: plan_denoising(frozen, self.schedule, steps, eta, guidance, c_w,
-                                                               penalty is not None))
+                                                               penalty is not None, self.prediction))
         biases = self.eps_model.step_biases(frozen, q_n, steps)
         inpaint = projection if guidance.inpaint != "none" else None
         return denoise(frozen, plan, biases, x_T, penalty, compiled, inference_mode, inpaint)
