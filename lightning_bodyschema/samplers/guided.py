@@ -265,9 +265,10 @@ def _plan_step(net, schedule, t, t_next, eta, guidance, c_w, guided, prediction)
 
 
 def _scaled_sum(u, a_u: float, e, a_e: float, out):
-    """a_u u + a_e e into ``out``: one op where a_u is 1 (eps-prediction), two otherwise."""
+    """a_u u + a_e e into ``out``: one op where a_u is 1 (eps-prediction), two otherwise (a coefficient of 1 is
+    not passed: at batch 1 the keyword's parsing is a visible share of an op)."""
     if a_u == 1.0:
-        return torch.add(u, e, alpha=a_e, out=out)
+        return torch.add(u, e, out=out) if a_e == 1.0 else torch.add(u, e, alpha=a_e, out=out)
     return torch.mul(u, a_u, out=out).add_(e, alpha=a_e)
 
 
@@ -286,12 +287,12 @@ def guided_loop(steps, biases, x, penalty, net, ops, projection=None) -> torch.T
         if step.n_guide == 0:  # eq:diff-2 / DDIM without guidance: u' = a_u u + beta + h We
             h, _ = net.trunk(u, biases[i], step.w1, bufs, ops)
             k = 1 - k
-            u = torch.addmm(torch.add(step.beta, u, alpha=step.a_u, out=tmp), h, step.w_e, out=states[k])
+            u = torch.addmm(_scaled_sum(u, step.a_u, step.beta, 1.0, tmp), h, step.w_e, out=states[k])
             continue
         for j in range(step.n_guide):
             h, saved = net.trunk(u, biases[i], step.w1, bufs, ops)
             torch.addmm(step.beta, h, step.w_e, out=e)  # bx o
-            torch.add(e, u, alpha=step.c_u, out=x0)  # 1. eq:diff-1: x0_hat
+            _scaled_sum(u, step.c_u, e, 1.0, x0)  # 1. eq:diff-1: x0_hat
             r = penalty.residual(x0, res)  # dL/dx0_hat / c
             g1 = net.back(r, step.w_r, saved, bufs, ops)  # J^T dL/dx0_hat = g1 W1_free, J = d o / d x_t
             k = 1 - k
