@@ -247,8 +247,8 @@ def _plan_step(net, schedule, t, t_next, eta, guidance, c_w, guided, prediction)
     """The ``PlanStep`` from t to t_next (see its doc for every formula)."""
     abar = float(schedule.alpha_bars[t])
     cx, ce = schedule.step_coefficients(t, t_next, eta)
-    (ax, bx), (ae, be) = (schedule.output_affine(t, prediction).x0_coefficients(),
-                          schedule.output_affine(t, prediction).eps_coefficients())
+    affine = schedule.output_affine(t, prediction)
+    (ax, bx), (ae, be) = affine.x0_coefficients(), affine.eps_coefficients()
     inv_s0, n_guide = 1.0 / math.sqrt(abar), guidance.n_guide_at(abar) if guided else 0
     s0 = 1.0 / inv_s0  # the first layer's scale, as the loop state u = x_t * inv_s0 sees it
     s0_next = cx * s0  # s0' = sqrt(abar_prev)

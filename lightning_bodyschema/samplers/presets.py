@@ -40,6 +40,8 @@ class SamplerPreset:
         if unknown:
             raise BodySchemaInputError(f"unknown sampler option(s) {unknown}; allowed: {list(also) + list(self.OPTIONS)}")
         given = {name: value for name, value in overrides.items() if value is not None}
+        if not given:
+            return self
         guidance = {name: given.pop(name) for name in GUIDANCE_FIELDS if name in given}
         if "min_abar" in guidance:
             guidance["min_abar"] = float(guidance["min_abar"])

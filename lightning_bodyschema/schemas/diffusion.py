@@ -116,8 +116,14 @@ class DiffusionSchema(BodySchema):
         """The resolved settings ``adapt(..., variant=variant, n_steps=n_steps, **overrides)`` runs with: the
         variant's full-T or strided preset (``ADAPT``), the named fields replaced by ``overrides``."""
         check_variant(self, variant)
-        return self.ADAPT[variant].resolve(self._n_steps(n_steps) < self.schedule.n_timesteps, self.RUN_OPTIONS,
-                                           **overrides)
+        strided = self._n_steps(n_steps) < self.schedule.n_timesteps
+        build = lambda: self.ADAPT[variant].resolve(strided, self.RUN_OPTIONS, **overrides)  # noqa: E731
+        try:
+            key = ("preset", variant, strided, tuple(sorted(overrides.items())))
+            hash(key)
+        except TypeError:  # an unhashable value: resolved (and refused, if it must be) without the cache
+            return build()
+        return self.inference_cache.get(key, build)
 
     def fault_projection(self, variant: str, penalty, inpaint: Optional[str] = None):
         """The ``faults.projection.FaultProjection`` the variant inpaints or projects with (None: it does neither)."""
