@@ -238,12 +238,12 @@ def plan_denoising(net, schedule, timesteps: Optional[Sequence[int]], eta: float
     """The ``DenoisePlan`` of ``net`` (a ``FrozenMLP`` of the network, which outputs ``prediction``) over
     ``timesteps`` (None: all T); ``c_w``: the penalty's uniform weight (1 when it has none); ``guided=False``: the
     unguided healthy sample."""
-    steps = _check_steps(schedule, timesteps)
+    steps, w_r = _check_steps(schedule, timesteps), c_w * net.out_w  # w_r: one tensor shared by every step
     return DenoisePlan([_plan_step(net, schedule, t, steps[i + 1] if i + 1 < len(steps) else -1, eta, guidance, c_w,
-                                   guided, prediction) for i, t in enumerate(steps)])
+                                   w_r, guided, prediction) for i, t in enumerate(steps)])
 
 
-def _plan_step(net, schedule, t, t_next, eta, guidance, c_w, guided, prediction) -> PlanStep:
+def _plan_step(net, schedule, t, t_next, eta, guidance, c_w, w_r, guided, prediction) -> PlanStep:
     """The ``PlanStep`` from t to t_next (see its doc for every formula)."""
     abar = float(schedule.alpha_bars[t])
     cx, ce = schedule.step_coefficients(t, t_next, eta)
@@ -260,16 +260,8 @@ def _plan_step(net, schedule, t, t_next, eta, guidance, c_w, guided, prediction)
         raise BodySchemaInputError(f"prediction {prediction!r}: x0_hat does not depend on the network output at t={t}")
     k = guidance.lr * guidance.scale(abar)  # K
     return PlanStep(n_guide, inv_s0, s0 * net.w1_free_t, bx * net.out_b, bx * net.out_w_t, c_u=ax / inv_s0, a_u=a_u,
-                    a_e=ce * be / (bx * s0_next), w_r=c_w * net.out_w, k_r=-k * ax * c_w * inv_s0,
+                    a_e=ce * be / (bx * s0_next), w_r=w_r, k_r=-k * ax * c_w * inv_s0,
                     w_k=(-k * bx * inv_s0) * net.w1_free, inpaint=guidance.inpaints_at(abar))
-
-
-def _scaled_sum(u, a_u: float, e, a_e: float, out):
-    """a_u u + a_e e into ``out``: one op where a_u is 1 (eps-prediction), two otherwise (a coefficient of 1 is
-    not passed: at batch 1 the keyword's parsing is a visible share of an op)."""
-    if a_u == 1.0:
-        return torch.add(u, e, out=out) if a_e == 1.0 else torch.add(u, e, alpha=a_e, out=out)
-    return torch.mul(u, a_u, out=out).add_(e, alpha=a_e)
 
 
 def guided_loop(steps, biases, x, penalty, net, ops, projection=None) -> torch.Tensor:
@@ -283,28 +275,36 @@ def guided_loop(steps, biases, x, penalty, net, ops, projection=None) -> torch.T
     e, x0, tmp, res, states = new((b, d)), new((b, d)), new((b, d)), (new((b, d)), new((b, d))), (new((b, d)), new((b, d)))
     x0_guided = (new((b, d)), new((b, d)), new((b, d)))  # x0_g, its addmm twin, and d
     u, k = torch.mul(x, steps[0].inv_s0, out=states[0]), 0  # x_T / sqrt(abar_T)
-    for i, step in enumerate(steps):
-        if step.n_guide == 0:  # eq:diff-2 / DDIM without guidance: u' = a_u u + beta + h We
-            h, _ = net.trunk(u, biases[i], step.w1, bufs, ops)
+    # unpacked in PlanStep's field order (one tuple unpack per step: at batch 1 attribute reads add up)
+    for i, (n_guide, _, w1, beta, w_e, c_u, a_u, a_e, w_r, k_r, w_k, inpaint) in enumerate(steps):
+        if n_guide == 0:  # eq:diff-2 / DDIM without guidance: u' = a_u u + beta + h We
+            h, _ = net.trunk(u, biases[i], w1, bufs, ops)
             k = 1 - k
-            u = torch.addmm(_scaled_sum(u, step.a_u, step.beta, 1.0, tmp), h, step.w_e, out=states[k])
+            tmp_u = torch.add(u, beta, out=tmp) if a_u == 1.0 else torch.add(beta, u, alpha=a_u, out=tmp)
+            u = torch.addmm(tmp_u, h, w_e, out=states[k])
             continue
-        for j in range(step.n_guide):
-            h, saved = net.trunk(u, biases[i], step.w1, bufs, ops)
-            torch.addmm(step.beta, h, step.w_e, out=e)  # bx o
-            _scaled_sum(u, step.c_u, e, 1.0, x0)  # 1. eq:diff-1: x0_hat
+        for j in range(n_guide):
+            h, saved = net.trunk(u, biases[i], w1, bufs, ops)
+            torch.addmm(beta, h, w_e, out=e)  # bx o
+            if c_u == 1.0:  # 1. eq:diff-1: x0_hat = c_u u + e
+                torch.add(u, e, out=x0)
+            else:
+                torch.add(e, u, alpha=c_u, out=x0)
             r = penalty.residual(x0, res)  # dL/dx0_hat / c
-            g1 = net.back(r, step.w_r, saved, bufs, ops)  # J^T dL/dx0_hat = g1 W1_free, J = d o / d x_t
+            g1 = net.back(r, w_r, saved, bufs, ops)  # J^T dL/dx0_hat = g1 W1_free, J = d o / d x_t
             k = 1 - k
-            if j + 1 < step.n_guide:  # 2. eq:diff-adapt only
-                u = torch.addmm(torch.add(u, r, alpha=step.k_r, out=tmp), g1, step.w_k, out=states[k])
+            if j + 1 < n_guide:  # 2. eq:diff-adapt only
+                u = torch.addmm(torch.add(u, r, alpha=k_r, out=tmp), g1, w_k, out=states[k])
             else:  # 2. eq:diff-adapt and 3. eq:diff-2 / DDIM, in the next step's units
-                inpaint = step.inpaint and projection is not None
+                inpaint = inpaint and projection is not None
                 if inpaint:  # the guided x0_hat (the inner step's u, plus e) and its offset d
-                    d = projection.offset(torch.addmm(torch.add(x0, r, alpha=step.k_r, out=x0_guided[0]), g1,
-                                                      step.w_k, out=x0_guided[1]), out=x0_guided[2])
-                u = torch.addmm(_scaled_sum(u, step.a_u, e, step.a_e, tmp).add_(r, alpha=step.k_r), g1, step.w_k,
-                                out=states[k])
+                    d = projection.offset(torch.addmm(torch.add(x0, r, alpha=k_r, out=x0_guided[0]), g1, w_k,
+                                                      out=x0_guided[1]), out=x0_guided[2])
+                if a_u == 1.0:  # a_u u + a_e e
+                    torch.add(u, e, alpha=a_e, out=tmp)
+                else:
+                    torch.mul(u, a_u, out=tmp).add_(e, alpha=a_e)
+                u = torch.addmm(tmp.add_(r, alpha=k_r), g1, w_k, out=states[k])
                 if inpaint:  # 4. inpainting: x0_hat -> P(x0_hat) with eps_hat kept is u' -= d
                     u.sub_(d)
     return u
