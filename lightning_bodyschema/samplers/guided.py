@@ -191,7 +191,7 @@ class PlanStep(NamedTuple):
                  x0_g = x0_hat + k_r r + g1 w_k (the x0 of the guided x_t with eps_hat kept: x_t' moves by s0' d)
 
     So the guided step is u' = a_u u + a_e e + k_r r + g1 w_k (one fused expression for every prediction type), the
-    unguided one u' = a_u u + beta + h w_e.
+    unguided one u' = a_u u + beta + h w_e. Build it by name; ``guided_loop`` unpacks it in this field order.
     """
 
     n_guide: int
