@@ -7,6 +7,7 @@ import torch
 from ..contract import ADAPTATION_CAPABILITIES, ADAPTS_IN_SI
 from ..errors import BodySchemaInputError
 from .command import AdaptationResult, motor_length_range, safe_command
+from ..variants import check_variant
 from .physics import flag_infeasible, mark_unchecked
 
 
@@ -46,8 +47,7 @@ class Adapter:
     """
 
     def __init__(self, schema, faults, variant: str = "default", check_physics: bool = True, options: dict = None):
-        if variant not in schema.VARIANTS:
-            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
+        check_variant(schema, variant, "adaptation variant")
         faults.validate(schema.n_muscles, schema.spring.f_max_n)
         if not schema.capabilities & ADAPTATION_CAPABILITIES:
             raise NotImplementedError(f"{type(schema).__name__} does not implement adaptation (its capabilities "

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from ..errors import BodySchemaInputError
+from ..variants import check_variant
 from .command import AdaptationResult
 
 
@@ -18,8 +19,7 @@ def adapt_to_target(schema, target_xyz, faults, site: str = "hand", variant: str
     faults.validate(schema.n_muscles)
     if len(faults) != len(target):
         raise BodySchemaInputError(f"{len(target)} targets but {len(faults)} fault rows; give one row per case")
-    if variant not in schema.VARIANTS:  # refuse before spending time on the inverse kinematics
-        raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(schema.VARIANTS)}")
+    check_variant(schema, variant, "adaptation variant")  # refuse before spending time on the inverse kinematics
     with torch.inference_mode(False):
         q = twin.inverse_kinematics(target, site=site, tol_m=tol_m, **(ik_options or {})).q.numpy()
     error = np.linalg.norm(schema.robot_model.site_position(q, site) - target, axis=1)  # MuJoCo is the judge

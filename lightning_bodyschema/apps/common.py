@@ -12,6 +12,7 @@ import sys
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from ..variants import check_variant
 
 
 def exits_cleanly(main):
@@ -32,7 +33,7 @@ def exits_cleanly(main):
 ADAPT_SAMPLERS = {
     "ddpm": {},  # the schema's own sampler: all T deterministic DDPM mean steps (the paper's), unless the checkpoint
                  # was trained with ``sample_steps``
-    "strided20": {"n_steps": 20},  # the strided posterior-mean sampler (DiffusionSchema.STRIDED) over 20 steps:
+    "strided20": {"n_steps": 20},  # each variant's strided preset (DiffusionSchema.ADAPT) over 20 steps:
                                    # quad spacing, noise-free DDPM posterior-mean steps (eta = 1), 2 guidance steps
                                    # where abar_t >= 0.5; diffusion schemas only (~10x faster, same accuracy)
 }
@@ -136,8 +137,7 @@ def resolve_sampler(name: str) -> tuple[str, dict]:
 def check_schema_options(schema, variant: str, sampler: str, options: dict):
     from ..schemas.diffusion import DiffusionSchema
 
-    if variant not in schema.VARIANTS:
-        raise BodySchemaInputError(f"unknown --variant {variant!r}; allowed: {list(schema.VARIANTS)}")
+    check_variant(schema, variant, "--variant")
     if options and not isinstance(schema, DiffusionSchema):
         raise BodySchemaInputError(f"--sampler {sampler!r} needs a diffusion schema; the checkpoint holds a "
                                    f"{type(schema).__name__} (use --sampler ddpm)")

@@ -46,6 +46,7 @@ from ..evaluation.benchmark import COMMANDS, SUMMARY_METRICS
 from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
 from ..training.fit_loop import fit_ends_with_this_epoch
+from ..variants import check_variant
 from .steps import stopped_after_last_validation, validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
@@ -56,6 +57,11 @@ METRIC_HEADERS = {"E_cut": "E_cut [N]", "E_fix": "E_fix [mm]", "E_tau": "E_tau [
 JSON_NAME, MD_NAME = "fault_benchmark.json", "fault_benchmark.md"
 PREFIXES = {"adapted": "fault", "unadapted": "fault_unadapted", "oracle": "fault_oracle"}
 SIGNIFICANT_DIGITS = 9
+
+
+def _schema_classes(root: type) -> list[type]:
+    """``root`` and every subclass of it defined so far (the schema classes a CLI run may instantiate)."""
+    return [root] + [sub for cls in root.__subclasses__() for sub in _schema_classes(cls)]
 
 
 class FaultBenchmark(Callback):
@@ -71,7 +77,7 @@ class FaultBenchmark(Callback):
         binding_n_per_condition: binding cases per condition at test (5 conditions; 40 keeps ``bodyschema test``
             under a minute on one core).
         seed: seed of the case draw (the same cases at every run, so curves are comparable).
-        variant: adaptation variant passed to ``BodySchema.adapt`` (``"default"`` or ``"literal"``).
+        variant: adaptation variant passed to ``BodySchema.adapt``: one of the schema's ``VARIANTS``.
         out_dir: where ``test`` writes ``fault_benchmark.json``/``.md`` (None: the trainer's log folder).
         settle_check: also run the MuJoCo settle check (``E_q_phys``) in the benchmarks during fit (~4 s per
             120 cases on one core, twice per paper fit); ``test`` always runs it.
@@ -92,8 +98,7 @@ class FaultBenchmark(Callback):
         unknown = [p for p in protocols if p not in PROTOCOLS]
         if unknown or not protocols:
             raise BodySchemaInputError(f"faults.protocols={list(protocols)!r}; allowed: one or more of {list(PROTOCOLS)}")
-        if variant not in BodySchema.VARIANTS:
-            raise BodySchemaInputError(f"faults.variant={variant!r}; allowed: {list(BodySchema.VARIANTS)}")
+        check_variant(_schema_classes(BodySchema), variant, "faults.variant")  # any schema's; setup: this one's
         self.every_n_epochs, self.n_per_condition, self.seed = int(every_n_epochs), int(n_per_condition), seed
         self.variant, self.out_dir, self.settle_check = variant, out_dir, bool(settle_check)
         self.protocols, self.binding_n_per_condition = tuple(dict.fromkeys(protocols)), int(binding_n_per_condition)
@@ -102,6 +107,9 @@ class FaultBenchmark(Callback):
         self._validated_at = self._benchmarked_at = None  # log steps of the last validation and benchmark of a fit
 
     # ------------------------------------------------------------------ Lightning hooks
+    def setup(self, trainer, pl_module, stage):
+        check_variant(pl_module, self.variant, "faults.variant")
+
     def on_fit_start(self, trainer, pl_module):
         # a resumed run continues the cadence from its epoch instead of benchmarking at once
         self._last_period = trainer.current_epoch // self.every_n_epochs if self.every_n_epochs else 0

@@ -23,8 +23,7 @@ import numpy as np
 import torch
 
 from ..errors import BodySchemaInputError
-
-MODES = ("none", "box", "spring")
+from ..samplers.guided import INPAINT as MODES  # the sampler's inpainting modes: one tuple (samplers import no faults)
 
 
 class FaultProjection:

@@ -151,7 +151,8 @@ def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool
 
 
 class EpsMLP(nn.Module):
-    """h^diff: (x_t (B, x_dim), t (int or (B,) long), q (B, q_dim)) -> eps_hat (B, x_dim).
+    """h^diff: (x_t (B, x_dim), t (int or (B,) long), q (B, q_dim)) -> the schema's prediction (B, x_dim): eps_hat
+    for the paper's eps-prediction (or x0_hat, or v; ``samplers.schedule.PREDICTIONS``).
 
     Time embedding: the single scalar ``t / n_timesteps`` in [0, 1), appended to the input. Why:
     it is the cheapest choice (one input column, 91 weights), it reproduces the paper's ~11k

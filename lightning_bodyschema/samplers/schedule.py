@@ -1,10 +1,18 @@
 """DDPM noise schedule and its deterministic update (paper section II-C and III-C).
 
 Modelled on diffusers' ``scheduling_ddpm.py`` and kept to what the body schema needs: one linear beta
-schedule, the forward (noising) process, the x0 prediction (eq:diff-1), ONE deterministic update between two
-timesteps with its ONE coefficient formula (``step_coefficients``), and the strided timestep lists of fast
-samplers. The guidance step eq:diff-adapt is not here: it needs a loss and a model, and this module imports
-neither. A sampler calls ``predict_x0`` -> its own guidance -> ``step``.
+schedule, the forward (noising) process, THE conversion of a network's output into (x0_hat, eps_hat) for each
+prediction type (``output_affine``/``split_output``; eq:diff-1 for eps), the training target and min-SNR loss
+weight of each type, ONE deterministic update between two timesteps with its ONE coefficient formula
+(``step_coefficients``), and the strided timestep lists of fast samplers. The guidance step eq:diff-adapt is not
+here: it needs a loss and a model, and this module imports neither. A sampler calls ``split_output`` -> its own
+guidance -> ``step``.
+
+**prediction** (``PREDICTIONS``) is what the network outputs at x_t: ``"eps"`` the noise (the paper's), ``"x0"``
+the clean data, ``"v"`` = sqrt(abar_t) eps - sqrt(1 - abar_t) x0 (Salimans & Ho 2022). Every type is an affine
+map of (x_t, output) to x0_hat and to eps_hat, consistent with the forward process
+(``x_t = sqrt(abar_t) x0_hat + sqrt(1 - abar_t) eps_hat`` holds exactly in exact arithmetic); adding a type is one
+entry of ``_AFFINE`` and of ``training_target``.
 
 **eta** is DDIM's eta (Song et al. 2021) everywhere in this package: it picks the deterministic update from t to
 an earlier t' with the noise term left out. ``eta = 1``: the mean of the DDPM posterior q(x_t' | x_t, x0_hat);
@@ -19,6 +27,7 @@ training). All quantities are dimensionless (x is z-scored).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -28,6 +37,52 @@ from ..errors import BodySchemaInputError
 
 TimeStep = int | torch.Tensor
 SPACINGS = ("quad", "linspace", "trailing")  # strided timestep lists, see NoiseSchedule.timesteps
+PREDICTIONS = ("eps", "x0", "v")  # what the network outputs, see the module doc
+
+
+def check_prediction(prediction) -> str:
+    """``prediction`` if it is one of ``PREDICTIONS``; else a ``BodySchemaInputError`` naming the allowed ones."""
+    if prediction not in PREDICTIONS:
+        raise BodySchemaInputError(f"unknown prediction {prediction!r}; allowed: {list(PREDICTIONS)}")
+    return prediction
+
+
+@dataclass(frozen=True)
+class OutputAffine:
+    """At one step: ``x0_hat = (x0_x x_t + x0_out out) / x0_div`` and ``eps_hat = (eps_x x_t + eps_out out) /
+    eps_div`` for the network output ``out``. Floats (from the float64 buffers) or broadcastable tensors."""
+
+    x0_x: object
+    x0_out: object
+    x0_div: object
+    eps_x: object
+    eps_out: object
+    eps_div: object
+
+    def x0_coefficients(self) -> tuple[float, float]:
+        """(a, b) with x0_hat = a x_t + b out (floats)."""
+        inv = 1.0 / self.x0_div
+        return self.x0_x * inv, self.x0_out * inv
+
+    def eps_coefficients(self) -> tuple[float, float]:
+        """(a, b) with eps_hat = a x_t + b out (floats)."""
+        inv = 1.0 / self.eps_div
+        return self.eps_x * inv, self.eps_out * inv
+
+
+# prediction -> OutputAffine from (s0, s1) = (sqrt(abar_t), sqrt(1 - abar_t)): the ONE table of conversions
+_AFFINE = {"eps": lambda s0, s1: OutputAffine(1.0, -s1, s0, 0.0, 1.0, 1.0),  # eq:diff-1; eps_hat = out
+           "x0": lambda s0, s1: OutputAffine(0.0, 1.0, 1.0, 1.0, -s0, s1),  # x0_hat = out
+           "v": lambda s0, s1: OutputAffine(s0, -s1, 1.0, s1, s0, 1.0)}  # v = s0 eps - s1 x0
+
+
+def _affine(a, x: torch.Tensor, b, out: torch.Tensor, div) -> torch.Tensor:
+    """(a x + b out) / div, skipping the terms a Python 0 or 1 makes trivial (so eps_hat IS the eps output)."""
+    trivial = lambda c, v: isinstance(c, float) and c == v  # noqa: E731
+    value = out if trivial(b, 1.0) else b * out
+    if not trivial(a, 0.0):
+        value = a * x + value if not trivial(a, 1.0) else x + value
+    return value if trivial(div, 1.0) else value / div
 
 
 class NoiseSchedule(nn.Module):
@@ -106,14 +161,55 @@ class NoiseSchedule(nn.Module):
             self._check_t(t)
         return self._gather(self.sqrt_alpha_bars, t, x0) * x0 + self._gather(self.sqrt_one_minus_alpha_bars, t, x0) * eps
 
-    def predict_x0(self, x_t: torch.Tensor, eps_hat: torch.Tensor, t: TimeStep) -> torch.Tensor:
-        """eq:diff-1: ``x0_hat = (x_t - sqrt(1 - abar_t) eps_hat) / sqrt(abar_t)`` (exact inverse of add_noise).
-
-        Note d x0_hat / d x_t ~ 1/sqrt(abar_t): up to ~180x at t = T-1 for T = 200 (why the paper's guidance
-        step with a fixed lr diverges early in SI units; docs/design.md, "Guidance step").
-        """
+    def output_affine(self, t: int, prediction: str = "eps") -> OutputAffine:
+        """The conversion of the network's output at step ``t`` (an int) into x0_hat and eps_hat (float
+        coefficients): what the fused sampler folds into its plan."""
         self._check_t(t)
-        return (x_t - self._gather(self.sqrt_one_minus_alpha_bars, t, x_t) * eps_hat) / self._gather(self.sqrt_alpha_bars, t, x_t)
+        abar = float(self.alpha_bars[t])
+        return _AFFINE[check_prediction(prediction)](math.sqrt(abar), math.sqrt(1.0 - abar))
+
+    def split_output(self, output: torch.Tensor, x_t: torch.Tensor, t: TimeStep,
+                     prediction: str = "eps") -> tuple[torch.Tensor, torch.Tensor]:
+        """(x0_hat, eps_hat), each (B, D), from the network's ``output`` (B, D) at ``x_t`` (B, D) and step t (int or
+        (B,)): THE conversion every sampler path uses (``output_affine``'s coefficients, as tensors for a (B,) t)."""
+        aff = self._affine_at(t, prediction, x_t)
+        return (_affine(aff.x0_x, x_t, aff.x0_out, output, aff.x0_div),
+                _affine(aff.eps_x, x_t, aff.eps_out, output, aff.eps_div))
+
+    def _affine_at(self, t: TimeStep, prediction: str, like: torch.Tensor) -> OutputAffine:
+        self._check_t(t)
+        if isinstance(t, torch.Tensor):
+            s0, s1 = self._gather(self.sqrt_alpha_bars, t, like), self._gather(self.sqrt_one_minus_alpha_bars, t, like)
+            return _AFFINE[check_prediction(prediction)](s0, s1)
+        return self.output_affine(t, prediction)
+
+    def predict_x0(self, x_t: torch.Tensor, output: torch.Tensor, t: TimeStep, prediction: str = "eps") -> torch.Tensor:
+        """x0_hat from the network's ``output`` (``split_output``); for eps, eq:diff-1:
+        ``x0_hat = (x_t - sqrt(1 - abar_t) eps_hat) / sqrt(abar_t)`` (exact inverse of add_noise).
+
+        Note d x0_hat / d x_t ~ 1/sqrt(abar_t) for eps: large at t = T-1 (why the paper's guidance step with a fixed
+        lr diverges early in SI units; docs/design.md, "Guidance step").
+        """
+        return self.split_output(output, x_t, t, prediction)[0]
+
+    def training_target(self, x0: torch.Tensor, eps: torch.Tensor, t: TimeStep, prediction: str = "eps"):
+        """What the network is trained to output at ``add_noise(x0, eps, t)``: eps, x0, or
+        v = sqrt(abar_t) eps - sqrt(1 - abar_t) x0. x0, eps (B, D); t int or (B,) (not range-checked)."""
+        if check_prediction(prediction) == "eps":
+            return eps
+        if prediction == "x0":
+            return x0
+        return self._gather(self.sqrt_alpha_bars, t, x0) * eps - self._gather(self.sqrt_one_minus_alpha_bars, t, x0) * x0
+
+    def min_snr_weight(self, t: torch.Tensor, gamma: float, prediction: str = "eps") -> torch.Tensor:
+        """Min-SNR-gamma loss weight (Hang et al. 2023) per sample, (B,), for steps ``t`` (B,): with
+        SNR_t = abar_t / (1 - abar_t), min(SNR_t, gamma) / SNR_t for eps, min(SNR_t, gamma) for x0 and
+        min(SNR_t, gamma) / (SNR_t + 1) for v (each the x0-error weight min(SNR_t, gamma) in the type's own units)."""
+        abar = self.alpha_bars[t]
+        snr = abar / (1.0 - abar)
+        clipped = snr.clamp(max=float(gamma))
+        divisor = {"eps": snr, "x0": torch.ones_like(snr), "v": snr + 1.0}[check_prediction(prediction)]
+        return clipped / divisor
 
     def step_coefficients(self, t: int, t_prev: int, eta: float = 1.0) -> tuple[float, float]:
         """(cx, ce) of the deterministic update ``x_t' = cx x_t + ce eps_hat`` from t to t_prev (-1: the data).
@@ -135,10 +231,14 @@ class NoiseSchedule(nn.Module):
         s0, s1 = math.sqrt(abar), math.sqrt(1.0 - abar)
         return math.sqrt(abar_prev) / s0, math.sqrt(max(0.0, 1.0 - abar_prev - sigma2)) - math.sqrt(abar_prev) * s1 / s0
 
-    def step(self, x_t: torch.Tensor, eps_hat: torch.Tensor, t: int, t_prev: int, eta: float = 1.0) -> torch.Tensor:
-        """The deterministic update x_t -> x_{t_prev} (``step_coefficients``); eta = 1 and t_prev = t - 1 is
-        eq:diff-2 without its noise term, and at t = 0 -> -1 the result is x0_hat."""
+    def step(self, x_t: torch.Tensor, output: torch.Tensor, t: int, t_prev: int, eta: float = 1.0,
+             prediction: str = "eps") -> torch.Tensor:
+        """The deterministic update x_t -> x_{t_prev} (``step_coefficients``) from the network's ``output`` at x_t
+        (eps_hat by ``split_output``); eta = 1 and t_prev = t - 1 is eq:diff-2 without its noise term, and at
+        t = 0 -> -1 the result is x0_hat."""
         cx, ce = self.step_coefficients(t, t_prev, eta)
+        aff = self._affine_at(t, prediction, x_t)
+        eps_hat = _affine(aff.eps_x, x_t, aff.eps_out, output, aff.eps_div)
         # 1. eq:diff-1 and 2. the re-noising to t_prev, folded into one linear combination of x_t and eps_hat
         return cx * x_t + ce * eps_hat
 
