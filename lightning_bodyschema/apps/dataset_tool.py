@@ -49,7 +49,7 @@ def make_dataset_main(argv=None):
 
     parser = argument_parser("Generate a healthy static-equilibrium dataset in the recorded-data format "
                              "(q_<joint>, l_<muscle>, f_<muscle> columns, SI units; .csv or .npz).")
-    parser.add_argument("--model", default="paper_arm", help="'paper_arm', myo:<name> (the [myo] extra) or a path to an "
+    parser.add_argument("--model", default="paper_arm", help="'paper_arm', myo:<name> (needs myo-sim) or a path to an "
                         "MJCF with spatial tendons")
     parser.add_argument("--config", help="take the robot from a config's data section instead of --model (model, "
                         "muscles, locked_joints, fixed_base, spring constants), e.g. configs/myoarm-diff.yaml")

@@ -128,7 +128,7 @@ class EquilibriumDataModule(L.LightningDataModule):
     """Healthy equilibrium samples of a musculoskeletal robot.
 
     Args:
-        model: ``"paper_arm"``, ``myo:<name>`` (a MyoSuite model, ``[myo]`` extra) or a path to an MJCF with
+        model: ``"paper_arm"``, ``myo:<name>`` (a MyoSuite model, needs ``myo-sim``) or a path to an MJCF with
             spatial tendons.
         n_samples: dataset size (paper: 800).
         seed: seeds the postures, reference tensions and the split.

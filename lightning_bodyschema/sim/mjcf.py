@@ -26,9 +26,10 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from .install import MYO_SIM_INSTALL, mujoco_broken_message
 
 MYO_PREFIX = "myo:"
-MYO_EXTRA_HINT = 'install the optional extra: pip install -e ".[myo]" (it adds the myo-sim package)'
+MYO_EXTRA_HINT = f"install it without its mujoco<4 pin, which would replace MuJoCo 4: {MYO_SIM_INSTALL}"
 _VISUAL_ASSETS = ("skins", "meshes", "materials", "textures", "hfields")
 
 
@@ -47,10 +48,12 @@ def packaged_model_xml(name: str) -> str:
 
 
 def _myo_sim():
-    """The ``myo_sim`` module, or one clear error naming the extra that provides it."""
+    """The ``myo_sim`` module, or one clear error naming the install (or MuJoCo's repair when that broke it)."""
     try:
         import myo_sim
-    except ImportError:
+    except ImportError as err:
+        if (err.name or "").startswith("mujoco"):
+            raise BodySchemaInputError(f"MyoSuite models (myo:<name>): {mujoco_broken_message(err)}") from None
         myo_sim = None
     if myo_sim is None:  # also when sys.modules["myo_sim"] is None (how tests simulate its absence)
         raise BodySchemaInputError(f"MyoSuite models (myo:<name>) need myo-sim, which is not installed: "

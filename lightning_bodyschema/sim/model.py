@@ -91,7 +91,7 @@ class MusculoskeletalModel:
     Args:
         source: a packaged model name (``"paper_arm"``, ``"arm3_8"``, ``"opensim_like_arm"``; see
             ``packaged_model_names()``), ``myo:<name>`` for a MyoSuite model (``myo:myoelbow_2dof``,
-            ``myo:myoarm``, ...; needs the ``[myo]`` extra), a path to an MJCF file, or MJCF text.
+            ``myo:myoarm``, ...; needs ``myo-sim``, see ``sim.install``), a path to an MJCF file, or MJCF text.
         muscles: names of the tendons that are muscles; default: the tendons that the model's muscle
             actuators drive when it has any (ligaments and other passive tendons are not muscles), of
             those only the ones crossing a free joint; else every spatial tendon (fixed tendons never).
