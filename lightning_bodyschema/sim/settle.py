@@ -44,6 +44,9 @@ Integration and damping (the rest posture does not depend on damping; only how f
   (``a dt << 2``, ``beta omega^2 dt << 2`` for omega up to ~400 rad/s). The stiffness of the spring
   itself, ``alpha (f + k)``, is explicit too: a command that stretches a muscle by many centimetres
   (tensions of thousands of newtons) can blow the integration up, reported as UNSTABLE.
+* no contacts: the static equilibrium the data and the schemas use has no contact forces, so the
+  simulation has none either (on myoArm the upper arm would otherwise push against the torso at
+  postures the data holds as equilibria, and exact commands would settle elsewhere).
 * joint limits: MuJoCo's soft limit constraints of the model (so a posture pressed into a limit may
   sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N).
 
@@ -208,6 +211,7 @@ class _Simulator:
         self.m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # blow-ups stay visible
         self.m.opt.tolerance = min(self.m.opt.tolerance, SOLVER_TOLERANCE)  # no solver jitter (module docstring)
+        self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)  # the equilibrium has no contacts
         if params.timestep_s is not None:
             self.m.opt.timestep = params.timestep_s
         self.ids = np.asarray(model.muscle_ids)
