@@ -106,3 +106,22 @@ def test_exact_equilibrium_commands_settle_on_myosuite_bodies(config):
     assert out.status_names == ["SETTLED"] * 12
     assert np.abs(out.qvel_rad_s).max() < params.qvel_tol_rad_s
     assert out.E_q_phys.max() < 1e-3  # [rad]: the rest posture is the commanded one (couplings' softness aside)
+
+
+def test_make_dataset_holds_a_floating_base_when_asked(tmp_path, capsys):
+    from lightning_bodyschema.apps.dataset_tool import make_dataset_main
+    from lightning_bodyschema.data import read_recorded
+
+    path = tmp_path / "leg.xml"
+    path.write_text(FLOATING_LEG)
+    with pytest.raises(SystemExit) as exit_info:
+        make_dataset_main(["--model", str(path), "--n", "10", "--out", str(tmp_path / "leg.npz")])
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and len(errors) == 1 and "fixed_base" in errors[0]
+    make_dataset_main(["--model", str(path), "--fixed-base", "--n", "10", "--out", str(tmp_path / "leg.npz"),
+                       "--seed", "1"])
+    table = read_recorded(str(tmp_path / "leg.npz"))
+    model = MusculoskeletalModel(FLOATING_LEG, fixed_base=True)
+    assert table.joints == model.joint_names
+    _, G, tau = model.kinematics(table.q)
+    assert np.abs(np.einsum("bmn,bm->bn", -G, table.f) - tau).max() <= 1e-6
