@@ -192,9 +192,9 @@ class MusculoskeletalModel:
         bad = {kind: [n for n, t in zip(names, m.jnt_type) if int(t) == int(code)]
                for kind, code in (("free", mujoco.mjtJoint.mjJNT_FREE), ("ball", mujoco.mjtJoint.mjJNT_BALL))}
         if bad["free"]:
-            raise BodySchemaInputError(f"joint(s) {bad['free']} are free joints (a floating base); only hinge and slide "
-                                       f"joints are supported: {FIXED_BASE_HINT}, welding the base at the model's "
-                                       "reference pose")
+            raise BodySchemaInputError(f"joint(s) {bad['free']} are free joints (a floating base); only hinge and "
+                                       f"slide joints are supported: {FIXED_BASE_HINT}, welding the base at the "
+                                       "model's reference pose")
         if bad["ball"]:
             raise BodySchemaInputError(f"joint(s) {bad['ball']} are ball joints; only hinge and slide joints are "
                                        "supported: replace each by up to three hinge joints in the MJCF")

@@ -36,7 +36,8 @@ def _walk(name: str, **options):
         return " ".join(str(err).split())  # what the CLI prints: one line
 
 
-@pytest.mark.parametrize("name", [n if n in FAST else pytest.param(n, marks=pytest.mark.slow) for n in _registry_names()])
+@pytest.mark.parametrize("name", [n if n in FAST else pytest.param(n, marks=pytest.mark.slow)
+                                  for n in _registry_names()])
 def test_every_registry_body_builds_equilibria_or_names_the_option_to_set(name):
     outcome = _walk(name)
     if isinstance(outcome, str) and "fixed_base" in outcome:
