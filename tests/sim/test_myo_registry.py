@@ -2,8 +2,8 @@
 is refused with one line that names the option to set; never a traceback.
 
 A refusal naming ``fixed_base`` is followed once (the legs: their pelvis is then held), so a floating body is
-walked as a user would after reading the message. The default run walks the bodies that load in a few seconds;
-the others (hands, arms, torso with arms, full body, the legs with a prosthesis) are marked slow.
+walked as a user would after reading the message. The default run walks the bodies that load in a few seconds
+(``FAST``); the others (hands, arms, torso with arms, full body, and aliases of walked bodies) are marked slow.
 """
 import re
 
@@ -19,7 +19,7 @@ myo_sim = pytest.importorskip("myo_sim")
 # a refusal must name something the user sets: a data-module option, or the model-loader argument behind it
 OPTION = re.compile(r"fixed_base|data\.locked_joints|data\.muscles|allow_unloaded|f_max_n")
 FAST = {"elbow", "finger", "myoelbow", "myoelbow_2dof", "myoelbow_exo", "myofinger", "myolegs", "myolegs26",
-        "myolegs_abdomen", "myotorso_abdomen"}
+        "myolegs_abdomen", "myotorso", "myotorso_abdomen", "osl"}
 
 
 def _registry_names() -> list[str]:
