@@ -152,7 +152,7 @@ def require_positive(**options: int) -> None:
 
 def robot_from_config(path: str):
     """(model, spring, data section) of a config's robot, resolved as the data module resolves them (data.model,
-    data.muscles, data.locked_joints, spring constants), without building a dataset. For the benchmark tools."""
+    data.muscles, data.locked_joints, data.fixed_base, spring constants), without building a dataset. For the benchmark tools."""
     import yaml
 
     from ..sim import MusculoskeletalModel
@@ -164,7 +164,7 @@ def robot_from_config(path: str):
         data = (yaml.safe_load(fh) or {}).get("data") or {}
     data = data.get("init_args", data)  # `data: {class_path, init_args}` or plain keys
     model = MusculoskeletalModel(data.get("model", "paper_arm"), muscles=data.get("muscles"),
-                                 locked_joints=data.get("locked_joints"))
+                                 locked_joints=data.get("locked_joints"), fixed_base=bool(data.get("fixed_base")))
     spring = spring_for_model(model, data.get("k_n"), data.get("alpha_per_m", 20.0), data.get("f_max_n"))
     return model, spring, data
 

@@ -49,10 +49,12 @@ def make_dataset_main(argv=None):
 
     parser = argument_parser("Generate a healthy static-equilibrium dataset in the recorded-data format "
                              "(q_<joint>, l_<muscle>, f_<muscle> columns, SI units; .csv or .npz).")
-    parser.add_argument("--model", default="paper_arm", help="'paper_arm', myo:<name> (the [myo] extra) or a path to an "
+    parser.add_argument("--model", default="paper_arm", help="'paper_arm', myo:<name> (needs myo-sim) or a path to an "
                         "MJCF with spatial tendons")
     parser.add_argument("--config", help="take the robot from a config's data section instead of --model (model, "
-                        "muscles, locked_joints, spring constants), e.g. configs/myoarm-diff.yaml")
+                        "muscles, locked_joints, fixed_base, spring constants), e.g. configs/myoarm-diff.yaml")
+    parser.add_argument("--fixed-base", action="store_true", help="weld --model's floating base (free joint) at its "
+                        "reference pose, e.g. for myo:myolegs")
     parser.add_argument("--n", type=int, default=800, help="number of samples (default 800, the paper's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output file: .csv, else .npz")
@@ -69,7 +71,7 @@ def make_dataset_main(argv=None):
     if args.config:
         model, spring, _ = robot_from_config(args.config)
     else:  # the data module's defaults: the actuators' peak forces for MyoSuite bodies, the paper's 150 N otherwise
-        model = MusculoskeletalModel(args.model)
+        model = MusculoskeletalModel(args.model, fixed_base=args.fixed_base)
         spring = spring_for_model(model, None, 20.0, None)
     source = model
     if args.mismatch > 0:

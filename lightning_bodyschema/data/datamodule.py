@@ -139,7 +139,7 @@ class EquilibriumDataModule(L.LightningDataModule):
     """Healthy equilibrium samples of a musculoskeletal robot.
 
     Args:
-        model: ``"paper_arm"``, ``myo:<name>`` (a MyoSuite model, ``[myo]`` extra) or a path to an MJCF with
+        model: ``"paper_arm"``, ``myo:<name>`` (a MyoSuite model, needs ``myo-sim``) or a path to an MJCF with
             spatial tendons.
         n_samples: dataset size (paper: 800).
         seed: seeds the postures, reference tensions and the split.
@@ -157,6 +157,8 @@ class EquilibriumDataModule(L.LightningDataModule):
             every other output of a run, so a checkout stays clean.
         locked_joints: ``{joint: value}`` [rad or m] held fixed; joints no muscle crosses are locked at
             their reference position anyway (one summary line).
+        fixed_base: weld a floating base (free joint, e.g. MyoSuite's legs' pelvis) at the model's reference
+            pose; see ``MusculoskeletalModel``.
     """
 
     def __init__(self, model: str = "paper_arm", n_samples: int = 800, seed: int = 0, val_fraction: float = 0.2,
@@ -164,14 +166,15 @@ class EquilibriumDataModule(L.LightningDataModule):
                  alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] | str | None = None,
                  gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
                  cache_dir: Optional[str] = "runs/cache", locked_joints: Optional[dict[str, float]] = None,
-                 batch_size: int = 64):
+                 batch_size: int = 64, fixed_base: bool = False):
         super().__init__()
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
         check_loader_args(seed, val_fraction, batch_size)
         check_split(int(n_samples), val_fraction)
         self.save_hyperparameters()
-        self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity, locked_joints=locked_joints)
+        self.robot_model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity, locked_joints=locked_joints,
+                                                fixed_base=fixed_base)
         self.spring = spring_for_model(self.robot_model, k_n, alpha_per_m, f_max_n)
         self.normalizer = Normalizer(2 * self.robot_model.n_muscles, self.robot_model.n_joints)
         self.arrays: dict[str, np.ndarray] | None = None

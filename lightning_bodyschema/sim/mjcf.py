@@ -7,22 +7,29 @@ A checkpoint stores the robot as XML text, so that text must rebuild the same ph
 that has neither ``myo-sim`` nor the mesh files: ``self_contained_xml`` gives every body its compiled
 mass and inertia explicitly and then drops what only draws the model (mesh geoms, meshes, textures,
 materials, skins, height fields), plus keyframes and sensors. Bodies, joints, equality couplings,
-tendons with their sites and wrapping geometry, and collision primitives stay.
+tendons with their sites and wrapping geometry, and collision primitives stay. A mesh geom that also
+collides goes with the meshes, and so does every ``<contact><pair>`` naming a dropped geom (the static
+equilibrium has no contact forces; the settle simulation then has no contacts on those meshes);
+``<contact><exclude>`` names bodies, which all stay. Composed models whose default classes repeat a name
+(MyoSuite's two-arm and two-hand bodies attach one arm twice) keep one copy of each class (the copies
+differ only in the materials dropped here); two different classes under one name are refused.
 """
 from __future__ import annotations
 
 import os
 import re
 import warnings
+import xml.etree.ElementTree as ET
 from importlib import resources
 
 import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from .install import MYO_SIM_INSTALL, mujoco_broken_message
 
 MYO_PREFIX = "myo:"
-MYO_EXTRA_HINT = 'install the optional extra: pip install -e ".[myo]" (it adds the myo-sim package)'
+MYO_EXTRA_HINT = f"install it without its mujoco<4 pin, which would replace MuJoCo 4: {MYO_SIM_INSTALL}"
 _VISUAL_ASSETS = ("skins", "meshes", "materials", "textures", "hfields")
 
 
@@ -41,10 +48,12 @@ def packaged_model_xml(name: str) -> str:
 
 
 def _myo_sim():
-    """The ``myo_sim`` module, or one clear error naming the extra that provides it."""
+    """The ``myo_sim`` module, or one clear error naming the install (or MuJoCo's repair when that broke it)."""
     try:
         import myo_sim
-    except ImportError:
+    except ImportError as err:
+        if (err.name or "").startswith("mujoco"):
+            raise BodySchemaInputError(f"MyoSuite models (myo:<name>): {mujoco_broken_message(err)}") from None
         myo_sim = None
     if myo_sim is None:  # also when sys.modules["myo_sim"] is None (how tests simulate its absence)
         raise BodySchemaInputError(f"MyoSuite models (myo:<name>) need myo-sim, which is not installed: "
@@ -116,9 +125,7 @@ def self_contained_xml(spec: mujoco.MjSpec) -> str:
         body.mass, body.ipos = compiled.body_mass[i], compiled.body_ipos[i]
         body.iquat, body.inertia = compiled.body_iquat[i], compiled.body_inertia[i]
         body.fullinertia = np.full(6, np.nan)  # principal axes given by iquat
-    for geom in list(spec.geoms):
-        if geom.type == mujoco.mjtGeom.mjGEOM_MESH or geom.type == mujoco.mjtGeom.mjGEOM_HFIELD:
-            spec.delete(geom)
+    _drop_mesh_geoms(spec)
     for kind in ("geoms", "sites", "tendons"):
         for element in getattr(spec, kind):
             element.material = ""
@@ -131,7 +138,43 @@ def self_contained_xml(spec: mujoco.MjSpec) -> str:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         xml = re.sub(r'\s(material|mesh|hfield|texture)="[^"]*"', "", spec.to_xml())
+    xml = _dedupe_default_classes(xml)
     try:
         return mujoco.MjSpec.from_string(xml).to_xml()
     except Exception as err:
         raise BodySchemaInputError(f"model could not be made self-contained: {str(err).strip()}") from None
+
+
+def _drop_mesh_geoms(spec: mujoco.MjSpec):
+    """Delete mesh and height-field geoms, and the contact pairs that name one of them."""
+    dropped = set()
+    for geom in list(spec.geoms):
+        if geom.type in (mujoco.mjtGeom.mjGEOM_MESH, mujoco.mjtGeom.mjGEOM_HFIELD):
+            dropped.add(geom.name)
+            spec.delete(geom)
+    dropped.discard("")
+    for pair in list(spec.pairs):
+        if pair.geomname1 in dropped or pair.geomname2 in dropped:
+            spec.delete(pair)
+
+
+def _dedupe_default_classes(xml: str) -> str:
+    """MJCF text with a default class written twice, identically, written once (MuJoCo reads no repeated name)."""
+    names = re.findall(r'<default class="([^"]*)"', xml)
+    if len(names) == len(set(names)):
+        return xml
+    root = ET.fromstring(xml)
+    first: dict[str, bytes] = {}
+    for parent in list(root.iter("default")):
+        for child in list(parent.findall("default")):
+            tail, child.tail = child.tail, None  # the whitespace after an element is not part of it
+            name, text = child.get("class"), ET.tostring(child)
+            child.tail = tail
+            if name not in first:
+                first[name] = text
+            elif first[name] == text:
+                parent.remove(child)
+            else:
+                raise BodySchemaInputError(f"model has two different default classes named {name!r}; "
+                                           "give them different names")
+    return ET.tostring(root, encoding="unicode")

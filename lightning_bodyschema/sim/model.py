@@ -18,7 +18,7 @@ from ..errors import BodySchemaInputError
 from .joints import JointMap
 from .mjcf import compile_spec, load_spec, packaged_model_names, packaged_model_xml, self_contained_xml
 
-_SUPPORTED_JOINTS = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+FIXED_BASE_HINT = "hold the base with fixed_base=True (data.fixed_base: true in a config)"
 UNLOADED_TAU_NM = 1e-9  # below this gravity torque at every probed posture, gravity does not load the joints
 
 
@@ -77,13 +77,21 @@ def _add_locks(spec: mujoco.MjSpec, locked: Mapping[str, float]):
         eq.data[:5] = [value - float(joint.ref), 0.0, 0.0, 0.0, 0.0]
 
 
+def _weld_free_joints(spec: mujoco.MjSpec):
+    """Delete every free joint: its body stays where the MJCF puts it (``fixed_base``). Keyframes, whose qpos had
+    the free joints' 7 numbers, go too (the stored XML drops them anyway)."""
+    free = [j for j in spec.joints if j.type == mujoco.mjtJoint.mjJNT_FREE]
+    for element in free + (list(spec.keys) if free else []):
+        spec.delete(element)
+
+
 class MusculoskeletalModel:
     """A MuJoCo model whose spatial tendons are the robot's muscles.
 
     Args:
         source: a packaged model name (``"paper_arm"``, ``"arm3_8"``, ``"opensim_like_arm"``; see
             ``packaged_model_names()``), ``myo:<name>`` for a MyoSuite model (``myo:myoelbow_2dof``,
-            ``myo:myoarm``, ...; needs the ``[myo]`` extra), a path to an MJCF file, or MJCF text.
+            ``myo:myoarm``, ...; needs ``myo-sim``, see ``sim.install``), a path to an MJCF file, or MJCF text.
         muscles: names of the tendons that are muscles; default: the tendons that the model's muscle
             actuators drive when it has any (ligaments and other passive tendons are not muscles), of
             those only the ones crossing a free joint; else every spatial tendon (fixed tendons never).
@@ -96,6 +104,12 @@ class MusculoskeletalModel:
             ``<equality joint>`` locks, so the stored XML carries them).
         lock_uncrossed: lock free joints that no muscle crosses at their reference position (clipped
             into their range), printing one summary line: nothing could hold them against gravity.
+        fixed_base: hold a floating base: every ``<freejoint>`` (a root body's 6-DOF joint, e.g.
+            MyoSuite's legs' pelvis) is deleted before compiling, so its body is welded to the world
+            at the pose the MJCF places it in (the model's reference pose, ``qpos0``; for MyoSuite's
+            legs the standing pelvis). The stored XML has no free joint, so rebuilding from it needs
+            no option. Without it a free joint is refused, naming this option. Ball joints are refused
+            in any case: replace each by up to three hinge joints in the MJCF.
 
     Postures ``q (B, N)`` are the *free* joints (``joint_names``): those neither locked nor following
     another through an ``<equality joint>`` coupling (see ``sim/joints.py``); without couplings and
@@ -108,8 +122,11 @@ class MusculoskeletalModel:
 
     def __init__(self, source: str = "paper_arm", muscles: Sequence[str] | None = None,
                  gravity: Sequence[float] | None = None, allow_unloaded: bool = False,
-                 locked_joints: Mapping[str, float] | None = None, lock_uncrossed: bool = True):
+                 locked_joints: Mapping[str, float] | None = None, lock_uncrossed: bool = True,
+                 fixed_base: bool = False):
         spec = load_spec(source)
+        if fixed_base:
+            _weld_free_joints(spec)
         self._actuator_forces = _muscle_forces(spec)
         for actuator in list(spec.actuators):
             spec.delete(actuator)
@@ -169,14 +186,18 @@ class MusculoskeletalModel:
     # ------------------------------------------------------------------ structure
     def _check_joints(self):
         m = self.mj_model
-        if m.njnt == 0 or m.nq != m.nv:
-            raise BodySchemaInputError(
-                f"model has {m.njnt} joints with nq={m.nq}, nv={m.nv}: need at least one joint, "
-                "and only hinge or slide joints are supported")
-        bad = [self._name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)
-               if int(m.jnt_type[j]) not in _SUPPORTED_JOINTS]
-        if bad:
-            raise BodySchemaInputError(f"joints {bad} are not hinge or slide joints; only those are supported")
+        if m.njnt == 0:
+            raise BodySchemaInputError("model has no joint: need at least one hinge or slide joint")
+        names = [self._name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt)]
+        bad = {kind: [n for n, t in zip(names, m.jnt_type) if int(t) == int(code)]
+               for kind, code in (("free", mujoco.mjtJoint.mjJNT_FREE), ("ball", mujoco.mjtJoint.mjJNT_BALL))}
+        if bad["free"]:
+            raise BodySchemaInputError(f"joint(s) {bad['free']} are free joints (a floating base); only hinge and "
+                                       f"slide joints are supported: {FIXED_BASE_HINT}, welding the base at the "
+                                       "model's reference pose")
+        if bad["ball"]:
+            raise BodySchemaInputError(f"joint(s) {bad['ball']} are ball joints; only hinge and slide joints are "
+                                       "supported: replace each by up to three hinge joints in the MJCF")
         unlimited = [self._name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(m.njnt) if not m.jnt_limited[j]]
         if unlimited:
             raise BodySchemaInputError(f"joints {unlimited} have no range; every joint needs range=\"lo hi\"")

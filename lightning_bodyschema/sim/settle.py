@@ -44,11 +44,16 @@ Integration and damping (the rest posture does not depend on damping; only how f
   (``a dt << 2``, ``beta omega^2 dt << 2`` for omega up to ~400 rad/s). The stiffness of the spring
   itself, ``alpha (f + k)``, is explicit too: a command that stretches a muscle by many centimetres
   (tensions of thousands of newtons) can blow the integration up, reported as UNSTABLE.
+* no contacts: the static equilibrium the data and the schemas use has no contact forces, so the
+  simulation has none either (on myoArm the upper arm would otherwise push against the torso at
+  postures the data holds as equilibria, and exact commands would settle elsewhere).
 * joint limits: MuJoCo's soft limit constraints of the model (so a posture pressed into a limit may
   sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N).
 
 Stopping: every ``check_every_steps`` steps, SETTLED when ``max|qvel| < qvel_tol_rad_s`` and
-``max|qacc| < qacc_tol_rad_s2`` (the acceleration test rejects the turning point of an oscillation,
+``max|qacc| < qacc_tol_rad_s2`` over the free joints (followers and locked joints are not coordinates of
+q; a follower's velocity is its leader's times the coupling slope plus its constraint's own ringing)
+(the acceleration test rejects the turning point of an oscillation,
 where the velocity is momentarily zero; with the defaults the rest posture is within ~3e-5 rad of the
 true equilibrium); UNSTABLE when a joint force exceeds ``max_torque_nm`` or is NaN (checked every step,
 before MuJoCo integrates it, so MuJoCo never prints its own blow-up warning), the state is non-finite,
@@ -60,8 +65,14 @@ unstable equilibrium at q_ref is reported as settled: the simulation starts with
 Couplings and locks (``<equality joint>``, sim/joints.py): q_ref and q_settle are the free joints; the
 simulation runs on every joint. A locked joint gets a huge armature (so the arm moves as if it were welded)
 and is reset to its value at rest after every step: it never moves. A coupling is MuJoCo's equality
-constraint made near-hard (followers miss their polynomial by ~1e-6 rad at rest; E_q_phys of an exact
-equilibrium command ~1e-4 rad instead of ~1e-9 without couplings).
+constraint made near-hard (MuJoCo's largest impedance; a follower misses its polynomial at rest by the
+constraint's softness times the force it carries, so E_q_phys of an exact equilibrium command is that small
+miss instead of float rounding). MuJoCo's constraint solver stops when an
+iteration improves its cost by less than ``opt.tolerance`` of it; the constraint forces it leaves are off by
+about that fraction, and near-hard couplings turn that error into accelerations that change at random from
+step to step: the free joints jitter at a speed set by the solver, not by the physics. The simulation solves
+to ``SOLVER_TOLERANCE`` instead of MuJoCo's default 1e-8 (Newton converges quadratically: a step or two more),
+which leaves that jitter far below ``qvel_tol_rad_s``: the rest test keeps its meaning (the arm's own motion).
 
 Batching: MuJoCo steps one MjData at a time and the tension law needs a per-step computation that
 ``mujoco.rollout`` cannot express (it would need a global Python callback). So the cases of a chunk
@@ -90,12 +101,13 @@ import numpy as np
 
 from ..errors import BodySchemaInputError
 from .model import MusculoskeletalModel
-from .settle_inputs import _check_inputs, _is_cases
+from .settle_inputs import _Laws, _check_inputs, _force_laws, _is_cases
 from .spring import SpringParams
 
 MODES = ("length", "tension")
 LOCK_ARMATURE = 1e6  # [kg m^2] added to a locked joint: it does not accelerate (see _hold_couplings_and_locks)
-COUPLING_IMPEDANCE = 0.999  # MuJoCo solimp d of a coupling in the simulation: near-hard (0.99 left cases chattering)
+COUPLING_IMPEDANCE = 0.9999  # MuJoCo solimp d of a coupling in the simulation: near-hard (MuJoCo's largest d)
+SOLVER_TOLERANCE = 1e-12  # MuJoCo opt.tolerance in the simulation: constraint forces solved to convergence
 JAM_MODES = ("one_sided", "immobile")  # the same names as evaluation.feasibility.JAM_MODELS
 
 
@@ -180,36 +192,6 @@ class SettleResult:
         return [SettleStatus(int(s)).name for s in self.status]
 
 
-class _Laws(NamedTuple):
-    """Per-muscle force laws (B, M): a spring with rest length ``rest_m`` where ``spring``, else ``f_const_n``."""
-
-    rest_m: np.ndarray  # spring rest length [m]
-    spring: np.ndarray  # bool: exponential spring (else a constant force)
-    f_const_n: np.ndarray  # constant tension where not a spring [N] (0 for cut muscles)
-    f_cap_n: np.ndarray  # tension ceiling [N]: a weakened muscle's f_max', inf elsewhere
-
-    def take(self, idx):
-        return _Laws(*(a[idx] for a in self))
-
-
-def _force_laws(l_motor, f, cut, fix, l_fixed, params: SettleParams, f_max=None, l_band=None) -> _Laws:
-    """The force law of every muscle of every case (see the module docstring).
-
-    ``f_max`` (B, M) weakened muscles' limits (NaN: not weakened), ``l_band`` (B, M, 2) motor bands (NaN: free).
-    """
-    with np.errstate(invalid="ignore"):  # NaN commands are never simulated
-        jam_rest = l_fixed if params.jam == "immobile" else np.minimum(l_motor, l_fixed)
-        healthy = ~(cut | fix)
-        spring = fix | (healthy & (params.mode == "length"))
-        f_const = np.where(healthy & ~spring, np.maximum(f, 0.0), 0.0)
-        rest = np.where(fix, jam_rest, l_motor)
-        if l_band is not None and params.mode == "length":
-            banded = ~np.isnan(l_band).all(-1)
-            rest = np.where(banded, np.clip(rest, l_band[..., 0], l_band[..., 1]), rest)
-    f_cap = np.full(rest.shape, np.inf) if f_max is None else np.where(np.isnan(f_max), np.inf, f_max)
-    return _Laws(rest, spring, f_const, f_cap)
-
-
 # ---------------------------------------------------------------------------- simulation
 class _Final(NamedTuple):
     """Per-case outcome of one lockstep run (arrays over the cases of the run)."""
@@ -228,6 +210,8 @@ class _Simulator:
         self.m = copy.copy(model.mj_model)  # private: integrator, timestep and flags are ours to set
         self.m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # blow-ups stay visible
+        self.m.opt.tolerance = min(self.m.opt.tolerance, SOLVER_TOLERANCE)  # no solver jitter (module docstring)
+        self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)  # the equilibrium has no contacts
         if params.timestep_s is not None:
             self.m.opt.timestep = params.timestep_s
         self.ids = np.asarray(model.muscle_ids)
@@ -242,8 +226,8 @@ class _Simulator:
     def _hold_couplings_and_locks(self):
         """Locks: the equality is switched off and the joint gets a huge armature, so it does not accelerate while
         the rest of the arm moves exactly as if it were welded (M_jj -> inf), then is reset each step. Couplings:
-        MuJoCo's equality constraint made stiff (time constant 2 steps, impedance 0.999): at rest a follower misses
-        its polynomial by ~(1 - d) a / (d k) ~ 1e-6 rad, and its constraint force is the one the arm needs."""
+        MuJoCo's equality constraint made stiff (time constant 2 steps, impedance COUPLING_IMPEDANCE): at rest a
+        follower misses its polynomial by ~(1 - d) a / (d k), and its constraint force is the one the arm needs."""
         m, jm = self.m, self.joint_map
         self._locked = np.array(sorted(jm.locked), dtype=int)
         self._locked_values = np.array([jm.locked[j] for j in self._locked])

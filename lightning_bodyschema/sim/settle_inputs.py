@@ -1,5 +1,8 @@
-"""Inputs of the settle check: a case batch or q_ref with masks, as validated (B, M) arrays (one clear error each)."""
+"""Inputs of the settle check: a case batch or q_ref with masks, as validated (B, M) arrays (one clear error each),
+and the force law they give each muscle (``sim/settle.py`` describes the laws)."""
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
@@ -51,3 +54,33 @@ def _check_inputs(model, l_motor, f, cases_or_q_ref, cut, fix, l_fixed):
                                    f"{np.flatnonzero(np.any(fix & ~np.isfinite(l_fixed), axis=1)).tolist()}")
     finite = np.all(np.isfinite(l_motor) & np.isfinite(f), axis=1)
     return q_ref, l_motor, f, cut, fix, l_fixed, finite
+
+
+class _Laws(NamedTuple):
+    """Per-muscle force laws (B, M): a spring with rest length ``rest_m`` where ``spring``, else ``f_const_n``."""
+
+    rest_m: np.ndarray  # spring rest length [m]
+    spring: np.ndarray  # bool: exponential spring (else a constant force)
+    f_const_n: np.ndarray  # constant tension where not a spring [N] (0 for cut muscles)
+    f_cap_n: np.ndarray  # tension ceiling [N]: a weakened muscle's f_max', inf elsewhere
+
+    def take(self, idx):
+        return _Laws(*(a[idx] for a in self))
+
+
+def _force_laws(l_motor, f, cut, fix, l_fixed, params, f_max=None, l_band=None) -> _Laws:
+    """The force law of every muscle of every case (``sim/settle.py`` describes each).
+
+    ``f_max`` (B, M) weakened muscles' limits (NaN: not weakened), ``l_band`` (B, M, 2) motor bands (NaN: free).
+    """
+    with np.errstate(invalid="ignore"):  # NaN commands are never simulated
+        jam_rest = l_fixed if params.jam == "immobile" else np.minimum(l_motor, l_fixed)
+        healthy = ~(cut | fix)
+        spring = fix | (healthy & (params.mode == "length"))
+        f_const = np.where(healthy & ~spring, np.maximum(f, 0.0), 0.0)
+        rest = np.where(fix, jam_rest, l_motor)
+        if l_band is not None and params.mode == "length":
+            banded = ~np.isnan(l_band).all(-1)
+            rest = np.where(banded, np.clip(rest, l_band[..., 0], l_band[..., 1]), rest)
+    f_cap = np.full(rest.shape, np.inf) if f_max is None else np.where(np.isnan(f_max), np.inf, f_max)
+    return _Laws(rest, spring, f_const, f_cap)
