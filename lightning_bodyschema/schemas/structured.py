@@ -25,7 +25,6 @@ from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
 from ..faults.qp import OK, STATUS_DTYPE, fault_command, intersect_bounds
 from ..networks.structured import JacobianMLP
-from ..sim.spring import elongation_from_tension
 from .base import BodySchema
 
 TORQUE_MODELS = ("potential", "direct")
@@ -104,11 +103,12 @@ class StructuredSchema(BodySchema):
 
     # ------------------------------------------------------------------ training
     def training_loss(self, q_n, x_n):
-        m, spring = self.n_muscles, self.spring
+        m = self.n_muscles
         x = self.normalizer.decode_x(x_n.double())
         l_motor, f = x[:, :m], x[:, m:]
         l_mean, l_std = self.normalizer.x_mean[:m], self.normalizer.x_std[:m]
-        target_n = ((l_motor + elongation_from_tension(f, spring) - l_mean) / l_std).to(x_n.dtype)
+        k, alpha = self._spring_tensors(f)
+        target_n = ((l_motor + torch.log1p(f.clamp_min(0.0) / k) / alpha - l_mean) / l_std).to(x_n.dtype)
         l_geo, G, tau = self.body(q_n)
         error_n = (l_geo - l_mean.to(x_n.dtype)) / l_std.to(x_n.dtype) - target_n
         weight = self._length_weight(f, l_std).to(x_n.dtype)
@@ -124,10 +124,14 @@ class StructuredSchema(BodySchema):
         divided by its mean at f = 0; ones without ``stiffness_weighted``."""
         if not self.hparams.stiffness_weighted:
             return torch.ones_like(f)
-        k = torch.as_tensor(self.spring.k_n, dtype=f.dtype, device=f.device)
-        alpha = torch.as_tensor(self.spring.alpha_per_m, dtype=f.dtype, device=f.device)
+        k, alpha = self._spring_tensors(f)
         per_n = alpha * (f + k) * l_std
         return per_n / (alpha * k * l_std).mean()
+
+    def _spring_tensors(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """k [N] and alpha [1/m] as tensors like ``like`` (scalars or (M,): the spring may be per muscle)."""
+        return tuple(torch.as_tensor(v, dtype=like.dtype, device=like.device)
+                     for v in (self.spring.k_n, self.spring.alpha_per_m))
 
     # ------------------------------------------------------------------ commands
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
