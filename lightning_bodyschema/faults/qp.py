@@ -25,6 +25,9 @@ from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elo
 from .constraints import LENGTH
 
 OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
+# proxsuite iterations per command QP: a feasible one converges in a few dozen; one without a solution would otherwise
+# run the dataset QP's 2000 iterations (seconds per case) before the least-squares answer takes over
+QP_MAX_ITER = 200
 STATUS_DTYPE = "<U18"
 
 
@@ -80,7 +83,7 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     box_lo, box_hi = tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring)
     crossed = (box_lo > box_hi).any(1)
     box_lo = np.minimum(box_lo, box_hi)
-    f, ok = solve_equilibrium_qp(G, tau_nm, f_ref, box_hi, box_lo)
+    f, ok = solve_equilibrium_qp(G, tau_nm, f_ref, box_hi, box_lo, max_iter=QP_MAX_ITER)
     ok &= ~crossed
     if not ok.all():
         f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg)
