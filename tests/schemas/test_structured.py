@@ -196,3 +196,20 @@ def test_trains_end_to_end_from_a_recorded_csv(tmp_path):
     assert set(result.status) <= {"unchecked", INFEASIBLE_LEARNED} and (result.status == "unchecked").mean() > 0.9
     unchecked = result.status == "unchecked"
     assert (result.f_n[unchecked, 0] == 0.0).all()
+
+
+def test_per_muscle_springs_give_the_loss_of_the_same_scalar_spring():
+    """myoArm's springs are per muscle (lists): the loss must read them as tensors, and equal lists = the scalar."""
+    datamodule = EquilibriumDataModule(n_samples=50, seed=1, cache_dir=None)
+    datamodule.setup("fit")
+    q, x = datamodule.splits["train"]
+    losses = []
+    for spring in ({"k_n": 1000.0, "alpha_per_m": 20.0, "f_max_n": 150.0},
+                   {"k_n": [1000.0] * 6, "alpha_per_m": [20.0] * 6, "f_max_n": [150.0] * 6}):
+        torch.manual_seed(0)
+        schema = StructuredSchema(robot={**datamodule.robot, "spring": spring}, hidden=16, n_hidden=1).double()
+        schema.normalizer.load_state_dict(datamodule.normalizer.state_dict())
+        q_n, x_n = schema.normalizer.encode_q(q.double()), schema.normalizer.encode_x(x.double())
+        losses.append(schema.training_loss(q_n, x_n)[0])
+    assert torch.isfinite(losses[0]) and losses[0] > 0
+    torch.testing.assert_close(losses[0], losses[1], rtol=1e-12, atol=0)
