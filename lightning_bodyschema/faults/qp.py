@@ -5,7 +5,8 @@ and the joint torque the muscles must balance ``tau (B, N)`` [N m] (static equil
 becomes a box on the tensions f through the spring ``l_motor = l_geo - delta(f)`` (sim/spring.py):
 
 * cut: ``f = 0``; weakened: ``f <= f_max'``; healthy: ``0 <= f <= f_max``;
-* a motor length bound ``l_motor <= l_hi`` (a jam's ``l_fixed``, a band's hi): ``f >= k (exp(alpha (l_geo - l_hi)) - 1)``
+* a motor length bound ``l_motor <= l_hi`` (a jam's ``l_fixed``, a band's hi):
+  ``f >= k (exp(alpha (l_geo - l_hi)) - 1)``
   (the tension the spring gives when the motor stays at ``l_hi``; reeling in, a higher tension, is allowed);
 * ``l_motor >= l_lo`` (a band's lo): ``f <= k (exp(alpha (l_geo - l_lo)) - 1)``; below ``l_geo`` the wire is slack
   (f = 0, the motor may stand anywhere above ``l_geo``).

@@ -117,7 +117,8 @@ class StructuredSchema(BodySchema):
         torque_loss = ((tau - tau_target) / self.tau_scale_nm.to(x_n.dtype)).pow(2).mean()
         loss = length_loss + self.hparams.torque_weight * torque_loss
         rmse_mm = 1e3 * (error_n.detach() * l_std.to(x_n.dtype)).pow(2).mean().sqrt()
-        return loss, {"length_loss": length_loss.detach(), "torque_loss": torque_loss.detach(), "l_geo_rmse_mm": rmse_mm}
+        logs = {"length_loss": length_loss.detach(), "torque_loss": torque_loss.detach(), "l_geo_rmse_mm": rmse_mm}
+        return loss, logs
 
     def _length_weight(self, f: torch.Tensor, l_std: torch.Tensor) -> torch.Tensor:
         """(B, M): the spring stiffness ``alpha (f + k)`` times ``l_std`` (tension per normalized length error),

@@ -14,7 +14,8 @@ from lightning_bodyschema.evaluation.cases import HealthyPool, make_binding_case
 from lightning_bodyschema.faults import Faults
 from lightning_bodyschema.faults.qp import INFEASIBLE_LEARNED, OK, balance_residual_nm, fault_command
 from lightning_bodyschema.schemas import StructuredSchema, load_schema
-from lightning_bodyschema.sim import MusculoskeletalModel, SpringParams, elongation_from_tension, tension_from_elongation
+from lightning_bodyschema.sim import (MusculoskeletalModel, SpringParams, elongation_from_tension,
+                                      tension_from_elongation)
 
 SPRING = SpringParams()  # the paper's: k 1000 N, alpha 20 1/m, f_max 150 N
 
