@@ -19,7 +19,7 @@ EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint t
 _SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
 
 
-def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi):
+def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int = 2000):
     """proxsuite's own dense API, one small QP per posture: the fast path.
 
     One QP object is initialised once and updated per posture (no re-allocation per posture); eps_abs 1e-9
@@ -31,7 +31,7 @@ def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi):
     lo, hi = np.ascontiguousarray(f_lo, dtype=float), np.ascontiguousarray(f_hi, dtype=float)
     qp = proxsuite.proxqp.dense.QP(n_muscles, n_joints, 0, box_constraints=True)
     qp.settings.eps_abs, qp.settings.eps_rel = 1e-9, 0.0
-    qp.settings.max_iter, qp.settings.verbose = 2000, False
+    qp.settings.max_iter, qp.settings.verbose = max_iter, False
     f = np.zeros((batch, n_muscles))
     solved = np.zeros(batch, dtype=bool)
     for b in range(batch):  # proxsuite solves one QP per call
@@ -72,13 +72,14 @@ def check_qp_solver(solver: str) -> str:
     return solver
 
 
-def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "proxqp"):
+def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "proxqp", max_iter: int = 2000):
     """Tensions closest to ``f_ref`` that hold each posture in static equilibrium.
 
     Args:
         G: (B, M, N) muscle Jacobians; tau_bias: (B, N); f_ref: (B, M) [N];
         f_max, f_min: scalars, (M,) or (B, M) tension bounds [N] (a per-case f_max of 0 models a cut).
         solver: ``"proxqp"`` (proxsuite's own API, fast) or any qpsolvers solver name.
+        max_iter: proxsuite's iteration limit per posture (proxqp only); a posture with no solution runs to it.
 
     Returns:
         ``f (B, M)`` clipped into the bounds, and ``ok (B,)``: solved and equilibrium residual
@@ -88,7 +89,7 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "pr
     f_lo = np.broadcast_to(np.asarray(f_min, float), (batch, n_muscles))
     f_hi = np.broadcast_to(np.asarray(f_max, float), (batch, n_muscles))
     if check_qp_solver(solver) == "proxqp":
-        f, solved = _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi)
+        f, solved = _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter)
     else:
         f, solved = _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver)
     f = np.clip(f, f_lo, f_hi)  # remove the solver's ~1e-12 excursions outside the box

@@ -1,0 +1,236 @@
+"""Structured body schema: a learned body (muscle lengths, moment arms, joint torques) and a QP on it.
+
+Trained from (q, l_motor, f) samples and the spring law alone (no MJCF: recorded data trains it too):
+
+* the geometric muscle lengths ``l_geo(q)``, regressed on ``l_motor + delta(f)`` (eq:muscle-elongation), with the
+  moment arms ``G(q) = d l_geo / dq`` their exact derivative (``networks.structured.JacobianMLP``);
+* the joint torque the muscles must balance ``tau(q)`` (static equilibrium ``-G^T f = tau``), regressed on
+  ``-G(q)^T f`` of the samples: the gradient of a learned potential ``V(q)`` (gravity and joint springs are
+  conservative; ``torque_model="potential"``) or a plain regression (``"direct"``).
+
+Every command is a small QP on that body per posture (``faults.qp``): tensions closest to ``f_ref`` (half of each
+muscle's f_max) that balance ``tau`` within their box, each fault an exact constraint (cut f = 0; jammed or banded
+motor lengths as tension bounds through the spring; weakened: a lower f_max), then ``l_motor = l_geo - delta(f)``.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..adaptation.command import safe_command
+from ..adaptation.physics import flag_infeasible, mark_unchecked
+from ..adaptation.pipeline import Adapter, check_postures
+from ..errors import BodySchemaInputError
+from ..faults.qp import OK, STATUS_DTYPE, fault_command, intersect_bounds
+from ..networks.structured import JacobianMLP
+from .base import BodySchema
+
+TORQUE_MODELS = ("potential", "direct")
+
+
+class StructuredSchema(BodySchema):
+    """A learned body ``(l_geo(q), G(q), tau(q))`` answered by a QP (module docstring).
+
+    Args:
+        hidden, n_hidden: width and depth of both networks (SiLU).
+        torque_model: ``"potential"`` (tau = dV/dq of a learned scalar V) or ``"direct"`` (tau regressed per joint).
+        stiffness_weighted: weigh each muscle's length error by its spring stiffness at the sample's tension,
+            ``alpha (f + k)`` [N/m] (a length error then counts as the tension error it causes); False: unit weights.
+        torque_weight: weight of the torque regression next to the length regression (both in normalized units).
+        qp_reg: weight of ``||f - f_ref||^2`` in the least-squares answer of an unholdable posture (dimensionless).
+        robot, lr, lr_final, batch_size: see ``BodySchema``.
+    """
+
+    VARIANTS = ("default",)
+
+    def __init__(self, hidden: int = 256, n_hidden: int = 3, torque_model: str = "potential",
+                 stiffness_weighted: bool = True, torque_weight: float = 1.0, qp_reg: float = 1e-6,
+                 robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
+                 batch_size: int = 256):
+        super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
+        if torque_model not in TORQUE_MODELS:
+            raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
+        for name, value in (("torque_weight", torque_weight), ("qp_reg", qp_reg)):
+            if isinstance(value, bool) or not 0.0 <= float(value) < float("inf"):
+                raise BodySchemaInputError(f"{name}={value!r} must be a finite number >= 0")
+        self.save_hyperparameters()
+        self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden)
+        self.torque_net = JacobianMLP(self.n_joints, 1 if torque_model == "potential" else self.n_joints,
+                                      hidden, n_hidden)
+        # typical muscle torque per joint [N m]: the unit of the torque networks (set from the data when a fit starts)
+        self.register_buffer("tau_scale_nm", torch.ones(self.n_joints, dtype=torch.float64))
+
+    # ------------------------------------------------------------------ units
+    def setup(self, stage: str):
+        super().setup(stage)
+        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if datamodule is not None and stage == "fit":
+            self.tau_scale_nm.copy_(self.torque_scale())
+
+    def torque_scale(self) -> torch.Tensor:
+        """(N,) [N m] from the normalizer: ``sqrt(sum_i (l_std_i / half_range_j)^2 f_mean_i^2)``, a typical torque the
+        muscles exert at each joint."""
+        m, norm = self.n_muscles, self.normalizer
+        arm = norm.x_std[:m, None] / self._half_range()[None, :]
+        return (arm.pow(2) * norm.x_mean[m:, None].pow(2)).sum(0).sqrt().clamp_min(1e-12)
+
+    def _half_range(self) -> torch.Tensor:
+        """dq / dq_n (N,) [rad per normalized unit]."""
+        return 0.5 * (self.normalizer.q_hi - self.normalizer.q_lo)
+
+    # ------------------------------------------------------------------ the learned body
+    def body(self, q_n: torch.Tensor, lengths_only: bool = False):
+        """At normalized postures ``q_n (B, N)``: ``l_geo (B, M)`` [m], ``G (B, M, N)`` [m/rad], ``tau (B, N)`` [N m]
+        in the networks' dtype (``tau`` None with ``lengths_only``). Differentiable in the weights."""
+        m, dtype = self.n_muscles, q_n.dtype
+        l_mean, l_std = self.normalizer.x_mean[:m].to(dtype), self.normalizer.x_std[:m].to(dtype)
+        l_geo_n, dl_n = self.length_net.with_jacobian(q_n)
+        G = dl_n * (l_std[:, None] / self._half_range().to(dtype)[None, :])
+        l_geo = l_mean + l_std * l_geo_n
+        return l_geo, G, None if lengths_only else self.torque(q_n)
+
+    def torque(self, q_n: torch.Tensor) -> torch.Tensor:
+        """The learned torque the muscles must balance, ``tau (B, N)`` [N m] (``-G^T f = tau`` in equilibrium)."""
+        scale = self.tau_scale_nm.to(q_n.dtype)
+        if self.hparams.torque_model == "direct":
+            return scale * self.torque_net(q_n)
+        # tau_j = dV/dq_j with V = c V_n and c one scalar (a gradient stays a gradient)
+        c = (scale * self._half_range().to(q_n.dtype)).mean()
+        _, dV_n = self.torque_net.with_jacobian(q_n)
+        return c * dV_n[:, 0, :] / self._half_range().to(q_n.dtype)
+
+    # ------------------------------------------------------------------ training
+    def training_loss(self, q_n, x_n):
+        m = self.n_muscles
+        x = self.normalizer.decode_x(x_n.double())
+        l_motor, f = x[:, :m], x[:, m:]
+        l_mean, l_std = self.normalizer.x_mean[:m], self.normalizer.x_std[:m]
+        k, alpha = self._spring_tensors(f)
+        target_n = ((l_motor + torch.log1p(f.clamp_min(0.0) / k) / alpha - l_mean) / l_std).to(x_n.dtype)
+        l_geo, G, tau = self.body(q_n)
+        error_n = (l_geo - l_mean.to(x_n.dtype)) / l_std.to(x_n.dtype) - target_n
+        weight = self._length_weight(f, l_std).to(x_n.dtype)
+        length_loss = (weight * error_n).pow(2).mean()
+        tau_target = -torch.einsum("bmn,bm->bn", G.detach(), f.to(x_n.dtype))
+        torque_loss = ((tau - tau_target) / self.tau_scale_nm.to(x_n.dtype)).pow(2).mean()
+        loss = length_loss + self.hparams.torque_weight * torque_loss
+        rmse_mm = 1e3 * (error_n.detach() * l_std.to(x_n.dtype)).pow(2).mean().sqrt()
+        logs = {"length_loss": length_loss.detach(), "torque_loss": torque_loss.detach(), "l_geo_rmse_mm": rmse_mm}
+        return loss, logs
+
+    def _length_weight(self, f: torch.Tensor, l_std: torch.Tensor) -> torch.Tensor:
+        """(B, M): the spring stiffness ``alpha (f + k)`` times ``l_std`` (tension per normalized length error),
+        divided by its mean at f = 0; ones without ``stiffness_weighted``."""
+        if not self.hparams.stiffness_weighted:
+            return torch.ones_like(f)
+        k, alpha = self._spring_tensors(f)
+        per_n = alpha * (f + k) * l_std
+        return per_n / (alpha * k * l_std).mean()
+
+    def _spring_tensors(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """k [N] and alpha [1/m] as tensors like ``like`` (scalars or (M,): the spring may be per muscle)."""
+        return tuple(torch.as_tensor(v, dtype=like.dtype, device=like.device)
+                     for v in (self.spring.k_n, self.spring.alpha_per_m))
+
+    # ------------------------------------------------------------------ commands
+    def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]."""
+        with torch.no_grad():
+            q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
+            return tuple(t.detach().to(torch.float64).cpu().numpy() for t in self.body(q_n))
+
+    def solve_si(self, q_rad: torch.Tensor, constraints=None, reg: Optional[float] = None):
+        """The QP's best effort at ``q_rad (B, N)`` [rad] under ``constraints`` (``Faults.constraints(f_max)``; None:
+        healthy): ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` as float64 arrays, every row finite and within
+        every fault bound; rows with status ``"infeasible_learned"`` are least-squares answers (``faults.qp``)."""
+        l_geo, G, tau = self.body_si(q_rad)
+        shape = l_geo.shape
+        f_max = np.broadcast_to(np.asarray(self.spring.f_max_n, float), shape)
+        if constraints is None:
+            f_lo, f_hi, l_lo, l_hi = np.zeros(shape), f_max, np.full(shape, -np.inf), np.full(shape, np.inf)
+        else:
+            f_lo, f_hi, l_lo, l_hi = intersect_bounds(constraints, shape)
+            f_hi = np.minimum(f_hi, f_max)
+        reg = self.hparams.qp_reg if reg is None else reg
+        return fault_command(l_geo, G, tau, 0.5 * f_max, f_lo, f_hi, l_lo, l_hi, self.spring, reg)
+
+    def adapt_si(self, q_rad: torch.Tensor, constraints, variant: str = "default", reg: Optional[float] = None):
+        """Adapted commands at ``q_rad (B, N)`` [rad] under ``constraints`` (``Faults.constraints(f_max)``):
+        ``(l_motor_m (B, M), f_n (B, M), status (B,))``, float64 tensors on q_rad's device and a numpy string array.
+        Rows whose status is not ``"ok"`` are NaN (``solve_si`` gives their least-squares best effort)."""
+        if variant not in self.VARIANTS:
+            raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
+        l_motor, f, status = self.solve_si(q_rad, constraints, reg)
+        bad = (status != OK)[:, None]
+        as_tensor = lambda a: torch.as_tensor(np.where(bad, np.nan, a), device=q_rad.device)  # noqa: E731
+        return as_tensor(l_motor), as_tensor(f), status
+
+    def generate(self, q_n):
+        """Healthy normalized command: the healthy QP's answer (its least-squares best effort where the learned
+        torques are unholdable; ``solve_si`` gives the status)."""
+        l_motor, f, _ = self.solve_si(self.normalizer.decode_q(q_n.to(torch.float64)))
+        x = torch.as_tensor(np.concatenate([l_motor, f], 1), device=q_n.device)
+        return self.normalizer.encode_x(x).to(q_n.dtype)
+
+    def adapt_normalized(self, q_n, penalty, variant, reg=None):
+        """``adapt_si`` in normalized units, for ``Adapter``: the constraints travel with the penalty
+        (``penalty_builder``); rows that are not ``ok`` are NaN."""
+        constraints = getattr(penalty, "constraints", None)
+        if constraints is None:
+            raise BodySchemaInputError("StructuredSchema adapts on the faults' constraints: build the penalty with "
+                                       "its penalty_builder (schema.adapter(faults) does)")
+        l_motor, f, _ = self.adapt_si(self.normalizer.decode_q(q_n.to(torch.float64)), constraints, variant, reg)
+        return self.normalizer.encode_x(torch.cat([l_motor, f], 1)).to(q_n.dtype)
+
+    def penalty_builder(self, variant: str):
+        """The base builder, with each penalty also carrying the constraints it was built from (``adapt_si`` needs
+        them in SI units)."""
+        return _WithConstraints(super().penalty_builder(variant))
+
+    def adapter(self, faults, variant: str = "default", check_physics: bool = True, **options) -> Adapter:
+        """``BodySchema.adapter`` whose results name why a row holds no command (``StructuredAdapter``)."""
+        return StructuredAdapter(self, faults, variant, check_physics, options)
+
+
+class _WithConstraints:
+    def __init__(self, builder):
+        self.builder = builder
+
+    def __call__(self, constraints):
+        penalty = self.builder(constraints)
+        penalty.constraints = constraints
+        return penalty
+
+
+class StructuredAdapter(Adapter):
+    """``Adapter`` that runs ``adapt_si`` directly: rows the learned body cannot hold read ``"infeasible_learned"``
+    (NaN, their least-squares answer in ``diagnostics``: ``qp_l_motor_m``, ``qp_f_n``), not
+    ``non_finite``; then the same ``safe_command`` and physics check as every schema. Option: ``reg`` (``qp_reg``)."""
+
+    OPTIONS = ("reg",)
+
+    def __init__(self, schema, faults, variant="default", check_physics=True, options=None):
+        unknown = sorted(set(options or {}) - set(self.OPTIONS))
+        if unknown:
+            raise BodySchemaInputError(f"unknown adaptation option(s) {unknown} for {type(schema).__name__}; "
+                                       f"allowed: {list(self.OPTIONS)}")
+        super().__init__(schema, faults, variant, check_physics, options)
+
+    def __call__(self, q_ref):
+        schema = self.schema
+        q = check_postures(schema, q_ref, len(self.faults))
+        l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.penalty.constraints, self.options.get("reg"))
+        x_si = torch.as_tensor(np.where((status == OK)[:, None], np.concatenate([l_motor, f], 1), np.nan))
+        result = safe_command(x_si, self.faults, self.f_limit_n, self.l_range_m)
+        result.status = result.status.astype(STATUS_DTYPE)
+        result.status[status != OK] = status[status != OK]
+        result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)
+        if not self.check_physics:
+            return result
+        if not schema.has_physics:
+            return mark_unchecked(result)
+        result = flag_infeasible(result, schema.robot_model, q, self.faults, schema.spring)
+        result.status[~result.diagnostics["feasible"] & (status != OK)] = "infeasible"  # the physical reason wins
+        return result
