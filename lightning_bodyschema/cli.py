@@ -37,7 +37,8 @@ from .callbacks import EpochProgressBar, FaultBenchmark, FinalValidation, InitFr
 from .cli_parser import OneLineErrorParser
 from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
 from .errors import BodySchemaInputError
-from .schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema  # noqa: F401 (short names)
+from .schemas import (AutoEncoderSchema, BodySchema, DiffusionSchema, StructuredSchema,  # noqa: F401 (short names)
+                      VAESchema)
 from .training.fit_loop import check_val_check_interval, half_precision_refusal
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 

@@ -44,6 +44,7 @@ class StructuredSchema(BodySchema):
     """
 
     VARIANTS = ("default",)
+    capabilities = frozenset({"adapts_in_si"})  # contract.ADAPTS_IN_SI: a QP on the learned body, in SI units
 
     def __init__(self, hidden: int = 256, n_hidden: int = 3, torque_model: str = "potential",
                  stiffness_weighted: bool = True, torque_weight: float = 1.0, qp_reg: float = 1e-6,
@@ -158,14 +159,14 @@ class StructuredSchema(BodySchema):
 
     def adapt_si(self, q_rad: torch.Tensor, constraints, variant: str = "default", reg: Optional[float] = None):
         """Adapted commands at ``q_rad (B, N)`` [rad] under ``constraints`` (``Faults.constraints(f_max)``):
-        ``(l_motor_m (B, M), f_n (B, M), status (B,))``, float64 tensors on q_rad's device and a numpy string array.
-        Rows whose status is not ``"ok"`` are NaN (``solve_si`` gives their least-squares best effort)."""
+        ``(l_motor_m (B, M), f_n (B, M))``, float64 tensors on q_rad's device (the contract's ``adapts_in_si``).
+        Rows the learned body cannot hold are NaN (``solve_si`` gives their status and least-squares best effort).""" 
         if variant not in self.VARIANTS:
             raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
         l_motor, f, status = self.solve_si(q_rad, constraints, reg)
         bad = (status != OK)[:, None]
         as_tensor = lambda a: torch.as_tensor(np.where(bad, np.nan, a), device=q_rad.device)  # noqa: E731
-        return as_tensor(l_motor), as_tensor(f), status
+        return as_tensor(l_motor), as_tensor(f)
 
     def generate(self, q_n):
         """Healthy normalized command: the healthy QP's answer (its least-squares best effort where the learned
@@ -174,34 +175,9 @@ class StructuredSchema(BodySchema):
         x = torch.as_tensor(np.concatenate([l_motor, f], 1), device=q_n.device)
         return self.normalizer.encode_x(x).to(q_n.dtype)
 
-    def adapt_normalized(self, q_n, penalty, variant, reg=None):
-        """``adapt_si`` in normalized units, for ``Adapter``: the constraints travel with the penalty
-        (``penalty_builder``); rows that are not ``ok`` are NaN."""
-        constraints = getattr(penalty, "constraints", None)
-        if constraints is None:
-            raise BodySchemaInputError("StructuredSchema adapts on the faults' constraints: build the penalty with "
-                                       "its penalty_builder (schema.adapter(faults) does)")
-        l_motor, f, _ = self.adapt_si(self.normalizer.decode_q(q_n.to(torch.float64)), constraints, variant, reg)
-        return self.normalizer.encode_x(torch.cat([l_motor, f], 1)).to(q_n.dtype)
-
-    def penalty_builder(self, variant: str):
-        """The base builder, with each penalty also carrying the constraints it was built from (``adapt_si`` needs
-        them in SI units)."""
-        return _WithConstraints(super().penalty_builder(variant))
-
     def adapter(self, faults, variant: str = "default", check_physics: bool = True, **options) -> Adapter:
         """``BodySchema.adapter`` whose results name why a row holds no command (``StructuredAdapter``)."""
         return StructuredAdapter(self, faults, variant, check_physics, options)
-
-
-class _WithConstraints:
-    def __init__(self, builder):
-        self.builder = builder
-
-    def __call__(self, constraints):
-        penalty = self.builder(constraints)
-        penalty.constraints = constraints
-        return penalty
 
 
 class StructuredAdapter(Adapter):
@@ -221,7 +197,7 @@ class StructuredAdapter(Adapter):
     def __call__(self, q_ref):
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
-        l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.penalty.constraints, self.options.get("reg"))
+        l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.constraints, self.options.get("reg"))
         x_si = torch.as_tensor(np.where((status == OK)[:, None], np.concatenate([l_motor, f], 1), np.nan))
         result = safe_command(x_si, self.faults, self.f_limit_n, self.l_range_m)
         result.status = result.status.astype(STATUS_DTYPE)
