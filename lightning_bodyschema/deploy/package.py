@@ -81,7 +81,7 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
     metadata = package_metadata(schema, module, ckpt_sha256, batch)
     folder = os.path.dirname(os.path.abspath(out))
     os.makedirs(folder, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(suffix=".pt2.tmp", dir=folder)
+    handle, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt2", dir=folder)
     os.close(handle)
     try:
         torch._inductor.aoti_compile_and_package(program, package_path=tmp,
