@@ -73,19 +73,28 @@ def check_supported(schema) -> None:
         raise BodySchemaInputError("export supports robots without locked or coupled joints only")
 
 
-class _GraphPenalty:
-    """L_adapt's gradient as ``guided_loop`` asks for it (``residual``): two box terms per element, A (jam on l;
-    cut or tension box on f) and B (band on l), their weights (D,) or one scalar ``c`` folded into the plan."""
+def _one_weight(builder) -> float:
+    """The one weight w2 = 2 c (s_x / scale)^2 every term of the variant's L_adapt has (the default variant's:
+    unit weights in spreads of the data); refuse weights that differ (the literal variant's)."""
+    w, r2, m = builder.weights, builder.ratio2, builder.m
+    every = np.concatenate([2.0 * w.c_fix * r2[:m], 2.0 * w.c_band * r2[:m], 2.0 * w.c_cut * r2[m:],
+                            2.0 * w.c_fmin * r2[m:], 2.0 * w.c_fmax * r2[m:]])
+    if not (every == every[0]).all():
+        raise BodySchemaInputError("export supports adaptation losses with one weight for every term only")
+    return float(every[0])
 
-    def __init__(self, box_a, box_b, w_a, w_b):
-        self.box_a, self.box_b, self.w_a, self.w_b = box_a, box_b, w_a, w_b
+
+class _GraphPenalty:
+    """L_adapt's gradient / c as ``guided_loop`` asks for it (``residual``; c, the one weight, is folded into the plan):
+    two box terms per element, A (jam on l; cut or tension box on f) and B (band on l). Where only one applies the
+    other adds an exact 0, so one fault set's residual is ``BoxPenalty.residual``'s bit for bit."""
+
+    def __init__(self, box_a, box_b):
+        self.box_a, self.box_b = box_a, box_b
 
     def residual(self, x, out=None):
         (lo_a, hi_a), (lo_b, hi_b) = self.box_a, self.box_b
-        r_a, r_b = x - torch.clamp(x, lo_a, hi_a), x - torch.clamp(x, lo_b, hi_b)
-        if self.w_a is not None:
-            r_a, r_b = r_a * self.w_a, r_b * self.w_b
-        return r_a + r_b  # ``out`` (the eager loop's buffers) is not needed: the graph allocates
+        return (x - torch.clamp(x, lo_a, hi_a)) + (x - torch.clamp(x, lo_b, hi_b))  # ``out``: not needed in a graph
 
 
 class AdapterModule(nn.Module):
@@ -95,42 +104,30 @@ class AdapterModule(nn.Module):
     def __init__(self, schema, n_steps: int = 20, seeds=None):
         super().__init__()
         check_supported(schema)
-        self.n_steps, self.dtype = int(n_steps), schema.dtype
+        self.n_steps, self.dtype, self.m = int(n_steps), schema.dtype, schema.n_muscles
         builder = schema.penalty_builder(VARIANT)
-        self.m, d = schema.n_muscles, schema.x_dim
-        mean64, std64 = builder.mean, builder.std
-        self._mean_np, self._std_np = mean64, std64
-        self.spring = schema.spring
-        w = builder.weights
-        if w.c_fmin != w.c_fmax:
-            raise BodySchemaInputError("export needs c_fmin == c_fmax (one tension box per muscle)")
-        r2 = builder.ratio2
-        m = self.m
-        w_jam, w_band = 2.0 * w.c_fix * r2[:m], 2.0 * w.c_band * r2[:m]
-        w_cut, w_f = 2.0 * w.c_cut * r2[m:], 2.0 * w.c_fmax * r2[m:]
-        every = np.concatenate([w_jam, w_band, w_cut, w_f])
-        self.c_w = float(every[0]) if (every == every[0]).all() else 1.0
-        self.uniform = bool((every == every[0]).all())
+        self._mean_np, self._std_np, self.spring = builder.mean, builder.std, schema.spring
+        self.c_w = _one_weight(builder)
         self.frozen, self.guidance, self._run = sampler_bridge(schema, self.n_steps, self.c_w)
-        f64 = dict(dtype=torch.float64)
-        self.register_buffer("x_mean", torch.as_tensor(mean64, **f64))
-        self.register_buffer("x_std", torch.as_tensor(std64, **f64))
-        for name, value in (("w_jam", w_jam), ("w_band", w_band), ("w_cut", w_cut), ("w_f", w_f)):
-            self.register_buffer(name, torch.as_tensor(value, dtype=self.dtype))
-        q_range = np.asarray(schema.robot_model.q_range, float)
-        self.register_buffer("q_lo", torch.as_tensor(q_range[:, 0], **f64))
-        self.register_buffer("q_hi", torch.as_tensor(q_range[:, 1], **f64))
-        self.register_buffer("q_norm_lo", schema.normalizer.q_lo.detach().to(torch.float64).clone())
-        self.register_buffer("q_norm_hi", schema.normalizer.q_hi.detach().to(torch.float64).clone())
-        self.register_buffer("f_max_n", torch.as_tensor(np.broadcast_to(np.asarray(schema.spring.f_max_n, float),
-                                                                        (m,)).copy(), **f64))
-        l_range = motor_length_range(mean64, std64, m)
-        self.register_buffer("l_lo_m", torch.as_tensor(np.maximum(l_range[0], 0.0), **f64))
-        self.register_buffer("l_hi_m", torch.as_tensor(l_range[1], **f64))
+        self._register_limits(schema)
         self.seeds = [int(schema.hparams.sample_seed)] if seeds is None else [int(s) for s in seeds]
-        draws = [torch.randn(d, generator=torch.Generator().manual_seed(s), dtype=torch.float64) for s in self.seeds]
+        draws = [torch.randn(schema.x_dim, generator=torch.Generator().manual_seed(s), dtype=torch.float64)
+                 for s in self.seeds]  # as DiffusionSchema.initial_noise: one float64 draw, cast
         self.register_buffer("x_T_table", torch.stack(draws).to(self.dtype))
         self.register_buffer("seed_table", torch.as_tensor(self.seeds, dtype=torch.int64))
+
+    def _register_limits(self, schema):
+        """Buffers (float64): the normalizer, the joint ranges, the healthy f_max and the plausible motor lengths."""
+        m, f64 = self.m, dict(dtype=torch.float64)
+        q_range = np.asarray(schema.robot_model.q_range, float)
+        l_range = motor_length_range(self._mean_np, self._std_np, m)
+        f_max = np.broadcast_to(np.asarray(schema.spring.f_max_n, float), (m,)).copy()
+        for name, value in (("x_mean", self._mean_np), ("x_std", self._std_np), ("q_lo", q_range[:, 0]),
+                            ("q_hi", q_range[:, 1]), ("f_max_n", f_max), ("l_lo_m", np.maximum(l_range[0], 0.0)),
+                            ("l_hi_m", l_range[1])):
+            self.register_buffer(name, torch.as_tensor(value, **f64))
+        self.register_buffer("q_norm_lo", schema.normalizer.q_lo.detach().to(torch.float64).clone())
+        self.register_buffer("q_norm_hi", schema.normalizer.q_hi.detach().to(torch.float64).clone())
 
     # ------------------------------------------------------------------ inside the graph
     def _normalized(self, bound_si, cols: slice):
@@ -177,9 +174,7 @@ class AdapterModule(nn.Module):
         band = keep & ~(torch.isnan(band_lo_m) & torch.isnan(band_hi_m))
         f_limit = torch.where(weak, f_weak_n, self.f_max_n)
         box_a, box_b, both = self._boxes(c, j, l_fixed_m, f_limit, band, band_lo_m, band_hi_m)
-        w_a = None if self.uniform else torch.cat([self.w_jam, torch.where(c, self.w_cut, self.w_f)], 1)
-        w_b = None if self.uniform else torch.cat([self.w_band, torch.zeros_like(self.w_f)]).expand_as(w_a)
-        penalty = _GraphPenalty(box_a, box_b, w_a, w_b)
+        penalty = _GraphPenalty(box_a, box_b)
         projection = FaultProjection.from_penalty(SimpleNamespace(lo=both[0][None], slots=[(torch.ones_like(
             both[0]), both[0], both[1])]), self._mean_np, self._std_np, self.spring.k_n, self.spring.alpha_per_m,
             self.guidance.inpaint if self.guidance.inpaint != "none" else "box")
