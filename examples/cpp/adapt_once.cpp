@@ -72,13 +72,8 @@ int main(int argc, char** argv) {
                  "[--band m=lo:hi,...] [--seed N]\n";
     return 2;
   }
-  std::unique_ptr<bodyschema::Adapter> adapter;
-  try {
-    adapter = std::make_unique<bodyschema::Adapter>(argv[1]);
-  } catch (const std::exception& e) {
-    std::cerr << "error: " << e.what() << "\n";
-    return 1;
-  }
+  auto adapter = bodyschema::open_adapter(argv[1]);
+  if (!adapter) return 1;
   auto inputs = adapter->make_inputs(1);
   try {
     bool have_q = false;

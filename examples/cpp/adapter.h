@@ -8,6 +8,7 @@
 #include <torch/torch.h>
 
 #include <cmath>
+#include <iostream>
 #include <limits>
 #include <map>
 #include <memory>
@@ -88,5 +89,15 @@ struct Adapter {
   // One call: {l_motor_m (B, M), f_n (B, M), status (B,)}.
   std::vector<torch::Tensor> run(const std::vector<torch::Tensor>& inputs) { return loader->run(inputs); }
 };
+
+// The package at `path`, or nullptr after printing "error: <reason>" on stderr (a program then exits 1).
+inline std::unique_ptr<Adapter> open_adapter(const std::string& path) {
+  try {
+    return std::make_unique<Adapter>(path);
+  } catch (const std::exception& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return nullptr;
+  }
+}
 
 }  // namespace bodyschema

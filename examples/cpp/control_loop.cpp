@@ -48,13 +48,8 @@ int main(int argc, char** argv) {
   at::set_num_threads(1);
   using clock = std::chrono::steady_clock;
   auto t_load = clock::now();
-  std::unique_ptr<bodyschema::Adapter> adapter;
-  try {
-    adapter = std::make_unique<bodyschema::Adapter>(argv[1]);
-  } catch (const std::exception& e) {
-    std::cerr << "error: " << e.what() << "\n";
-    return 1;
-  }
+  auto adapter = bodyschema::open_adapter(argv[1]);
+  if (!adapter) return 1;
   double load_ms = std::chrono::duration<double, std::milli>(clock::now() - t_load).count();
   auto inputs = adapter->make_inputs(1);  // the buffers: allocated once, written every tick
   if (!cut.empty()) {
