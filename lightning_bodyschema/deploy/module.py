@@ -32,7 +32,6 @@ from ..faults.projection import FaultProjection
 
 # what the graph can decide per case; a controller sends a command only where the status is 0
 STATUS_CODES = {"ok": 0, "non_finite": 1, "out_of_range": 2, "fault_not_met": 3, "bad_input": 4}
-STATUS_NAMES = tuple(STATUS_CODES)
 FAULT_TOL_M = 1e-5  # a jam or band broken by more than this (after adaptation) is fault_not_met
 FAULT_TOL_N = 1e-2  # a cut muscle pulling more than this is fault_not_met
 VARIANT = "default"
@@ -87,7 +86,8 @@ def _one_weight(builder) -> float:
 class _GraphPenalty:
     """L_adapt's gradient / c as ``guided_loop`` asks for it (``residual``; c, the one weight, is folded into the plan):
     two box terms per element, A (jam on l; cut or tension box on f) and B (band on l). Where only one applies the
-    other adds an exact 0, so one fault set's residual is ``BoxPenalty.residual``'s bit for bit."""
+    other adds an exact 0 (``BoxPenalty.residual``'s one-slot value); a jam and a band on one motor add up as
+    ``BoxPenalty``'s two slots do."""
 
     def __init__(self, box_a, box_b):
         self.box_a, self.box_b = box_a, box_b
