@@ -1,5 +1,5 @@
 """The exported AOTInductor package: equals Python from ONE export, refuses what it cannot serve, and the C++
-example matches it. Slow: the session's export compiles for 1-2.5 minutes on the shared CPU (measured 125 s loaded)."""
+example matches it. Slow: the session's export compiles for a minute or more, the C++ build as long."""
 import json
 import os
 import subprocess
