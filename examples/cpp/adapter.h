@@ -1,0 +1,103 @@
+// The exported adapter package (lightning_bodyschema.deploy) from C++: load it, read its metadata, build its inputs.
+// Inputs, in order (float64 unless said): q_ref (B, N) [rad]; cut, jam (B, M) masks 0/1; l_fixed_m (B, M) [m];
+// f_weak_n (B, M) [N]; band_lo_m, band_hi_m (B, M) [m] (NaN where a fault does not apply); seed () int64.
+// Outputs: l_motor_m (B, M) [m], f_n (B, M) [N] (NaN rows unless ok), status (B,) int32 (metadata "status_codes").
+#pragma once
+
+#include <torch/csrc/inductor/aoti_package/model_package_loader.h>
+#include <torch/torch.h>
+
+#include <cmath>
+#include <iostream>
+#include <limits>
+#include <map>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+namespace bodyschema {
+
+// A JSON array of strings, e.g. ["a", "b"] (what the package's metadata holds for names).
+inline std::vector<std::string> parse_string_list(const std::string& json) {
+  std::vector<std::string> out;
+  size_t i = 0;
+  while ((i = json.find('"', i)) != std::string::npos) {
+    size_t j = json.find('"', i + 1);
+    if (j == std::string::npos) throw std::runtime_error("bad string list in package metadata: " + json);
+    out.push_back(json.substr(i + 1, j - i - 1));
+    i = j + 1;
+  }
+  return out;
+}
+
+// A flat JSON object of integers, e.g. {"ok": 0, "non_finite": 1} -> code -> name.
+inline std::map<int, std::string> parse_status_codes(const std::string& json) {
+  std::map<int, std::string> out;
+  size_t i = 0;
+  while ((i = json.find('"', i)) != std::string::npos) {
+    size_t j = json.find('"', i + 1);
+    size_t colon = json.find(':', j);
+    if (j == std::string::npos || colon == std::string::npos) throw std::runtime_error("bad status_codes: " + json);
+    out[std::stoi(json.substr(colon + 1))] = json.substr(i + 1, j - i - 1);
+    i = json.find_first_of(",}", colon);
+  }
+  return out;
+}
+
+struct Adapter {
+  std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
+  std::vector<std::string> joints, muscles;
+  std::map<int, std::string> status_names;
+  int64_t default_seed = 0;
+
+  // Throws std::runtime_error (with the reason) for a missing, corrupt or foreign package.
+  explicit Adapter(const std::string& path) {
+    try {
+      loader = std::make_unique<torch::inductor::AOTIModelPackageLoader>(path);
+    } catch (const std::exception& e) {
+      std::string what = e.what();
+      throw std::runtime_error("cannot load adapter package " + path + ": " + what.substr(0, what.find('\n')));
+    }
+    auto meta = loader->get_metadata();
+    if (meta["format"] != "lightning_bodyschema.adapter/1")
+      throw std::runtime_error(path + " is not a lightning_bodyschema adapter package");
+    joints = parse_string_list(meta.at("joint_names"));
+    muscles = parse_string_list(meta.at("muscle_names"));
+    status_names = parse_status_codes(meta.at("status_codes"));
+    default_seed = std::stoll(meta.at("seeds").substr(1));
+  }
+
+  int muscle_index(const std::string& name) const {
+    for (size_t i = 0; i < muscles.size(); ++i)
+      if (muscles[i] == name) return static_cast<int>(i);
+    std::string known;
+    for (const auto& m : muscles) known += (known.empty() ? "" : ", ") + m;
+    throw std::invalid_argument("unknown muscle '" + name + "'; the package's muscles are: " + known);
+  }
+
+  // Inputs for `batch` healthy cases (q zero, no fault): allocate once, then write into them every tick.
+  std::vector<torch::Tensor> make_inputs(int64_t batch) const {
+    auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
+    const int64_t n = static_cast<int64_t>(joints.size()), m = static_cast<int64_t>(muscles.size());
+    const double nan = std::numeric_limits<double>::quiet_NaN();
+    return {torch::zeros({batch, n}, f64), torch::zeros({batch, m}, f64), torch::zeros({batch, m}, f64),
+            torch::full({batch, m}, nan, f64), torch::full({batch, m}, nan, f64), torch::full({batch, m}, nan, f64),
+            torch::full({batch, m}, nan, f64), torch::scalar_tensor(default_seed, torch::kInt64)};
+  }
+
+  // One call: {l_motor_m (B, M), f_n (B, M), status (B,)}.
+  std::vector<torch::Tensor> run(const std::vector<torch::Tensor>& inputs) { return loader->run(inputs); }
+};
+
+// The package at `path`, or nullptr after printing "error: <reason>" on stderr (a program then exits 1).
+inline std::unique_ptr<Adapter> open_adapter(const std::string& path) {
+  try {
+    return std::make_unique<Adapter>(path);
+  } catch (const std::exception& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return nullptr;
+  }
+}
+
+}  // namespace bodyschema

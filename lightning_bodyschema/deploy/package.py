@@ -1,0 +1,172 @@
+"""Export the prepared adapter (``AdapterModule``) to one AOTInductor ``.pt2`` package, and load it back.
+
+``export_package(schema, out)`` traces the module with ``torch.export`` and compiles it with
+``torch._inductor.aoti_compile_and_package`` (a C++ compiler is needed, tens of seconds); the package carries its
+metadata (``METADATA_KEYS``: names, units, status codes, the checkpoint's hash, ...) as strings, readable from
+Python (``aoti_load_package(p).get_metadata()``) and C++ (``AOTIModelPackageLoader::get_metadata``).
+``load_exported(path)`` returns ``ExportedAdapter``: ``(q_ref, faults) -> AdaptationResult`` without the schema.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+
+import numpy as np
+import torch
+
+from ..adaptation.command import AdaptationResult
+from ..errors import BodySchemaInputError
+from .module import FAULT_TOL_M, FAULT_TOL_N, STATUS_CODES, VARIANT, AdapterModule
+
+FORMAT = "lightning_bodyschema.adapter/1"
+INPUTS = ("q_ref", "cut", "jam", "l_fixed_m", "f_weak_n", "band_lo_m", "band_hi_m", "seed")
+MAX_BATCH = 4096
+UNITS = {"q_ref": "rad", "l_fixed_m": "m", "f_weak_n": "N", "band_lo_m": "m", "band_hi_m": "m", "l_motor_m": "m",
+         "f_n": "N", "cut": "mask 0/1", "jam": "mask 0/1", "seed": "int64", "status": "int32"}
+
+
+def file_sha256(path: str) -> str:
+    import hashlib
+
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def package_metadata(schema, module: AdapterModule, ckpt_sha256: str, batch) -> dict[str, str]:
+    """The package's metadata: every value a string (JSON for lists and dicts)."""
+    robot = schema.robot_model
+    spring = {name: np.asarray(getattr(schema.spring, name), float).tolist()
+              for name in ("k_n", "alpha_per_m", "f_max_n")}
+    values = {"format": FORMAT, "schema_class": f"{type(schema).__module__}.{type(schema).__qualname__}",
+              "variant": VARIANT, "n_steps": module.n_steps, "joint_names": list(robot.joint_names),
+              "muscle_names": list(robot.muscle_names), "q_range_rad": np.asarray(robot.q_range, float).tolist(),
+              "inputs": list(INPUTS), "outputs": ["l_motor_m", "f_n", "status"], "units": UNITS,
+              "status_codes": STATUS_CODES, "spring": spring, "seeds": module.seeds, "checkpoint_sha256": ckpt_sha256,
+              "batch": batch, "fault_tol_m": FAULT_TOL_M, "fault_tol_n": FAULT_TOL_N, "dtype": str(module.dtype)}
+    return {key: value if isinstance(value, str) else json.dumps(value) for key, value in values.items()}
+
+
+def parse_batch(text: str):
+    """``"dynamic"`` (1..MAX_BATCH cases per call) or one positive int (a static batch size)."""
+    if str(text) == "dynamic":
+        return "dynamic"
+    try:
+        batch = int(text)
+    except ValueError:
+        batch = 0
+    if batch < 1 or batch > MAX_BATCH:
+        raise BodySchemaInputError(f"batch size {text!r}: use 'dynamic' or an integer in 1..{MAX_BATCH}")
+    return batch
+
+
+def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:
+    """Write the AOTInductor package of ``schema``'s adapter to ``out`` (atomically: a temporary file in the same
+    folder, then a rename). Returns ``out``."""
+    from torch.export import Dim, export
+
+    module = AdapterModule(schema, n_steps, seeds).eval()
+    batch = parse_batch(batch)
+    example = module.example_inputs(2 if batch == "dynamic" else batch)
+    shapes = None
+    if batch == "dynamic":
+        dim = Dim("batch", min=1, max=MAX_BATCH)
+        shapes = tuple({0: dim} for _ in INPUTS[:-1]) + (None,)
+    with torch.no_grad():
+        program = export(module, example, dynamic_shapes=shapes, strict=False)
+    metadata = package_metadata(schema, module, ckpt_sha256, batch)
+    folder = os.path.dirname(os.path.abspath(out))
+    os.makedirs(folder, exist_ok=True)
+    handle, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt2", dir=folder)
+    os.close(handle)
+    try:
+        torch._inductor.aoti_compile_and_package(program, package_path=tmp,
+                                                 inductor_configs={"aot_inductor.metadata": metadata})
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return out
+
+
+class ExportedAdapter:
+    """A loaded package: ``adapter(q_ref (B, N) [rad], faults) -> AdaptationResult`` (string statuses, NaN rows
+    where not ok; ``diagnostics["status_code"]`` the package's integer codes). ``metadata``: the parsed metadata;
+    ``run(*tensors)``: the raw package call (``INPUTS`` in order)."""
+
+    def __init__(self, runner, metadata: dict, path: str):
+        self.runner, self.path = runner, path
+        self.metadata = {key: _parsed(value) for key, value in metadata.items()}
+        self.joint_names, self.muscle_names = self.metadata["joint_names"], self.metadata["muscle_names"]
+        self.status_names = np.array(sorted(self.metadata["status_codes"], key=self.metadata["status_codes"].get))
+        self.seed = int(self.metadata["seeds"][0])
+
+    def run(self, *tensors):
+        return self.runner(*tensors)
+
+    def inputs(self, q_ref, faults, seed=None) -> tuple:
+        """The package's input tensors (contiguous float64, one row per case) for ``q_ref`` and ``faults``."""
+        n, m = len(self.joint_names), len(self.muscle_names)
+        q = np.atleast_2d(np.asarray(q_ref, dtype=np.float64))
+        if q.ndim != 2 or q.shape[1] != n:
+            raise BodySchemaInputError(f"q_ref has shape {q.shape}; expected (B, {n}) for joints {self.joint_names}")
+        if len(faults) != len(q) or np.shape(faults.cut) != (len(q), m):
+            raise BodySchemaInputError(f"faults have shape {np.shape(faults.cut)}; expected ({len(q)}, {m}): one row "
+                                       f"per posture, muscles {self.muscle_names}")
+        batch = self.metadata["batch"]
+        if batch != "dynamic" and len(q) != batch:
+            raise BodySchemaInputError(f"{len(q)} cases; this package was exported for batch {batch} exactly")
+        nan = np.full((len(q), m), np.nan)
+        band = faults.l_band_m if faults.l_band_m is not None else np.stack([nan, nan], -1)
+        arrays = (q, faults.cut, faults.fix, faults.l_fixed_m, nan if faults.f_max_n is None else faults.f_max_n,
+                  band[..., 0], band[..., 1])
+        tensors = tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64)) for a in arrays)
+        return tensors + (torch.tensor(self.seed if seed is None else int(seed), dtype=torch.int64),)
+
+    def __call__(self, q_ref, faults, seed=None) -> AdaptationResult:
+        with torch.no_grad():
+            l_motor, f, status = self.run(*self.inputs(q_ref, faults, seed))
+        codes = status.numpy().astype(np.int64)
+        return AdaptationResult(l_motor.numpy(), f.numpy(), self.status_names[codes].astype("<U16"),
+                                {"status_code": codes})
+
+
+def load_exported(path: str, muscle_names=None, joint_names=None) -> ExportedAdapter:
+    """Load a package written by ``export_package``; refuse, in one line, a file that is not one (missing, corrupt,
+    truncated) or a package for another robot (``muscle_names``/``joint_names`` given and different)."""
+    if not os.path.isfile(path):
+        raise BodySchemaInputError(f"no adapter package at {path!r}")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            broken = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError) as error:
+        raise BodySchemaInputError(f"{path!r} is not a readable .pt2 package (corrupt or truncated: {error})") from None
+    if broken is not None:
+        raise BodySchemaInputError(f"{path!r} is corrupt: member {broken!r} fails its CRC check")
+    try:
+        runner = torch._inductor.aoti_load_package(path)
+        metadata = runner.get_metadata()
+    except Exception as error:  # noqa: BLE001  (torch raises RuntimeError and others; one line for all)
+        raise BodySchemaInputError(f"{path!r} could not be loaded as an AOTInductor package: "
+                                   f"{str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
+    if metadata.get("format") != FORMAT:
+        raise BodySchemaInputError(f"{path!r} is not a lightning_bodyschema adapter package (format "
+                                   f"{metadata.get('format')!r}, expected {FORMAT!r})")
+    adapter = ExportedAdapter(runner, metadata, path)
+    for what, expected, packaged in (("muscles", muscle_names, adapter.muscle_names),
+                                     ("joints", joint_names, adapter.joint_names)):
+        if expected is not None and list(expected) != list(packaged):
+            raise BodySchemaInputError(f"{path!r} was exported for another robot: its {what} are {packaged}, "
+                                       f"this robot's are {list(expected)}")
+    return adapter
+
+
+def _parsed(value: str):
+    try:
+        return json.loads(value)
+    except (TypeError, ValueError):
+        return value

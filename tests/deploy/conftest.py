@@ -1,0 +1,40 @@
+"""One exported adapter package per test session (compiling it takes 1-2+ minutes on the shared CPU)."""
+import os
+import shutil
+import subprocess
+
+import pytest
+import torch
+
+from physics_checks import mixed_faults
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+@pytest.fixture(scope="session")
+def mixed_cases(diff60, dm):
+    """(q_ref, faults): 42 cases of cut, jammed, weakened and banded muscles (some bands empty under their jam)."""
+    return mixed_faults(diff60[0], dm, n=42)
+
+
+@pytest.fixture(scope="session")
+def package(diff60, tmp_path_factory):
+    """The briefly trained paper-arm diffusion schema's adapter package (20 steps, dynamic batch)."""
+    from lightning_bodyschema.deploy import export_package
+
+    path = str(tmp_path_factory.mktemp("deploy") / "adapter.pt2")
+    return export_package(diff60[0], path, 20, "dynamic", ckpt_sha256="test-session")
+
+
+@pytest.fixture(scope="session")
+def cpp_build(tmp_path_factory):
+    """The examples/cpp programs built against the installed torch (skipped without cmake or a C++ compiler)."""
+    missing = [tool for tool in ("cmake", "c++") if shutil.which(tool) is None]
+    if missing:
+        pytest.skip(f"no {' and '.join(missing)} on this machine: the C++ example cannot be built")
+    build = tmp_path_factory.mktemp("cpp_build")
+    generator = ["-G", "Ninja"] if shutil.which("ninja") else []
+    subprocess.run(["cmake", "-S", os.path.join(REPO, "examples", "cpp"), "-B", str(build), *generator,
+                    f"-DCMAKE_PREFIX_PATH={torch.utils.cmake_prefix_path}"], check=True, capture_output=True)
+    subprocess.run(["cmake", "--build", str(build)], check=True, capture_output=True)
+    return build

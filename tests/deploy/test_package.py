@@ -1,0 +1,127 @@
+"""The exported AOTInductor package: equals Python from ONE export, refuses what it cannot serve, and the C++
+example matches it. Slow: the session's export compiles for a minute or more, the C++ build as long."""
+import json
+import os
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+from lightning_bodyschema.deploy import STATUS_CODES, load_exported
+from lightning_bodyschema.deploy.module import FAULT_TOL_M
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.faults import Faults
+
+pytestmark = pytest.mark.slow
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def test_package_equals_python_on_mixed_faults(package, diff60, mixed_cases):
+    schema = diff60[0]
+    q, faults = mixed_cases
+    ref = schema.adapter(faults, n_steps=20, check_physics=False)(q)
+    got = load_exported(package, schema.robot_model.muscle_names, schema.robot_model.joint_names)(q, faults)
+    ok = got.status == "ok"
+    assert ok.sum() >= 30 and (ref.status[ok] == "ok").all()
+    np.testing.assert_allclose(got.l_motor_m[ok], ref.l_motor_m[ok], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got.f_n[ok], ref.f_n[ok], rtol=0, atol=2e-3)
+    not_met = got.status == "fault_not_met"  # a band above its jam: Python's ok command breaks one of them
+    broken = np.maximum(ref.diagnostics["band_violation_m"], ref.diagnostics["jam_violation_m"])
+    assert (got.status[~ok] == "fault_not_met").all() and (broken[not_met] > FAULT_TOL_M).all()
+    assert np.isnan(got.l_motor_m[~ok]).all() and np.isnan(got.f_n[~ok]).all()
+    one = load_exported(package)(q[:1], faults.take([0]))  # batch 1 from the same (dynamic) package
+    np.testing.assert_allclose(one.l_motor_m, got.l_motor_m[:1], rtol=0, atol=1e-6)
+
+
+def test_metadata_names_units_codes_and_checkpoint(package, diff60):
+    meta = load_exported(package).metadata
+    robot = diff60[0].robot_model
+    assert meta["muscle_names"] == list(robot.muscle_names) and meta["joint_names"] == list(robot.joint_names)
+    assert meta["status_codes"] == STATUS_CODES and meta["checkpoint_sha256"] == "test-session"
+    assert meta["n_steps"] == 20 and meta["units"]["l_motor_m"] == "m" and meta["spring"]["k_n"] == 1000.0
+    assert meta["schema_class"].endswith("DiffusionSchema")
+
+
+def test_bad_values_are_a_bad_input_status_never_an_ok_command(package, diff60, mixed_cases):
+    q, faults = mixed_cases
+    adapter = load_exported(package)
+    tensors = [t.clone() for t in adapter.inputs(q[:8], faults.take(np.arange(8)))]
+    tensors[0][0, 0] = float("nan")  # NaN posture
+    tensors[0][1, 1] = 10.0  # outside the joint range
+    tensors[2][2, 0], tensors[3][2, 0] = 1.0, float("nan")  # a jam without its length
+    tensors[4][3, 1] = -5.0  # a negative tension limit
+    tensors[1][4, :] = 1.0  # every muscle cut
+    tensors[5][5, 2], tensors[6][5, 2] = 0.2, 0.1  # a band with lo > hi
+    tensors[1][6, 3] = 0.5  # a mask that is neither 0 nor 1
+    l_motor, f, status = adapter.run(*tensors)
+    assert (status[:7].numpy() == STATUS_CODES["bad_input"]).all()
+    assert torch.isnan(l_motor[:7]).all() and torch.isnan(f[:7]).all()
+    alone = adapter(q[7:8], faults.take([7]))  # the good case next to them is untouched
+    np.testing.assert_allclose(l_motor[7].numpy(), alone.l_motor_m[0], rtol=0, atol=1e-6)
+
+
+def test_wrong_shapes_and_another_robot_are_refused(package, diff60, mixed_cases):
+    q, faults = mixed_cases
+    adapter = load_exported(package)
+    with pytest.raises(BodySchemaInputError, match="q_ref has shape"):
+        adapter(np.zeros((2, 3)), Faults.none(2, 6))
+    with pytest.raises(BodySchemaInputError, match="faults have shape"):
+        adapter(q[:2], Faults.none(2, 8))
+    with pytest.raises(BodySchemaInputError, match="another robot"):
+        load_exported(package, muscle_names=[f"m{i}" for i in range(8)])
+    with pytest.raises(BodySchemaInputError, match="another robot"):
+        load_exported(package, joint_names=["shoulder"])
+
+
+def test_truncated_or_corrupt_package_is_one_clear_error(package, tmp_path):
+    data = open(package, "rb").read()
+    truncated, garbage = tmp_path / "truncated.pt2", tmp_path / "garbage.pt2"
+    truncated.write_bytes(data[: len(data) // 2])
+    garbage.write_bytes(b"not a package" * 100)
+    for path in (truncated, garbage):
+        with pytest.raises(BodySchemaInputError, match="corrupt or truncated"):
+            load_exported(str(path))
+    with pytest.raises(BodySchemaInputError, match="no adapter package"):
+        load_exported(str(tmp_path / "missing.pt2"))
+
+
+def _adapt_once(build, *args):
+    return subprocess.run([str(build / "adapt_once"), *args], capture_output=True, text=True, timeout=120)
+
+
+def test_cpp_adapt_once_matches_python(package, cpp_build, diff60):
+    schema = diff60[0]
+    names = schema.robot_model.muscle_names
+    cases = [((0.3, -0.2), ["shoulder_flexor"], {"elbow_flexor": 0.151}),
+             ((-0.1, 0.4), [], {}),
+             ((0.2, 0.1), ["biarticular_flexor", "elbow_extensor"], {}),
+             ((0.0, 0.3), [], {"shoulder_extensor": 0.17, "elbow_flexor": 0.14})]
+    for q, cut, jam in cases:
+        args = [package, "--q", ",".join(map(str, q))]
+        args += ["--cut", ",".join(cut)] if cut else []
+        args += ["--jam", ",".join(f"{m}={v}" for m, v in jam.items())] if jam else []
+        run = _adapt_once(cpp_build, *args)
+        assert run.returncode == 0, run.stderr
+        got = json.loads(run.stdout.replace("NaN", "null"))
+        ref = schema.adapter(Faults.from_names(names, cut=[cut], jam=[jam]), n_steps=20, check_physics=False)(
+            np.array([q]))
+        assert got["status"] == ref.status[0]
+        if got["status"] == "ok":
+            np.testing.assert_allclose(got["l_motor_m"], ref.l_motor_m[0], rtol=0, atol=1e-6)
+            np.testing.assert_allclose(got["f_n"], ref.f_n[0], rtol=0, atol=2e-3)
+
+
+def test_cpp_refuses_corrupt_packages_and_unknown_muscles(package, cpp_build, tmp_path):
+    truncated = tmp_path / "truncated.pt2"
+    truncated.write_bytes(open(package, "rb").read()[:4096])
+    run = _adapt_once(cpp_build, str(truncated), "--q", "0.1,0.1")
+    assert run.returncode == 1 and "cannot load adapter package" in run.stderr
+    run = _adapt_once(cpp_build, package, "--q", "0.1,0.1", "--cut", "tail_flexor")
+    assert run.returncode == 2 and "unknown muscle 'tail_flexor'" in run.stderr
+    run = _adapt_once(cpp_build, package, "--q", "nan,0.1")
+    assert run.returncode == 0 and json.loads(run.stdout.replace("NaN", "null"))["status"] == "bad_input"
+    loop = subprocess.run([str(cpp_build / "control_loop"), package, "--ticks", "200", "--json"], capture_output=True,
+                          text=True, timeout=300)
+    assert loop.returncode == 0, loop.stderr
+    assert json.loads(loop.stdout)["ok_ticks"] == 200
