@@ -47,10 +47,10 @@ def sampler_bridge(schema, n_steps: int, c_w: float):
     The plan is built here, outside any trace."""
     from ..samplers.guided import guided_loop, plan_denoising
 
-    steps = schema._timesteps(n_steps)
-    guidance = schema._guidance(steps, VARIANT)
+    preset = schema.sampler_preset(VARIANT, n_steps)
+    steps, guidance = schema._timesteps(schema._n_steps(n_steps), preset.spacing), preset.guidance
     frozen = schema.eps_model.frozen()
-    plan = plan_denoising(frozen, schema.schedule, steps, schema.STRIDED["eta"], guidance, c_w, guided=True)
+    plan = plan_denoising(frozen, schema.schedule, steps, preset.eta, guidance, c_w, True, schema.prediction)
 
     def run(q_n, x_t, penalty, projection):
         biases = schema.eps_model.step_biases(frozen, q_n, steps)
