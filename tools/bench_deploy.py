@@ -7,7 +7,7 @@
 Paths: ``eager`` the prepared Python adapter (``schema.adapter(faults, n_steps=20, check_physics=False)``),
 ``compiled`` the same with ``compiled=True`` (torch.compile, cpp_wrapper), ``aoti`` the package's raw call from
 Python on tensors allocated once, ``aoti_wrapper`` ``load_exported(...)(q, faults)`` (numpy in and out), ``cpp``
-examples/cpp's ``control_loop`` (build it first; see docs/deploy.md). Prints one markdown row per path: first call
+examples/cpp's ``control_loop`` (build it first; see README "Deploy in a C++ controller"). Prints one markdown row per path: first call
 after loading [ms], p50, p99, p99.9, max [us] and resident-memory growth [kB] over the calls after the first.
 """
 import json

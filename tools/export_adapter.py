@@ -4,7 +4,7 @@
     python tools/export_adapter.py --ckpt CKPT --out runs/adapter.pt2 [--steps 20] [--batch-sizes dynamic|N]
         [--seeds 0,1,2]
 
-One package serves every fault set (faults are inputs); see docs/deploy.md and ``lightning_bodyschema.deploy``.
+One package serves every fault set (faults are inputs); see README "Deploy in a C++ controller" and ``lightning_bodyschema.deploy``.
 Compiling needs a C++ compiler and takes tens of seconds. The file is written atomically. Bad input exits with
 code 2 and one line on stderr.
 """
