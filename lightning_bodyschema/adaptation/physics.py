@@ -9,7 +9,7 @@ from .command import AdaptationResult
 
 def flag_infeasible(result: AdaptationResult, robot_model, q: np.ndarray, faults, spring) -> AdaptationResult:
     """Status ``infeasible`` and NaN rows where no command can hold ``q (B, N)`` under ``faults`` (jammed wires pull:
-    ``sim.feasibility``, ~60 us per case). The schema's best effort stays in ``diagnostics``."""
+    ``sim.feasibility``). The schema's best effort stays in ``diagnostics``."""
     feasible, _ = feasible_tensions(robot_model, q, faults, spring)
     # the physical reason wins: a case no command can hold is infeasible even where the sampler also diverged
     bad = ~feasible & np.isin(result.status, ("ok", "non_finite", "out_of_range"))

@@ -122,7 +122,7 @@ def adapt_cases_main(argv=None):
     parser.add_argument("--out", required=True, help="output file (.npz), written only if everything succeeds")
     parser.add_argument("--variant", default="default", help="adaptation variant: default, literal (the paper's), or one "
                         "of the schema's study variants (diffusion: guided, strong, recurrent, inpaint_box, inpaint_spring, "
-                        "projected; RESULTS.md)")
+                        "projected)")
     parser.add_argument("--sampler", default="ddpm", help=f"denoising sampler, one of {list(ADAPT_SAMPLERS)}")
     args = parser.parse_args(argv)
     start = time.perf_counter()

@@ -35,7 +35,7 @@ ADAPT_SAMPLERS = {
                  # was trained with ``sample_steps``
     "strided20": {"n_steps": 20},  # each variant's strided preset (DiffusionSchema.ADAPT) over 20 steps:
                                    # quad spacing, noise-free DDPM posterior-mean steps (eta = 1), 2 guidance steps
-                                   # where abar_t >= 0.5; diffusion schemas only (~10x faster, same accuracy)
+                                   # where abar_t >= 0.5; diffusion schemas only
 }
 SAMPLER_ALIASES = {"ddim20": "strided20"}  # earlier name of strided20 (it never was DDIM); scripts depend on it
 

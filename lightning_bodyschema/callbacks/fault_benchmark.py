@@ -79,8 +79,8 @@ class FaultBenchmark(Callback):
         seed: seed of the case draw (the same cases at every run, so curves are comparable).
         variant: adaptation variant passed to ``BodySchema.adapt``: one of the schema's ``VARIANTS``.
         out_dir: where ``test`` writes ``fault_benchmark.json``/``.md`` (None: the trainer's log folder).
-        settle_check: also run the MuJoCo settle check (``E_q_phys``) in the benchmarks during fit (~4 s per
-            120 cases on one core, twice per paper fit); ``test`` always runs it.
+        settle_check: also run the MuJoCo settle check (``E_q_phys``) in the benchmarks during fit
+            (it costs seconds per benchmark); ``test`` always runs it.
     """
 
     def __init__(self, every_n_epochs: int = 5000, n_per_condition: int = 40, seed: int = 0,

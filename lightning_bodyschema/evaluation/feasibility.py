@@ -1,7 +1,7 @@
 """Feasibility of benchmark cases and the physics oracle's commands: ``sim.feasibility`` asked per ``FaultCases``.
 
 The computation itself (tension bounds, the torque-reach screen, the QP) lives in ``sim.feasibility`` so the control
-path (``adaptation``) can use it without the benchmark; its names are importable from here as before.
+path (``adaptation``) can use it without the benchmark; its names are also importable from here.
 """
 from __future__ import annotations
 

@@ -205,7 +205,7 @@ class ActivationOps:
     ``act_backward(g, saved, grad_input=o)`` (saved: the pre-activation for SiLU, the output for Tanh).
 
     Two sets of the same maths: ``eager`` calls the raw C++ bindings (no Python frame of an ``OpOverload``:
-    ~0.4 us less per op at batch 1, where dispatch is the cost), ``traceable`` the public ATen overloads that
+    less dispatch per op at batch 1, where dispatch is the cost), ``traceable`` the public ATen overloads that
     ``torch.compile`` traces."""
 
     act: Callable

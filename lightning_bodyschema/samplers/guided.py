@@ -51,7 +51,7 @@ class GuidanceConfig:
       the predicted eps: x_{t'} += sqrt(abar_t') (P(x0_hat) - x0_hat). ``"none"``: the paper's guidance only.
     inpaint_min_abar: inpaint only where abar_t >= inpaint_min_abar (0: at every guided step). At the noisier
       steps the predicted x0 is still far from the data, and snapping it costs accuracy in conditions where the
-      faults need little change (RESULTS.md, binding study).
+      faults need little change.
     inpaint_n_guide: guidance steps per timestep where the step inpaints (at least ``n_guide``). With one, the eps the
       step keeps was predicted before the guidance moved x_t, and on faults no command can meet that stale pair
       diverged (4 of 500 binding cases, most infeasible paper cases); the second re-predicts eps at the guided x_t.
@@ -332,7 +332,7 @@ def denoise(net, plan: DenoisePlan, biases: torch.Tensor, x_T: torch.Tensor, pen
     """Run ``plan`` from ``x_T (B, D)`` with the first-layer biases ``(S, B, H)`` of its steps; returns x0 (B, D).
 
     ``compiled``: through ``compiled_sampler``; ``inference_mode``: run under ``torch.inference_mode`` (no version
-    counters or autograd bookkeeping, ~0.15 us per op at batch 1); the result is an ordinary tensor either way.
+    counters or autograd bookkeeping); the result is an ordinary tensor either way.
     ``projection``: inpaint the guided steps (see ``guided_loop``)."""
     with torch.inference_mode(inference_mode):
         if compiled:

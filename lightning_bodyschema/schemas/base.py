@@ -113,7 +113,7 @@ class BodySchema(SchemaLightningModule):
         variant ``"literal"``: the paper's loss in SI units with its weights and learning rate.
         variant ``"default"``: every residual measured in spreads of the healthy data (z-score units), unit
         weights, and a step that is stable at every noise level (see the schema's ``ADAPT`` table).
-        check_physics: also ask the robot's true physics (MuJoCo + a QP, ~60 us per case) whether any command
+        check_physics: also ask the robot's true physics (MuJoCo + a QP per case) whether any command
             can hold q_ref under these faults; where none can, the status is ``infeasible`` and the row NaN
             (the schema's best effort stays in ``diagnostics``). The paper's benchmark scores every command
             and turns it off. A schema without a model (recorded data) cannot run the check: its commands get

@@ -4,7 +4,7 @@ Fast adaptation needs objects derived from the weights: frozen snapshots of the 
 per-step matrices of a sampling plan, the penalty builder of the normalizer, the shared initial noise. Building
 them costs a few hundred microseconds, a sizeable share of a millisecond adaptation, so they are kept between
 calls. They are never keyed on tensor addresses or version counters (fused optimizers update weights in place
-without bumping ``_version``: that once served stale weights). Instead the owning ``BodySchema`` clears its cache
+without bumping ``_version``, so such a key can serve stale weights). Instead the owning ``BodySchema`` clears its cache
 
 * on every ``train()`` / ``eval()`` call (Lightning switches modes around every validation, test and fault
   benchmark, so each sees the weights of that moment),

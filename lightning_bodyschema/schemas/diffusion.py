@@ -42,8 +42,7 @@ class DiffusionSchema(BodySchema):
 
     The strided sampler: ``"quad"``-spaced steps (dense at low noise, ending at t = 0, see
     ``NoiseSchedule.timesteps``), each joined by the noise-free posterior-mean step (``eta=1``: for stride 1
-    exactly eq:diff-2), with the variant's strided guidance (``ADAPT[variant].strided``; the choices are measured
-    in BENCHMARKS.md and RESULTS.md).
+    exactly eq:diff-2), with the variant's strided guidance (``ADAPT[variant].strided``).
 
     Sampling runs the autograd-free fast loop by default (``fast=False`` per call: the autograd reference; the
     same commands, see ``samplers.guided``).
@@ -52,7 +51,7 @@ class DiffusionSchema(BodySchema):
     capabilities = frozenset({"adapts_normalized"})  # contract.ADAPTS_NORMALIZED
 
     # eq:diff-adapt settings per variant, each a fully resolved preset for all T steps and for the strided sampler
-    # (``samplers.presets``); see BodySchema.adapt, README "Design decisions" and RESULTS.md (binding faults). The
+    # (``samplers.presets``); see BodySchema.adapt and README "Design decisions". The
     # strided sampler guides twice per step where abar_t >= 0.5, or, where it inpaints, guides and inpaints from
     # abar_t >= 0.3. Selectable by name (``adapt(..., variant=...)``, ``--variant``).
     _STRIDED = {"n_guide": 2, "min_abar": 0.5}

@@ -29,7 +29,7 @@ import torch
 from ..errors import BodySchemaInputError
 from .checks import _describe, check_hparams, check_weights, schema_class
 from .robot_checks import _entry, check_robot
-# the checks' limits and entry points, importable from here as before the checks got their own modules
+# the checks' limits and entry points, also importable from here
 from .checks import (LIGHTNING_INSTANTIATOR, MAX_WEIGHT_ELEMENTS, PRIVATE_HPARAMS, SEED_LIMITS,  # noqa: F401
                      SIZE_LIMITS)
 from .robot_checks import (MAX_SIZE_ATTRIBUTE, MAX_SIZE_MEMORY_BYTES, MAX_XML_ALLOCATION,  # noqa: F401

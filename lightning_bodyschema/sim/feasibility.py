@@ -69,7 +69,7 @@ def _facet_normals(G) -> np.ndarray | None:
 def outside_torque_reach(G, tau_bias, lo, hi) -> np.ndarray:
     """(B,) True where no tension f in [lo, hi] (B, M) can give -G^T f = tau_bias (to EQUILIBRIUM_TOL_NM).
 
-    Why: the QP solver spends up to ~0.2 s per infeasible case before giving up; this batched test settles
+    Why: the QP solver spends many iterations on an infeasible case before giving up; this batched test settles
     most of them at once. The torques -G^T f over the box form a zonotope; tau_bias is outside it iff some
     facet normal w has w . tau_bias > max_f w . (-G^T f) = sum_m max(lo_m c_m, hi_m c_m), c = -G w. Every
     such inequality is valid for any w, so a True is always right (no feasible case is ever dropped); with
@@ -126,7 +126,7 @@ def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: Spri
     lo, hi, crossed, f_need = tension_bounds(l_geo, faults, spring, jam_model, jammed_tension_in_torque)
     f_ref = np.broadcast_to(np.asarray(spring.f_max_n, float) / 2.0, lo.shape)
     f, ok = np.full(lo.shape, np.nan), np.zeros(len(lo), bool)
-    # skip hopeless cases: proxsuite takes up to ~0.2 s per case to give up on them
+    # skip hopeless cases: proxsuite runs to its iteration limit on them
     run = np.flatnonzero(~crossed & ~outside_torque_reach(G, tau_bias, lo, hi))
     if run.size:
         f[run], ok[run] = solve_equilibrium_qp(G[run], tau_bias[run], f_ref[run], hi[run], lo[run], solver=solver)

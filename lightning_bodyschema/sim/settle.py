@@ -78,10 +78,9 @@ Batching: MuJoCo steps one MjData at a time and the tension law needs a per-step
 ``mujoco.rollout`` cannot express (it would need a global Python callback). So the cases of a chunk
 (``chunk_size``, one MjData each, reused across chunks) advance in lockstep: ``mj_step1`` per case,
 tensions and joint forces for the whole chunk in numpy, ``mj_step2`` per case; a case leaves the
-chunk when it stops. Cost ~15 us per case and step (about half of it MuJoCo's ``mj_step1``); on the
-paper arm 120 fault cases take ~1-4 s (most settle within 1-2 s of simulated time). On models with
+chunk when it stops (costs: BENCHMARKS.md, settle check). On models with
 ``THREADS_MIN_DOF`` or more joints the chunks run on threads (MuJoCo releases the GIL while it steps), each
-with its own model copy and MjData (myoArm: 1.7x on 2 cores).
+with its own model copy and MjData.
 A case's result never depends on the chunk it ran in (its checks fall on the same steps wherever it runs,
 and a case blowing up records only itself), so chunking and threads change no byte of the result.
 
@@ -311,7 +310,7 @@ class _Simulator:
         return np.where(unstable, int(SettleStatus.UNSTABLE), status), qpos[:, free], qvel[:, free]
 
     def _start(self, q_ref) -> list:
-        """One MjData per case (reused across chunks: a fresh MjData costs ~1 ms), reset to q_ref at rest."""
+        """One MjData per case (reused across chunks: a fresh MjData is costly), reset to q_ref at rest."""
         while len(self.pool) < len(q_ref):
             self.pool.append(mujoco.MjData(self.m))
         for d, q in zip(self.pool, self.joint_map.full_q(q_ref)):

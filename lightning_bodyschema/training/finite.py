@@ -2,8 +2,8 @@
 
 The fast path is the check ``torch.amp.GradScaler`` runs before every step it takes,
 ``torch._amp_foreach_non_finite_check_and_unscale_`` with a scale of 1 (which leaves finite values bit-identical).
-It is a private torch op: where it is missing or refuses the tensors, ``torch.nn.utils.get_total_norm`` (public,
-~6x slower on the paper arm's ~11k weights: 33 vs 5 us per step) gives the same answer.
+It is a private torch op: where it is missing or refuses the tensors, ``torch.nn.utils.get_total_norm`` (public, slower:
+BENCHMARKS.md) gives the same answer.
 ``tests/training/test_finite.py`` fails loudly on a torch version where the op changed.
 """
 from __future__ import annotations

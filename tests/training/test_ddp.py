@@ -34,7 +34,7 @@ def run_fit(tmp_path, name, batch_size, epochs, *extra, model="DiffusionSchema")
 
 
 @pytest.mark.parametrize("model", ["DiffusionSchema", pytest.param("AutoEncoderSchema", marks=pytest.mark.slow),
-                                   pytest.param("VAESchema", marks=pytest.mark.slow)])  # ~10 s each
+                                   pytest.param("VAESchema", marks=pytest.mark.slow)])  # slow: a DDP fit each
 def test_ddp_two_cpu_ranks_shard_the_data_and_keep_identical_weights(tmp_path, model):
     epochs = 5
     seconds, ranks = run_fit(tmp_path, "ddp", 32, epochs, *DDP, model=model)
