@@ -84,9 +84,12 @@ class Adapter:
     def __call__(self, q_ref) -> AdaptationResult:
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
-        result = safe_command(self._adapted_si(q), self.faults, self.f_limit_n, self.l_range_m)
+        return self._checked(safe_command(self._adapted_si(q), self.faults, self.f_limit_n, self.l_range_m), q)
+
+    def _checked(self, result: AdaptationResult, q: np.ndarray) -> AdaptationResult:
+        """``result`` with the physics check's verdict (``check_physics``), or ``unchecked`` where there is no model."""
         if not self.check_physics:
             return result
-        if not schema.has_physics:
+        if not self.schema.has_physics:
             return mark_unchecked(result)
-        return flag_infeasible(result, schema.robot_model, q, self.faults, schema.spring)
+        return flag_infeasible(result, self.schema.robot_model, q, self.faults, self.schema.spring)

@@ -20,7 +20,6 @@ import numpy as np
 import torch
 
 from ..adaptation.command import safe_command
-from ..adaptation.physics import flag_infeasible, mark_unchecked
 from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
 from ..faults.qp import OK, STATUS_DTYPE, fault_command, intersect_bounds
@@ -203,10 +202,7 @@ class StructuredAdapter(Adapter):
         result.status = result.status.astype(STATUS_DTYPE)
         result.status[status != OK] = status[status != OK]
         result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)
-        if not self.check_physics:
-            return result
-        if not schema.has_physics:
-            return mark_unchecked(result)
-        result = flag_infeasible(result, schema.robot_model, q, self.faults, schema.spring)
-        result.status[~result.diagnostics["feasible"] & (status != OK)] = "infeasible"  # the physical reason wins
+        result = self._checked(result, q)
+        if self.check_physics and schema.has_physics:  # the physical reason wins
+            result.status[~result.diagnostics["feasible"] & (status != OK)] = "infeasible"
         return result
