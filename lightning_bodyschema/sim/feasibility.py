@@ -37,6 +37,7 @@ above the upper one (band or jam against f_max') leaves no command at all.
 from __future__ import annotations
 
 import itertools
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -57,9 +58,9 @@ def _facet_normals(G) -> np.ndarray | None:
     """(B, K, N) unit normals of the facets of the torque zonotope {-G^T f : f in a box} (K = C(M, N-1)
     subsets of N-1 muscle torque vectors, each normal orthogonal to them), or None when K is too large."""
     batch, n_muscles, n_joints = G.shape
-    subsets = list(itertools.combinations(range(n_muscles), n_joints - 1))
-    if len(subsets) > MAX_SCREEN_NORMALS:
+    if math.comb(n_muscles, n_joints - 1) > MAX_SCREEN_NORMALS:  # count first: C(31, 14) subsets fill no memory
         return None
+    subsets = list(itertools.combinations(range(n_muscles), n_joints - 1))
     if n_joints == 1:
         return np.ones((batch, 1, 1))
     spans = G[:, np.asarray(subsets), :]  # (B, K, N-1, N)

@@ -122,3 +122,15 @@ def test_torque_reach_screen_agrees_with_the_qp(model, pool, jammed_pull):
     assert np.array_equal(outside, ~solved)
     feasible, _ = check_feasible(model, cases, jammed_tension_in_torque=jammed_pull)
     assert not (feasible & outside).any()
+
+
+def test_torque_reach_screen_steps_aside_on_many_joints_without_enumerating():
+    """myoHand's 15 joints and 31 muscles have C(31, 14) = 265 million facets: the screen must decline (every case
+    to the QP) by counting them, not by listing them (which filled 22 GB and was OOM-killed). A box far too small
+    for the torque asked is still no reason to drop a case here: the QP decides."""
+    rng = np.random.default_rng(0)
+    G = rng.normal(scale=0.01, size=(3, 31, 15))
+    lo, hi = np.zeros((3, 31)), np.full((3, 31), 1e-6)
+    outside = outside_torque_reach(G, np.full((3, 15), 100.0), lo, hi)
+    assert not outside.any()
+    assert outside_torque_reach(G[:, :3, :2], np.full((3, 2), 100.0), lo[:, :3], hi[:, :3]).all()

@@ -1,0 +1,99 @@
+#!/usr/bin/env python
+"""One markdown row per trained checkpoint: how well it learned its body and how well it adapts (no settle runs).
+
+    python tools/bench_body_table.py --ckpt plain=runs/a/last.ckpt --ckpt residual=runs/b/last.ckpt \
+        [--fit-seconds plain=1130 --fit-seconds residual=1190] [--postures 2000] [--n-per-condition 20]
+
+Columns, each a median: the healthy commands' equilibrium residual ||-G^T f - tau_bias|| [N m] at the first
+``--postures`` validation postures and its ratio to the median ||tau_bias|| there (issue target <= 0.05), their
+length residual |l_motor + delta(f) - l_geo| [mm]; for a structured schema the learned body's errors against
+MuJoCo (l_geo [mm], moment arms [mm/rad], torque [N m]); the binding protocol's adapted and unadapted E_q [rad]
+(the Gauss-Newton evaluator's phys reading, feasible cases, CUT and FIX: ``bodyschema test`` adds the settle runs);
+and the fit's wall time when given. One torch thread.
+"""
+import argparse
+
+import numpy as np
+import torch
+
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
+
+
+def _labelled(pairs, what):
+    out = {}
+    for pair in pairs or ():
+        label, sep, value = pair.partition("=")
+        if not sep or not label or not value:
+            raise BodySchemaInputError(f"{what} {pair!r}: expected LABEL=VALUE")
+        out[label] = value
+    return out
+
+
+def healthy_row(schema, q, x) -> dict:
+    """Healthy residuals at ``q`` and, for a schema with ``body_si``, its learned body's errors against MuJoCo."""
+    errors = schema.physical_errors(q, x)
+    l_geo, G, tau = schema.robot_model.kinematics(q.numpy())
+    row = {"eq_nm": errors["eq_residual_N_m"], "ratio": errors["eq_residual_N_m"] /
+           float(np.median(np.linalg.norm(tau, axis=1))), "length_mm": errors["length_residual_mm"]}
+    if hasattr(schema, "body_si"):
+        l_hat, G_hat, tau_hat = schema.body_si(q)
+        row.update(l_geo_mm=1e3 * float(np.median(np.abs(l_hat - l_geo))),
+                   arm_mm=1e3 * float(np.median(np.abs(G_hat - G))),
+                   tau_nm=float(np.median(np.linalg.norm(tau_hat - tau, axis=1))))
+    return row
+
+
+def binding_row(schema, q, x, n_per_condition: int) -> dict:
+    """Median E_q [rad] of adapted and unadapted commands, binding protocol, phys reading, feasible cases."""
+    from lightning_bodyschema.evaluation.benchmark import run_fault_benchmark
+    from lightning_bodyschema.evaluation.cases import HealthyPool, make_binding_cases
+
+    m = schema.n_muscles
+    pool = HealthyPool(q.numpy(), x[:, :m].numpy(), x[:, m:2 * m].numpy())
+    cases = make_binding_cases(schema.robot_model, pool, n_per_condition, 0, schema.spring)[0]
+    result = run_fault_benchmark(schema.robot_model, schema.spring, cases, schema.infer,
+                                 lambda qq, ff: schema.adapt(qq, ff, check_physics=False), oracle=False)
+    summary = result.summary()
+    row = {}
+    for cond in ("CUT", "FIX"):
+        for kind in ("adapted", "unadapted"):
+            row[f"{kind}_{cond}"] = summary[kind]["phys"][cond]["feasible"]["E_q"]
+    return row
+
+
+def _fmt(value, digits=3):
+    return "—" if value is None else f"{value:.{digits}g}"
+
+
+@exits_cleanly
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ckpt", action="append", required=True, help="LABEL=PATH (repeat)")
+    parser.add_argument("--fit-seconds", action="append", help="LABEL=SECONDS: the fit's wall time (repeat)")
+    parser.add_argument("--postures", type=int, default=2000)
+    parser.add_argument("--n-per-condition", type=int, default=20)
+    args = parser.parse_args(argv)
+    ckpts, seconds = _labelled(args.ckpt, "--ckpt"), _labelled(args.fit_seconds, "--fit-seconds")
+    torch.set_num_threads(1)
+    torch.set_flush_denormal(True)
+    from lightning_bodyschema.schemas.loading import load_datamodule, load_schema
+
+    print("| choice | eq residual [N m] | ratio | length [mm] | l_geo [mm] | arms [mm/rad] | torque [N m] | "
+          "E_q CUT adapted / unadapted [rad] | E_q FIX adapted / unadapted [rad] | fit [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for label, path in ckpts.items():
+        schema = load_schema(path).eval()
+        datamodule = load_datamodule(path)
+        datamodule.setup("test")
+        q, x = datamodule.splits["val"]
+        h = healthy_row(schema, q[:args.postures], x[:args.postures])
+        b = binding_row(schema, q, x, args.n_per_condition)
+        print(f"| {label} | {_fmt(h['eq_nm'])} | {_fmt(h['ratio'])} | {_fmt(h['length_mm'])} | "
+              f"{_fmt(h.get('l_geo_mm'))} | {_fmt(h.get('arm_mm'))} | {_fmt(h.get('tau_nm'))} | "
+              f"{_fmt(b['adapted_CUT'])} / {_fmt(b['unadapted_CUT'])} | {_fmt(b['adapted_FIX'])} / "
+              f"{_fmt(b['unadapted_FIX'])} | {seconds.get(label, '—')} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
