@@ -1,11 +1,18 @@
-"""Draw a model's arm and muscle routing at a few postures, e.g.
+r"""Draw a model's arm and muscle routing at a few postures, e.g.
 
     python tools/draw_arm.py --model paper_arm                  # -> runs/arm.png
     python tools/draw_arm.py --model arm3_8 --out runs/arm3_8.png
     python tools/draw_arm.py --model my_robot.xml --q 0,0 --q 0.5,-0.3 --out /tmp/robot.png
     python tools/draw_arm.py --model myo:myoelbow_2dof --site r_radius_styloid --out docs/myoelbow.png
-    python tools/draw_arm.py --config configs/myolegs.yaml --no-zoom --frame moving --out runs/myolegs.png
-    python tools/draw_arm.py --config configs/myohand.yaml --no-zoom --frame moving --view-joint mcp3_flexion_r
+
+The README's drawings of the MyoSuite bodies from their configs (standing, stepping and seated for the legs):
+
+    python tools/draw_arm.py --config configs/myolegs.yaml --no-zoom --frame moving --out docs/myolegs.png \
+        --q 0,0,0,0,0,0,0,0,0,0,0,0,0,0 --q 0.7,0,0,1.0,0.2,0,0,-0.3,0,0,0.2,-0.2,0,0 --q 1.5,0,0,1.5,0,0,0,1.5,0,0,1.5,0,0,0
+    python tools/draw_arm.py --config configs/myolegs_osl.yaml --no-zoom --frame moving --out docs/myolegs_osl.png \
+        --q 0,0,0,0,0,0,0,0,0,0 --q 0.7,0,0,-0.3,0,0,0.2,-0.2,0,0 --q 1.5,0,0,1.5,0,0,1.5,0,0,0
+    python tools/draw_arm.py --config configs/myohand.yaml --no-zoom --frame moving --view-joint mcp3_flexion_r \
+        --out docs/myohand.png
 
 --config draws a config's robot: its data section's model, muscles, gravity, locked joints and fixed base, as
 the data module builds it; --model, --lock and --fixed-base given beside it replace or add to those.
