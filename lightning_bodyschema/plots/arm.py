@@ -146,7 +146,9 @@ def _draw_links(ax: Axes, m, d, skip: set[int], plane: ViewPlane):
     for b in range(1, m.nbody):
         if m.body_parentid[b] > 0 or not segments:
             xy = plane.xy(d.xpos[[m.body_parentid[b], b]])
-            ax.plot(xy[:, 0], xy[:, 1], color="0.45", lw=2.5 if segments else 7, solid_capstyle="round", zorder=0.9)
+            thin = bool(segments)
+            ax.plot(xy[:, 0], xy[:, 1], color="0.45" if thin else "0.6", lw=2.5 if thin else 7, solid_capstyle="round",
+                    zorder=0.9)
     for ends in segments:
         xy = plane.xy(ends)
         ax.plot(xy[:, 0], xy[:, 1], color="0.6", lw=7, solid_capstyle="round", zorder=1)
@@ -272,20 +274,26 @@ def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None =
         d.qpos[:] = model.joint_map.full_q(q[None])[0]  # locked and coupled joints too
         mujoco.mj_forward(m, d)
         framed.append(_moving_points(m, d, moving, model.joint_map.free, plane))
-        for row, a in enumerate(column):
-            _draw_posture(a, model, d, site, label=i == 0 and row == 0, plane=plane)
-        _style_whole(column[0], q, model.joint_names, plane)
-        for j, a in enumerate(column[1:]):
-            center = plane.xy(d.xanchor[model.joint_map.free[j]])
-            _style_zoom(a, center, _zoom_half_width_m(m, d, plane, center), model.joint_names[j])
-    if frame == "moving":
-        _frame(grid[0][0], np.concatenate(framed))
+        _draw_column(column, model, d, q, site, i == 0, plane)
+    for column in grid if frame == "moving" else ():
+        _frame(column[0], np.concatenate(framed))
     _draw_gravity(grid[0][0], m.opt.gravity, plane)
     fig = fig or grid[0][0].figure
     _legend(fig, grid[0][0], own_figure=ax is None)
     if path is not None:
         save_figure_atomic(fig, path, bbox_inches="tight", pad_inches=0.05)
     return fig
+
+
+def _draw_column(column, model: MusculoskeletalModel, d, q: np.ndarray, site: str, first: bool, plane: ViewPlane):
+    """One posture (``d`` after mj_forward): the whole arm in ``column[0]``, a joint's close-up in each further Axes."""
+    m = model.mj_model
+    for row, a in enumerate(column):
+        _draw_posture(a, model, d, site, label=first and row == 0, plane=plane)
+    _style_whole(column[0], q, model.joint_names, plane)
+    for j, a in enumerate(column[1:]):
+        center = plane.xy(d.xanchor[model.joint_map.free[j]])
+        _style_zoom(a, center, _zoom_half_width_m(m, d, plane, center), model.joint_names[j])
 
 
 FRAMES = ("all", "moving")
