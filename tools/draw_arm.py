@@ -3,7 +3,7 @@ r"""Draw a model's arm and muscle routing at a few postures, e.g.
     python tools/draw_arm.py --model paper_arm                  # -> runs/arm.png
     python tools/draw_arm.py --model arm3_8 --out runs/arm3_8.png
     python tools/draw_arm.py --model my_robot.xml --q 0,0 --q 0.5,-0.3 --out /tmp/robot.png
-    python tools/draw_arm.py --model myo:myoelbow_2dof --site r_radius_styloid --out docs/myoelbow.png
+    python tools/draw_arm.py --model myo:myoelbow_2dof --site wrist --out docs/myoelbow.png
 
 The README's drawings of the MyoSuite bodies from their configs (standing, stepping and seated for the legs):
 
