@@ -150,21 +150,33 @@ def require_positive(**options: int) -> None:
         raise BodySchemaInputError(f"{', '.join(bad)}: must be >= 1")
 
 
-def robot_from_config(path: str):
-    """(model, spring, data section) of a config's robot, resolved as the data module resolves them (data.model,
-    data.muscles, data.locked_joints, data.fixed_base, spring constants), without building a dataset. For the benchmark tools."""
+def config_data(path: str) -> dict:
+    """The ``data:`` section of the config file at ``path`` (``{class_path, init_args}`` or plain keys), as a dict."""
     import yaml
-
-    from ..sim import MusculoskeletalModel
-    from ..sim.spring import spring_for_model
 
     if not os.path.isfile(path):
         raise BodySchemaInputError(f"--config {path!r} does not exist; give a config with a data: section")
     with open(path) as fh:
         data = (yaml.safe_load(fh) or {}).get("data") or {}
-    data = data.get("init_args", data)  # `data: {class_path, init_args}` or plain keys
-    model = MusculoskeletalModel(data.get("model", "paper_arm"), muscles=data.get("muscles"),
-                                 locked_joints=data.get("locked_joints"), fixed_base=bool(data.get("fixed_base")))
+    return dict(data.get("init_args", data))
+
+
+def robot_options(data: dict) -> dict:
+    """Keyword arguments of ``MusculoskeletalModel`` from a config's data section, as the data module passes them
+    (data.model, data.muscles, data.gravity, data.locked_joints, data.fixed_base)."""
+    return {"source": data.get("model", "paper_arm"), "muscles": data.get("muscles"), "gravity": data.get("gravity"),
+            "locked_joints": data.get("locked_joints"), "fixed_base": bool(data.get("fixed_base"))}
+
+
+def robot_from_config(path: str):
+    """(model, spring, data section) of a config's robot, resolved as the data module resolves them (data.model,
+    data.muscles, data.gravity, data.locked_joints, data.fixed_base, spring constants), without building a dataset.
+    For the benchmark tools."""
+    from ..sim import MusculoskeletalModel
+    from ..sim.spring import spring_for_model
+
+    data = config_data(path)
+    model = MusculoskeletalModel(**robot_options(data))
     spring = spring_for_model(model, data.get("k_n"), data.get("alpha_per_m", 20.0), data.get("f_max_n"))
     return model, spring, data
 

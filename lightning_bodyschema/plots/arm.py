@@ -58,12 +58,15 @@ class ViewPlane:
         return f"{'-' if axis[k] < 0 else ''}{'xyz'[k]} [m]"
 
 
-def view_plane(m: mujoco.MjModel, d: mujoco.MjData) -> ViewPlane:
-    """The plane perpendicular to the first hinge axis, "up" against gravity (or along world z / y).
+def view_plane(m: mujoco.MjModel, d: mujoco.MjData, joint: int | None = None) -> ViewPlane:
+    """The plane perpendicular to the axis of hinge ``joint`` (default: the first hinge), "up" against gravity (or
+    along world z / y).
 
     Needs ``mj_kinematics`` on ``d``. For a model without hinges (slide joints only) the x-y plane.
     """
     hinges = [j for j in range(m.njnt) if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_HINGE)]
+    if joint is not None:
+        hinges = [joint]
     normal = d.xaxis[hinges[0]].copy() if hinges else np.array([0.0, 0.0, 1.0])
     normal /= np.linalg.norm(normal)
     for candidate in (-np.asarray(m.opt.gravity, float), np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])):
@@ -124,15 +127,28 @@ def muscle_polylines(m: mujoco.MjModel, d: mujoco.MjData, tendon: int) -> list[n
     return paths + ([np.array(path)] if path else [])
 
 
+def _link_geoms(m: mujoco.MjModel, skip: set[int]) -> list[int]:
+    """Capsules and cylinders drawn as links: not wrapping surfaces, not cylinders wider than long (platforms)."""
+    return [g for g in range(m.ngeom) if g not in skip and (int(m.geom_type[g]) == _CAPSULE or (
+        int(m.geom_type[g]) == _CYL and m.geom_size[g, 0] <= m.geom_size[g, 1]))]
+
+
+def _link_segments(m, d, skip: set[int]) -> list[np.ndarray]:
+    """(2, 3) world ends [m] of each link geom's axis."""
+    return [np.stack([d.geom_xpos[g] - h, d.geom_xpos[g] + h]) for g in _link_geoms(m, skip)
+            for h in [d.geom_xmat[g].reshape(3, 3)[:, 2] * m.geom_size[g, 1]]]
+
+
 def _draw_links(ax: Axes, m, d, skip: set[int], plane: ViewPlane):
-    """Capsule and cylinder geoms as thick grey lines; if a model has none, bodies joined origin to origin."""
-    segments = []
-    for g in range(m.ngeom):
-        if g not in skip and int(m.geom_type[g]) in (_CAPSULE, _CYL):
-            half = d.geom_xmat[g].reshape(3, 3)[:, 2] * m.geom_size[g, 1]
-            segments.append(np.stack([d.geom_xpos[g] - half, d.geom_xpos[g] + half]))
-    if not segments:
-        segments = [d.xpos[[m.body_parentid[b], b]] for b in range(1, m.nbody)]
+    """Link geoms as thick grey lines over a thin skeleton joining each body's origin to its parent's (it shows where
+    only meshes are, e.g. a prosthesis's knee); if a model has no link geom at all, a thick skeleton."""
+    segments = _link_segments(m, d, skip)
+    for b in range(1, m.nbody):
+        if m.body_parentid[b] > 0 or not segments:
+            xy = plane.xy(d.xpos[[m.body_parentid[b], b]])
+            thin = bool(segments)
+            ax.plot(xy[:, 0], xy[:, 1], color="0.45" if thin else "0.6", lw=2.5 if thin else 7, solid_capstyle="round",
+                    zorder=0.9)
     for ends in segments:
         xy = plane.xy(ends)
         ax.plot(xy[:, 0], xy[:, 1], color="0.6", lw=7, solid_capstyle="round", zorder=1)
@@ -203,9 +219,11 @@ def _check_postures(model: MusculoskeletalModel, qs) -> np.ndarray:
     return q
 
 
-def _new_grid(n_postures: int, n_zoom: int) -> tuple[Figure, np.ndarray]:
-    """Agg figure: row 0 the whole arm (shared limits), then one zoom row per joint; a column per posture."""
-    fig = Figure(figsize=(3.6 * n_postures, 4.2 + 2.6 * n_zoom), dpi=150, layout="constrained")
+def _new_grid(n_postures: int, n_zoom: int, n_joints: int) -> tuple[Figure, np.ndarray]:
+    """Agg figure: row 0 the whole arm (shared limits), then one zoom row per joint; a column per posture. Titles
+    beyond 4 lines (over 8 joints) get their own height."""
+    title_in = 0.17 * max(0, -(-n_joints // 2) - 4)
+    fig = Figure(figsize=(3.6 * n_postures, 4.2 + title_in + 2.6 * n_zoom), dpi=150, layout="constrained")
     grid = fig.subplots(1 + n_zoom, n_postures, squeeze=False, height_ratios=[1.5] + [1.0] * n_zoom)
     for a in grid[0, 1:]:
         a.sharex(grid[0, 0])
@@ -220,44 +238,102 @@ def _caller_grid(qs: np.ndarray, ax) -> np.ndarray:
     return np.array(axes, dtype=object)[:, None]
 
 
-def save_figure_atomic(fig: Figure, path: str | os.PathLike):
-    """Render into memory, then write via a temp file and rename: readers never see half a figure."""
+def save_figure_atomic(fig: Figure, path: str | os.PathLike, **savefig_options):
+    """Render into memory (``Figure.savefig`` with ``savefig_options``), then write via a temp file and rename:
+    readers never see half a figure."""
     path = os.fspath(path)
     fmt = (os.path.splitext(path)[1] or ".png")[1:]
     buffer = io.BytesIO()
-    fig.savefig(buffer, format=fmt)
+    fig.savefig(buffer, format=fmt, **savefig_options)
     atomic_write_bytes(path, buffer.getvalue())
 
 
 def draw_arm(model: MusculoskeletalModel, qs, ax: Axes | Sequence[Axes] | None = None,
-             path: str | os.PathLike | None = None, site: str = "hand", zoom: bool = True) -> Figure:
+             path: str | os.PathLike | None = None, site: str = "hand", zoom: bool = True,
+             view_joint: str | None = None, frame: str = "all") -> Figure:
     """Draw the arm with its muscles at postures ``qs (B, N)`` [rad] and return the figure.
 
     Default: a new figure with one column per posture, the whole arm on top and, if ``zoom``, one
     close-up per joint below it so the wrapping is visible. ``ax``: draw into one Axes (postures
     overlaid) or one Axes per posture instead. ``path``: also save the figure there (atomically).
+    ``view_joint``: a hinge joint's name; the drawing plane is perpendicular to its axis (default: the
+    first hinge's). ``frame``: ``"all"`` shows everything drawn, ``"moving"`` only the bodies the free
+    joints move (with a margin), e.g. the hand of a whole-body model.
     """
     qs = _check_postures(model, qs)
+    if frame not in FRAMES:
+        raise BodySchemaInputError(f"frame {frame!r} is not one of {list(FRAMES)}")
     n_zoom = model.n_joints if zoom and ax is None else 0
-    fig, grid = _new_grid(len(qs), n_zoom) if ax is None else (None, _caller_grid(qs, ax))
+    fig, grid = _new_grid(len(qs), n_zoom, model.n_joints) if ax is None else (None, _caller_grid(qs, ax))
     m, d = model.mj_model, mujoco.MjData(model.mj_model)  # own data: never disturbs the model's
     mujoco.mj_kinematics(m, d)
-    plane = view_plane(m, d)  # hinge axes keep their world direction in a planar arm
+    plane = view_plane(m, d, _hinge_id(m, view_joint))  # hinge axes keep their world direction in a planar arm
+    moving = _moving_bodies(m, model.joint_map.free)
+    framed = []
     for i, (q, column) in enumerate(zip(qs, grid)):
         d.qpos[:] = model.joint_map.full_q(q[None])[0]  # locked and coupled joints too
         mujoco.mj_forward(m, d)
-        for row, a in enumerate(column):
-            _draw_posture(a, model, d, site, label=i == 0 and row == 0, plane=plane)
-        _style_whole(column[0], q, model.joint_names, plane)
-        for j, a in enumerate(column[1:]):
-            center = plane.xy(d.xanchor[model.joint_map.free[j]])
-            _style_zoom(a, center, _zoom_half_width_m(m, d, plane, center), model.joint_names[j])
+        framed.append(_moving_points(m, d, moving, model.joint_map.free, plane))
+        _draw_column(column, model, d, q, site, i == 0, plane)
+    for column in grid if frame == "moving" else ():
+        _frame(column[0], np.concatenate(framed))
     _draw_gravity(grid[0][0], m.opt.gravity, plane)
     fig = fig or grid[0][0].figure
     _legend(fig, grid[0][0], own_figure=ax is None)
     if path is not None:
-        save_figure_atomic(fig, path)
+        save_figure_atomic(fig, path, bbox_inches="tight", pad_inches=0.05)
     return fig
+
+
+def _draw_column(column, model: MusculoskeletalModel, d, q: np.ndarray, site: str, first: bool, plane: ViewPlane):
+    """One posture (``d`` after mj_forward): the whole arm in ``column[0]``, a joint's close-up in each further Axes."""
+    m = model.mj_model
+    for row, a in enumerate(column):
+        _draw_posture(a, model, d, site, label=first and row == 0, plane=plane)
+    _style_whole(column[0], q, model.joint_names, plane)
+    for j, a in enumerate(column[1:]):
+        center = plane.xy(d.xanchor[model.joint_map.free[j]])
+        _style_zoom(a, center, _zoom_half_width_m(m, d, plane, center), model.joint_names[j])
+
+
+FRAMES = ("all", "moving")
+
+
+def _hinge_id(m: mujoco.MjModel, name: str | None) -> int | None:
+    """Id of the hinge joint ``name`` (None: None); one clear error for another name."""
+    if name is None:
+        return None
+    j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+    hinges = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, k) for k in range(m.njnt)
+              if int(m.jnt_type[k]) == int(mujoco.mjtJoint.mjJNT_HINGE)]
+    if j < 0 or name not in hinges:
+        raise BodySchemaInputError(f"view joint {name!r} is not a hinge of the model; hinges: {hinges}")
+    return j
+
+
+def _moving_bodies(m: mujoco.MjModel, free_joints) -> list[int]:
+    """Bodies at or below a free joint's body in the kinematic tree."""
+    roots = {int(m.jnt_bodyid[j]) for j in free_joints}
+
+    def moves(b: int) -> bool:
+        return b in roots or (b > 0 and moves(int(m.body_parentid[b])))
+    return [b for b in range(1, m.nbody) if moves(b)]
+
+
+def _moving_points(m, d, moving: list[int], free_joints, plane: ViewPlane) -> np.ndarray:
+    """(K, 2) drawing points [m] of the moving bodies: their origins, link ends and the free joints' anchors."""
+    links = [e for e, g in zip(_link_segments(m, d, set(_wrap_geoms(m))), _link_geoms(m, _wrap_geoms(m)))
+             if int(m.geom_bodyid[g]) in moving]
+    points = [d.xpos[moving], d.xanchor[list(free_joints)]] + links
+    return plane.xy(np.concatenate(points))
+
+
+def _frame(a: Axes, xy: np.ndarray, margin: float = 0.12):
+    """Limit ``a`` to the box around ``xy (K, 2)`` [m], widened by ``margin`` of its larger side."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    pad = margin * max(hi - lo)
+    a.set_xlim(lo[0] - pad, hi[0] + pad)
+    a.set_ylim(lo[1] - pad, hi[1] + pad)
 
 
 def _zoom_half_width_m(m: mujoco.MjModel, d: mujoco.MjData, plane: ViewPlane, center: np.ndarray) -> float:
