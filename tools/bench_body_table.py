@@ -7,8 +7,8 @@
 Columns, each a median: the healthy commands' equilibrium residual ||-G^T f - tau_bias|| [N m] at the first
 ``--postures`` validation postures and its ratio to the median ||tau_bias|| there (issue target <= 0.05), their
 length residual |l_motor + delta(f) - l_geo| [mm]; for a structured schema the learned body's errors against
-MuJoCo (l_geo [mm], moment arms [mm/rad], torque [N m]); the binding protocol's adapted and unadapted E_q [rad]
-(the Gauss-Newton evaluator's phys reading, feasible cases, CUT and FIX: ``bodyschema test`` adds the settle runs);
+MuJoCo (l_geo [mm], moment arms [mm/rad], torque [N m]); the binding protocol's adapted and unadapted E_q [rad] and E_tau [N m] per condition
+(the Gauss-Newton evaluator's phys reading, feasible cases: ``bodyschema test`` adds the settle runs);
 and the fit's wall time when given. One torch thread.
 """
 import argparse
@@ -55,11 +55,13 @@ def binding_row(schema, q, x, n_per_condition: int) -> dict:
     result = run_fault_benchmark(schema.robot_model, schema.spring, cases, schema.infer,
                                  lambda qq, ff: schema.adapt(qq, ff, check_physics=False), oracle=False)
     summary = result.summary()
-    row = {}
-    for cond in ("CUT", "FIX"):
-        for kind in ("adapted", "unadapted"):
-            row[f"{kind}_{cond}"] = summary[kind]["phys"][cond]["feasible"]["E_q"]
-    return row
+    return {cond: tuple(summary[kind]["phys"][cond]["feasible"][metric] for metric in ("E_q", "E_tau")
+                        for kind in ("adapted", "unadapted")) for cond in summary["adapted"]["phys"]}
+
+
+def _pairs(by_cond: dict, first: int) -> str:
+    """``COND a / u`` for every condition: adapted and unadapted medians."""
+    return "; ".join(f"{cond} {_fmt(v[first])} / {_fmt(v[first + 1])}" for cond, v in by_cond.items())
 
 
 def _fmt(value, digits=3):
@@ -80,7 +82,7 @@ def main(argv=None):
     from lightning_bodyschema.schemas.loading import load_datamodule, load_schema
 
     print("| choice | eq residual [N m] | ratio | length [mm] | l_geo [mm] | arms [mm/rad] | torque [N m] | "
-          "E_q CUT adapted / unadapted [rad] | E_q FIX adapted / unadapted [rad] | fit [s] |")
+          "binding E_q adapted / unadapted [rad] | binding E_tau adapted / unadapted [N m] | fit [s] |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for label, path in ckpts.items():
         schema = load_schema(path).eval()
@@ -91,8 +93,7 @@ def main(argv=None):
         b = binding_row(schema, q, x, args.n_per_condition)
         print(f"| {label} | {_fmt(h['eq_nm'])} | {_fmt(h['ratio'])} | {_fmt(h['length_mm'])} | "
               f"{_fmt(h.get('l_geo_mm'))} | {_fmt(h.get('arm_mm'))} | {_fmt(h.get('tau_nm'))} | "
-              f"{_fmt(b['adapted_CUT'])} / {_fmt(b['unadapted_CUT'])} | {_fmt(b['adapted_FIX'])} / "
-              f"{_fmt(b['unadapted_FIX'])} | {seconds.get(label, '—')} |", flush=True)
+              f"{_pairs(b, 0)} | {_pairs(b, 2)} | {seconds.get(label, '—')} |", flush=True)
 
 
 if __name__ == "__main__":
