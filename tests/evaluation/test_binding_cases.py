@@ -124,13 +124,16 @@ def test_torque_reach_screen_agrees_with_the_qp(model, pool, jammed_pull):
     assert not (feasible & outside).any()
 
 
-def test_torque_reach_screen_steps_aside_on_many_joints_without_enumerating():
-    """myoHand's 15 joints and 31 muscles have C(31, 14) = 265 million facets: the screen must decline (every case
-    to the QP) by counting them, not by listing them (which filled 22 GB and was OOM-killed). A box far too small
-    for the torque asked is still no reason to drop a case here: the QP decides."""
+def test_torque_reach_screen_on_many_joints_counts_facets_and_keeps_every_feasible_case():
+    """myoHand's 15 joints and 31 muscles have C(31, 14) = 265 million facets: the screen must count them, not list
+    them (listing filled 22 GB and was OOM-killed), and test along other directions instead: a torque far out of
+    reach is dropped, and a torque some tension in the box gives is never dropped."""
     rng = np.random.default_rng(0)
-    G = rng.normal(scale=0.01, size=(3, 31, 15))
-    lo, hi = np.zeros((3, 31)), np.full((3, 31), 1e-6)
-    outside = outside_torque_reach(G, np.full((3, 15), 100.0), lo, hi)
-    assert not outside.any()
-    assert outside_torque_reach(G[:, :3, :2], np.full((3, 2), 100.0), lo[:, :3], hi[:, :3]).all()
+    G = rng.normal(scale=0.01, size=(40, 31, 15))
+    lo, hi = np.zeros((40, 31)), np.full((40, 31), 100.0)
+    reachable = -np.einsum("bmn,bm->bn", G, rng.uniform(0.0, 100.0, size=(40, 31)))
+    assert not outside_torque_reach(G, reachable, lo, hi).any()
+    far = reachable + 50.0 * rng.normal(size=reachable.shape)  # 50 N m: beyond 31 muscles x 100 N x ~1 cm
+    outside = outside_torque_reach(G, far, lo, hi)
+    _, solved = solve_equilibrium_qp(G, far, np.full(lo.shape, 50.0), hi, lo)
+    assert outside.all() and not solved.any()
