@@ -75,6 +75,7 @@ def main(argv=None):
     parser.add_argument("--fit-seconds", action="append", help="LABEL=SECONDS: the fit's wall time (repeat)")
     parser.add_argument("--postures", type=int, default=2000)
     parser.add_argument("--n-per-condition", type=int, default=20)
+    parser.add_argument("--cache-dir", default="runs/cache", help="the fits' data.cache_dir (default: runs/cache)")
     args = parser.parse_args(argv)
     ckpts, seconds = _labelled(args.ckpt, "--ckpt"), _labelled(args.fit_seconds, "--fit-seconds")
     torch.set_num_threads(1)
@@ -86,7 +87,7 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|---|---|---|")
     for label, path in ckpts.items():
         schema = load_schema(path).eval()
-        datamodule = load_datamodule(path)
+        datamodule = load_datamodule(path, cache_dir=args.cache_dir)
         datamodule.setup("test")
         q, x = datamodule.splits["val"]
         h = healthy_row(schema, q[:args.postures], x[:args.postures])
