@@ -78,22 +78,25 @@ class JacobianMLP(nn.Module):
         tangent = first.weight.T.unsqueeze(0).expand(len(x), -1, -1)  # d h / d x, rows = input directions
         for layer, norm, residual in self._steps():
             if norm is None:
-                z, dz = h, tangent
+                z = h
+                step = (tangent * _silu_derivative(z).unsqueeze(1)) @ layer.weight.T
             else:
-                z, dz = norm(h), _layer_norm_tangent(h, tangent, norm)
-            step = (dz * _silu_derivative(z).unsqueeze(1)) @ layer.weight.T
+                z = norm(h)
+                step = _layer_norm_tangent(h, tangent, norm, _silu_derivative(z)) @ layer.weight.T
             h = h + layer(F.silu(z)) if residual else layer(F.silu(z))
             tangent = tangent + step if residual else step
         return h, tangent.transpose(1, 2)
 
 
-def _layer_norm_tangent(h: torch.Tensor, tangent: torch.Tensor, norm: nn.LayerNorm) -> torch.Tensor:
-    """d LayerNorm(h) for tangents ``(B, in, width)`` of ``h (B, width)``: with ``c = h - mean(h)``,
-    ``s = sqrt(var(h) + eps)`` (biased variance) and ``n = c / s``: ``dn = (dc - n mean(n dc)) / s``, times the
-    affine weight."""
+def _layer_norm_tangent(h: torch.Tensor, tangent: torch.Tensor, norm: nn.LayerNorm, slope: torch.Tensor):
+    """``slope * d LayerNorm(h)`` for tangents ``(B, in, width)`` of ``h (B, width)`` (``slope (B, width)``: the
+    next activation's derivative). With ``c = h - mean(h)``, ``s = sqrt(var(h) + eps)`` (biased variance) and
+    ``n = c / s``: ``dn = (dc - n mean(n dc)) / s``, times the affine weight; ``mean(n dc)`` is taken as
+    ``mean(n dh) - mean(n) mean(dh)`` (the same number, one pass over the tangents fewer)."""
     c = h - h.mean(-1, keepdim=True)
     s = (c.pow(2).mean(-1, keepdim=True) + norm.eps).sqrt()
-    n = (c / s).unsqueeze(1)
-    dc = tangent - tangent.mean(-1, keepdim=True)
-    dn = (dc - n * (n * dc).mean(-1, keepdim=True)) / s.unsqueeze(1)
-    return dn if norm.weight is None else dn * norm.weight
+    n = c / s
+    scale = slope / s if norm.weight is None else slope * norm.weight / s
+    dh_mean = tangent.mean(-1, keepdim=True)  # (B, in, 1)
+    n_dc = (n.unsqueeze(1) * tangent).mean(-1, keepdim=True) - n.mean(-1, keepdim=True).unsqueeze(1) * dh_mean
+    return torch.addcmul(tangent - dh_mean, n.unsqueeze(1), n_dc, value=-1.0) * scale.unsqueeze(1)
