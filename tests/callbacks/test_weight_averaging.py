@@ -114,3 +114,12 @@ def test_bodyschema_test_uses_the_averaged_weights(two_cli_fits, tmp_path):
     cli = _cli("test", tmp_path / "test", f"--ckpt_path={path}")
     for name, value in cli.model.state_dict().items():
         assert torch.equal(value, averaged[name]), name
+
+
+def test_cli_refuses_an_unknown_block_in_one_line(tmp_path, capsys):
+    with warnings.catch_warnings(), pytest.raises(SystemExit) as exit_info:
+        warnings.filterwarnings("ignore", message=".*LightningCLI's args parameter.*")
+        cli_main(["fit", "--model=StructuredSchema", "--model.norm=batch", f"--trainer.default_root_dir={tmp_path}"])
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("Seed set")]
+    assert exit_info.value.code == 2 and err == ["error: norm='batch'; allowed: ['none', 'layer']"]
+    assert not any(tmp_path.iterdir())  # nothing written
