@@ -13,6 +13,7 @@ import torch
 from lightning.pytorch.callbacks import Callback, EMAWeightAveraging, ModelCheckpoint
 
 from lightning_bodyschema.callbacks import FaultBenchmark, ReconstructionFigure
+from lightning_bodyschema.callbacks.steps import averaged_weights_now
 from lightning_bodyschema.cli import main as cli_main
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.schemas import StructuredSchema, load_schema
@@ -65,6 +66,11 @@ def test_checkpoint_holds_the_exponential_average_and_the_data_buffers(tmp_path,
                    StructuredSchema.load_from_checkpoint(trainer.checkpoint_callback.best_model_path), schema):
         for name, value in loaded.state_dict().items():
             assert torch.equal(value, state[name]), name  # the fitted schema itself ends with the average too
+    with torch.no_grad():  # the fault benchmark's and figure's end-of-fit path (EarlyStopping) puts the average in
+        for p in schema.parameters():
+            p.add_(1.0)
+    averaged_weights_now(trainer, schema)
+    assert all(torch.equal(value, state[name]) for name, value in schema.state_dict().items())
 
 
 def _cli(subcommand, root, *extra):
