@@ -47,7 +47,7 @@ from ..evaluation.cases import PROTOCOLS, HealthyPool, make_binding_cases
 from ..npz import atomic_write_bytes
 from ..training.fit_loop import fit_ends_with_this_epoch
 from ..variants import check_variant
-from .steps import stopped_after_last_validation, validation_log_step
+from .steps import averaged_weights_now, stopped_after_last_validation, validation_log_step
 
 CONDITION_ORDER = ("CUT", "FIX", "BOTH", "WEAK", "BAND")
 METRIC_KEYS = {"E_cut": ("E_cut", 1.0), "E_fix": ("E_fix_mm", 1e3), "E_tau": ("E_tau", 1.0), "E_q": ("E_q", 1.0),
@@ -127,6 +127,7 @@ class FaultBenchmark(Callback):
         # fit stopped with, at the step of that validation, unless that validation already did
         if stopped_after_last_validation(trainer, self._validated_at, self._benchmarked_at) and self.every_n_epochs \
                 and trainer.loggers:
+            averaged_weights_now(trainer, pl_module)  # the weights the fit saves, under weight averaging too
             self._benchmark_in_fit(trainer, pl_module)
 
     def _benchmark_in_fit(self, trainer, pl_module):

@@ -7,7 +7,7 @@ from lightning.pytorch.utilities import rank_zero_only
 
 from ..plots.reconstruction import reconstruction_figure
 from ..training.fit_loop import fit_ends_with_this_epoch
-from .steps import stopped_after_last_validation, validation_log_step
+from .steps import averaged_weights_now, stopped_after_last_validation, validation_log_step
 
 
 class ReconstructionFigure(Callback):
@@ -31,6 +31,7 @@ class ReconstructionFigure(Callback):
     def on_train_end(self, trainer, pl_module):
         # a stop EarlyStopping requested after on_validation_epoch_end: the figure of the weights the fit ended with
         if stopped_after_last_validation(trainer, self._validated_at, self._logged_at):
+            averaged_weights_now(trainer, pl_module)  # the weights the fit saves, under weight averaging too
             self.log_figure(trainer, pl_module)
 
     def log_figure(self, trainer, pl_module):

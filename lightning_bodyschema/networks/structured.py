@@ -10,10 +10,20 @@ from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 
+BLOCKS = ("plain", "residual")
+NORMS = ("none", "layer")
+
 
 def _silu_derivative(h: torch.Tensor) -> torch.Tensor:
     s = torch.sigmoid(h)
     return s * (1.0 + h * (1.0 - s))
+
+
+def check_architecture(block: str, norm: str) -> None:
+    """One ``BodySchemaInputError`` naming a ``block`` or ``norm`` outside ``BLOCKS`` / ``NORMS``."""
+    for name, value, allowed in (("block", block, BLOCKS), ("norm", norm, NORMS)):
+        if value not in allowed:
+            raise BodySchemaInputError(f"{name}={value!r}; allowed: {list(allowed)}")
 
 
 class JacobianMLP(nn.Module):
@@ -21,33 +31,72 @@ class JacobianMLP(nn.Module):
 
     Args:
         in_dim, out_dim: sizes of x (B, in_dim) and y (B, out_dim).
-        hidden, n_hidden: width and number of hidden layers (each >= 1).
+        hidden, n_hidden: width and number of hidden layers (each >= 1): an input layer ``h = W_0 x``, then
+            ``n_hidden - 1`` hidden steps and the output layer, each applied to ``a = silu(N(h))``.
+        block: ``"plain"``: each hidden step is ``h <- W a`` (the default network); ``"residual"``: ``h <- h + W a``
+            (pre-norm residual blocks, same weights and cost; the identity path keeps deep stacks trainable).
+        norm: ``"none"`` (``N`` the identity) or ``"layer"`` (``N`` a LayerNorm over the width, with its affine
+            weight and bias, before every activation).
     ``forward(x)`` gives y; ``with_jacobian(x)`` gives ``(y, J)`` with ``J (B, out_dim, in_dim) = dy/dx``, exact (the
-    chain rule through each layer, differentiable by autograd in the weights), at ``in_dim + 1`` times the cost.
+    chain rule through each layer, LayerNorm and residual add, differentiable by autograd in the weights), at about
+    ``in_dim + 1`` times the cost. The default (plain, none) holds only ``layers``: its state_dict keys are the same
+    as before the options existed; ``norm="layer"`` adds ``norms`` (one per activation).
     """
 
-    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, n_hidden: int = 3):
+    def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, n_hidden: int = 3, block: str = "plain",
+                 norm: str = "none"):
         super().__init__()
         for name, value in (("in_dim", in_dim), ("out_dim", out_dim), ("hidden", hidden), ("n_hidden", n_hidden)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise BodySchemaInputError(f"{name}={value!r} must be an integer >= 1")
+        check_architecture(block, norm)
+        self.residual = block == "residual"
         sizes = [in_dim] + [hidden] * n_hidden + [out_dim]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        if norm == "layer":
+            self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(n_hidden))
+        else:
+            self.norms = None
+
+    def _steps(self):
+        """(layer, norm or None, adds its input) for every layer after the input layer."""
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers[1:]):
+            yield layer, None if self.norms is None else self.norms[i], self.residual and i < last - 1
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        for layer in self.layers[:-1]:
-            x = F.silu(layer(x))
-        return self.layers[-1](x)
+        h = self.layers[0](x)
+        for layer, norm, residual in self._steps():
+            a = F.silu(h if norm is None else norm(h))
+            h = h + layer(a) if residual else layer(a)
+        return h
 
     def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(y (B, out), dy/dx (B, out, in)): tangents (B, in, width) pushed through every layer with the values."""
         first = self.layers[0]
         h = first(x)
         tangent = first.weight.T.unsqueeze(0).expand(len(x), -1, -1)  # d h / d x, rows = input directions
-        for layer in self.layers[1:]:
-            slope = _silu_derivative(h)
-            a = F.silu(h)
-            tangent = tangent * slope.unsqueeze(1)
-            h = layer(a)
-            tangent = tangent @ layer.weight.T
+        for layer, norm, residual in self._steps():
+            if norm is None:
+                z = h
+                step = (tangent * _silu_derivative(z).unsqueeze(1)) @ layer.weight.T
+            else:
+                z = norm(h)
+                step = _layer_norm_tangent(h, tangent, norm, _silu_derivative(z)) @ layer.weight.T
+            h = h + layer(F.silu(z)) if residual else layer(F.silu(z))
+            tangent = tangent + step if residual else step
         return h, tangent.transpose(1, 2)
+
+
+def _layer_norm_tangent(h: torch.Tensor, tangent: torch.Tensor, norm: nn.LayerNorm, slope: torch.Tensor):
+    """``slope * d LayerNorm(h)`` for tangents ``(B, in, width)`` of ``h (B, width)`` (``slope (B, width)``: the
+    next activation's derivative). With ``c = h - mean(h)``, ``s = sqrt(var(h) + eps)`` (biased variance) and
+    ``n = c / s``: ``dn = (dc - n mean(n dc)) / s``, times the affine weight; ``mean(n dc)`` is taken as
+    ``mean(n dh) - mean(n) mean(dh)`` (the same number, one pass over the tangents fewer)."""
+    c = h - h.mean(-1, keepdim=True)
+    s = (c.pow(2).mean(-1, keepdim=True) + norm.eps).sqrt()
+    n = c / s
+    scale = slope / s if norm.weight is None else slope * norm.weight / s
+    dh_mean = tangent.mean(-1, keepdim=True)  # (B, in, 1)
+    n_dc = (n.unsqueeze(1) * tangent).mean(-1, keepdim=True) - n.mean(-1, keepdim=True).unsqueeze(1) * dh_mean
+    return torch.addcmul(tangent - dh_mean, n.unsqueeze(1), n_dc, value=-1.0) * scale.unsqueeze(1)

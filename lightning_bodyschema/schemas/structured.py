@@ -23,7 +23,7 @@ from ..adaptation.command import safe_command
 from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
 from ..faults.qp import OK, STATUS_DTYPE, fault_command, intersect_bounds
-from ..networks.structured import JacobianMLP
+from ..networks.structured import JacobianMLP, check_architecture
 from .base import BodySchema
 
 TORQUE_MODELS = ("potential", "direct")
@@ -34,6 +34,9 @@ class StructuredSchema(BodySchema):
 
     Args:
         hidden, n_hidden: width and depth of both networks (SiLU).
+        block: ``"plain"`` (the default) or ``"residual"`` (pre-norm residual hidden layers), both networks
+            (``networks.structured.JacobianMLP``); the moment arms stay the exact derivative of the lengths.
+        norm: ``"none"`` (the default) or ``"layer"`` (LayerNorm before every activation), both networks.
         torque_model: ``"potential"`` (tau = dV/dq of a learned scalar V) or ``"direct"`` (tau regressed per joint).
         stiffness_weighted: weigh each muscle's length error by its spring stiffness at the sample's tension,
             ``alpha (f + k)`` [N/m] (a length error then counts as the tension error it causes); False: unit weights.
@@ -48,17 +51,18 @@ class StructuredSchema(BodySchema):
     def __init__(self, hidden: int = 256, n_hidden: int = 3, torque_model: str = "potential",
                  stiffness_weighted: bool = True, torque_weight: float = 1.0, qp_reg: float = 1e-6,
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
-                 batch_size: int = 256):
+                 batch_size: int = 256, block: str = "plain", norm: str = "none"):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
         for name, value in (("torque_weight", torque_weight), ("qp_reg", qp_reg)):
             if isinstance(value, bool) or not 0.0 <= float(value) < float("inf"):
                 raise BodySchemaInputError(f"{name}={value!r} must be a finite number >= 0")
+        check_architecture(block, norm)
         self.save_hyperparameters()
-        self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden)
+        self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
         self.torque_net = JacobianMLP(self.n_joints, 1 if torque_model == "potential" else self.n_joints,
-                                      hidden, n_hidden)
+                                      hidden, n_hidden, block, norm)
         # typical muscle torque per joint [N m]: the unit of the torque networks (set from the data when a fit starts)
         self.register_buffer("tau_scale_nm", torch.ones(self.n_joints, dtype=torch.float64))
 

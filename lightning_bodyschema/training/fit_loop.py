@@ -59,6 +59,20 @@ def check_val_check_interval(trainer, batches_per_epoch: int) -> None:
             f"count {interval} steps across epochs")
 
 
+def weight_averaging_last(trainer) -> None:
+    """Put Lightning's ``WeightAveraging`` callbacks (``EMAWeightAveraging``, SWA) after every other callback but the
+    checkpoints, in place. They swap the averaged weights in at ``on_validation_epoch_start`` and the trained ones
+    back at ``on_validation_epoch_end``: a callback that scores or plots the validated weights in its own
+    ``on_validation_epoch_end`` (the fault benchmark, the reconstruction figure) must run before that swap."""
+    from lightning.pytorch.callbacks import Checkpoint, WeightAveraging
+
+    averaging = [cb for cb in trainer.callbacks if isinstance(cb, WeightAveraging)]
+    if averaging:
+        others = [cb for cb in trainer.callbacks if not isinstance(cb, (WeightAveraging, Checkpoint))]
+        checkpoints = [cb for cb in trainer.callbacks if isinstance(cb, Checkpoint)]
+        trainer.callbacks[:] = others + averaging + checkpoints
+
+
 def check_same_batch_size(schema_batch_size, data_batch_size) -> None:
     """The data module serves the minibatches; the schema's ``batch_size`` (which its checkpoint records) must be
     the same number. The CLI links ``--model.batch_size`` to the data module; in Python give both."""

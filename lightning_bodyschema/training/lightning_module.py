@@ -18,7 +18,7 @@ from ..errors import BodySchemaInputError
 from .finite import all_finite
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
-                       monitors_train_metrics)
+                       monitors_train_metrics, weight_averaging_last)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
@@ -55,6 +55,8 @@ class SchemaLightningModule(L.LightningModule):
             check_same_batch_size(self.hparams.get("batch_size"), getattr(datamodule, "batch_size", None))
             if hasattr(datamodule, "train_batches_per_epoch"):
                 check_val_check_interval(self.trainer, datamodule.train_batches_per_epoch(self.trainer.world_size))
+        if self._trainer is not None and stage == "fit":
+            weight_averaging_last(self.trainer)  # validation callbacks see the averaged weights they validate
 
     def configure_optimizers(self):
         """Adam (fused, unless a GradScaler runs) with the cosine schedule from ``lr`` to ``lr_final`` over the

@@ -168,6 +168,9 @@ def test_bad_options_and_variants_are_refused(paper_arm):
         schema.adapt(np.zeros((1, 2)), faults, variant="literal")
     with pytest.raises(BodySchemaInputError, match="torque_model"):
         StructuredSchema(robot=schema.hparams.robot, torque_model="spline")
+    for bad, named in (({"block": "resnet"}, "block='resnet'; allowed"), ({"norm": "batch"}, "norm='batch'; allowed")):
+        with pytest.raises(BodySchemaInputError, match=named):
+            StructuredSchema(robot=schema.hparams.robot, **bad)
 
 
 def test_checkpoint_round_trip_gives_the_same_commands(paper_arm, tmp_path):
