@@ -46,13 +46,24 @@ def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int = 2000):
     return f, solved
 
 
+def _dense_qp(n, n_eq, eps_abs, max_iter, qps=None):
+    """A proxsuite dense QP of n variables, n_eq equalities and an n-row box (built in the BatchQP ``qps`` if given),
+    with the tolerance and iteration limit set."""
+    qp = proxsuite.proxqp.dense.QP(n, n_eq, n) if qps is None else qps.init_qp_in_place(n, n_eq, n)
+    qp.settings.eps_abs, qp.settings.eps_rel = eps_abs, 0.0
+    qp.settings.max_iter, qp.settings.verbose = max_iter, False
+    return qp
+
+
 def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_threads: int = 1):
-    """``argmin 0.5 x^T H x + g^T x  s.t.  A x = b,  lo <= x <= hi`` per case, through proxsuite's batch API.
+    """``argmin 0.5 x^T H x + g^T x  s.t.  A x = b,  lo <= x <= hi`` per case.
 
     Args:
         H: (n, n) or (B, n, n); g: (B, n); A: (B, n_eq, n) and b: (B, n_eq), or both None; lo, hi: (B, n) (+-inf
         where unbounded). eps_abs: proxsuite's absolute tolerance (eps_rel 0); max_iter: its iteration limit.
-        num_threads: proxsuite's OpenMP threads for the solves (the QPs are set up from Python, one per case).
+        num_threads: 1 sets up and solves each case on one proxsuite QP in turn (the same bytes on every run);
+            more solves them through proxsuite's ``BatchQP`` and ``solve_in_parallel`` on that many OpenMP threads
+            (its QPs live at other addresses on every run, and their answers differ in the last bits).
 
     Returns:
         x (B, n) as proxsuite returns it (not clipped) and solved (B,) bool (proxsuite's status SOLVED).
@@ -60,18 +71,21 @@ def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_thr
     batch, n = g.shape
     H = np.broadcast_to(H, (batch, n, n))
     n_eq = 0 if A is None else A.shape[1]
-    eye = np.eye(n)
-    qps = proxsuite.proxqp.dense.BatchQP(batch)
-    for k in range(batch):  # proxsuite's batch is filled one QP at a time; the solves run in its own loop
-        qp = qps.init_qp_in_place(n, n_eq, n)  # the box as n inequality rows (in-place QPs take no box flag)
-        qp.settings.eps_abs, qp.settings.eps_rel = eps_abs, 0.0
-        qp.settings.max_iter, qp.settings.verbose = max_iter, False
-        qp.init(H[k], g[k], None if A is None else A[k], None if A is None else b[k], eye, lo[k], hi[k])
-    if batch:
-        proxsuite.proxqp.dense.solve_in_parallel(num_threads=int(num_threads), qps=qps)
-    results = [qps.get(k).results for k in range(batch)]
-    x = np.array([r.x for r in results]).reshape(batch, n)
-    return x, np.array([r.info.status == _SOLVED for r in results], dtype=bool)
+    eye, x, solved = np.eye(n), np.zeros((batch, n)), np.zeros(batch, dtype=bool)
+    parallel = proxsuite.proxqp.dense.BatchQP(batch) if num_threads > 1 else None
+    qp = _dense_qp(n, n_eq, eps_abs, max_iter) if parallel is None else None
+    for k in range(batch):  # proxsuite sets its QPs up one at a time; the box as n inequality rows
+        case = qp or _dense_qp(n, n_eq, eps_abs, max_iter, parallel)
+        case.init(H[k], g[k], None if A is None else A[k], None if A is None else b[k], eye, lo[k], hi[k])
+        if parallel is None:
+            case.solve()
+            x[k], solved[k] = case.results.x, case.results.info.status == _SOLVED
+    if parallel is not None and batch:
+        proxsuite.proxqp.dense.solve_in_parallel(num_threads=int(num_threads), qps=parallel)
+        for k in range(batch):
+            results = parallel.get(k).results
+            x[k], solved[k] = results.x, results.info.status == _SOLVED
+    return x, solved
 
 
 def _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver):
@@ -110,8 +124,8 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "pr
         f_max, f_min: scalars, (M,) or (B, M) tension bounds [N] (a per-case f_max of 0 models a cut).
         solver: ``"proxqp"`` (proxsuite's own API, fast) or any qpsolvers solver name.
         max_iter: proxsuite's iteration limit per posture (proxqp only); a posture with no solution runs to it.
-        batched: proxqp through ``solve_qps_batched`` (proxsuite's batch API, each QP preconditioned on its own,
-            ``num_threads`` OpenMP threads) instead of one QP updated per posture (the dataset's bytes).
+        batched: proxqp through ``solve_qps_batched`` (each QP set up and preconditioned on its own; ``num_threads``
+            > 1: proxsuite's batch API) instead of one QP updated per posture (the dataset's bytes).
 
     Returns:
         ``f (B, M)`` clipped into the bounds, and ``ok (B,)``: solved and equilibrium residual
