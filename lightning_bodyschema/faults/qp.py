@@ -12,9 +12,10 @@ becomes a box on the tensions f through the spring ``l_motor = l_geo - delta(f)`
   (f = 0, the motor may stand anywhere above ``l_geo``).
 
 ``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` per case (the dataset's QP
-in ``sim.equilibrium``, batched through proxsuite's ``BatchQP`` and ``solve_in_parallel``); a case without a solution
-(bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
-``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. numpy and proxsuite only.
+in ``sim.equilibrium``; on more than one thread batched through proxsuite's ``BatchQP`` and ``solve_in_parallel``);
+a case without a solution (bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
+``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. numpy and
+proxsuite only.
 """
 from __future__ import annotations
 
@@ -75,13 +76,14 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     """Command ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` on the body ``(l_geo_m, G, tau_nm)`` closest to
     ``f_ref`` (module docstring). Every row is finite and meets every bound (the box and the motor-length bounds);
     rows whose status is ``"infeasible_learned"`` miss the torque balance (least squares) and are not commands.
-    ``max_iter``: proxsuite's iteration limit of the equilibrium QP; ``num_threads``: its OpenMP threads."""
+    ``max_iter``: proxsuite's iteration limit of the equilibrium QP; ``num_threads``: 1 solves the equilibrium QPs
+    as the dataset does (one QP updated per case), more through proxsuite's batch API on that many threads."""
     box_lo, box_hi = tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring)
     ok = ~(box_lo > box_hi).any(1)  # crossed bounds: no tension meets them, straight to least squares
     box_lo = np.minimum(box_lo, box_hi)
     f, run = np.empty(box_lo.shape), ok.copy()
     f[run], ok[run] = solve_equilibrium_qp(G[run], tau_nm[run], f_ref[run], box_hi[run], box_lo[run],
-                                           max_iter=max_iter, batched=True, num_threads=num_threads)
+                                           max_iter=max_iter, batched=num_threads > 1, num_threads=num_threads)
     if not ok.all():
         f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg, num_threads)
     l_motor = l_geo_m - elongation_from_tension(f, spring)

@@ -29,11 +29,12 @@ def test_batched_equilibrium_qp_matches_one_qp_per_case():
     _, G, tau, _ = _body(64, seed=0)
     f_ref = np.random.default_rng(1).uniform(0.0, 150.0, (64, M))  # many bounds active
     f_loop, ok_loop = solve_equilibrium_qp(G, tau, f_ref, 150.0)
-    f_batch, ok_batch = solve_equilibrium_qp(G, tau, f_ref, 150.0, batched=True)
-    assert ok_loop.all() and ok_batch.all()
-    assert ((f_loop < 1e-6) | (f_loop > 150 - 1e-6)).sum() > 16  # the box shapes the answers
-    np.testing.assert_allclose(f_batch, f_loop, atol=1e-7, rtol=0)
-    assert (balance_residual_nm(G, tau, f_batch) <= 1e-6).all()
+    assert ok_loop.all() and ((f_loop < 1e-6) | (f_loop > 150 - 1e-6)).sum() > 16  # the box shapes the answers
+    for threads in (1, 2):  # one QP set up per case in turn; proxsuite's BatchQP + solve_in_parallel
+        f_batch, ok_batch = solve_equilibrium_qp(G, tau, f_ref, 150.0, batched=True, num_threads=threads)
+        assert ok_batch.all()
+        np.testing.assert_allclose(f_batch, f_loop, atol=1e-7, rtol=0)
+        assert (balance_residual_nm(G, tau, f_batch) <= 1e-6).all()
 
 
 def test_no_active_bound_gives_the_projection_onto_the_balance():
@@ -71,8 +72,8 @@ def test_unholdable_cases_get_optimal_least_squares_within_their_box():
 
 
 def test_threads_give_the_same_answers():
-    """Two threads (proxsuite's BatchQP) answer as one; only the least-squares rows may move, in the last bits, as
-    proxsuite's dense solve of them already did run to run."""
+    """Two threads (proxsuite's BatchQP) answer as one (the dataset's loop) to the QPs' tolerance; run to run only the
+    least-squares rows may move, in the last bits, as proxsuite's dense solve of them already did."""
     l_geo, G, tau, _ = _body(40, seed=5)
     tau[::4] *= 3.0  # some unholdable
     args = (l_geo, G, tau, np.full((40, M), 75.0), *_free(40), SPRING)
@@ -84,4 +85,4 @@ def test_threads_give_the_same_answers():
     for a, b, c in zip(one[:2], again[:2], two[:2]):
         np.testing.assert_array_equal(b[ok], a[ok])
         np.testing.assert_allclose(b, a, atol=1e-9, rtol=0)
-        np.testing.assert_allclose(c, a, atol=1e-9, rtol=0)
+        np.testing.assert_allclose(c, a, atol=1e-7, rtol=0)  # the QPs' tolerance: each preconditioned on its own
