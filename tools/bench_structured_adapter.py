@@ -10,7 +10,8 @@ draws it); then times ``faults.qp.fault_command`` on the true l_geo, G and tau_b
 ``sim.equilibrium.solve_qps_batched``) and ``--baseline``'s (that git revision's faults/qp.py: one proxsuite QP per
 case, least squares one per case), at batch 1 and ``--batch``, in ms per case (medians of ``--repeats``; the baseline
 on the first ``--old-cases`` cases, its least squares costing up to a second per case). Prints the share of cases
-whose bounds cross or whose torque the box cannot balance and what each kind costs. With ``--ckpt`` (a trained
+whose bounds cross or whose torque the box cannot balance and what each kind costs, and how many cases the
+equilibrium QP would still solve past ``QP_MAX_ITER`` (at 200 iterations). With ``--ckpt`` (a trained
 StructuredSchema, loaded with weights_only) also the prepared adapter ``schema.adapter(faults, check_physics=False)``.
 One torch thread; timings depend on the machine's load, which is printed with them.
 """
@@ -104,6 +105,8 @@ def compare(cases, spring, args):
         print(f"fault_command {label}: baseline {args.baseline} {t_old:.3f} ms per case (on {len(sub)} cases), "
               f"batched ({args.threads} thread) {t_new:.3f} ms per case; ratio {t_old / t_new:.1f}x")
     crossed, unbalanced = kinds(cases, spring)
+    long = qp.fault_command(*(cases[k] for k in ARGS), spring, max_iter=200)[2] != "ok"
+    print(f"  cases ok at max_iter 200 but not at QP_MAX_ITER={qp.QP_MAX_ITER}: {(~long & (crossed | unbalanced)).sum()}")
     holdable = ~crossed & ~unbalanced
     for label, mask in (("holdable", holdable), ("crossed bounds", crossed), ("box cannot balance", unbalanced)):
         idx = np.flatnonzero(mask)

@@ -26,9 +26,9 @@ from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elo
 from .constraints import LENGTH
 
 OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
-# proxsuite iterations per command QP: a feasible one converges in a few dozen; one without a solution would otherwise
-# run the dataset QP's 2000 iterations (seconds per case) before the least-squares answer takes over
-QP_MAX_ITER = 200
+# proxsuite iterations per command QP: a feasible one converges well within it (BENCHMARKS.md, "Structured schema's
+# command QPs"); one without a solution runs to it before the least-squares answer takes over, so it is kept short
+QP_MAX_ITER = 50
 # the least-squares QP: stationarity to 1 mN of its scaled objective (the rows are best efforts, never commands)
 LS_EPS_N, LS_MAX_ITER = 1e-3, 1000
 STATUS_DTYPE = "<U18"
