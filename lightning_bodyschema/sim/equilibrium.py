@@ -61,9 +61,9 @@ def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_thr
     Args:
         H: (n, n) or (B, n, n); g: (B, n); A: (B, n_eq, n) and b: (B, n_eq), or both None; lo, hi: (B, n) (+-inf
         where unbounded). eps_abs: proxsuite's absolute tolerance (eps_rel 0); max_iter: its iteration limit.
-        num_threads: 1 sets up and solves each case on one proxsuite QP in turn (the same bytes on every run);
-            more solves them through proxsuite's ``BatchQP`` and ``solve_in_parallel`` on that many OpenMP threads
-            (its QPs live at other addresses on every run, and their answers differ in the last bits).
+        num_threads: 1 sets up and solves each case on one proxsuite QP in turn; more solves them through
+            proxsuite's ``BatchQP`` and ``solve_in_parallel`` on that many OpenMP threads. Either way the answers
+            agree to the tolerance; from run to run they may differ in the last bits (proxsuite's dense solves do).
 
     Returns:
         x (B, n) as proxsuite returns it (not clipped) and solved (B,) bool (proxsuite's status SOLVED).
@@ -75,7 +75,7 @@ def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_thr
     parallel = proxsuite.proxqp.dense.BatchQP(batch) if num_threads > 1 else None
     qp = _dense_qp(n, n_eq, eps_abs, max_iter) if parallel is None else None
     for k in range(batch):  # proxsuite sets its QPs up one at a time; the box as n inequality rows
-        case = qp or _dense_qp(n, n_eq, eps_abs, max_iter, parallel)
+        case = qp if qp is not None else _dense_qp(n, n_eq, eps_abs, max_iter, parallel)
         case.init(H[k], g[k], None if A is None else A[k], None if A is None else b[k], eye, lo[k], hi[k])
         if parallel is None:
             case.solve()
