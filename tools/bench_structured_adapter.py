@@ -144,9 +144,10 @@ def main(argv=None):
     cases, spring, faults, q = myoarm_cases(args.batch)
     cases["q"] = q
     compare(cases, spring, args)
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if args.ckpt:
         adapter_latency(args.ckpt, faults, q, args.repeats)
-    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+        print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
 if __name__ == "__main__":
