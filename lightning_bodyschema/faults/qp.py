@@ -11,24 +11,26 @@ becomes a box on the tensions f through the spring ``l_motor = l_geo - delta(f)`
 * ``l_motor >= l_lo`` (a band's lo): ``f <= k (exp(alpha (l_geo - l_lo)) - 1)``; below ``l_geo`` the wire is slack
   (f = 0, the motor may stand anywhere above ``l_geo``).
 
-``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` per case (proxsuite, the
-dataset's QP in ``sim.equilibrium``); a case without a solution (bounds that cross, or a torque the box cannot
-balance) gets the least-squares tensions ``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status
-``"infeasible_learned"``. numpy and proxsuite only.
+``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` per case (the dataset's QP
+in ``sim.equilibrium``; on more than one thread batched through proxsuite's ``BatchQP`` and ``solve_in_parallel``);
+a case without a solution (bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
+``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. numpy and
+proxsuite only.
 """
 from __future__ import annotations
 
 import numpy as np
-import proxsuite
 
-from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp
+from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp, solve_qps_batched
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
 from .constraints import LENGTH
 
 OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
-# proxsuite iterations per command QP: a feasible one converges in a few dozen; one without a solution would otherwise
-# run the dataset QP's 2000 iterations (seconds per case) before the least-squares answer takes over
-QP_MAX_ITER = 200
+# proxsuite iterations per command QP: a feasible one converges well within it (BENCHMARKS.md, "Structured schema's
+# command QPs"); one without a solution runs to it before the least-squares answer takes over, so it is kept short
+QP_MAX_ITER = 50
+# the least-squares QP: stationarity to 1 mN of its scaled objective (the rows are best efforts, never commands)
+LS_EPS_N, LS_MAX_ITER = 1e-3, 1000
 STATUS_DTYPE = "<U18"
 
 
@@ -56,38 +58,34 @@ def tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> tuple[
     return np.maximum(np.maximum(f_lo, by_hi), 0.0), np.minimum(f_hi, by_lo)
 
 
-def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = 1e-6) -> np.ndarray:
+def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = 1e-6, num_threads: int = 1) -> np.ndarray:
     """``argmin ||G^T f + tau||^2 + reg s ||f - f_ref||^2`` over ``f_lo <= f <= f_hi`` per case (B, M) [N], with
-    ``s`` the mean squared moment arm of the case (so ``reg`` is dimensionless). One proxsuite box QP per case."""
-    batch, m, _ = G.shape
+    ``s`` the mean squared moment arm of the case (so ``reg`` is dimensionless); proxsuite's batch API, the
+    objective divided by ``reg s`` (so its gradient is in N) and solved to ``LS_EPS_N``."""
+    m = G.shape[1]
     H = G @ np.swapaxes(G, 1, 2)  # (B, M, M) = G G^T
-    scale = np.maximum(np.trace(H, axis1=1, axis2=2) / m, 1e-300)
-    H = H + (reg * scale)[:, None, None] * np.eye(m)
-    g = np.einsum("bmn,bn->bm", G, tau) - (reg * scale)[:, None] * f_ref
-    qp = proxsuite.proxqp.dense.QP(m, 0, 0, box_constraints=True)
-    qp.settings.eps_abs, qp.settings.eps_rel, qp.settings.max_iter, qp.settings.verbose = 1e-10, 0.0, 5000, False
-    f = np.empty((batch, m))
-    for b in range(batch):  # proxsuite solves one dense QP per call; set up once, updated per case
-        if b == 0:
-            qp.init(H[0], g[0], None, None, None, None, None, l_box=f_lo[0], u_box=f_hi[0])
-        else:
-            qp.update(H=H[b], g=g[b], l_box=f_lo[b], u_box=f_hi[b], update_preconditioner=True)
-        qp.solve()
-        f[b] = qp.results.x
+    weight = reg * np.maximum(np.trace(H, axis1=1, axis2=2) / m, 1e-300)
+    H = H / weight[:, None, None] + np.eye(m)
+    g = np.einsum("bmn,bn->bm", G, tau) / weight[:, None] - f_ref
+    f, _ = solve_qps_batched(H, g, None, None, f_lo, f_hi, LS_EPS_N, LS_MAX_ITER, num_threads)
     return np.clip(f, f_lo, f_hi)
 
 
-def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: SpringParams, reg: float = 1e-6):
+def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: SpringParams, reg: float = 1e-6,
+                  max_iter: int = QP_MAX_ITER, num_threads: int = 1):
     """Command ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` on the body ``(l_geo_m, G, tau_nm)`` closest to
     ``f_ref`` (module docstring). Every row is finite and meets every bound (the box and the motor-length bounds);
-    rows whose status is ``"infeasible_learned"`` miss the torque balance (least squares) and are not commands."""
+    rows whose status is ``"infeasible_learned"`` miss the torque balance (least squares) and are not commands.
+    ``max_iter``: proxsuite's iteration limit of the equilibrium QP; ``num_threads``: 1 solves the equilibrium QPs
+    as the dataset does (one QP updated per case), more through proxsuite's batch API on that many threads."""
     box_lo, box_hi = tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring)
-    crossed = (box_lo > box_hi).any(1)
+    ok = ~(box_lo > box_hi).any(1)  # crossed bounds: no tension meets them, straight to least squares
     box_lo = np.minimum(box_lo, box_hi)
-    f, ok = solve_equilibrium_qp(G, tau_nm, f_ref, box_hi, box_lo, max_iter=QP_MAX_ITER)
-    ok &= ~crossed
+    f, run = np.empty(box_lo.shape), ok.copy()
+    f[run], ok[run] = solve_equilibrium_qp(G[run], tau_nm[run], f_ref[run], box_hi[run], box_lo[run],
+                                           max_iter=max_iter, batched=num_threads > 1, num_threads=num_threads)
     if not ok.all():
-        f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg)
+        f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg, num_threads)
     l_motor = l_geo_m - elongation_from_tension(f, spring)
     slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
     l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)

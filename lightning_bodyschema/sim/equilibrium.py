@@ -16,6 +16,7 @@ from .model import MusculoskeletalModel
 from .spring import SpringParams, elongation_from_tension
 
 EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint torque residual is below this
+QP_EPS_ABS = 1e-9  # proxsuite's tolerance on the equilibrium QP: far below EQUILIBRIUM_TOL_NM
 _SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
 
 
@@ -30,7 +31,7 @@ def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int = 2000):
     g = np.ascontiguousarray(-f_ref)
     lo, hi = np.ascontiguousarray(f_lo, dtype=float), np.ascontiguousarray(f_hi, dtype=float)
     qp = proxsuite.proxqp.dense.QP(n_muscles, n_joints, 0, box_constraints=True)
-    qp.settings.eps_abs, qp.settings.eps_rel = 1e-9, 0.0
+    qp.settings.eps_abs, qp.settings.eps_rel = QP_EPS_ABS, 0.0
     qp.settings.max_iter, qp.settings.verbose = max_iter, False
     f = np.zeros((batch, n_muscles))
     solved = np.zeros(batch, dtype=bool)
@@ -43,6 +44,48 @@ def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int = 2000):
         solved[b] = qp.results.info.status == _SOLVED
         f[b] = qp.results.x  # copies: results.x is overwritten by the next solve
     return f, solved
+
+
+def _dense_qp(n, n_eq, eps_abs, max_iter, qps=None):
+    """A proxsuite dense QP of n variables, n_eq equalities and an n-row box (built in the BatchQP ``qps`` if given),
+    with the tolerance and iteration limit set."""
+    qp = proxsuite.proxqp.dense.QP(n, n_eq, n) if qps is None else qps.init_qp_in_place(n, n_eq, n)
+    qp.settings.eps_abs, qp.settings.eps_rel = eps_abs, 0.0
+    qp.settings.max_iter, qp.settings.verbose = max_iter, False
+    return qp
+
+
+def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_threads: int = 1):
+    """``argmin 0.5 x^T H x + g^T x  s.t.  A x = b,  lo <= x <= hi`` per case.
+
+    Args:
+        H: (n, n) or (B, n, n); g: (B, n); A: (B, n_eq, n) and b: (B, n_eq), or both None; lo, hi: (B, n) (+-inf
+        where unbounded). eps_abs: proxsuite's absolute tolerance (eps_rel 0); max_iter: its iteration limit.
+        num_threads: 1 sets up and solves each case on one proxsuite QP in turn; more solves them through
+            proxsuite's ``BatchQP`` and ``solve_in_parallel`` on that many OpenMP threads. Either way the answers
+            agree to the tolerance; from run to run they may differ in the last bits (proxsuite's dense solves do).
+
+    Returns:
+        x (B, n) as proxsuite returns it (not clipped) and solved (B,) bool (proxsuite's status SOLVED).
+    """
+    batch, n = g.shape
+    H = np.broadcast_to(H, (batch, n, n))
+    n_eq = 0 if A is None else A.shape[1]
+    eye, x, solved = np.eye(n), np.zeros((batch, n)), np.zeros(batch, dtype=bool)
+    parallel = proxsuite.proxqp.dense.BatchQP(batch) if num_threads > 1 else None
+    qp = _dense_qp(n, n_eq, eps_abs, max_iter) if parallel is None else None
+    for k in range(batch):  # proxsuite sets its QPs up one at a time; the box as n inequality rows
+        case = qp if qp is not None else _dense_qp(n, n_eq, eps_abs, max_iter, parallel)
+        case.init(H[k], g[k], None if A is None else A[k], None if A is None else b[k], eye, lo[k], hi[k])
+        if parallel is None:
+            case.solve()
+            x[k], solved[k] = case.results.x, case.results.info.status == _SOLVED
+    if parallel is not None and batch:
+        proxsuite.proxqp.dense.solve_in_parallel(num_threads=int(num_threads), qps=parallel)
+        for k in range(batch):
+            results = parallel.get(k).results
+            x[k], solved[k] = results.x, results.info.status == _SOLVED
+    return x, solved
 
 
 def _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver):
@@ -72,7 +115,8 @@ def check_qp_solver(solver: str) -> str:
     return solver
 
 
-def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "proxqp", max_iter: int = 2000):
+def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "proxqp", max_iter: int = 2000,
+                         batched: bool = False, num_threads: int = 1):
     """Tensions closest to ``f_ref`` that hold each posture in static equilibrium.
 
     Args:
@@ -80,6 +124,8 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "pr
         f_max, f_min: scalars, (M,) or (B, M) tension bounds [N] (a per-case f_max of 0 models a cut).
         solver: ``"proxqp"`` (proxsuite's own API, fast) or any qpsolvers solver name.
         max_iter: proxsuite's iteration limit per posture (proxqp only); a posture with no solution runs to it.
+        batched: proxqp through ``solve_qps_batched`` (each QP set up and preconditioned on its own; ``num_threads``
+            > 1: proxsuite's batch API) instead of one QP updated per posture (the dataset's bytes).
 
     Returns:
         ``f (B, M)`` clipped into the bounds, and ``ok (B,)``: solved and equilibrium residual
@@ -88,7 +134,10 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "pr
     batch, n_muscles, _ = G.shape
     f_lo = np.broadcast_to(np.asarray(f_min, float), (batch, n_muscles))
     f_hi = np.broadcast_to(np.asarray(f_max, float), (batch, n_muscles))
-    if check_qp_solver(solver) == "proxqp":
+    if check_qp_solver(solver) == "proxqp" and batched:
+        f, solved = solve_qps_batched(np.eye(n_muscles), -f_ref, -np.swapaxes(G, 1, 2), tau_bias, f_lo, f_hi,
+                                      QP_EPS_ABS, max_iter, num_threads)
+    elif solver == "proxqp":
         f, solved = _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter)
     else:
         f, solved = _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver)
