@@ -24,6 +24,7 @@ import numpy as np
 from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp, solve_qps_batched
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
 from .constraints import LENGTH
+from .dual_newton import dual_newton
 
 OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
 # proxsuite iterations per command QP: a feasible one converges well within it (BENCHMARKS.md, "Structured schema's
@@ -31,6 +32,8 @@ OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
 QP_MAX_ITER = 50
 # the least-squares QP: stationarity to 1 mN of its scaled objective (the rows are best efforts, never commands)
 LS_EPS_N, LS_MAX_ITER = 1e-3, 1000
+# the batched Newton's stop [N m]: far below EQUILIBRIUM_TOL_NM, so a converged row is an equilibrium with room
+NEWTON_TOL_NM = 1e-9
 STATUS_DTYPE = "<U18"
 
 
@@ -63,11 +66,13 @@ def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = 1e-6, num_thr
     ``s`` the mean squared moment arm of the case (so ``reg`` is dimensionless); proxsuite's batch API, the
     objective divided by ``reg s`` (so its gradient is in N) and solved to ``LS_EPS_N``."""
     m = G.shape[1]
-    H = G @ np.swapaxes(G, 1, 2)  # (B, M, M) = G G^T
-    weight = reg * np.maximum(np.trace(H, axis1=1, axis2=2) / m, 1e-300)
-    H = H / weight[:, None, None] + np.eye(m)
-    g = np.einsum("bmn,bn->bm", G, tau) / weight[:, None] - f_ref
-    f, _ = solve_qps_batched(H, g, None, None, f_lo, f_hi, LS_EPS_N, LS_MAX_ITER, num_threads)
+    weight = reg * np.maximum(np.einsum("bmn,bmn->b", G, G) / m, 1e-300)  # reg s, s = trace(G G^T) / M
+    f, done = dual_newton(G, tau, f_ref, f_lo, f_hi, weight, NEWTON_TOL_NM)
+    if not done.all():  # proxsuite's batch API on the few the Newton iteration did not settle
+        H = G[~done] @ np.swapaxes(G[~done], 1, 2) / weight[~done, None, None] + np.eye(m)  # (b, M, M)
+        g = np.einsum("bmn,bn->bm", G[~done], tau[~done]) / weight[~done, None] - f_ref[~done]
+        f[~done], _ = solve_qps_batched(H, g, None, None, f_lo[~done], f_hi[~done], LS_EPS_N, LS_MAX_ITER,
+                                        num_threads)
     return np.clip(f, f_lo, f_hi)
 
 
@@ -82,8 +87,11 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     ok = ~(box_lo > box_hi).any(1)  # crossed bounds: no tension meets them, straight to least squares
     box_lo = np.minimum(box_lo, box_hi)
     f, run = np.empty(box_lo.shape), ok.copy()
-    f[run], ok[run] = solve_equilibrium_qp(G[run], tau_nm[run], f_ref[run], box_hi[run], box_lo[run],
-                                           max_iter=max_iter, batched=num_threads > 1, num_threads=num_threads)
+    f[run], ok[run] = dual_newton(G[run], tau_nm[run], f_ref[run], box_lo[run], box_hi[run], 0.0, NEWTON_TOL_NM)
+    run &= ~ok  # stalled: an unholdable torque (no root), or a slow active set: proxsuite decides
+    if run.any():
+        f[run], ok[run] = solve_equilibrium_qp(G[run], tau_nm[run], f_ref[run], box_hi[run], box_lo[run],
+                                               max_iter=max_iter, batched=num_threads > 1, num_threads=num_threads)
     if not ok.all():
         f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg, num_threads)
     l_motor = l_geo_m - elongation_from_tension(f, spring)
