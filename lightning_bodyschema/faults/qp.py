@@ -11,7 +11,8 @@ becomes a box on the tensions f through the spring ``l_motor = l_geo - delta(f)`
 * ``l_motor >= l_lo`` (a band's lo): ``f <= k (exp(alpha (l_geo - l_lo)) - 1)``; below ``l_geo`` the wire is slack
   (f = 0, the motor may stand anywhere above ``l_geo``).
 
-``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` per case (the dataset's QP
+``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` for every case at once by
+the batched dual Newton of ``faults.dual_newton``, and the cases it leaves unsettled by proxsuite (the dataset's QP
 in ``sim.equilibrium``; on more than one thread batched through proxsuite's ``BatchQP`` and ``solve_in_parallel``);
 a case without a solution (bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
 ``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. numpy and
