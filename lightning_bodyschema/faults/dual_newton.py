@@ -5,7 +5,7 @@ Per case (``G (M, N)`` [m/rad], ``tau (N,)`` [N m], tensions ``f (M,)`` [N] in t
     min_f  1/2 ||f - f_ref||^2 + 1/(2 w) ||G^T f + tau||^2        w > 0: the least-squares answer (faults.qp)
     min_f  1/2 ||f - f_ref||^2   s.t.  G^T f + tau = 0             w = 0: the equilibrium QP (-G^T f = tau)
 
-The Hessian in f is the identity, so for a multiplier ``lam (N,)`` [N/m... per joint] the box minimiser is a clip:
+The Hessian in f is the identity, so for a multiplier ``lam (N,)`` [N rad/m] the box minimiser is a clip:
 
     (1) f(lam) = clip(f_ref - G lam, lo, hi)
     (2) F(lam) = G^T f(lam) + tau - w lam = 0        (the gradient of the concave dual; its root is the optimum)
@@ -40,12 +40,11 @@ def dual_newton(G, tau, f_ref, lo, hi, w, tol, max_iter: int = NEWTON_MAX_ITER):
     batch, m, n = G.shape
     w = np.broadcast_to(np.asarray(w, float), (batch,))
     gram = np.swapaxes(G, 1, 2) @ G
-    ridge = 1e-12 * np.trace(gram, axis1=1, axis2=2)[:, None, None] / n * np.eye(n)
+    ridge = 1e-12 * np.maximum(np.trace(gram, axis1=1, axis2=2) / n, 1e-30)[:, None, None] * np.eye(n)  # G may be 0
     lipschitz = np.linalg.eigvalsh(gram)[:, -1] + w  # of the dual's gradient
     lam = np.linalg.solve(gram + ridge, (np.einsum("bmn,bm->bn", G, f_ref) + tau)[..., None])[..., 0]
     f, free = _tensions(G, lam, f_ref, lo, hi)
     value, balance = _dual_value(G, tau, f_ref, f, lam, w)
-    active = np.ones(batch, bool)
     for _ in range(max_iter):
         residual = balance - w[:, None] * lam  # (2)
         active = np.abs(residual).max(1) > tol
