@@ -58,7 +58,8 @@ def make_dataset_main(argv=None):
     parser.add_argument("--n", type=int, default=800, help="number of samples (default 800, the paper's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", required=True, help="output file: .csv, else .npz")
-    parser.add_argument("--qp-solver", default="proxqp", help="proxqp (fast path) or any qpsolvers solver name")
+    parser.add_argument("--qp-solver", default="newton",
+                        help="newton (batched dual Newton, the same bytes every run; default), proxqp or any qpsolvers solver name")
     parser.add_argument("--noise-q", type=float, default=0.0, metavar="RAD", help="joint-angle sensor noise (std)")
     parser.add_argument("--noise-l", type=float, default=0.0, metavar="M", help="motor-length sensor noise (std)")
     parser.add_argument("--noise-f", type=float, default=0.0, metavar="N", help="tension sensor noise (std)")

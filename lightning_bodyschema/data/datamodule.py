@@ -152,7 +152,8 @@ class EquilibriumDataModule(L.LightningDataModule):
             f_max_n and k_n also ``"model"`` (peak forces of the model's muscle actuators, k scaled with
             them; the default for models with muscle actuators): see ``sim.spring.spring_for_model``.
         gravity: optional gravity override [m/s^2].
-        qp_solver: ``"proxqp"`` or any qpsolvers solver name.
+        qp_solver: ``"newton"`` (default: batched, the same bytes in every process), ``"proxqp"`` or any qpsolvers
+            solver name.
         cache_dir: where generated datasets are cached by content hash (None: no cache); under runs/, with
             every other output of a run, so a checkout stays clean.
         locked_joints: ``{joint: value}`` [rad or m] held fixed; joints no muscle crosses are locked at
@@ -164,7 +165,7 @@ class EquilibriumDataModule(L.LightningDataModule):
     def __init__(self, model: str = "paper_arm", n_samples: int = 800, seed: int = 0, val_fraction: float = 0.2,
                  muscles: Optional[Sequence[str]] = None, k_n: float | list[float] | str | None = None,
                  alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] | str | None = None,
-                 gravity: Optional[Sequence[float]] = None, qp_solver: str = "proxqp",
+                 gravity: Optional[Sequence[float]] = None, qp_solver: str = "newton",
                  cache_dir: Optional[str] = "runs/cache", locked_joints: Optional[dict[str, float]] = None,
                  batch_size: int = 64, fixed_base: bool = False):
         super().__init__()

@@ -33,7 +33,7 @@ class DatasetSpec:
 
 
 def build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring: SpringParams,
-                  qp_solver: str = "proxqp") -> dict[str, np.ndarray]:
+                  qp_solver: str = "newton") -> dict[str, np.ndarray]:
     """Generate the arrays written to a dataset file: q, l_motor, f (SI units) and the model XML."""
     samples = generate_equilibrium_samples(model, n_samples, seed, spring, solver=qp_solver)
     print(f"equilibrium dataset: {n_samples} samples of {model.n_joints} joints / {model.n_muscles} muscles; accepted "
@@ -44,7 +44,7 @@ def build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring
 
 
 def load_or_build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring: SpringParams,
-                          qp_solver: str = "proxqp", cache_dir: str | None = None) -> dict[str, np.ndarray]:
+                          qp_solver: str = "newton", cache_dir: str | None = None) -> dict[str, np.ndarray]:
     """Return the dataset, from ``cache_dir`` if a file with the same content key is there and intact.
 
     A cache file whose stored key does not match (stale, corrupted, or edited) is regenerated.

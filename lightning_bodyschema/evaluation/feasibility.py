@@ -15,7 +15,7 @@ from ..sim.spring import SpringParams, elongation_from_tension
 
 def check_feasible(model: MusculoskeletalModel, cases, spring: SpringParams = SpringParams(),
                    jam_model: str = "one_sided", jammed_tension_in_torque: bool = True,
-                   solver: str = "proxqp"):
+                   solver: str = "newton"):
     """(feasible (B,) bool, f_star (B, M) [N]) at each case's q_ref (``cases``: an ``evaluation.FaultCases``)."""
     return feasible_tensions(model, cases.q_ref, cases.faults, spring, jam_model, jammed_tension_in_torque, solver)
 

@@ -12,7 +12,7 @@ becomes a box on the tensions f through the spring ``l_motor = l_geo - delta(f)`
   (f = 0, the motor may stand anywhere above ``l_geo``).
 
 ``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` for every case at once by
-the batched dual Newton of ``faults.dual_newton``, and the cases it leaves unsettled by proxsuite (the dataset's QP
+the batched dual Newton of ``sim.dual_newton``, and the cases it leaves unsettled by proxsuite (the dataset's QP
 in ``sim.equilibrium``; on more than one thread batched through proxsuite's ``BatchQP`` and ``solve_in_parallel``);
 a case without a solution (bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
 ``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. numpy and
@@ -25,7 +25,7 @@ import numpy as np
 from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp, solve_qps_batched
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
 from .constraints import LENGTH
-from .dual_newton import dual_newton
+from ..sim.dual_newton import NEWTON_TOL_NM, dual_newton
 
 OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
 # proxsuite iterations per command QP: a feasible one converges well within it (BENCHMARKS.md, "Structured schema's
@@ -33,8 +33,6 @@ OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
 QP_MAX_ITER = 50
 # the least-squares QP: stationarity to 1 mN of its scaled objective (the rows are best efforts, never commands)
 LS_EPS_N, LS_MAX_ITER = 1e-3, 1000
-# the batched Newton's stop [N m]: far below EQUILIBRIUM_TOL_NM, so a converged row is an equilibrium with room
-NEWTON_TOL_NM = 1e-9
 STATUS_DTYPE = "<U18"
 
 
@@ -92,7 +90,8 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     run &= ~ok  # stalled: an unholdable torque (no root), or a slow active set: proxsuite decides
     if run.any():
         f[run], ok[run] = solve_equilibrium_qp(G[run], tau_nm[run], f_ref[run], box_hi[run], box_lo[run],
-                                               max_iter=max_iter, batched=num_threads > 1, num_threads=num_threads)
+                                               solver="proxqp", max_iter=max_iter, batched=num_threads > 1,
+                                               num_threads=num_threads)
     if not ok.all():
         f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg, num_threads)
     l_motor = l_geo_m - elongation_from_tension(f, spring)

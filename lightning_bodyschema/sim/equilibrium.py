@@ -12,6 +12,7 @@ import numpy as np
 import proxsuite
 
 from ..errors import BodySchemaInputError
+from .dual_newton import NEWTON_TOL_NM, dual_newton
 from .model import MusculoskeletalModel
 from .spring import SpringParams, elongation_from_tension
 
@@ -88,6 +89,17 @@ def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_thr
     return x, solved
 
 
+def _newton_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int):
+    """The batched dual Newton (``sim.dual_newton``) on every posture at once, the same bytes in every process
+    (proxsuite's dense solves may differ in the last bits from run to run); proxsuite's own API on the postures it
+    leaves unsettled (one without a solution runs to ``max_iter`` there)."""
+    f, solved = dual_newton(G, tau_bias, f_ref, f_lo, f_hi, 0.0, NEWTON_TOL_NM)
+    if not solved.all():
+        rest = ~solved
+        f[rest], solved[rest] = _proxqp_solve(G[rest], tau_bias[rest], f_ref[rest], f_lo[rest], f_hi[rest], max_iter)
+    return f, solved
+
+
 def _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver):
     """qpsolvers' unified interface, so a user can plug in any QP solver it knows."""
     import qpsolvers
@@ -105,7 +117,7 @@ def _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver):
 
 def check_qp_solver(solver: str) -> str:
     """Refuse a QP solver name that qpsolvers does not have installed."""
-    if solver == "proxqp":
+    if solver in ("newton", "proxqp"):
         return solver
     import qpsolvers
 
@@ -115,14 +127,15 @@ def check_qp_solver(solver: str) -> str:
     return solver
 
 
-def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "proxqp", max_iter: int = 2000,
+def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "newton", max_iter: int = 2000,
                          batched: bool = False, num_threads: int = 1):
     """Tensions closest to ``f_ref`` that hold each posture in static equilibrium.
 
     Args:
         G: (B, M, N) muscle Jacobians; tau_bias: (B, N); f_ref: (B, M) [N];
         f_max, f_min: scalars, (M,) or (B, M) tension bounds [N] (a per-case f_max of 0 models a cut).
-        solver: ``"proxqp"`` (proxsuite's own API, fast) or any qpsolvers solver name.
+        solver: ``"newton"`` (the batched dual Newton, proxsuite where it stalls: fast, the same bytes in every
+            process), ``"proxqp"`` (proxsuite's own API) or any qpsolvers solver name.
         max_iter: proxsuite's iteration limit per posture (proxqp only); a posture with no solution runs to it.
         batched: proxqp through ``solve_qps_batched`` (each QP set up and preconditioned on its own; ``num_threads``
             > 1: proxsuite's batch API) instead of one QP updated per posture (the dataset's bytes).
@@ -139,6 +152,8 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "pr
                                       QP_EPS_ABS, max_iter, num_threads)
     elif solver == "proxqp":
         f, solved = _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter)
+    elif solver == "newton":
+        f, solved = _newton_solve(G, tau_bias, np.asarray(f_ref, float), f_lo, f_hi, max_iter)
     else:
         f, solved = _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver)
     f = np.clip(f, f_lo, f_hi)  # remove the solver's ~1e-12 excursions outside the box
@@ -173,7 +188,7 @@ def _unholdable_message(model: MusculoskeletalModel, n_kept: int, n_drawn: int, 
 
 
 def generate_equilibrium_samples(model: MusculoskeletalModel, n: int, seed: int,
-                                 spring: SpringParams = SpringParams(), solver: str = "proxqp",
+                                 spring: SpringParams = SpringParams(), solver: str = "newton",
                                  max_draw_factor: int = 20) -> EquilibriumSamples:
     """Draw ``n`` healthy equilibrium samples: uniform q in the joint range, uniform f_ref in [0, f_max].
 

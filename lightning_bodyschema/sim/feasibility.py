@@ -135,7 +135,7 @@ def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str
 
 
 def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: SpringParams = SpringParams(),
-                      jam_model: str = "one_sided", jammed_tension_in_torque: bool = True, solver: str = "proxqp"):
+                      jam_model: str = "one_sided", jammed_tension_in_torque: bool = True, solver: str = "newton"):
     """(feasible (B,) bool, f_star (B, M) [N]): a perfect command's tensions at ``q_ref``, NaN rows if none exists.
 
     f_star is the tension vector closest to f_max/2 (the QP's f_ref) within the bounds above. With

@@ -1,7 +1,7 @@
 """The batched dual Newton solves the command QPs exactly: proxsuite's answers, KKT conditions, unholdable cases."""
 import numpy as np
 
-from lightning_bodyschema.faults.dual_newton import dual_newton
+from lightning_bodyschema.sim.dual_newton import dual_newton
 from lightning_bodyschema.sim.equilibrium import solve_equilibrium_qp
 
 

@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 NEWTON_MAX_ITER = 30
+# the stop [N m] of the equilibrium solves: far below EQUILIBRIUM_TOL_NM, a converged row is an equilibrium
+NEWTON_TOL_NM = 1e-9
 _ARMIJO = 1e-4
 
 
