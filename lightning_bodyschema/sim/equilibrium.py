@@ -92,10 +92,14 @@ def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_thr
 def _newton_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int):
     """The batched dual Newton (``sim.dual_newton``) on every posture at once, the same bytes in every process
     (proxsuite's dense solves may differ in the last bits from run to run); proxsuite's own API on the postures it
-    leaves unsettled (one without a solution runs to ``max_iter`` there)."""
+    leaves unsettled and the torque-reach screen does not rule out (``sim.feasibility``)."""
+    from .feasibility import outside_torque_reach  # feasibility builds on this module: imported when called
+
     f, solved = dual_newton(G, tau_bias, f_ref, f_lo, f_hi, 0.0, NEWTON_TOL_NM)
-    if not solved.all():
-        rest = ~solved
+    rest = ~solved
+    if rest.any():  # a torque out of the box's reach has no solution: proxsuite would only run to max_iter
+        rest[rest] = ~outside_torque_reach(G[rest], tau_bias[rest], f_lo[rest], f_hi[rest])
+    if rest.any():
         f[rest], solved[rest] = _proxqp_solve(G[rest], tau_bias[rest], f_ref[rest], f_lo[rest], f_hi[rest], max_iter)
     return f, solved
 
