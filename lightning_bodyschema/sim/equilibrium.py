@@ -15,6 +15,7 @@ from ..errors import BodySchemaInputError
 from .dual_newton import NEWTON_TOL_NM, dual_newton
 from .model import MusculoskeletalModel
 from .spring import SpringParams, elongation_from_tension
+from .torque_reach import outside_torque_reach
 
 EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint torque residual is below this
 QP_EPS_ABS = 1e-9  # proxsuite's tolerance on the equilibrium QP: far below EQUILIBRIUM_TOL_NM
@@ -92,13 +93,11 @@ def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_thr
 def _newton_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int):
     """The batched dual Newton (``sim.dual_newton``) on every posture at once, the same bytes in every process
     (proxsuite's dense solves may differ in the last bits from run to run); proxsuite's own API on the postures it
-    leaves unsettled and the torque-reach screen does not rule out (``sim.feasibility``)."""
-    from .feasibility import outside_torque_reach  # feasibility builds on this module: imported when called
-
+    leaves unsettled and the torque-reach screen (``sim.torque_reach``) does not rule out."""
     f, solved = dual_newton(G, tau_bias, f_ref, f_lo, f_hi, 0.0, NEWTON_TOL_NM)
     rest = ~solved
     if rest.any():  # a torque out of the box's reach has no solution: proxsuite would only run to max_iter
-        rest[rest] = ~outside_torque_reach(G[rest], tau_bias[rest], f_lo[rest], f_hi[rest])
+        rest[rest] = ~outside_torque_reach(G[rest], tau_bias[rest], f_lo[rest], f_hi[rest], EQUILIBRIUM_TOL_NM)
     if rest.any():
         f[rest], solved[rest] = _proxqp_solve(G[rest], tau_bias[rest], f_ref[rest], f_lo[rest], f_hi[rest], max_iter)
     return f, solved
