@@ -1,7 +1,7 @@
 """The torque-reach screen: postures whose torque no tension in a box can give, settled for a whole batch at once.
 
 The torques ``-G^T f`` over a tension box form a zonotope; a torque outside it has no equilibrium, and proxsuite would
-spend its whole iteration limit finding that out. numpy only; imports nothing of the package (sim.equilibrium and
+spend its whole iteration limit finding that out. numpy only; of the package it imports only ``sim.dual_newton`` (sim.equilibrium and
 sim.feasibility both use it).
 """
 from __future__ import annotations
@@ -10,6 +10,8 @@ import itertools
 import math
 
 import numpy as np
+
+from .dual_newton import NEWTON_TOL_NM, dual_newton
 
 MAX_SCREEN_NORMALS = 256  # at most this many facet normals (else: the joint axes and a residual direction)
 
@@ -27,20 +29,14 @@ def _facet_normals(G) -> np.ndarray | None:
     return np.linalg.svd(spans)[2][..., -1, :]  # the right singular vector of the zero singular value
 
 
-def _residual_direction(G, tau_bias, lo, hi, n_iter: int = 300) -> np.ndarray:
-    """(B, N) unit vectors along ``tau_bias + G^T f`` after ``n_iter`` batched projected-gradient (FISTA) steps on
-    ``min ||G^T f + tau_bias||^2`` over the box: where tau_bias lies outside the torque zonotope this approaches the
-    normal of the hyperplane that separates them (any direction is a valid test; this one is a sharp one)."""
-    A = -np.swapaxes(G, 1, 2)  # (B, N, M): torque -G^T f
-    step = 1.0 / np.maximum(np.linalg.eigvalsh(np.swapaxes(G, 1, 2) @ G)[:, -1], 1e-300)  # 1 / ||A||_2^2
-    f = y = np.clip(np.zeros_like(lo), lo, hi)
-    t = 1.0
-    for _ in range(n_iter):
-        grad = np.einsum("bnm,bn->bm", A, np.einsum("bnm,bm->bn", A, y) - tau_bias)
-        f_next = np.clip(y - step[:, None] * grad, lo, hi)
-        t_next = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-        y, f, t = f_next + ((t - 1.0) / t_next) * (f_next - f), f_next, t_next
-    gap = tau_bias - np.einsum("bnm,bm->bn", A, f)
+def _residual_direction(G, tau_bias, lo, hi, reg: float = 1e-6) -> np.ndarray:
+    """(B, N) unit vectors along ``tau_bias + G^T f`` for the box least-squares tensions f (``sim.dual_newton`` with
+    a weight ``reg s`` on ``||f - f_mid||``, s the mean squared moment arm): where tau_bias lies outside the torque
+    zonotope this is close to the normal of the hyperplane that separates them (any direction is a valid test; this
+    one is a sharp one)."""
+    weight = reg * np.maximum(np.einsum("bmn,bmn->b", G, G) / G.shape[1], 1e-300)
+    f, _ = dual_newton(G, tau_bias, 0.5 * (lo + hi), lo, hi, weight, NEWTON_TOL_NM)
+    gap = tau_bias + np.einsum("bmn,bm->bn", G, f)
     return gap / np.maximum(np.linalg.norm(gap, axis=1, keepdims=True), 1e-300)
 
 
