@@ -1,8 +1,8 @@
 """The torque-reach screen: postures whose torque no tension in a box can give, settled for a whole batch at once.
 
 The torques ``-G^T f`` over a tension box form a zonotope; a torque outside it has no equilibrium, and proxsuite would
-spend its whole iteration limit finding that out. numpy only; of the package it imports only ``sim.dual_newton`` (sim.equilibrium and
-sim.feasibility both use it).
+spend its whole iteration limit finding that out. numpy only; of the package it imports only ``sim.dual_newton``
+(sim.equilibrium and sim.feasibility both use it).
 """
 from __future__ import annotations
 
