@@ -25,7 +25,7 @@ import numpy as np
 from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp, solve_qps_batched
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
 from .constraints import LENGTH
-from ..sim.dual_newton import NEWTON_TOL_NM, dual_newton
+from ..sim.dual_newton import NEWTON_TOL_NM, box_least_squares, dual_newton, least_squares_weight
 
 OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
 # proxsuite iterations per command QP: a feasible one converges well within it (BENCHMARKS.md, "Structured schema's
@@ -62,11 +62,11 @@ def tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> tuple[
 
 def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = 1e-6, num_threads: int = 1) -> np.ndarray:
     """``argmin ||G^T f + tau||^2 + reg s ||f - f_ref||^2`` over ``f_lo <= f <= f_hi`` per case (B, M) [N], with
-    ``s`` the mean squared moment arm of the case (so ``reg`` is dimensionless); proxsuite's batch API, the
-    objective divided by ``reg s`` (so its gradient is in N) and solved to ``LS_EPS_N``."""
+    ``s`` the mean squared moment arm of the case (so ``reg`` is dimensionless): the batched dual Newton, then
+    proxsuite's batch API on the cases it leaves (the objective divided by ``reg s``, solved to ``LS_EPS_N``)."""
     m = G.shape[1]
-    weight = reg * np.maximum(np.einsum("bmn,bmn->b", G, G) / m, 1e-300)  # reg s, s = trace(G G^T) / M
-    f, done = dual_newton(G, tau, f_ref, f_lo, f_hi, weight, NEWTON_TOL_NM)
+    f, done = box_least_squares(G, tau, f_ref, f_lo, f_hi, reg)
+    weight = least_squares_weight(G, reg)
     if not done.all():  # proxsuite's batch API on the few the Newton iteration did not settle
         H = G[~done] @ np.swapaxes(G[~done], 1, 2) / weight[~done, None, None] + np.eye(m)  # (b, M, M)
         g = np.einsum("bmn,bn->bm", G[~done], tau[~done]) / weight[~done, None] - f_ref[~done]

@@ -63,6 +63,17 @@ def dual_newton(G, tau, f_ref, lo, hi, w, tol, max_iter: int = NEWTON_MAX_ITER):
     return f, np.abs(residual).max(1) <= tol
 
 
+def least_squares_weight(G, reg: float) -> np.ndarray:
+    """(B,) ``reg s`` with ``s`` each case's mean squared moment arm (so ``reg`` is dimensionless)."""
+    return reg * np.maximum(np.einsum("bmn,bmn->b", G, G) / G.shape[1], 1e-300)
+
+
+def box_least_squares(G, tau, f_ref, lo, hi, reg: float):
+    """``(f, converged)`` of ``min ||G^T f + tau||^2 + reg s ||f - f_ref||^2`` over the box per case
+    (``least_squares_weight``): ``dual_newton`` with ``w = reg s``."""
+    return dual_newton(G, tau, f_ref, lo, hi, least_squares_weight(G, reg), NEWTON_TOL_NM)
+
+
 def _line_search(G, tau, f_ref, lo, hi, w, lam, value, residual, step, lipschitz, halvings: int = 12):
     """Backtracking on the dual value (Armijo) along the Newton ``step``, every case at once. Where no trial is
     accepted (a nearly singular Newton system), a gradient step ``residual / lipschitz``, which always ascends

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .dual_newton import NEWTON_TOL_NM, dual_newton
+from .dual_newton import box_least_squares
 
 MAX_SCREEN_NORMALS = 256  # at most this many facet normals (else: the joint axes and a residual direction)
 
@@ -30,12 +30,11 @@ def _facet_normals(G) -> np.ndarray | None:
 
 
 def _residual_direction(G, tau_bias, lo, hi, reg: float = 1e-6) -> np.ndarray:
-    """(B, N) unit vectors along ``tau_bias + G^T f`` for the box least-squares tensions f (``sim.dual_newton`` with
-    a weight ``reg s`` on ``||f - f_mid||``, s the mean squared moment arm): where tau_bias lies outside the torque
+    """(B, N) unit vectors along ``tau_bias + G^T f`` for the box least-squares tensions f
+    (``sim.dual_newton.box_least_squares``, ``reg`` on ``||f - f_mid||``): where tau_bias lies outside the torque
     zonotope this is close to the normal of the hyperplane that separates them (any direction is a valid test; this
     one is a sharp one)."""
-    weight = reg * np.maximum(np.einsum("bmn,bmn->b", G, G) / G.shape[1], 1e-300)
-    f, _ = dual_newton(G, tau_bias, 0.5 * (lo + hi), lo, hi, weight, NEWTON_TOL_NM)
+    f, _ = box_least_squares(G, tau_bias, 0.5 * (lo + hi), lo, hi, reg)
     gap = tau_bias + np.einsum("bmn,bm->bn", G, f)
     return gap / np.maximum(np.linalg.norm(gap, axis=1, keepdims=True), 1e-300)
 
