@@ -1,0 +1,33 @@
+"""The one status vocabulary: names, codes, and arrays that never cut a name."""
+import numpy as np
+import pytest
+
+from lightning_bodyschema.deploy.module import STATUS_CODES as PACKAGE_CODES
+from lightning_bodyschema.status import STATUS_CODES, Status, status_array, status_codes, status_names
+
+
+def test_members_are_their_names_and_codes_round_trip():
+    assert Status.OK == "ok" and str(Status.INFEASIBLE_LEARNED) == "infeasible_learned"
+    for member in Status:
+        assert Status.from_code(member.code) is member and STATUS_CODES[member.value] == member.code
+    assert len({m.code for m in Status}) == len(Status)
+    with pytest.raises(ValueError, match="unknown status code 99"):
+        Status.from_code(99)
+
+
+def test_package_codes_are_the_vocabulary():
+    """The codes the exported package and the C++ examples already use keep their meaning."""
+    for name, code in PACKAGE_CODES.items():
+        assert Status(name).code == code
+
+
+def test_arrays_keep_long_names_and_compare_with_strings():
+    arr = status_array(["ok", Status.INFEASIBLE_LEARNED, 1, "activation_above_one"])
+    assert list(arr == "ok") == [True, False, False, False]
+    assert arr[1] == "infeasible_learned" and arr[2] is Status.NON_FINITE
+    names = status_names(arr)
+    assert names[3] == "activation_above_one" and names[1] == "infeasible_learned"  # not cut to 16 characters
+    assert list(status_codes(names)) == [m.code for m in arr]
+    assert list(status_array("ok", size=3) == "ok") == [True] * 3
+    with pytest.raises(ValueError):
+        status_array(["no_such_status"])
