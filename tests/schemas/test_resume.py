@@ -1,10 +1,15 @@
-"""Determinism and resume: same seed -> same weights; a fit killed midway and resumed ends where an uninterrupted one does."""
+"""Determinism and resume: same seed -> same weights; a fit killed midway and resumed ends where an uninterrupted one does.
+
+Three 60-epoch fits in fresh processes (slow); the default run resumes in-process from mid-epoch checkpoints
+(tests/training/test_steps.py) and checks the dataset bytes across processes (tests/data/test_dataset_determinism.py).
+"""
 import glob
 import os
 import subprocess
 import sys
 import time
 
+import pytest
 import torch
 
 ARGS = ["--model=DiffusionSchema", "--model.batch_size=32", "--data.n_samples=400", "--trainer.max_epochs=60",
@@ -30,6 +35,7 @@ def _assert_same(a, b):
         assert torch.equal(a[key], b[key]), f"{key} differs"
 
 
+@pytest.mark.slow
 def test_same_seed_same_weights_and_a_killed_fit_resumes_to_the_same_weights(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     for name in ("first", "second"):

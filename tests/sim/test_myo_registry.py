@@ -18,8 +18,8 @@ myo_sim = pytest.importorskip("myo_sim")
 
 # a refusal must name something the user sets: a data-module option, or the model-loader argument behind it
 OPTION = re.compile(r"fixed_base|data\.locked_joints|data\.muscles|allow_unloaded|f_max_n")
-FAST = {"elbow", "finger", "myoelbow", "myoelbow_2dof", "myoelbow_exo", "myofinger", "myolegs", "myolegs26",
-        "myolegs_abdomen", "myotorso", "myotorso_abdomen", "osl"}
+FAST = {"elbow", "finger", "myoelbow", "myoelbow_2dof", "myoelbow_exo", "myofinger", "myolegs", "myotorso",
+        "myotorso_abdomen", "osl"}  # myolegs26 and myolegs_abdomen: myolegs' variants, slow
 
 
 def _registry_names() -> list[str]:
