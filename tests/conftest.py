@@ -61,6 +61,14 @@ def diff60_f64(diff60):
     return copy.deepcopy(diff60[0]).double()
 
 
+@pytest.fixture(scope="session")
+def diff400():
+    """(schema, dm): the paper's diffusion schema after 400 epochs on its own data module, float32, eval mode
+    (tests/adaptation and tests/faults share it: copy before changing its dtype)."""
+    schema, _, datamodule = train_schema(DiffusionSchema, 400)
+    return schema, datamodule
+
+
 @pytest.fixture(scope="session", params=[AutoEncoderSchema, VAESchema], ids=["AE", "VAE"])
 def latent60(request, dm):
     """AE-10 and VAE-10 after 60 epochs, float32, eval mode."""

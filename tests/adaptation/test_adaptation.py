@@ -1,17 +1,18 @@
 """Fault adaptation on real (briefly) trained schemas: constraints met, safety of the returned command."""
+import copy
+
 import numpy as np
 import pytest
 from physics_checks import torque_residual, train_schema
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
-from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema
+from lightning_bodyschema.schemas import AutoEncoderSchema, VAESchema
 
 
 @pytest.fixture(scope="module")
-def diffusion():
-    schema, _, dm = train_schema(DiffusionSchema, 400)
-    return schema, dm
+def diffusion(diff400):
+    return diff400  # conftest: one 400-epoch schema for tests/adaptation and tests/faults
 
 
 def _torque_residual(schema, q, f):
@@ -71,7 +72,7 @@ def test_literal_recipe_diverges_and_is_never_returned_as_a_command(diffusion):
 def test_a_case_adapts_the_same_alone_or_in_a_batch(diffusion):
     """Cases are independent: a command depends on its q and faults, not on its batch (float64 to see it exactly)."""
     schema, dm = diffusion
-    schema = schema.double()
+    schema = copy.deepcopy(schema).double()  # the shared schema stays float32 (no rounding of its buffers)
     q = dm.splits["val"][0][:6].numpy()
     faults = Faults.from_names(schema.robot_model.muscle_names, cut=[[i % 6] for i in range(6)])
     batch = schema.adapt(q, faults)
@@ -79,7 +80,6 @@ def test_a_case_adapts_the_same_alone_or_in_a_batch(diffusion):
         alone = schema.adapt(q[i:i + 1], Faults(faults.cut[i:i + 1], faults.fix[i:i + 1], faults.l_fixed_m[i:i + 1]))
         np.testing.assert_allclose(alone.f_n[0], batch.f_n[i], atol=1e-6)
         np.testing.assert_allclose(schema.infer(q[i:i + 1])[1][0], schema.infer(q)[1][i], atol=1e-9)
-    schema.float()
 
 
 def test_bad_adaptation_requests_are_refused(diffusion):

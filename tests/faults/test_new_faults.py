@@ -15,9 +15,8 @@ from lightning_bodyschema.evaluation import (
 )
 from lightning_bodyschema.sim.settle import settle
 from lightning_bodyschema.faults import Faults
-from lightning_bodyschema.schemas import DiffusionSchema
 from lightning_bodyschema.sim import SpringParams, elongation_from_tension, tension_from_elongation
-from physics_checks import torque_residual, train_schema
+from physics_checks import torque_residual
 
 M = 6
 NAMES = ["shoulder_flexor", "shoulder_extensor", "elbow_flexor", "elbow_extensor", "biarticular_flexor",
@@ -26,9 +25,8 @@ SPRING = SpringParams()
 
 
 @pytest.fixture(scope="module")
-def diffusion():
-    schema, _, dm = train_schema(DiffusionSchema, 400)  # the same brief training as tests/adaptation
-    return schema, dm
+def diffusion(diff400):
+    return diff400  # conftest: one 400-epoch schema for tests/adaptation and tests/faults
 
 
 def _val(dm, n):
