@@ -151,3 +151,39 @@ def test_no_lightning_below_the_shell(subpackage, graph):
             lightning = {n for n in imported_names(dependency, files[dependency])
                          if n.split(".")[0] in ("lightning", "pytorch_lightning")}
             assert not lightning, f"{module} -> {dependency} imports {sorted(lightning)}"
+
+
+DESIGN = ROOT.parent / "docs" / "design.md"
+
+
+def subpackage_edges(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """First-level name (subpackage or top module) -> the other first-level names its modules import."""
+    def top(module: str) -> str:
+        return module.split(".")[1] if "." in module else ""
+
+    edges: dict[str, set[str]] = {}
+    for module, targets in graph.items():
+        if top(module):
+            edges.setdefault(top(module), set()).update(t for t in map(top, targets) if t and t != top(module))
+    return edges
+
+
+def documented_edges(text: str) -> dict[str, set[str]]:
+    """The ``name <- a, b`` lines of docs/design.md's import table (after "Import arrows"; a trailing ``(...)``
+    is a comment; ``(nothing)`` is no edge)."""
+    block = text.split("Import arrows", 1)[1].split("```", 2)[1]
+    edges = {}
+    for line in block.strip().splitlines():
+        name, _, rest = line.partition("<-")
+        rest = rest.split("  (")[0].strip()
+        edges[name.strip()] = set() if rest.startswith("(nothing") else {n.strip() for n in rest.split(",")}
+    return edges
+
+
+def test_the_design_docs_import_table_is_the_import_graph(graph):
+    """docs/design.md's dependency table lists every first-level module and exactly the imports it has."""
+    actual = subpackage_edges(graph)
+    actual.update({name: set() for name in map(lambda m: m.split(".")[1], filter(lambda m: "." in m, graph))
+                   if name not in actual})
+    assert documented_edges(DESIGN.read_text()) == actual, "\n".join(
+        f"{name:<12}<- {', '.join(sorted(deps)) or '(nothing)'}" for name, deps in sorted(actual.items()))
