@@ -213,7 +213,8 @@ class ActivationOps:
 
 
 class FrozenMLP:
-    """Inference-only snapshot of an ``MLP``: the package's one hand-written forward and backward pass.
+    """Inference-only snapshot of an ``MLP``: its forward and reverse-mode backward pass written out by hand (the
+    samplers' loops; ``networks.structured.JacobianMLP`` carries forward-mode tangents instead).
 
     Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice:
     what the loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer

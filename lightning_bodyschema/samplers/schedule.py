@@ -247,9 +247,9 @@ class NoiseSchedule(nn.Module):
 
         ``"quad"``: t_i = (T-1) (1 - i/(n-1))^2 rounded, dense at low noise where guidance settles the command,
         ending at t = 0; ``"linspace"``: evenly from T-1 to 0; ``"trailing"`` (Lin et al. 2024): T-1, T-1-T/n, ...,
-        ending at T/n - 1. With n = T all three are T-1, ..., 0. Measured on the paper checkpoint (20 steps, one
-        guidance step): quad leaves 0.03 N on a cut muscle, linspace 0.4 N, trailing 2.6 N (its last guided step
-        is at t = 9, where the network's Jacobian still blurs the correction).
+        ending at T/n - 1. With n = T all three are T-1, ..., 0. "trailing" never reaches t = 0, so its last
+        guidance step acts where x0_hat is still blurred; how far each spacing leaves a fault: BENCHMARKS.md,
+        "Spacing".
         """
         T = self.n_timesteps
         if isinstance(n_steps, bool) or not isinstance(n_steps, int) or not 1 <= n_steps <= T:
