@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 
+from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
 from .common import (ADAPT_SAMPLERS, NAME_ARRAYS, argument_parser, check_out, check_robot_names, check_schema_options,
                      count_values, exits_cleanly, import_user_modules, load_checked_schema, resolve_sampler,
@@ -37,7 +38,7 @@ def make_cases_main(argv=None):
     import_user_modules(args.imports)
     datamodule = load_datamodule(args.ckpt)
     q, x = datamodule.splits["val"]  # the held-out split is the test split (docs/design.md, evaluation)
-    cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, q.numpy(), x.numpy(),
+    cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, to_numpy(q), to_numpy(x),
                                  n_per_condition, args.seed)
     arrays = cases.arrays() if args.protocol == "binding" else {name: getattr(cases, name) for name in CASE_ARRAYS}
     write_npz(args.out, {**arrays, **robot_names(datamodule.robot_model)})
