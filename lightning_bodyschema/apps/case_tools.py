@@ -117,7 +117,7 @@ def adapt_cases(schema, cases, variant: str, options: dict, ckpt: str):
 @exits_cleanly
 def adapt_cases_main(argv=None):
     parser = argument_parser("Adapt a trained schema's commands to every case of a fault-case file in one batch; writes "
-                             "the case arrays plus l_motor [m], f [N] and status (.npz).", checkpoint=True)
+                             "the case arrays plus l_motor [m], f [N] and status (.npz).", checkpoint=True, device=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--cases", required=True, help="fault-case file (.npz from tools/make_cases.py or alike)")
     parser.add_argument("--out", required=True, help="output file (.npz), written only if everything succeeds")

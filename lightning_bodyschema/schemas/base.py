@@ -232,8 +232,8 @@ class BodySchema(SchemaLightningModule):
         if map_location is not None and not isinstance(map_location, (str, torch.device)):
             raise BodySchemaInputError(f"load_from_checkpoint: map_location={map_location!r}; give a device "
                                        "('cpu', 'cuda:0', torch.device) or None")
-        schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
-        return schema if map_location is None else schema.to(map_location)
+        return load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs,
+                           map_location=map_location)
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()

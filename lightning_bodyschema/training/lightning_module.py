@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import lightning as L
 import torch
-from lightning.pytorch.plugins.precision import HalfPrecision
+from lightning.pytorch.plugins.precision import HalfPrecision, MixedPrecision
 
 from ..contract import EPOCH_HOOK, REFRESHES_DERIVED_STATE
 from ..errors import BodySchemaInputError
 from .finite import all_finite
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
+                       mixed_precision_refusal,
                        monitors_train_metrics, weight_averaging_last)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
@@ -36,6 +37,8 @@ class SchemaLightningModule(L.LightningModule):
     # nn.Module.__setattr__ checks each time whether a string is a parameter, buffer or module. A plain string can
     # be none of these.
     _PLAIN_ATTRIBUTES = frozenset({"_current_fx_name"})
+    # False: the schema refuses 16-mixed / bf16-mixed (its maths needs more digits than a 16-bit matmul keeps)
+    MIXED_PRECISION = True
 
     def __setattr__(self, name, value):
         if name in SchemaLightningModule._PLAIN_ATTRIBUTES and (value is None or isinstance(value, str)):
@@ -46,6 +49,9 @@ class SchemaLightningModule(L.LightningModule):
     def setup(self, stage: str):
         if self._trainer is not None and isinstance(self.trainer.precision_plugin, HalfPrecision):
             raise BodySchemaInputError(half_precision_refusal(self.trainer.precision))
+        if self._trainer is not None and isinstance(self.trainer.precision_plugin, MixedPrecision) \
+                and not self.MIXED_PRECISION:
+            raise BodySchemaInputError(mixed_precision_refusal(type(self).__name__, self.trainer.precision))
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if datamodule is not None and stage == "fit":
             if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:
