@@ -13,6 +13,7 @@ from typing import Sequence
 import torch
 
 _AMP_CHECK = getattr(torch, "_amp_foreach_non_finite_check_and_unscale_", None)
+_UNIT_SCALE: dict = {}  # device -> the scale 1 the check multiplies by (made once per device, read-only)
 
 
 def all_finite(tensors: Sequence[torch.Tensor], fast: bool = True) -> bool:
@@ -20,9 +21,13 @@ def all_finite(tensors: Sequence[torch.Tensor], fast: bool = True) -> bool:
     if not tensors:
         return True
     if fast and _AMP_CHECK is not None:
-        found_inf = torch.zeros((), dtype=torch.float32, device=tensors[0].device)
+        device = tensors[0].device
+        found_inf = torch.zeros((), dtype=torch.float32, device=device)
+        unit = _UNIT_SCALE.get(device)
+        if unit is None:
+            unit = _UNIT_SCALE[device] = torch.ones((), dtype=torch.float32, device=device)
         try:
-            _AMP_CHECK(list(tensors), found_inf, torch.ones((), dtype=torch.float32, device=tensors[0].device))
+            _AMP_CHECK(list(tensors), found_inf, unit)
             return not bool(found_inf)
         except (RuntimeError, TypeError):  # e.g. tensors on several devices: the public path decides
             pass

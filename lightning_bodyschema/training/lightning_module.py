@@ -32,17 +32,17 @@ class SchemaLightningModule(L.LightningModule):
         super().__init__()
         self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
         self._log_train_at_epoch_end = False  # set when a fit starts: log train/* at every epoch end too
+        self._minibatch_affine = None  # the normalizer's affine maps during a fit (``_normalized_minibatch``)
 
-    # Lightning sets ``_current_fx_name`` twice around every hook it calls (~20 per optimizer step), and
+    # Lightning sets ``_current_fx_name`` twice around every hook it calls (dozens of times per optimizer step), and
     # nn.Module.__setattr__ checks each time whether a string is a parameter, buffer or module. A plain string can
-    # be none of these.
-    _PLAIN_ATTRIBUTES = frozenset({"_current_fx_name"})
+    # be none of these: it goes straight into the instance dict (the class defines no descriptor of that name).
     # False: the schema refuses 16-mixed / bf16-mixed (its maths needs more digits than a 16-bit matmul keeps)
     MIXED_PRECISION = True
 
     def __setattr__(self, name, value):
-        if name in SchemaLightningModule._PLAIN_ATTRIBUTES and (value is None or isinstance(value, str)):
-            object.__setattr__(self, name, value)
+        if name == "_current_fx_name" and (type(value) is str or value is None):
+            self.__dict__[name] = value
         else:
             super().__setattr__(name, value)
 
@@ -83,10 +83,18 @@ class SchemaLightningModule(L.LightningModule):
         dtype = self.dtype
         return self.normalizer.encode_q(q).to(dtype), self.normalizer.encode_x(x).to(dtype)
 
+    def _normalized_minibatch(self, batch):
+        """``_normalized`` of a training minibatch, as one multiply-add per tensor with the normalizer's affine
+        maps taken when the fit started (``on_train_start``)."""
+        if self._minibatch_affine is None:
+            return self._normalized(batch)
+        (q, x), (q_scale, q_shift, x_scale, x_shift), dtype = batch, self._minibatch_affine, self.dtype
+        return torch.addcmul(q_shift, q, q_scale).to(dtype), torch.addcmul(x_shift, x, x_scale).to(dtype)
+
     def training_step(self, batch, batch_idx):
         """One minibatch: Lightning runs the backward, the precision plugin (scaling, unscaling, inf checks),
         gradient clipping and accumulation, DDP's gradient averaging and the optimizer step."""
-        q_n, x_n = self._normalized(batch)
+        q_n, x_n = self._normalized_minibatch(batch)
         loss, _ = self.training_loss(q_n, x_n)
         # a self.log call costs a sizeable share of a minibatch step here: call it only on the steps the logger
         # writes, and at each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint,
@@ -118,6 +126,7 @@ class SchemaLightningModule(L.LightningModule):
 
     def on_train_start(self):
         self.skipped_steps = 0
+        self._minibatch_affine = self.normalizer.affine()  # the normalizer is set (setup) and on this device
         self._log_train_at_epoch_end = monitors_train_metrics(self.trainer)
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
@@ -125,6 +134,9 @@ class SchemaLightningModule(L.LightningModule):
             # pair its shard with the same noise. Deterministic: the seed plus the rank. (A resumed DDP fit
             # therefore restarts these streams; a single-process fit continues the checkpoint's.)
             torch.manual_seed(torch.initial_seed() + self.global_rank)
+
+    def on_train_end(self):
+        self._minibatch_affine = None
 
     def _train_split_normalized(self):
         """(q_n, x_n) of the data module's whole train split on this device, or None (no data module)."""
