@@ -141,7 +141,7 @@ def test_myo_configs_fit_on_cuda(tmp_path, config):
 
     cli = cli_main(["fit", "--config", os.path.join(ROOT, "configs", config), "--data.n_samples=2000",
                     "--trainer.max_epochs=2", "--trainer.check_val_every_n_epoch=2", "--trainer.accelerator=gpu",
-                    "--trainer.devices=1", f"--trainer.default_root_dir={tmp_path}",
+                    "--trainer.devices=1", "--faults.every_n_epochs=0", f"--trainer.default_root_dir={tmp_path}",
                     f"--data.cache_dir={tmp_path}/cache"])
     assert next(cli.model.parameters()).device.type == "cuda"
     assert np.isfinite(float(cli.trainer.callback_metrics["val/eq_residual_N_m"]))
