@@ -15,7 +15,7 @@ from lightning.pytorch.plugins.precision import HalfPrecision, MixedPrecision
 
 from ..contract import EPOCH_HOOK, REFRESHES_DERIVED_STATE
 from ..errors import BodySchemaInputError
-from .finite import all_finite
+from .finite import all_finite, non_finite_flag
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
                        mixed_precision_refusal,
@@ -39,6 +39,17 @@ class SchemaLightningModule(L.LightningModule):
     # be none of these: it goes straight into the instance dict (the class defines no descriptor of that name).
     # False: the schema refuses 16-mixed / bf16-mixed (its maths needs more digits than a 16-bit matmul keeps)
     MIXED_PRECISION = True
+
+    @property
+    def skipped_steps(self) -> int:
+        """Optimizer steps skipped for non-finite gradients in this fit (a fused optimizer's skips are counted on
+        the device and read here)."""
+        on_device = self.__dict__.get("_skipped_on_device")
+        return self._skipped_counted + (0 if on_device is None else int(on_device))
+
+    @skipped_steps.setter
+    def skipped_steps(self, value: int) -> None:
+        self.__dict__["_skipped_counted"], self.__dict__["_skipped_on_device"] = int(value), None
 
     def __setattr__(self, name, value):
         if name == "_current_fx_name" and (type(value) is str or value is None):
@@ -108,9 +119,10 @@ class SchemaLightningModule(L.LightningModule):
     def on_before_optimizer_step(self, optimizer):
         """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
 
-        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions
-        the gradients are dropped, so the optimizer leaves the weights and its state untouched. Under DDP
-        the gradients are already averaged here, so every rank takes the same decision.
+        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions a fused
+        Adam / AdamW gets the check's flag as ``found_inf`` and skips inside its step (nothing is read on the host),
+        and any other optimizer gets its gradients dropped: either way the weights and the optimizer's state stay
+        untouched. Under DDP the gradients are already averaged here, so every rank takes the same decision.
         """
         scaler = getattr(self.trainer.precision_plugin, "scaler", None)
         if scaler is not None:
@@ -119,10 +131,19 @@ class SchemaLightningModule(L.LightningModule):
         params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
         if not params:
             return
+        # no read on the host with a fused optimizer: the CPU keeps queueing the GPU's kernels
+        found_inf = non_finite_flag([p.grad for p in params]) if _skips_by_flag(optimizer) else None
+        if found_inf is not None:
+            optimizer.found_inf = found_inf  # the fused step leaves weights and moments alone where it is 1
+            counted = self.__dict__.get("_skipped_on_device")
+            self.__dict__["_skipped_on_device"] = found_inf if counted is None else counted + found_inf
+            return
+        if getattr(optimizer, "found_inf", None) is not None:
+            optimizer.found_inf = None  # a flag of an earlier step must not skip this one
         if not all_finite([p.grad for p in params]):  # one kernel
             for p in params:
                 p.grad = None
-            self.skipped_steps += 1
+            self.__dict__["_skipped_counted"] += 1
 
     def on_train_start(self):
         self.skipped_steps = 0
@@ -206,3 +227,9 @@ class SchemaLightningModule(L.LightningModule):
         if cuda_states is not None and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
             torch.cuda.set_rng_state_all(cuda_states)
         drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
+
+
+def _skips_by_flag(optimizer) -> bool:
+    """Does ``optimizer`` skip its own step where ``optimizer.found_inf`` is 1 (a fused Adam / AdamW, as under a
+    GradScaler)? Other optimizers get their gradients dropped instead."""
+    return type(optimizer) in (torch.optim.Adam, torch.optim.AdamW) and bool(optimizer.defaults.get("fused"))
