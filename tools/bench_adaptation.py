@@ -43,6 +43,7 @@ import torch
 torch.set_num_threads(1)  # one thread was fastest on the shared 2-core machine (BENCHMARKS.md)
 torch.set_flush_denormal(True)
 
+from lightning_bodyschema.apps.common import add_device_argument  # noqa: E402
 from lightning_bodyschema.evaluation import make_fault_cases  # noqa: E402
 from lightning_bodyschema.faults import Faults  # noqa: E402
 from lightning_bodyschema.schemas import load_datamodule, load_schema  # noqa: E402
@@ -280,18 +281,20 @@ def main(argv=None):
                         help="also time these adaptation variants of the diffusion schemas (e.g. guided), side by side")
     parser.add_argument("--no-compile", dest="compile", action="store_false",
                         help="skip the torch.compile rows (compiling takes ~20 s per batch size and kind)")
+    add_device_argument(parser)
     args = parser.parse_args(argv)
     if any(n < 1 for n in args.sizes) or args.repeats < 1:
         raise SystemExit("error: --sizes and --repeats must be positive")
     paths = {name: find_checkpoint(args.ckpt_dir, prefix) for name, prefix in MODELS.items()}
-    schemas = {"AE-10": load_schema(paths["AE-10"]), "VAE-10": load_schema(paths["VAE-10"]),
-               "Diff-200": load_schema(paths["Diff"]), "Diff-fast": load_schema(paths["Diff"])}
+    load = functools.partial(load_schema, map_location=args.device)
+    schemas = {"AE-10": load(paths["AE-10"]), "VAE-10": load(paths["VAE-10"]), "Diff-200": load(paths["Diff"]),
+               "Diff-fast": load(paths["Diff"])}
     schemas["Diff-fast"].hparams.sample_steps = FAST_STEPS  # = DiffusionSchema(sample_steps=20): infer and adapt
     q_all, faults_all = both_cases(load_datamodule(paths["Diff"]), schemas["Diff-200"].n_muscles, max(args.sizes))
     started = time.strftime("%Y-%m-%d %H:%M")
     compiled, compile_s = None, {}
     if args.compile:
-        compiled = load_schema(paths["Diff"])
+        compiled = load(paths["Diff"])
         compiled.hparams.sample_steps, compiled.hparams.compile_sampler = FAST_STEPS, True
         compile_s = compile_all(compiled, q_all, faults_all, sorted(args.sizes))
     rows = latency_rows(schemas, q_all, faults_all, sorted(args.sizes), args.repeats, args.reference, compiled,

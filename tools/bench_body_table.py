@@ -16,7 +16,7 @@ import argparse
 import numpy as np
 import torch
 
-from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.apps.common import add_device_argument, exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
 
 
@@ -76,6 +76,7 @@ def main(argv=None):
     parser.add_argument("--postures", type=int, default=2000)
     parser.add_argument("--n-per-condition", type=int, default=20)
     parser.add_argument("--cache-dir", default="runs/cache", help="the fits' data.cache_dir (default: runs/cache)")
+    add_device_argument(parser)
     args = parser.parse_args(argv)
     ckpts, seconds = _labelled(args.ckpt, "--ckpt"), _labelled(args.fit_seconds, "--fit-seconds")
     torch.set_num_threads(1)
@@ -86,7 +87,7 @@ def main(argv=None):
           "binding E_q adapted / unadapted [rad] | binding E_tau adapted / unadapted [N m] | fit [s] |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for label, path in ckpts.items():
-        schema = load_schema(path).eval()
+        schema = load_schema(path, map_location=args.device).eval()
         datamodule = load_datamodule(path, cache_dir=args.cache_dir)
         datamodule.setup("test")
         q, x = datamodule.splits["val"]

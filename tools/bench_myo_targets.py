@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.apps.common import add_device_argument, exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
 
 
@@ -69,6 +69,7 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--compiled", action="store_true", help="also time the torch.compile'd sampler")
+    add_device_argument(parser)
     args = parser.parse_args(argv)
     if not os.path.isfile(args.cases):
         raise BodySchemaInputError(f"--cases {args.cases!r} does not exist; give a tools/make_cases.py file (.npz)")
@@ -76,7 +77,7 @@ def main(argv=None):
     torch.set_flush_denormal(True)
     from lightning_bodyschema.schemas.loading import load_schema
 
-    schema = load_schema(args.ckpt)
+    schema = load_schema(args.ckpt, map_location=args.device)
     schema.eval()
     healthy(schema, args.ckpt)
     cases = np.load(args.cases)

@@ -25,7 +25,7 @@ import time
 import numpy as np
 import torch
 
-from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.apps.common import add_device_argument, exits_cleanly
 
 ARGS = ("l_geo", "G", "tau", "f_ref", "f_lo", "f_hi", "l_lo", "l_hi")
 
@@ -114,10 +114,10 @@ def compare(cases, spring, args):
         print(f"  {label}: {100 * mask.mean():.1f} % of cases, batched {cost:.3f} ms per case")
 
 
-def adapter_latency(ckpt, faults, q, repeats):
+def adapter_latency(ckpt, faults, q, repeats, device="cpu"):
     from lightning_bodyschema.schemas.loading import load_schema
 
-    schema = load_schema(ckpt).eval()
+    schema = load_schema(ckpt, map_location=device).eval()
     for n in (1, len(q)):
         adapter = schema.adapter(faults.take(np.arange(n)), check_physics=False)
         adapter(q[:n])
@@ -138,6 +138,7 @@ def main(argv=None):
     parser.add_argument("--threads", type=int, default=1, help="proxsuite's threads for the batched solve")
     parser.add_argument("--baseline", default="cd50b84", help="git revision of the per-case loop")
     parser.add_argument("--ckpt", help="a trained StructuredSchema checkpoint on myoArm")
+    add_device_argument(parser)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     torch.set_flush_denormal(True)
@@ -146,7 +147,7 @@ def main(argv=None):
     compare(cases, spring, args)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if args.ckpt:
-        adapter_latency(args.ckpt, faults, q, args.repeats)
+        adapter_latency(args.ckpt, faults, q, args.repeats, args.device)
         print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 

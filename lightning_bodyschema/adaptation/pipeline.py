@@ -74,11 +74,11 @@ class Adapter:
         """The schema's adapted command [l_motor, f] (B, 2M) in SI units, float64."""
         schema = self.schema
         with torch.inference_mode(False), torch.no_grad():
+            q_rad = torch.as_tensor(q, device=schema.device)  # on the schema's device until safe_command
             if self.in_si:
-                l_motor_m, f_n = schema.adapt_si(torch.as_tensor(q), self.constraints, self.variant, **self.options)
+                l_motor_m, f_n = schema.adapt_si(q_rad, self.constraints, self.variant, **self.options)
                 return torch.cat([l_motor_m, f_n], dim=1).to(torch.float64)
-            x_n = schema.adapt_normalized(schema.encode_q(torch.as_tensor(q)), self.penalty, self.variant,
-                                          **self.options)
+            x_n = schema.adapt_normalized(schema.encode_q(q_rad), self.penalty, self.variant, **self.options)
         return schema.decode(x_n)
 
     def __call__(self, q_ref) -> AdaptationResult:

@@ -6,6 +6,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
 from ..variants import check_variant
 from .command import AdaptationResult
@@ -15,13 +16,14 @@ def adapt_to_target(schema, target_xyz, faults, site: str = "hand", variant: str
                     ik_options: Optional[dict] = None, **options) -> AdaptationResult:
     """Commands that put ``site`` on ``target_xyz (B, 3)`` [m] under ``faults`` (see ``BodySchema.adapt_to_target``)."""
     twin = schema.kinematic_twin()
-    target = twin._check_target(target_xyz).numpy()
+    target = to_numpy(twin._check_target(to_numpy(target_xyz) if torch.is_tensor(target_xyz) else target_xyz))
     faults.validate(schema.n_muscles)
     if len(faults) != len(target):
         raise BodySchemaInputError(f"{len(target)} targets but {len(faults)} fault rows; give one row per case")
     check_variant(schema, variant, "adaptation variant")  # refuse before spending time on the inverse kinematics
     with torch.inference_mode(False):
-        q = twin.inverse_kinematics(target, site=site, tol_m=tol_m, **(ik_options or {})).q.numpy()
+        ik = twin.inverse_kinematics(target, site=site, tol_m=tol_m, **(ik_options or {}))
+    q = to_numpy(ik.q)
     error = np.linalg.norm(schema.robot_model.site_position(q, site) - target, axis=1)  # MuJoCo is the judge
     reached = error <= tol_m
     n, m = len(target), schema.n_muscles

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import time
 
+from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
 from .common import (ADAPT_SAMPLERS, NAME_ARRAYS, argument_parser, check_out, check_robot_names, check_schema_options,
                      count_values, exits_cleanly, import_user_modules, load_checked_schema, resolve_sampler,
@@ -37,7 +38,7 @@ def make_cases_main(argv=None):
     import_user_modules(args.imports)
     datamodule = load_datamodule(args.ckpt)
     q, x = datamodule.splits["val"]  # the held-out split is the test split (docs/design.md, evaluation)
-    cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, q.numpy(), x.numpy(),
+    cases, rejected = draw_cases(args.protocol, datamodule.robot_model, datamodule.spring, to_numpy(q), to_numpy(x),
                                  n_per_condition, args.seed)
     arrays = cases.arrays() if args.protocol == "binding" else {name: getattr(cases, name) for name in CASE_ARRAYS}
     write_npz(args.out, {**arrays, **robot_names(datamodule.robot_model)})
@@ -116,7 +117,7 @@ def adapt_cases(schema, cases, variant: str, options: dict, ckpt: str):
 @exits_cleanly
 def adapt_cases_main(argv=None):
     parser = argument_parser("Adapt a trained schema's commands to every case of a fault-case file in one batch; writes "
-                             "the case arrays plus l_motor [m], f [N] and status (.npz).", checkpoint=True)
+                             "the case arrays plus l_motor [m], f [N] and status (.npz).", checkpoint=True, device=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--cases", required=True, help="fault-case file (.npz from tools/make_cases.py or alike)")
     parser.add_argument("--out", required=True, help="output file (.npz), written only if everything succeeds")

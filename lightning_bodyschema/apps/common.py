@@ -40,10 +40,11 @@ ADAPT_SAMPLERS = {
 SAMPLER_ALIASES = {"ddim20": "strided20"}  # earlier name of strided20 (it never was DDIM); scripts depend on it
 
 
-def argument_parser(description: str, checkpoint: bool = False) -> argparse.ArgumentParser:
+def argument_parser(description: str, checkpoint: bool = False, device: bool = False) -> argparse.ArgumentParser:
     """An ArgumentParser whose usage errors are one-line ``BodySchemaInputError`` (exit 2, no usage dump).
 
     checkpoint: the tool reads a --ckpt; add ``--import MODULE`` for checkpoints of a user's schema class.
+    device: the tool runs the schema; add ``--device`` (``load_checked_schema`` moves the schema there).
     """
     parser = argparse.ArgumentParser(description=description)
 
@@ -56,7 +57,15 @@ def argument_parser(description: str, checkpoint: bool = False) -> argparse.Argu
                             help="import this module (a dotted name on the Python path, or a .py file) before loading "
                                  "the checkpoint, so that a schema class it defines is known; repeatable. A checkpoint "
                                  "itself never makes anything get imported")
+    if device:
+        add_device_argument(parser)
     return parser
+
+
+def add_device_argument(parser) -> None:
+    """``--device``: where a tool runs the schema (``schemas.loading.check_device`` checks it)."""
+    parser.add_argument("--device", default="cpu", help="torch device the schema runs on: cpu (default), cuda, "
+                        "cuda:N; inputs and outputs stay numpy, the MuJoCo checks run on the CPU")
 
 
 def import_user_modules(names) -> None:
@@ -90,7 +99,7 @@ def load_checked_schema(args):
     from ..schemas.loading import load_schema
 
     import_user_modules(args.imports)
-    return load_schema(args.ckpt)
+    return load_schema(args.ckpt, map_location=getattr(args, "device", None))
 
 
 def torch_one_thread():

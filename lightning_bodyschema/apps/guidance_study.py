@@ -100,7 +100,8 @@ def parse_variant(spec: str) -> tuple[str, str, dict]:
 @exits_cleanly
 def main(argv=None):
     parser = argument_parser("Adaptation variants side by side on the paper or binding protocol: medians of every "
-                             "metric (physical reading, settle check) and paired bootstrap intervals.", checkpoint=True)
+                             "metric (physical reading, settle check) and paired bootstrap intervals.", checkpoint=True,
+                             device=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--protocol", default="binding", choices=("binding", "paper"))
     parser.add_argument("--seeds", default="0,1,2", help="case seeds, comma separated (default 0,1,2)")

@@ -302,7 +302,7 @@ def _check_out_format(path: str, requests_path: str):
 def predict_main(argv=None):
     parser = argument_parser("Commands for a file of requests (postures or hand targets, each with its own faults: cut, "
                      "jam, weak, band); writes l_motor [m], f [N] and a status per request (.npz or .json).",
-                             checkpoint=True)
+                             checkpoint=True, device=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt)")
     parser.add_argument("--requests", required=True, help="request file (.yaml, .yml, .json or .npz)")
     parser.add_argument("--out", required=True, help="output file (.npz or .json), written only if all succeeds")

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..evaluation import oracle_commands, oracle_scores, run_fault_benchmark
 from ..evaluation.cases import PROTOCOLS
 from ..faults import Faults
@@ -179,7 +180,7 @@ class Benchmarker:
     def _draw(self, checkpoint: str, schema):
         from ..schemas import load_datamodule
 
-        q_pool, x_pool = (t.numpy() for t in load_datamodule(checkpoint).splits["val"])
+        q_pool, x_pool = (to_numpy(t) for t in load_datamodule(checkpoint).splits["val"])
         for protocol in PROTOCOLS:
             n = self.binding_n_per_condition if protocol == "binding" else self.n_per_condition
             self.cases[protocol], rejected = draw_cases(protocol, schema.robot_model, schema.spring, q_pool, x_pool,

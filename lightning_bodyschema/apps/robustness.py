@@ -21,6 +21,7 @@ import multiprocessing
 
 import numpy as np
 
+from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
 from .common import argument_parser, exits_cleanly, torch_one_thread
 
@@ -174,7 +175,7 @@ def make_cases(out_dir: str, n: int, seed: int, n_per_condition: int) -> dict:
     make_level_data(Level(0.0, 0.0), clean, n, seed, 0)
     datamodule = recorded_module(clean, seed)
     datamodule.setup("test")
-    q, x = (t.numpy() for t in datamodule.splits["val"])
+    q, x = (to_numpy(t) for t in datamodule.splits["val"])
     m = x.shape[1] // 2
     model, spring = MusculoskeletalModel("paper_arm"), SpringParams()
     protocols = {"paper": make_fault_cases(q, x[:, :m], n_per_condition, seed),

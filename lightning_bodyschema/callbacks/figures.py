@@ -5,6 +5,7 @@ import matplotlib.pyplot as plt
 from lightning.pytorch.callbacks import Callback
 from lightning.pytorch.utilities import rank_zero_only
 
+from .._numpy import to_numpy
 from ..plots.reconstruction import reconstruction_figure
 from ..training.fit_loop import fit_ends_with_this_epoch
 from .steps import averaged_weights_now, stopped_after_last_validation, validation_log_step
@@ -41,7 +42,8 @@ class ReconstructionFigure(Callback):
         q, x = trainer.datamodule.splits["val"]
         l_motor, f = pl_module.infer(q)
         m = pl_module.n_muscles
-        fig = reconstruction_figure(x[:, :m].numpy(), l_motor, x[:, m:].numpy(), f,
+        x = to_numpy(x)
+        fig = reconstruction_figure(x[:, :m], l_motor, x[:, m:], f,
                                     title=f"{type(pl_module).__name__}, epoch {trainer.current_epoch}")
         self._logged_at = validation_log_step(trainer)
         experiment.add_figure("val/reconstruction", fig, global_step=self._logged_at)

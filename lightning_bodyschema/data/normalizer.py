@@ -28,6 +28,13 @@ class Normalizer(nn.Module):
         self.q_hi.copy_(q_range[:, 1])
         return self
 
+    def affine(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(q_scale, q_shift, x_scale, x_shift)``, float64: ``q_n = q q_scale + q_shift`` and
+        ``x_n = x x_scale + x_shift``, the maps of ``encode_q`` / ``encode_x`` as one multiply-add each."""
+        q_scale = 2.0 / (self.q_hi - self.q_lo)
+        x_scale = 1.0 / self.x_std
+        return q_scale, -self.q_lo * q_scale - 1.0, x_scale, -self.x_mean * x_scale
+
     def encode_x(self, x):
         return (x - self.x_mean.to(x.dtype)) / self.x_std.to(x.dtype)
 

@@ -15,6 +15,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..adaptation import AdaptationResult, Adapter
 from ..adaptation.targets import adapt_to_target
 from ..contract import ADAPTATION_CAPABILITIES, check_capabilities
@@ -231,16 +232,16 @@ class BodySchema(SchemaLightningModule):
         if map_location is not None and not isinstance(map_location, (str, torch.device)):
             raise BodySchemaInputError(f"load_from_checkpoint: map_location={map_location!r}; give a device "
                                        "('cpu', 'cuda:0', torch.device) or None")
-        schema = load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs)
-        return schema if map_location is None else schema.to(map_location)
+        return load_schema(str(checkpoint_path), cls=None if cls is BodySchema else cls, overrides=kwargs,
+                           map_location=map_location)
 
     # ------------------------------------------------------------------ inference in SI units
     @torch.no_grad()
     def infer(self, q) -> tuple[np.ndarray, np.ndarray]:
         """Healthy command at postures ``q (B, N)`` [rad]: ``l_motor (B, M)`` [m], ``f (B, M)`` [N]."""
-        q = torch.as_tensor(self.robot_model.check_q(q.cpu().numpy() if torch.is_tensor(q) else q))
-        x = self.decode(self.generate(self.encode_q(q)))
-        return x[:, : self.n_muscles].cpu().numpy(), x[:, self.n_muscles:].cpu().numpy()
+        q = torch.as_tensor(self.robot_model.check_q(to_numpy(q) if torch.is_tensor(q) else q), device=self.device)
+        x = to_numpy(self.decode(self.generate(self.encode_q(q))))
+        return x[:, : self.n_muscles], x[:, self.n_muscles:]
 
     def encode_q(self, q: torch.Tensor) -> torch.Tensor:
         return self.normalizer.encode_q(q.to(self.device, torch.float64)).to(self.dtype)
@@ -252,12 +253,12 @@ class BodySchema(SchemaLightningModule):
     def physical_errors(self, q: torch.Tensor, x_true: torch.Tensor) -> dict[str, float]:
         """Healthy-command quality in physical units at postures q (medians over the batch)."""
         l_motor, f = self.infer(q)
-        x_true = x_true.cpu().numpy()
+        x_true = to_numpy(x_true)
         errors = {"l_motor_err_mm": 1e3 * float(np.median(np.abs(l_motor - x_true[:, : self.n_muscles]))),
                   "f_err_n": float(np.median(np.abs(f - x_true[:, self.n_muscles:])))}
         if not self.has_physics:  # recorded data, no model: only the distance to the recorded commands
             return errors
-        l_geo, G, tau_bias = self._physics(q.cpu().numpy())
+        l_geo, G, tau_bias = self._physics(to_numpy(q))
         eq = np.linalg.norm(np.einsum("bmn,bm->bn", -G, f) - tau_bias, axis=1)
         length = np.abs(l_motor + elongation_from_tension(f, self.spring) - l_geo)
         return {"eq_residual_N_m": float(np.median(eq)),  # newton metres (the old "_nm" read as nanometres)

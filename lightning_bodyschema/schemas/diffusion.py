@@ -8,6 +8,7 @@ from typing import Optional
 
 import torch
 
+from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
 from ..faults.projection import projection_for
 from ..networks import EpsMLP
@@ -131,7 +132,8 @@ class DiffusionSchema(BodySchema):
         config = self.ADAPT[check_variant(self, variant)].full.guidance  # inpaint and project_xt: the same strided
         mode = config.inpaint if inpaint is None else inpaint
         mode = "box" if mode == "none" and config.project_xt else mode
-        return projection_for(penalty, mode, self.normalizer.x_mean, self.normalizer.x_std, self.spring)
+        mean, std = to_numpy(self.normalizer.x_mean), to_numpy(self.normalizer.x_std)  # host arrays: any device
+        return projection_for(penalty, mode, mean, std, self.spring)
 
     def initial_noise(self, n: int, like: torch.Tensor) -> torch.Tensor:
         """x_T for n cases: ONE seeded draw shared by every case.

@@ -107,8 +107,25 @@ def check_checkpoint(checkpoint: dict, path: str, cls=None, overrides: dict | No
     return CheckedCheckpoint(cls, hparams, checkpoint)
 
 
-def load_schema(path: str, expected_model_xml_sha256: str | None = None, cls=None, overrides: dict | None = None):
-    """Rebuild the trained schema in eval mode on the CPU from ``path`` alone, after every check.
+def check_device(device, what: str = "device") -> torch.device:
+    """``device`` (``"cpu"``, ``"cuda"``, ``"cuda:1"``, a ``torch.device``) as a ``torch.device`` this machine has;
+    anything else is a ``BodySchemaInputError`` naming it."""
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise BodySchemaInputError(f"{what}={device!r} is not a torch device; give 'cpu', 'cuda' or 'cuda:N'") from None
+    if parsed.type == "cuda" and (not torch.cuda.is_available() or (parsed.index or 0) >= torch.cuda.device_count()):
+        raise BodySchemaInputError(f"{what}={device!r}: this machine has {torch.cuda.device_count()} CUDA device(s) "
+                                   "(torch.cuda.is_available() is False or the index is too high); use 'cpu'")
+    return parsed
+
+
+def load_schema(path: str, expected_model_xml_sha256: str | None = None, cls=None, overrides: dict | None = None,
+                map_location=None):
+    """Rebuild the trained schema in eval mode from ``path`` alone, after every check: on the CPU, then moved to
+    ``map_location`` (``"cuda"``, ``"cuda:1"``, a ``torch.device``; None: stay on the CPU). The checkpoint is always
+    read on the CPU; ``schema.to(device)`` later moves it the same way. On any device, ``infer``/``adapt``/
+    ``adapter``/``adapt_to_target`` take numpy arrays or tensors and return numpy arrays.
 
     ``expected_model_xml_sha256``: refuse a checkpoint trained on another robot than this one.
     ``cls``: the schema class, for a user's class whose module is not imported (its name must be the checkpoint's);
@@ -121,9 +138,10 @@ def load_schema(path: str, expected_model_xml_sha256: str | None = None, cls=Non
         raise BodySchemaInputError(
             f"checkpoint {path!r} was trained on another robot model (xml sha256 {recorded[:12]} "
             f"!= {expected_model_xml_sha256[:12]})")
+    device = None if map_location is None else check_device(map_location, "map_location")
     schema = checked.cls(**checked.hparams)
     schema.load_state_dict(checked.checkpoint["state_dict"])
-    return schema.eval()
+    return schema.eval() if device is None else schema.eval().to(device)
 
 
 def load_datamodule(path: str, cache_dir: str | None = None):

@@ -46,6 +46,7 @@ class StructuredSchema(BodySchema):
     """
 
     VARIANTS = ("default",)
+    MIXED_PRECISION = False  # 16-bit matmuls are coarser than the lengths it learns (training.fit_loop)
     capabilities = frozenset({"adapts_in_si"})  # contract.ADAPTS_IN_SI: a QP on the learned body, in SI units
 
     def __init__(self, hidden: int = 256, n_hidden: int = 3, torque_model: str = "potential",

@@ -96,6 +96,13 @@ def half_precision_refusal(precision) -> str:
             "length); use 16-mixed or bf16-mixed (float32 weights and data, 16-bit matmuls), 32-true or 64-true")
 
 
+def mixed_precision_refusal(schema_name: str, precision) -> str:
+    """Why a schema whose ``MIXED_PRECISION`` is False refuses ``16-mixed`` / ``bf16-mixed``."""
+    return (f"--trainer.precision={precision}: {schema_name} learns muscle lengths to hundredths of a millimetre "
+            "(1e-4 of their spread) and a 16-bit matmul keeps ~3 significant digits; use 32-true or 64-true "
+            "(on a GPU too)")
+
+
 def is_fitting(trainer) -> bool:
     """True while ``trainer`` (or None) runs a fit."""
     return trainer is not None and trainer.state.fn == TrainerFn.FITTING

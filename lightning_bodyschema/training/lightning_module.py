@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import lightning as L
 import torch
-from lightning.pytorch.plugins.precision import HalfPrecision
+from lightning.pytorch.plugins.precision import HalfPrecision, MixedPrecision
 
 from ..contract import EPOCH_HOOK, REFRESHES_DERIVED_STATE
 from ..errors import BodySchemaInputError
-from .finite import all_finite
+from .finite import all_finite, non_finite_flag
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
+                       mixed_precision_refusal,
                        monitors_train_metrics, weight_averaging_last)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
@@ -31,21 +32,37 @@ class SchemaLightningModule(L.LightningModule):
         super().__init__()
         self.skipped_steps = 0  # optimizer steps skipped for non-finite gradients in this fit
         self._log_train_at_epoch_end = False  # set when a fit starts: log train/* at every epoch end too
+        self._minibatch_affine = None  # the normalizer's affine maps during a fit (``_normalized_minibatch``)
 
-    # Lightning sets ``_current_fx_name`` twice around every hook it calls (~20 per optimizer step), and
+    # Lightning sets ``_current_fx_name`` twice around every hook it calls (dozens of times per optimizer step), and
     # nn.Module.__setattr__ checks each time whether a string is a parameter, buffer or module. A plain string can
-    # be none of these.
-    _PLAIN_ATTRIBUTES = frozenset({"_current_fx_name"})
+    # be none of these: it goes straight into the instance dict (the class defines no descriptor of that name).
+    # False: the schema refuses 16-mixed / bf16-mixed (its maths needs more digits than a 16-bit matmul keeps)
+    MIXED_PRECISION = True
+
+    @property
+    def skipped_steps(self) -> int:
+        """Optimizer steps skipped for non-finite gradients in this fit (a fused optimizer's skips are counted on
+        the device and read here)."""
+        on_device = self.__dict__.get("_skipped_on_device")
+        return self._skipped_counted + (0 if on_device is None else int(on_device))
+
+    @skipped_steps.setter
+    def skipped_steps(self, value: int) -> None:
+        self.__dict__["_skipped_counted"], self.__dict__["_skipped_on_device"] = int(value), None
 
     def __setattr__(self, name, value):
-        if name in SchemaLightningModule._PLAIN_ATTRIBUTES and (value is None or isinstance(value, str)):
-            object.__setattr__(self, name, value)
+        if name == "_current_fx_name" and (type(value) is str or value is None):
+            self.__dict__[name] = value
         else:
             super().__setattr__(name, value)
 
     def setup(self, stage: str):
         if self._trainer is not None and isinstance(self.trainer.precision_plugin, HalfPrecision):
             raise BodySchemaInputError(half_precision_refusal(self.trainer.precision))
+        if self._trainer is not None and isinstance(self.trainer.precision_plugin, MixedPrecision) \
+                and not self.MIXED_PRECISION:
+            raise BodySchemaInputError(mixed_precision_refusal(type(self).__name__, self.trainer.precision))
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if datamodule is not None and stage == "fit":
             if datamodule.robot_model.xml_hash != self.robot_model.xml_hash:
@@ -77,10 +94,18 @@ class SchemaLightningModule(L.LightningModule):
         dtype = self.dtype
         return self.normalizer.encode_q(q).to(dtype), self.normalizer.encode_x(x).to(dtype)
 
+    def _normalized_minibatch(self, batch):
+        """``_normalized`` of a training minibatch, as one multiply-add per tensor with the normalizer's affine
+        maps taken when the fit started (``on_train_start``)."""
+        if self._minibatch_affine is None:
+            return self._normalized(batch)
+        (q, x), (q_scale, q_shift, x_scale, x_shift), dtype = batch, self._minibatch_affine, self.dtype
+        return torch.addcmul(q_shift, q, q_scale).to(dtype), torch.addcmul(x_shift, x, x_scale).to(dtype)
+
     def training_step(self, batch, batch_idx):
         """One minibatch: Lightning runs the backward, the precision plugin (scaling, unscaling, inf checks),
         gradient clipping and accumulation, DDP's gradient averaging and the optimizer step."""
-        q_n, x_n = self._normalized(batch)
+        q_n, x_n = self._normalized_minibatch(batch)
         loss, _ = self.training_loss(q_n, x_n)
         # a self.log call costs a sizeable share of a minibatch step here: call it only on the steps the logger
         # writes, and at each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint,
@@ -94,9 +119,10 @@ class SchemaLightningModule(L.LightningModule):
     def on_before_optimizer_step(self, optimizer):
         """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
 
-        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions
-        the gradients are dropped, so the optimizer leaves the weights and its state untouched. Under DDP
-        the gradients are already averaged here, so every rank takes the same decision.
+        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions a fused
+        Adam / AdamW gets the check's flag as ``found_inf`` and skips inside its step (nothing is read on the host),
+        and any other optimizer gets its gradients dropped: either way the weights and the optimizer's state stay
+        untouched. Under DDP the gradients are already averaged here, so every rank takes the same decision.
         """
         scaler = getattr(self.trainer.precision_plugin, "scaler", None)
         if scaler is not None:
@@ -105,13 +131,23 @@ class SchemaLightningModule(L.LightningModule):
         params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
         if not params:
             return
+        # no read on the host with a fused optimizer: the CPU keeps queueing the GPU's kernels
+        found_inf = non_finite_flag([p.grad for p in params]) if _skips_by_flag(optimizer) else None
+        if found_inf is not None:
+            optimizer.found_inf = found_inf  # the fused step leaves weights and moments alone where it is 1
+            counted = self.__dict__.get("_skipped_on_device")
+            self.__dict__["_skipped_on_device"] = found_inf if counted is None else counted + found_inf
+            return
+        if getattr(optimizer, "found_inf", None) is not None:
+            optimizer.found_inf = None  # a flag of an earlier step must not skip this one
         if not all_finite([p.grad for p in params]):  # one kernel
             for p in params:
                 p.grad = None
-            self.skipped_steps += 1
+            self.__dict__["_skipped_counted"] += 1
 
     def on_train_start(self):
         self.skipped_steps = 0
+        self._minibatch_affine = self.normalizer.affine()  # the normalizer is set (setup) and on this device
         self._log_train_at_epoch_end = monitors_train_metrics(self.trainer)
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
@@ -119,6 +155,9 @@ class SchemaLightningModule(L.LightningModule):
             # pair its shard with the same noise. Deterministic: the seed plus the rank. (A resumed DDP fit
             # therefore restarts these streams; a single-process fit continues the checkpoint's.)
             torch.manual_seed(torch.initial_seed() + self.global_rank)
+
+    def on_train_end(self):
+        self._minibatch_affine = None
 
     def _train_split_normalized(self):
         """(q_n, x_n) of the data module's whole train split on this device, or None (no data module)."""
@@ -188,3 +227,9 @@ class SchemaLightningModule(L.LightningModule):
         if cuda_states is not None and torch.cuda.is_available() and len(cuda_states) == torch.cuda.device_count():
             torch.cuda.set_rng_state_all(cuda_states)
         drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
+
+
+def _skips_by_flag(optimizer) -> bool:
+    """Does ``optimizer`` skip its own step where ``optimizer.found_inf`` is 1 (a fused Adam / AdamW, as under a
+    GradScaler)? Other optimizers get their gradients dropped instead."""
+    return type(optimizer) in (torch.optim.Adam, torch.optim.AdamW) and bool(optimizer.defaults.get("fused"))
