@@ -46,7 +46,7 @@ def myoarm_cases(n: int, seed: int = 0):
     q, q_jam = model.sample_q(rng, n), model.sample_q(rng, n)
     f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), (n, m))
     l_jam, G_jam, tau_jam = model.kinematics(q_jam)
-    f_jam, _ = solve_equilibrium_qp(G_jam, tau_jam, 0.5 * f_max, f_max)
+    f_jam, _ = solve_equilibrium_qp(G_jam, tau_jam, 0.5 * f_max, f_hi_n=f_max)
     cut, fix = np.zeros((n, m), bool), np.zeros((n, m), bool)
     i = rng.integers(0, m, n)
     cut[np.arange(n), i], fix[np.arange(n), (i + rng.integers(1, m, n)) % m] = True, True

@@ -29,7 +29,7 @@ import torch
 NEWTON_MAX_ITER = 30
 # the stop [N m] of the equilibrium solves: far below EQUILIBRIUM_TOL_NM, a converged row is an equilibrium
 NEWTON_TOL_NM = 1e-9
-LINE_SEARCH_HALVINGS = 12
+LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly singular system still lands
 _ARMIJO = 1e-4
 
 
@@ -58,11 +58,13 @@ def _f64(x, device=None) -> torch.Tensor:
 
 def _evaluate(G, tau, f_ref, lo, hi, w, lam) -> _State:
     """The state at ``lam``: (1), the free mask of (3) and the dual value (the Lagrangian at f(lam))."""
-    free_f = f_ref - (G @ lam.unsqueeze(-1)).squeeze(-1)
-    f = torch.minimum(torch.maximum(free_f, lo), hi)
-    balance = (G.transpose(1, 2) @ f.unsqueeze(-1)).squeeze(-1) + tau
-    value = (0.5 * ((f - f_ref) ** 2).sum(1) + (lam * balance).sum(1) - 0.5 * w * (lam ** 2).sum(1))
-    return _State(lam, f, (free_f > lo) & (free_f < hi), value, balance)
+    free_f = torch.baddbmm(f_ref.unsqueeze(-1), G, lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)
+    f = torch.clamp(free_f, lo, hi)
+    balance = torch.baddbmm(tau.unsqueeze(-1), G.transpose(1, 2), f.unsqueeze(-1)).squeeze(-1)
+    gap = f - f_ref
+    value = 0.5 * torch.linalg.vecdot(gap, gap) + torch.linalg.vecdot(lam, torch.addcmul(balance, w.unsqueeze(1),
+                                                                                         lam, value=-0.5))
+    return _State(lam, f, f == free_f, value, balance)  # free: the clip left it (a tension at a bound is either)
 
 
 def _select(take, new: _State, old: _State) -> _State:
@@ -70,51 +72,72 @@ def _select(take, new: _State, old: _State) -> _State:
     return _State(*(torch.where(take.view(-1, *([1] * (a.dim() - 1))), a, b) for a, b in zip(new, old)))
 
 
-def _line_search(problem, state: _State, residual, step, lipschitz, eager: bool) -> _State:
-    """Backtracking on the dual value (Armijo) along the Newton ``step``, every case at once; where no trial is
-    accepted (a nearly singular Newton system), a gradient step ``residual / lipschitz``, which always ascends (the
-    dual is concave with a ``lipschitz``-continuous gradient). ``eager``: stop once every case has accepted."""
-    t = torch.ones_like(state.value)
+def _trials(problem, state: _State, step, slope):
+    """``(accepted (B,), trial state)``: the first of the steps ``t = 1, 1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``
+    along ``step`` that meets Armijo's condition on the dual value, all trials evaluated at once."""
+    G, tau, f_ref, lo, hi, w = problem
+    t = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=G.dtype, device=G.device)  # (K,)
+    lam = state.lam.unsqueeze(1) + t.view(1, -1, 1) * step.unsqueeze(1)  # (B, K, N)
+    free_f = torch.baddbmm(f_ref.unsqueeze(1), lam, G.transpose(1, 2), alpha=-1.0)  # (B, K, M)
+    f = torch.clamp(free_f, lo.unsqueeze(1), hi.unsqueeze(1))
+    balance = torch.baddbmm(tau.unsqueeze(1), f, G)  # (B, K, N)
+    gap = f - f_ref.unsqueeze(1)
+    value = 0.5 * (gap * gap).sum(2) + (lam * (balance - 0.5 * w.view(-1, 1, 1) * lam)).sum(2)
+    take = value >= state.value.unsqueeze(1) + _ARMIJO * t * slope.unsqueeze(1)  # (B, K)
+    first = torch.argmax(take.to(torch.int32), dim=1)  # the largest accepted step (0 where none is)
+    return take.any(1), _State(*(_pick(x, first) for x in (lam, f, f == free_f, value, balance)))
+
+
+def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+    """``x[b, first[b]]`` for ``x (B, K, ...)``."""
+    index = first.view(-1, 1, *([1] * (x.dim() - 2))).expand(-1, 1, *x.shape[2:])
+    return x.gather(1, index).squeeze(1)
+
+
+def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
+    """Backtracking on the dual value (Armijo) along the Newton ``step``, every case at once (eager: the full step
+    first, the halvings only where it fails). Where no trial is accepted (a nearly singular Newton system), a
+    gradient step ``residual / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends."""
     slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
-    best, todo = state, torch.ones_like(t, dtype=torch.bool)
-    for _ in range(LINE_SEARCH_HALVINGS):
-        trial = _evaluate(*problem, state.lam + t.unsqueeze(1) * step)
-        take = todo & (trial.value >= state.value + _ARMIJO * t * slope)
-        best, todo = _select(take, trial, best), todo & ~take
-        if eager and not bool(todo.any()):
-            return best
-        t = torch.where(todo, 0.5 * t, t)
-    gradient_step = _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
-    return _select(todo, gradient_step, best)
-
-
-def _newton_step(problem, state: _State, ridge, lipschitz, eager: bool) -> _State:
-    """One Newton step on (2) with (3) and the line search, for the (sub)batch ``problem``."""
+    if eager:
+        full = _evaluate(*problem, state.lam + step)
+        failed = (full.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)
+        if failed.numel() == 0:
+            return full
+        sub = tuple(x[failed] for x in problem)
+        rest = _line_search(sub, _State(*(x[failed] for x in state)), residual[failed], step[failed], False)
+        return _State(*(x.index_copy(0, failed, y) for x, y in zip(full, rest)))
+    accepted, trial = _trials(problem, state, step, slope)
     G, w = problem[0], problem[5]
-    residual = state.balance - w.unsqueeze(1) * state.lam  # (2)
-    n = G.shape[2]
-    hessian = G.transpose(1, 2) @ (state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
-    hessian = hessian + w.view(-1, 1, 1) * torch.eye(n, dtype=G.dtype, device=G.device) + ridge
+    lipschitz = torch.linalg.eigvalsh(G.transpose(1, 2) @ G)[:, -1] + w
+    gradient_step = _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
+    return _select(accepted, trial, gradient_step)
+
+
+def _residual(state: _State, w) -> torch.Tensor:
+    """(2): ``F(lam) = G^T f + tau - w lam`` (B, N) [N m]."""
+    return torch.addcmul(state.balance, w.unsqueeze(1), state.lam, value=-1.0)
+
+
+def _newton_step(problem, state: _State, residual, shift, eager: bool) -> _State:
+    """One Newton step on (2) (``residual``) with (3) (``shift``: ``w I`` and the ridge) and the line search, for
+    the (sub)batch ``problem``."""
+    G = problem[0]
+    hessian = torch.baddbmm(shift, G.transpose(1, 2), state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
     step = torch.linalg.solve_ex(hessian, residual.unsqueeze(-1))[0].squeeze(-1)
-    return _line_search(problem, state, residual, step, lipschitz, eager)
+    return _line_search(problem, state, residual, step, eager)
 
 
 def _start(G, tau, f_ref, w):
-    """``(lam_0, ridge, lipschitz)``: the unconstrained multiplier, a tiny ridge (G may be 0) and the dual
-    gradient's Lipschitz constant."""
+    """``(lam_0, shift)``: the unconstrained multiplier and ``w I`` plus a tiny ridge (G may be 0)."""
     n = G.shape[2]
     gram = G.transpose(1, 2) @ G
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     trace = torch.diagonal(gram, dim1=1, dim2=2).sum(1)
     ridge = 1e-12 * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
-    lipschitz = torch.linalg.eigvalsh(gram)[:, -1] + w
     rhs = (G.transpose(1, 2) @ f_ref.unsqueeze(-1)).squeeze(-1) + tau
     lam = torch.linalg.solve_ex(gram + ridge, rhs.unsqueeze(-1))[0].squeeze(-1)
-    return lam, ridge, lipschitz
-
-
-def _residual_norm(state: _State, w) -> torch.Tensor:
-    return (state.balance - w.unsqueeze(1) * state.lam).abs().amax(1)
+    return lam, ridge + w.view(-1, 1, 1) * eye
 
 
 def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
@@ -130,19 +153,23 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         return NewtonResult(f_ref.clone(), torch.zeros(0, dtype=torch.bool, device=G.device),
                             torch.zeros(0, dtype=torch.int32, device=G.device))
     problem = (G, tau, f_ref, lo, hi, w)
-    lam, ridge, lipschitz = _start(G, tau, f_ref, w)
+    lam, shift = _start(G, tau, f_ref, w)
     state = _evaluate(*problem, lam)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
     for _ in range(max_iter):
-        active = _residual_norm(state, w) > tol
+        residual = _residual(state, w)
+        active = residual.abs().amax(1) > tol
         if fixed_iterations:
-            state = _select(active, _newton_step(problem, state, ridge, lipschitz, False), state)
+            state = _select(active, _newton_step(problem, state, residual, shift, False), state)
         else:
             idx = active.nonzero().squeeze(1)
             if idx.numel() == 0:
                 break
-            sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), ridge[idx],
-                               lipschitz[idx], True)
-            state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
-        iterations = iterations + active.to(torch.int32)
-    return NewtonResult(state.f, _residual_norm(state, w) <= tol, iterations)
+            if idx.numel() == batch:  # every case still runs: no gather
+                state = _newton_step(problem, state, residual, shift, True)
+            else:
+                sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
+                                   shift[idx], True)
+                state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
+        iterations += active
+    return NewtonResult(state.f, _residual(state, w).abs().amax(1) <= tol, iterations)
