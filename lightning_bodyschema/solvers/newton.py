@@ -31,6 +31,8 @@ NEWTON_MAX_ITER = 30
 NEWTON_TOL_NM = 1e-9
 LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly singular system still lands
 _ARMIJO = 1e-4
+_RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
+_EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
 
 
 class NewtonResult(NamedTuple):
@@ -72,12 +74,11 @@ def _select(take, new: _State, old: _State) -> _State:
     return _State(*(torch.where(take.view(-1, *([1] * (a.dim() - 1))), a, b) for a, b in zip(new, old)))
 
 
-def _trials(problem, state: _State, step, slope):
-    """``(accepted (B,), trial state)``: the first of the steps ``t = 1, 1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``
-    along ``step`` that meets Armijo's condition on the dual value, all trials evaluated at once."""
+def _trials(problem, state: _State, step, slope, t):
+    """``(accepted (B,), trial state)``: the first of the steps ``t (B, K)`` along ``step`` that meets Armijo's
+    condition on the dual value, all trials evaluated at once."""
     G, tau, f_ref, lo, hi, w = problem
-    t = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=G.dtype, device=G.device)  # (K,)
-    lam = state.lam.unsqueeze(1) + t.view(1, -1, 1) * step.unsqueeze(1)  # (B, K, N)
+    lam = state.lam.unsqueeze(1) + t.unsqueeze(-1) * step.unsqueeze(1)  # (B, K, N)
     free_f = torch.baddbmm(f_ref.unsqueeze(1), lam, G.transpose(1, 2), alpha=-1.0)  # (B, K, M)
     f = torch.clamp(free_f, lo.unsqueeze(1), hi.unsqueeze(1))
     balance = torch.baddbmm(tau.unsqueeze(1), f, G)  # (B, K, N)
@@ -94,24 +95,79 @@ def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
     return x.gather(1, index).squeeze(1)
 
 
-def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
-    """Backtracking on the dual value (Armijo) along the Newton ``step``, every case at once (eager: the full step
-    first, the halvings only where it fails). Where no trial is accepted (a nearly singular Newton system), a
-    gradient step ``residual / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends."""
-    slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
-    if eager:
-        full = _evaluate(*problem, state.lam + step)
-        failed = (full.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)
-        if failed.numel() == 0:
-            return full
-        sub = tuple(x[failed] for x in problem)
-        rest = _line_search(sub, _State(*(x[failed] for x in state)), residual[failed], step[failed], False)
-        return _State(*(x.index_copy(0, failed, y) for x, y in zip(full, rest)))
-    accepted, trial = _trials(problem, state, step, slope)
+def _exact_step(problem, state: _State, step) -> torch.Tensor:
+    """(B,) the maximiser ``t > 0`` of the dual along ``step`` (NaN where it is not positive). Along the ray the dual
+    is a concave piecewise quadratic: its derivative ``step . F(lam + t step)`` is piecewise linear and
+    decreasing, with a kink where a tension ``u_m - v_m t`` (``u = f_ref - G lam``, ``v = G step``) meets a bound;
+    the root lies between the last kink where it is positive and the next one (or past the last kink, where its
+    slope is ``-w |step|^2``)."""
+    G, tau, f_ref, lo, hi, w = problem
+    u = torch.baddbmm(f_ref.unsqueeze(-1), G, state.lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)  # (B, M)
+    v = (G @ step.unsqueeze(-1)).squeeze(-1)
+    kinks = torch.cat([(u - lo) / v, (u - hi) / v], 1)  # +-inf or NaN where v = 0: dropped below
+    kinks = torch.sort(torch.where(kinks > 0, kinks, torch.inf), 1).values
+    t = torch.cat([torch.zeros_like(kinks[:, :1]), kinks], 1)  # (B, K)
+    finite = torch.isfinite(t)
+    t = torch.where(finite, t, torch.zeros_like(t))
+    f = torch.clamp(u.unsqueeze(1) - v.unsqueeze(1) * t.unsqueeze(2), lo.unsqueeze(1), hi.unsqueeze(1))  # (B, K, M)
+    curvature = w * (step * step).sum(1)  # of the last piece
+    slope0 = (step * tau).sum(1) - w * (step * state.lam).sum(1)
+    derivative = (f * v.unsqueeze(1)).sum(2) + slope0.unsqueeze(1) - curvature.unsqueeze(1) * t
+    falls = finite & (derivative <= 0)
+    k = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first kink where it is <= 0
+    last = finite.sum(1, keepdim=True) - 1
+    k0 = torch.where(falls.any(1, keepdim=True), (k - 1).clamp_min(0), last)
+    t0, d0 = t.gather(1, k0).squeeze(1), derivative.gather(1, k0).squeeze(1)
+    t1, d1 = t.gather(1, k).squeeze(1), derivative.gather(1, k).squeeze(1)
+    inside = t0 + d0 * (t1 - t0) / (d0 - d1)
+    beyond = t0 + d0 / curvature  # past the last kink (inf where w = 0: rejected below)
+    root = torch.where(falls.any(1), torch.where(d0 > d1, inside, t0), beyond)
+    return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
+
+
+def _gradient_step(problem, state: _State, residual) -> _State:
+    """The state after the ascent step ``residual / L``, ``L`` the dual gradient's Lipschitz constant."""
     G, w = problem[0], problem[5]
     lipschitz = torch.linalg.eigvalsh(G.transpose(1, 2) @ G)[:, -1] + w
-    gradient_step = _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
-    return _select(accepted, trial, gradient_step)
+    return _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
+
+
+def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
+    """Armijo's condition on the dual value along the Newton ``step``: the first accepted of ``t = 1``, the exact
+    maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``, every case at once
+    (eager: in the blocks ``_EAGER_BLOCKS``, each on the cases the earlier ones left). Where no trial is accepted
+    (a nearly singular Newton system), a gradient step, which always ascends (the dual is concave with a
+    Lipschitz-continuous gradient)."""
+    slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
+    halvings = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
+    if not eager:
+        t = torch.cat([halvings[:1].expand(len(step), 1), _exact_step(problem, state, step).unsqueeze(1),
+                       halvings[1:].expand(len(step), -1)], 1)
+        accepted, trial = _trials(problem, state, step, slope, t)
+        return _select(accepted, trial, _gradient_step(problem, state, residual))
+    out = _evaluate(*problem, state.lam + step)
+    rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
+    for start, stop in _EAGER_BLOCKS:
+        if rows.numel() == 0:
+            return out
+        sub_problem, sub_state, sub_step, sub_slope = _rows((problem, state, step, slope), rows)
+        t = halvings[start:stop].expand(len(rows), -1)
+        if start == 1:  # the exact maximiser first
+            t = torch.cat([_exact_step(sub_problem, sub_state, sub_step).unsqueeze(1), t], 1)
+        accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope, t)
+        out = _State(*(x.index_copy(0, rows[accepted], y[accepted]) for x, y in zip(out, trial)))
+        rows = rows[~accepted]
+    if rows.numel() == 0:
+        return out
+    sub_problem, sub_state, sub_residual = _rows((problem, state, residual), rows)
+    return _State(*(x.index_copy(0, rows, y) for x, y in zip(out, _gradient_step(sub_problem, sub_state,
+                                                                                     sub_residual))))
+
+
+def _rows(items, rows):
+    """Each tensor, tuple of tensors or ``_State`` of ``items`` at the cases ``rows``."""
+    return tuple(x[rows] if isinstance(x, torch.Tensor) else _State(*(y[rows] for y in x)) if isinstance(x, _State)
+                 else tuple(y[rows] for y in x) for x in items)
 
 
 def _residual(state: _State, w) -> torch.Tensor:
@@ -134,7 +190,7 @@ def _start(G, tau, f_ref, w):
     gram = G.transpose(1, 2) @ G
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     trace = torch.diagonal(gram, dim1=1, dim2=2).sum(1)
-    ridge = 1e-12 * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
+    ridge = _RIDGE * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
     rhs = (G.transpose(1, 2) @ f_ref.unsqueeze(-1)).squeeze(-1) + tau
     lam = torch.linalg.solve_ex(gram + ridge, rhs.unsqueeze(-1))[0].squeeze(-1)
     return lam, ridge + w.view(-1, 1, 1) * eye
