@@ -9,16 +9,17 @@ The Hessian in f is the identity, so for a multiplier ``lam (N,)`` [N rad/m] the
 
     (1) f(lam) = clip(f_ref - G lam, lo, hi)
     (2) F(lam) = G^T f(lam) + tau - w lam = 0        (the gradient of the concave dual; its root is the optimum)
-    (3) F'(lam) = -(G^T D G + w I),  D = diag(lo < f_ref - G lam < hi)   (the free tensions)
+    (3) F'(lam) = -(G^T D G + w I),  D = diag(lo <= f_ref - G lam <= hi)   (the tensions the clip leaves)
 
-Newton steps on (2) with (3) and a backtracking (Armijo) line search on the dual value, a strictly concave
-piecewise-quadratic function, with a gradient step ``F / L`` (``L`` the dual gradient's Lipschitz constant) where no
-trial is accepted. A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
+Newton steps on (2) with (3) and a line search on the dual value, a concave piecewise-quadratic function: the first
+of the trial steps ``t = 1``, the exact maximiser along the step, ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)`` that
+meets Armijo's condition, else a gradient step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which
+always ascends. A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
 cannot hold has no root) is reported as not converged.
 
-``fixed_iterations=True`` runs exactly ``max_iter`` steps and ``LINE_SEARCH_HALVINGS`` trials each on every case,
-masked where a case has converged: no host synchronisation and no data-dependent shape, so ``torch.export`` can
-trace it; the answers are the eager ones. torch only.
+``fixed_iterations=True`` runs exactly ``max_iter`` steps with every trial on every case, masked where a case has
+converged: no host synchronisation and no data-dependent shape, so ``torch.export`` can trace it; the answers are
+the eager ones. torch only.
 """
 from __future__ import annotations
 
