@@ -31,6 +31,8 @@ OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
 # (BENCHMARKS.md, "Structured schema's command QPs"); one without a solution runs to it
 QP_MAX_ITER = 50
 STATUS_DTYPE = "<U18"
+# the solvers' status codes as this module names them (INFEASIBLE: the learned body cannot hold the posture)
+_STATUS_NAMES = np.array([INFEASIBLE_LEARNED if s is Status.INFEASIBLE else s.value for s in Status], dtype=STATUS_DTYPE)
 
 
 def intersect_bounds(constraints, shape) -> tuple[np.ndarray, ...]:
@@ -82,8 +84,7 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
     l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)
     l_motor = np.minimum(l_motor, l_hi)  # rounding of exp/log1p only: the box already keeps l_motor <= l_hi
-    names = np.array([INFEASIBLE_LEARNED if s is Status.INFEASIBLE else s.value for s in Status], dtype=STATUS_DTYPE)
-    return l_motor, f, names[codes]
+    return l_motor, f, _STATUS_NAMES[codes]
 
 
 def balance_residual_nm(G, tau_nm, f) -> np.ndarray:

@@ -140,14 +140,15 @@ def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
     (a nearly singular Newton system), a gradient step, which always ascends (the dual is concave with a
     Lipschitz-continuous gradient)."""
     slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
-    halvings = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
     if not eager:
+        halvings = _halvings(step)
         t = torch.cat([halvings[:1].expand(len(step), 1), _exact_step(problem, state, step).unsqueeze(1),
                        halvings[1:].expand(len(step), -1)], 1)
         accepted, trial = _trials(problem, state, step, slope, t)
         return _select(accepted, trial, _gradient_step(problem, state, residual))
     out = _evaluate(*problem, state.lam + step)
     rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
+    halvings = _halvings(step) if rows.numel() else None
     for start, stop in _EAGER_BLOCKS:
         if rows.numel() == 0:
             return out
@@ -163,6 +164,11 @@ def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
     sub_problem, sub_state, sub_residual = _rows((problem, state, residual), rows)
     return _State(*(x.index_copy(0, rows, y) for x, y in zip(out, _gradient_step(sub_problem, sub_state,
                                                                                      sub_residual))))
+
+
+def _halvings(step) -> torch.Tensor:
+    """(LINE_SEARCH_HALVINGS,) the trial steps ``1, 1/2, 1/4, ...``."""
+    return 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
 
 
 def _rows(items, rows):

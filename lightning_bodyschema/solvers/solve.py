@@ -64,17 +64,23 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
     status = torch.full((problem.batch,), _NOT_CONVERGED, dtype=torch.int32, device=f.device)
     status[problem.bad_input] = Status.BAD_INPUT.code
     iterations = torch.zeros_like(status)
-    run = ~problem.bad_input & ~problem.crossed
-    if bool(run.any()):
-        newton = dual_newton(*problem.take(run)[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS))
-        f[run], iterations[run] = newton.f, newton.iterations
-        status[run] = torch.where(newton.converged, _OK, _NOT_CONVERGED).to(torch.int32)
+    run = (~problem.bad_input & ~problem.crossed).nonzero().squeeze(1)
+    if run.numel() == problem.batch:  # every case: no gather
+        f, status, iterations = _first_pass(problem, tol, max_iter)
+    elif run.numel():
+        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
     unsettled = status == _NOT_CONVERGED
     for rows, settle in ((unsettled & (problem.w_m2 > 0), _least_squares_rest),
                          (unsettled & (problem.w_m2 == 0), _no_equilibrium_yet)):
         if bool(rows.any()):
             f[rows], status[rows], iterations[rows] = settle(problem.take(rows), iterations[rows], options)
     return Solution(f, status, iterations)
+
+
+def _first_pass(problem: BoxQP, tol: float, max_iter: int):
+    """``(f, status, iterations)`` after the dual Newton's first ``FIRST_PASS`` steps (OK where it converged)."""
+    newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS))
+    return newton.f, torch.where(newton.converged, _OK, _NOT_CONVERGED).to(torch.int32), newton.iterations
 
 
 def _check_options(options: _Options):
