@@ -50,8 +50,8 @@ class BoxQP(NamedTuple):
         if not bool(((w >= 0) & torch.isfinite(w)).all()):
             raise BodySchemaInputError(f"w_m2 has {w[~((w >= 0) & torch.isfinite(w))][0].item()!r}; allowed: "
                                        "finite numbers >= 0")
-        finite = torch.isfinite(G).flatten(1).all(1) & torch.isfinite(tau).all(1) & torch.isfinite(f_ref).all(1)
-        bad = ~finite | torch.isnan(lo).any(1) | torch.isnan(hi).any(1) | (lo == np.inf).any(1) | (hi == -np.inf).any(1)
+        finite = torch.isfinite(torch.cat([G.flatten(1), tau, f_ref], 1)).all(1)
+        bad = ~(finite & ((lo < np.inf) & (hi > -np.inf)).all(1))  # NaN bounds compare False
         crossed = (lo > hi).any(1) & ~bad
         return cls(G, tau, f_ref, torch.minimum(lo, hi), hi, w, crossed, bad)
 
