@@ -15,7 +15,7 @@ import pytest
 
 PACKAGE = "lightning_bodyschema"
 ROOT = Path(__file__).resolve().parents[2] / PACKAGE
-NO_LIGHTNING = ("sim", "faults", "samplers", "evaluation", "adaptation")
+NO_LIGHTNING = ("sim", "faults", "samplers", "evaluation", "adaptation", "solvers")
 
 
 def module_files(root: Path = ROOT) -> dict[str, Path]:
@@ -144,7 +144,8 @@ def test_control_path_reaches_no_benchmark(graph):
 
 @pytest.mark.parametrize("subpackage", NO_LIGHTNING)
 def test_no_lightning_below_the_shell(subpackage, graph):
-    """``sim``, ``faults``, ``samplers``, ``evaluation`` and ``adaptation`` import no Lightning, even indirectly."""
+    """``sim``, ``faults``, ``samplers``, ``evaluation``, ``adaptation`` and ``solvers`` import no Lightning, even
+    indirectly."""
     files = module_files()
     for module in (m for m in graph if m.startswith(f"{PACKAGE}.{subpackage}")):
         for dependency in {module} | reachable(graph, module):
@@ -187,3 +188,8 @@ def test_the_design_docs_import_table_is_the_import_graph(graph):
                    if name not in actual})
     assert documented_edges(DESIGN.read_text()) == actual, "\n".join(
         f"{name:<12}<- {', '.join(sorted(deps)) or '(nothing)'}" for name, deps in sorted(actual.items()))
+def test_solvers_stand_below_everything(graph):
+    """``solvers/`` (the box QPs every path shares) reaches nothing of the package but ``errors`` and ``status``."""
+    for module in (m for m in graph if m.startswith(f"{PACKAGE}.solvers")):
+        outside = {m for m in reachable(graph, module) if not m.startswith(f"{PACKAGE}.solvers")}
+        assert outside <= {PACKAGE, f"{PACKAGE}.errors", f"{PACKAGE}.status"}, f"{module} reaches {sorted(outside)}"

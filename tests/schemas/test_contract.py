@@ -49,7 +49,7 @@ class ExactBodySchema(BodySchema):
             lo = np.where(constraint.mask, np.maximum(lo, lower), lo)
             hi = np.where(constraint.mask, np.minimum(hi, upper), hi)
         f_ref = np.full_like(lo, self.spring.f_max_n / 2.0)
-        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, hi, np.minimum(lo, hi))
+        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_lo_n=np.minimum(lo, hi), f_hi_n=hi)
         f = np.where((ok & (lo <= hi).all(1))[:, None], f, np.nan)
         return torch.as_tensor(l_geo - elongation_from_tension(f, self.spring)), torch.as_tensor(f)
 
