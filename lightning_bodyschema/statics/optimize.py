@@ -25,7 +25,7 @@ bounds holds it: NaN), ``not_converged`` (the solver gave up without proving it 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Optional
 
 import numpy as np
@@ -67,6 +67,12 @@ class StaticResult:
     objective: str
     faults: Faults
     actuators: list = field(default_factory=list)
+
+    def take(self, idx) -> "StaticResult":
+        """The rows ``idx`` (indices or a (B,) bool mask)."""
+        pick = lambda a: None if a is None else np.asarray(a)[idx]  # noqa: E731
+        return replace(self, q=pick(self.q), tension_n=pick(self.tension_n), l_motor_m=pick(self.l_motor_m),
+                       activation=pick(self.activation), status=pick(self.status), faults=self.faults.take(idx))
 
     @property
     def ok(self) -> np.ndarray:
