@@ -173,7 +173,7 @@ class StaticBody:
             relaxed = np.minimum(hi, p + RELAXED_ACTIVATION * s)
             f[rest], status[rest] = _held(G[rest], tau[rest], lo[rest], relaxed[rest], scale[rest], offset[rest],
                                           x_ref[rest], solver, Status.ACTIVATION_ABOVE_ONE)
-        activation = None if s is None else np.where(s > 0, (f - p) / np.where(s > 0, s, 1.0), 0.0)
+        activation = None if s is None else np.where(s > 0, (f - p) / np.where(s > 0, s, 1.0), f * 0.0)  # NaN stays
         return StaticResult(self.model.joint_names, self.model.muscle_names, q, f,
                             self._motor_lengths(l_geo, f, faults), activation, status, objective,
                             faults, [] if self.curves is None else list(self.curves.actuators))
