@@ -22,7 +22,7 @@ from .common import argument_parser, config_data, exits_cleanly, robot_options, 
 EXAMPLE = """example:
   python tools/static_opt.py --config configs/myoarm.yaml --postures reach.csv --cut BIClong_tendon \\
       --out reach_tensions.csv
-  python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz --weak soleus_r=800 --out legs.npz
+  python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz --weak soleus_r_tendon=800 --out legs.npz
 """
 CHUNK = 256  # postures per solve: the progress bar's step
 

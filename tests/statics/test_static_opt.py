@@ -155,3 +155,21 @@ def test_myoarm_postures_hold_in_mujoco():
     residual, miss = mujoco_residual_nm(body, result)
     assert residual[result.ok].max() <= 1e-6 and miss[result.ok].max() <= 1e-8
     assert mujoco_drift_rad(body, result.take(np.flatnonzero(result.ok)[:4]), 0.3).max() < 1e-3
+
+
+@pytest.mark.slow
+def test_readme_example(monkeypatch):
+    """README "Static optimization": the Python block runs from the repository root and its answers are physical."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
+    from test_readme_examples import ROOT, block
+
+    monkeypatch.chdir(ROOT)
+    namespace = {}
+    exec(block("python", "static_optimization(arm"), namespace)
+    ruptured, standing = namespace["ruptured"], namespace["standing"]
+    assert ruptured.tension_n.shape == (1000, 50) and ruptured.ok.mean() > 0.3
+    assert (ruptured.tension_n[ruptured.ok, ruptured.muscles.index("BIClong_tendon")] == 0).all()
+    assert standing.tension_n.shape == (1, 80)
