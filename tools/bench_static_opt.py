@@ -12,11 +12,11 @@ load average is printed with the timings: they depend on it.
 import argparse
 import os
 import statistics
-import time
 
 import numpy as np
 import yaml
 
+from lightning_bodyschema.apps.reproduce import _median_seconds as timed  # a warm-up call, then the median
 from lightning_bodyschema.sim.equilibrium import solve_equilibrium_qp
 from lightning_bodyschema.statics import StaticBody
 from lightning_bodyschema.statics.check import mujoco_residual_nm
@@ -30,15 +30,6 @@ def bodies():
         locks = yaml.safe_load(fh)["data"]["locked_joints"]
     return {"myoArm": lambda: StaticBody("myo:myoarm", locked_joints=locks),
             "myoLegs": lambda: StaticBody("myo:myolegs", fixed_base=True)}
-
-
-def timed(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def bench(name, body, n, repeats, singles, cut):
@@ -76,8 +67,9 @@ def plot(body, path, cut):
 
     lo, hi = body.model.q_range.T
     names = body.model.joint_names
-    base = np.clip(np.zeros(len(names)), lo, hi)
-    base[names.index("shoulder_elv_r")] = np.clip(0.5, lo[names.index("shoulder_elv_r")], hi[names.index("shoulder_elv_r")])
+    base = np.zeros(len(names))
+    base[names.index("shoulder_elv_r")] = 0.5
+    base = np.clip(base, lo, hi)
     elbow = names.index("elbow_flexion_r")
     sweep = np.linspace(max(lo[elbow], 0.1), min(hi[elbow], 2.2), 200)
     q = np.tile(base, (len(sweep), 1))

@@ -22,7 +22,8 @@ from .common import argument_parser, config_data, exits_cleanly, robot_options, 
 EXAMPLE = """example:
   python tools/static_opt.py --config configs/myoarm.yaml --postures reach.csv --cut BIClong_tendon \\
       --out reach_tensions.csv
-  python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz --weak soleus_r_tendon=800 --out legs.npz
+  python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz \\
+      --weak soleus_r_tendon=800 --out legs.npz
 """
 CHUNK = 256  # postures per solve: the progress bar's step
 
@@ -129,7 +130,8 @@ def _parser():
     parser = argument_parser("Static optimization with faults: the muscle tensions, motor lengths and MuJoCo muscle "
                              "activations that hold each posture of a file, with a status per posture.")
     parser.formatter_class, parser.epilog = argparse.RawDescriptionHelpFormatter, EXAMPLE
-    parser.add_argument("--model", default="paper_arm", help="packaged name, myo:<name> (needs myo-sim) or an MJCF path")
+    parser.add_argument("--model", default="paper_arm",
+                        help="packaged name, myo:<name> (needs myo-sim) or an MJCF path")
     parser.add_argument("--config", help="take the body from a config's data section (model, muscles, gravity, "
                         "locked_joints, fixed_base, spring constants) instead of --model")
     parser.add_argument("--fixed-base", action="store_true", help="weld a floating base (e.g. myo:myolegs's pelvis)")
@@ -187,13 +189,15 @@ def static_opt_main(argv=None):
 
 
 def _concatenate(parts):
+    """One ``StaticResult`` of the chunks' rows, in order."""
     from dataclasses import replace
 
     from ..faults.faults import Faults
 
-    first = parts[0]
-    join = lambda name: None if getattr(first, name) is None else np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
-    faults = Faults(*(None if getattr(first.faults, k) is None else np.concatenate([getattr(p.faults, k) for p in parts])
-                      for k in ("cut", "fix", "l_fixed_m", "f_max_n", "l_band_m")))
-    return replace(first, q=join("q"), tension_n=join("tension_n"), l_motor_m=join("l_motor_m"),
-                   activation=join("activation"), status=join("status"), faults=faults)
+    def join(objects, name):
+        values = [getattr(o, name) for o in objects]
+        return None if values[0] is None else np.concatenate(values)
+
+    faults = Faults(*(join([p.faults for p in parts], k) for k in ("cut", "fix", "l_fixed_m", "f_max_n", "l_band_m")))
+    return replace(parts[0], faults=faults,
+                   **{k: join(parts, k) for k in ("q", "tension_n", "l_motor_m", "activation", "status")})

@@ -45,7 +45,8 @@ OBJECTIVES = ("activation", "tension")
 FAULT_KINDS = ("cut", "jam", "weak", "band")
 # the dual Newton's stop [N m]: its tensions then agree with a tightly solved proxsuite's to ~1e-9 N
 STATIC_TOL_NM = 1e-12
-PROXQP_EPS, PROXQP_MAX_ITER = 1e-12, 2000  # proxsuite's absolute tolerance (eps_rel 0) and iteration limit
+PROXQP_EPS, PROXQP_MAX_ITER = 1e-12, 100  # proxsuite's absolute tolerance (eps_rel 0) and outer iterations: a feasible
+# row converges well within them; an unholdable one the screen misses runs to the limit (at 2000, seconds per row)
 
 
 @dataclass
@@ -116,6 +117,7 @@ class StaticBody:
 
     @property
     def default_objective(self) -> str:
+        """``"activation"`` where every muscle is a MuJoCo muscle actuator, else ``"tension"``."""
         return "activation" if self.curves is not None else "tension"
 
     def fault_batch(self, faults, batch: int) -> Faults:
@@ -128,9 +130,10 @@ class StaticBody:
             unknown = sorted(set(faults) - set(FAULT_KINDS))
             if unknown:
                 raise BodySchemaInputError(f"unknown fault kind(s) {unknown}; allowed: {list(FAULT_KINDS)}")
-            faults = Faults.from_names(names, cut=[list(faults.get("cut", ()))], jam=dict(faults.get("jam", {})),
-                                       weak=dict(faults.get("weak", {})), band=dict(faults.get("band", {})),
-                                       n_cases=1)
+            cut = faults.get("cut", ())
+            cut = [cut] if isinstance(cut, str) else list(cut)
+            faults = Faults.from_names(names, cut=[cut], jam=dict(faults.get("jam", {})),
+                                       weak=dict(faults.get("weak", {})), band=dict(faults.get("band", {})), n_cases=1)
         if not isinstance(faults, Faults):
             raise BodySchemaInputError(f"faults is a {type(faults).__name__}; give a Faults, a dict with keys "
                                        f"{list(FAULT_KINDS)}, or None")
@@ -164,8 +167,11 @@ class StaticBody:
             raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
         l_geo, G, tau = self.model.kinematics(q)
         lo, hi, s, p = self.tension_bounds(l_geo, faults)
-        scale, offset = (s, p) if objective == "activation" else (np.ones_like(lo), np.zeros_like(lo))
-        x_ref = np.zeros_like(lo) if objective == "activation" else self._f_ref(f_ref, lo.shape)
+        # the QP's variable: activations, or tensions in units of the mean f_max (the same argmin, and proxsuite's
+        # absolute tolerance then means the same as on activations)
+        unit = float(np.mean(self.spring.f_max_n))
+        scale, offset = (s, p) if objective == "activation" else (np.full(lo.shape, unit), np.zeros_like(lo))
+        x_ref = np.zeros_like(lo) if objective == "activation" else self._f_ref(f_ref, lo.shape) / unit
         capped = hi if s is None else np.minimum(hi, p + s)
         f, status = _held(G, tau, lo, capped, scale, offset, x_ref, solver, Status.OK)
         if s is not None and (status != Status.OK).any():
