@@ -75,7 +75,8 @@ def plot(body, path, cut):
     q = np.tile(base, (len(sweep), 1))
     q[:, elbow] = sweep
     healthy, ruptured = body.solve(q), body.solve(q, {"cut": [cut]})
-    top = np.argsort(-np.nanmax(healthy.tension_n, 0))[:6]
+    cut_index = body.model.muscle_names.index(cut)
+    top = [cut_index] + [m for m in np.argsort(-np.nanmax(healthy.tension_n, 0)) if m != cut_index][:5]
     fig, (ax_f, ax_a) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     for k, m in enumerate(top):
         color = f"C{k}"
@@ -91,7 +92,8 @@ def plot(body, path, cut):
              title=f"myoArm tensions: healthy (solid), {cut.removesuffix('_tendon')} ruptured (dashed)")
     ax_a.set(xlabel="elbow_flexion_r [rad]", ylabel="activation", title="MuJoCo activations (min sum a^2)")
     ax_f.legend(fontsize=8)
-    ax_a.legend(fontsize=8)
+    if not_ok.any():
+        ax_a.legend(fontsize=8)
     fig.savefig(path, dpi=110)
     print(f"wrote {path}")
 
