@@ -26,6 +26,7 @@ EXAMPLE = """example:
       --weak soleus_r_tendon=800 --out legs.npz
 """
 CHUNK = 256  # postures per solve: the progress bar's step
+_EXAMPLES = {"--jam": "BIClong_tendon=0.21", "--weak": "BIClong_tendon=300", "--lock": "elbow_flexion_r=1.2"}
 
 
 def _name_value(text: str, flag: str) -> tuple[str, float]:
@@ -35,7 +36,7 @@ def _name_value(text: str, flag: str) -> tuple[str, float]:
     except ValueError:
         number = np.nan
     if not sep or not name or not np.isfinite(number):
-        raise BodySchemaInputError(f"{flag} {text!r}: expected NAME=NUMBER (SI units), e.g. {flag} BIClong_tendon=0.2")
+        raise BodySchemaInputError(f"{flag} {text!r}: expected NAME=NUMBER (SI units), e.g. {flag} {_EXAMPLES[flag]}")
     return name, number
 
 
