@@ -180,6 +180,9 @@ class StaticBody:
             f[rest], status[rest] = _held(G[rest], tau[rest], lo[rest], relaxed[rest], scale[rest], offset[rest],
                                           x_ref[rest], solver, Status.ACTIVATION_ABOVE_ONE)
         activation = None if s is None else np.where(s > 0, (f - p) / np.where(s > 0, s, 1.0), f * 0.0)  # NaN stays
+        if activation is not None:  # a relaxed answer within the cap is the capped problem's answer too
+            with np.errstate(invalid="ignore"):
+                status[(status == Status.ACTIVATION_ABOVE_ONE) & (activation.max(1) <= 1.0 + 1e-12)] = Status.OK
         return StaticResult(self.model.joint_names, self.model.muscle_names, q, f,
                             self._motor_lengths(l_geo, f, faults), activation, status, objective,
                             faults, [] if self.curves is None else list(self.curves.actuators))
