@@ -1,2 +1,18 @@
 """lightning_bodyschema: learn and adapt the body schema of musculoskeletal robots."""
 __version__ = "0.1.0"
+
+_STATICS = ("static_optimization", "StaticBody", "StaticResult")
+
+
+def __getattr__(name):
+    """``static_optimization``, ``StaticBody`` and ``StaticResult`` (``statics/``), imported on first use: importing
+    the package itself stays free of MuJoCo and proxsuite."""
+    if name in _STATICS:
+        from . import statics
+
+        return getattr(statics, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + list(_STATICS))

@@ -42,11 +42,12 @@ class _Options(NamedTuple):
     fallback_max_iter: int
     ls_reg: float
     num_threads: int
+    fallback_eps_abs: float | None
 
 
 def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
                  fallback: str = "proxsuite", fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG,
-                 num_threads: int = 1) -> Solution:
+                 num_threads: int = 1, fallback_eps_abs: float | None = None) -> Solution:
     """The ``Solution`` of every case of ``problem`` (module docstring).
 
     Args:
@@ -56,8 +57,10 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
         fallback_max_iter: proxsuite's iteration limit per equilibrium QP.
         ls_reg: the dimensionless weight of ``||f - f_ref||^2`` in the least squares of a case without a solution.
         num_threads: proxsuite's threads (1: one QP per case in turn; more: its ``BatchQP``).
+        fallback_eps_abs: proxsuite's absolute tolerance on an equilibrium QP (None: ``backends.QP_EPS_ABS``); set it
+            with a tight ``tol`` so that the cases proxsuite settles are as exact as the Newton's.
     """
-    options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads)
+    options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads, fallback_eps_abs)
     _check_options(options)
     f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
     f[problem.bad_input] = torch.nan
@@ -136,7 +139,7 @@ def _no_equilibrium_yet(problem: BoxQP, iterations, options: _Options):
         todo[todo.clone()] = ~converged
     if options.fallback == "proxsuite" and bool(todo.any()):
         rows = problem.take(todo)
-        f_qp, solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads)
+        f_qp, solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads, options.fallback_eps_abs)
         ok = solved & (rows.balance_residual_nm(f_qp) <= EQUILIBRIUM_TOL_NM)
         f[todo] = torch.where(ok.unsqueeze(1), f_qp, f_ls[todo])
         status[todo] = torch.where(ok, _OK, _NOT_CONVERGED).to(torch.int32)

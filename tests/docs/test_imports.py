@@ -15,7 +15,7 @@ import pytest
 
 PACKAGE = "lightning_bodyschema"
 ROOT = Path(__file__).resolve().parents[2] / PACKAGE
-NO_LIGHTNING = ("sim", "faults", "samplers", "evaluation", "adaptation", "solvers")
+NO_LIGHTNING = ("sim", "faults", "samplers", "evaluation", "adaptation", "solvers", "statics")
 
 
 def module_files(root: Path = ROOT) -> dict[str, Path]:

@@ -1,0 +1,204 @@
+"""``tools/static_opt.py``: static optimization with faults over a file of postures (``statics``), written per muscle.
+
+Postures: a CSV (header of joint names, one row per posture; ``#`` lines are comments) or an NPZ (one 1-D array per
+joint), SI units (rad, m). A column is a free joint of the body, named bare (``elbow_flexion_r``) or as the
+recorded-data format does (``q_elbow_flexion_r``). Faults from flags or a JSON/YAML file. Output: ``.csv`` (the
+posture, ``status``, ``status_code``, then ``<muscle>.tension_n``, ``<muscle>.activation``, ``<muscle>.l_motor_m``
+per muscle) or ``.npz`` (arrays ``q``, ``tension_n``, ``activation``, ``l_motor_m``, ``status``, ``status_code``,
+``joints``, ``muscles``, ``objective``), written to a temporary name and renamed.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from ..status import status_codes, status_names
+from .common import argument_parser, config_data, exits_cleanly, robot_options, write_npz
+
+EXAMPLE = """example:
+  python tools/static_opt.py --config configs/myoarm.yaml --postures reach.csv --cut BIClong_tendon \\
+      --out reach_tensions.csv
+  python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz \\
+      --weak soleus_r_tendon=800 --out legs.npz
+"""
+CHUNK = 256  # postures per solve: the progress bar's step
+_EXAMPLES = {"--jam": "BIClong_tendon=0.21", "--weak": "BIClong_tendon=300", "--lock": "elbow_flexion_r=1.2"}
+
+
+def _name_value(text: str, flag: str) -> tuple[str, float]:
+    name, sep, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = np.nan
+    if not sep or not name or not np.isfinite(number):
+        raise BodySchemaInputError(f"{flag} {text!r}: expected NAME=NUMBER (SI units), e.g. {flag} {_EXAMPLES[flag]}")
+    return name, number
+
+
+def read_faults(args) -> dict:
+    """``{"cut": [...], "jam": {...}, "weak": {...}, "band": {...}}`` from --faults FILE, then the flags."""
+    faults = {"cut": [], "jam": {}, "weak": {}, "band": {}}
+    if args.faults:
+        faults = _faults_file(args.faults, faults)
+    faults["cut"] = list(faults["cut"]) + list(args.cut)
+    faults["jam"].update(_name_value(t, "--jam") for t in args.jam)
+    faults["weak"].update(_name_value(t, "--weak") for t in args.weak)
+    return faults
+
+
+def _faults_file(path: str, faults: dict) -> dict:
+    import yaml  # reads JSON too
+
+    if not os.path.isfile(path):
+        raise BodySchemaInputError(f"--faults {path!r} does not exist")
+    with open(path) as fh:
+        try:
+            doc = yaml.safe_load(fh) or {}
+        except yaml.YAMLError as err:
+            raise BodySchemaInputError(f"--faults {path!r} is not JSON/YAML: {str(err).splitlines()[0]}") from None
+    unknown = sorted(set(doc) - set(faults)) if isinstance(doc, dict) else ["(not a mapping)"]
+    if unknown:
+        raise BodySchemaInputError(f"--faults {path!r}: unknown keys {unknown}; allowed: {sorted(faults)}")
+    return {key: doc.get(key, default) for key, default in faults.items()}
+
+
+def read_postures(path: str, model) -> np.ndarray:
+    """(B, N) postures of ``model``'s free joints from a CSV or NPZ with one column per joint (module docstring)."""
+    from ..data.recorded import _read_csv_columns, _read_npz_columns
+
+    if not os.path.isfile(path):
+        raise BodySchemaInputError(f"--postures {path!r} does not exist")
+    columns = (_read_npz_columns(path) if path.endswith(".npz") else _read_csv_columns(path))[0]
+    free = model.joint_names
+    named = {(name[2:] if name.startswith("q_") and name[2:] in free else name): v for name, v in columns.items()}
+    unknown = [name for name in columns if (name[2:] if name.startswith("q_") else name) not in free]
+    if unknown:
+        raise BodySchemaInputError(f"{path}: columns {unknown} are not free joints of the body; allowed: {free}")
+    missing = [name for name in free if name not in named]
+    if missing:
+        raise BodySchemaInputError(f"{path}: missing columns {missing}; the body's free joints are {free}")
+    q = np.stack([named[name] for name in free], axis=1)
+    if not len(q):
+        raise BodySchemaInputError(f"{path} has no posture rows")
+    bad = np.argwhere(~np.isfinite(q))
+    if bad.size:
+        row, col = bad[0]
+        raise BodySchemaInputError(f"{path}: posture row {row}, joint {free[col]!r} is {q[row, col]}; every value must "
+                                   f"be a finite number ({len(np.unique(bad[:, 0]))} row(s) affected)")
+    return q
+
+
+def _csv_text(result) -> str:
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    fields = [("tension_n", result.tension_n), ("activation", result.activation), ("l_motor_m", result.l_motor_m)]
+    fields = [(label, values) for label, values in fields if values is not None]
+    writer.writerow(list(result.joints) + ["status", "status_code"]
+                    + [f"{m}.{label}" for m in result.muscles for label, _ in fields])
+    per_muscle = np.stack([values for _, values in fields], axis=2).reshape(len(result.q), -1)
+    for q, name, code, values in zip(result.q, status_names(result.status), status_codes(result.status), per_muscle):
+        writer.writerow([repr(float(v)) for v in q] + [name, int(code)] + [repr(float(v)) for v in values])
+    return buffer.getvalue()
+
+
+def write_result(path: str, result) -> None:
+    """The result as ``.csv`` or ``.npz`` (module docstring), atomically."""
+    from ..npz import atomic_write_bytes
+
+    if path.endswith(".csv"):
+        try:
+            atomic_write_bytes(path, _csv_text(result).encode())
+        except OSError as err:
+            raise BodySchemaInputError(f"cannot write --out {path!r}: {err.strerror or err}") from None
+        return
+    arrays = {"q": result.q, "tension_n": result.tension_n, "l_motor_m": result.l_motor_m,
+              "status": status_names(result.status), "status_code": status_codes(result.status),
+              "joints": np.array(result.joints, dtype=str), "muscles": np.array(result.muscles, dtype=str),
+              "objective": np.array(result.objective)}
+    if result.activation is not None:
+        arrays["activation"] = result.activation
+    write_npz(path, arrays)
+
+
+def _parser():
+    import argparse
+
+    parser = argument_parser("Static optimization with faults: the muscle tensions, motor lengths and MuJoCo muscle "
+                             "activations that hold each posture of a file, with a status per posture.")
+    parser.formatter_class, parser.epilog = argparse.RawDescriptionHelpFormatter, EXAMPLE
+    parser.add_argument("--model", default="paper_arm",
+                        help="packaged name, myo:<name> (needs myo-sim) or an MJCF path")
+    parser.add_argument("--config", help="take the body from a config's data section (model, muscles, gravity, "
+                        "locked_joints, fixed_base, spring constants) instead of --model")
+    parser.add_argument("--fixed-base", action="store_true", help="weld a floating base (e.g. myo:myolegs's pelvis)")
+    parser.add_argument("--lock", action="append", default=[], metavar="JOINT=VALUE",
+                        help="lock a joint at a value [rad or m]; repeatable")
+    parser.add_argument("--postures", required=True, help="CSV or NPZ, one column per free joint (SI units)")
+    parser.add_argument("--out", required=True, help="output file: .csv, else .npz")
+    parser.add_argument("--cut", action="append", default=[], metavar="MUSCLE", help="a ruptured muscle; repeatable")
+    parser.add_argument("--jam", action="append", default=[], metavar="MUSCLE=L_FIXED_M",
+                        help="a jammed motor: l_motor <= L_FIXED_M [m]; repeatable")
+    parser.add_argument("--weak", action="append", default=[], metavar="MUSCLE=F_MAX_N",
+                        help="a weakened muscle: tension <= F_MAX_N [N]; repeatable")
+    parser.add_argument("--faults", help="JSON/YAML file {cut: [...], jam: {...}, weak: {...}, band: {m: [lo, hi]}}")
+    parser.add_argument("--objective", choices=["activation", "tension"], help="min sum a^2 (default with MuJoCo "
+                        "muscle actuators) or min sum f^2 (default otherwise)")
+    parser.add_argument("--solver", choices=["newton", "proxqp"], default="newton")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def _body(args):
+    from ..statics import StaticBody
+
+    data = config_data(args.config) if args.config else {"model": args.model, "fixed_base": args.fixed_base}
+    options = robot_options(data)
+    locks = dict(options.pop("locked_joints") or {})
+    locks.update(_name_value(t, "--lock") for t in args.lock)
+    options["fixed_base"] = options["fixed_base"] or args.fixed_base
+    return StaticBody(options.pop("source"), locked_joints=locks, k_n=data.get("k_n"),
+                      alpha_per_m=data.get("alpha_per_m", 20.0), f_max_n=data.get("f_max_n"), **options)
+
+
+@exits_cleanly
+def static_opt_main(argv=None):
+    from tqdm.auto import tqdm
+
+    args = _parser().parse_args(argv)
+    if os.path.isdir(args.out):
+        raise BodySchemaInputError(f"--out {args.out!r} is a directory; give a file path such as tensions.csv")
+    faults = read_faults(args)
+    body = _body(args)
+    q = read_postures(args.postures, body.model)
+    body.model.check_q(q, within_range=True)
+    body.fault_batch(faults, 1)  # names checked before any solve
+    parts = []
+    with tqdm(total=len(q), desc="postures", unit="posture", disable=args.no_progress or len(q) <= CHUNK) as bar:
+        for start in range(0, len(q), CHUNK):
+            parts.append(body.solve(q[start:start + CHUNK], faults, args.objective, solver=args.solver))
+            bar.update(len(parts[-1].q))
+    result = _concatenate(parts)
+    write_result(args.out, result)
+    counts = dict(zip(*np.unique(status_names(result.status), return_counts=True)))
+    print(f"wrote {args.out}: {len(q)} postures, {len(result.muscles)} muscles, objective {result.objective}; "
+          + ", ".join(f"{k} {int(v)}" for k, v in counts.items()))
+
+
+def _concatenate(parts):
+    """One ``StaticResult`` of the chunks' rows, in order."""
+    from dataclasses import replace
+
+    from ..faults.faults import Faults
+
+    def join(objects, name):
+        values = [getattr(o, name) for o in objects]
+        return None if values[0] is None else np.concatenate(values)
+
+    faults = Faults(*(join([p.faults for p in parts], k) for k in ("cut", "fix", "l_fixed_m", "f_max_n", "l_band_m")))
+    return replace(parts[0], faults=faults,
+                   **{k: join(parts, k) for k in ("q", "tension_n", "l_motor_m", "activation", "status")})

@@ -1,0 +1,86 @@
+"""Static optimization checked by MuJoCo itself: the activations go into ``mjData`` of the body with its muscle
+actuators put back (``statics.muscles.actuated_model``), and MuJoCo's own forces must balance, and keep, the posture.
+
+Contacts are off (the equilibrium has none, as in ``sim.settle``); a cut muscle's actuator is held at zero force
+(``forcerange [0, 0]``: a ruptured muscle pulls neither actively nor passively); locked joints and couplings are held
+as ``sim.settle`` holds them. MuJoCo steps one posture at a time: these are checks, not a hot path.
+"""
+from __future__ import annotations
+
+import copy
+from types import SimpleNamespace
+
+import mujoco
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from ..sim.settle import SOLVER_TOLERANCE, _Simulator
+from .muscles import actuated_model
+from .optimize import StaticBody, StaticResult
+
+
+class _MuJoCoBody:
+    """A private copy of the actuated model with locks and couplings held, and one MjData."""
+
+    def __init__(self, body: StaticBody):
+        if body.curves is None:
+            raise BodySchemaInputError("the MuJoCo check needs MuJoCo <muscle> actuators on every muscle")
+        m = actuated_model(body.model, body.curves)
+        m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        m.opt.tolerance = min(m.opt.tolerance, SOLVER_TOLERANCE)
+        self.hold = SimpleNamespace(m=m, joint_map=body.model.joint_map)
+        _Simulator._hold_couplings_and_locks(self.hold)  # sim.settle's treatment of locks and couplings
+        self.m, self.d, self.model = m, mujoco.MjData(m), body.model
+
+    def start(self, q_free, activation, cut):
+        """Rest at ``q_free`` with activations (and controls) ``activation``; cut muscles at zero force."""
+        m, d = self.m, self.d
+        mujoco.mj_resetData(m, d)
+        m.actuator_forcelimited[:] = cut
+        m.actuator_forcerange[:] = 0.0
+        d.qpos[:] = self.model.full_q(q_free[None])[0]
+        d.act[:], d.ctrl[:] = activation, activation
+        mujoco.mj_forward(m, d)
+
+    def free_q(self) -> np.ndarray:
+        return self.d.qpos[self.model.joint_map.free].copy()
+
+
+def _rows(result: StaticResult) -> np.ndarray:
+    if result.activation is None:
+        raise BodySchemaInputError("the MuJoCo check needs activations (a body with MuJoCo muscle actuators)")
+    return np.flatnonzero(np.isfinite(result.activation).all(1))
+
+
+def mujoco_residual_nm(body: StaticBody, result: StaticResult) -> tuple[np.ndarray, np.ndarray]:
+    """``(residual (B,) [N m], tension_miss (B,) [N])`` by MuJoCo at rest: the largest free-joint torque of
+    ``qfrc_actuator + qfrc_passive - qfrc_bias`` (through couplings), and the largest difference between MuJoCo's
+    tendon tension ``-gear * actuator_force`` and ``result.tension_n``. NaN on rows without activations."""
+    sim = _MuJoCoBody(body)
+    residual, miss = np.full(len(result.q), np.nan), np.full(len(result.q), np.nan)
+    gear = body.curves.gear
+    for b in _rows(result):
+        sim.start(result.q[b], result.activation[b], result.faults.cut[b])
+        d = sim.d
+        tangent = body.model.joint_map.tangent(result.q[b:b + 1])[0]  # (nq, N)
+        residual[b] = np.abs(tangent.T @ (d.qfrc_actuator + d.qfrc_passive - d.qfrc_bias)).max()
+        miss[b] = np.abs(-gear * d.actuator_force - result.tension_n[b]).max()
+    return residual, miss
+
+
+def mujoco_drift_rad(body: StaticBody, result: StaticResult, duration_s: float = 0.5) -> np.ndarray:
+    """(B,) largest ``|q(t) - q|`` [rad] over the free joints while MuJoCo simulates ``duration_s`` from rest at
+    each posture with the result's activations held (the settle check's question: does the body stay?). NaN on
+    rows without activations."""
+    sim = _MuJoCoBody(body)
+    drift = np.full(len(result.q), np.nan)
+    steps = max(1, int(round(duration_s / sim.m.opt.timestep)))
+    for b in _rows(result):
+        sim.start(result.q[b], result.activation[b], result.faults.cut[b])
+        worst = 0.0
+        for _ in range(steps):
+            mujoco.mj_step(sim.m, sim.d)
+            _Simulator._project(sim.hold, [sim.d])
+            worst = max(worst, float(np.abs(sim.free_q() - result.q[b]).max()))
+        drift[b] = worst
+    return drift
