@@ -357,6 +357,12 @@ class MusculoskeletalModel:
         tangent = self.joint_map.tangent(q)  # (B, nq, N)
         return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, bias)
 
+    def crossing(self, n_postures: int = 64, seed: int = 0) -> np.ndarray:
+        """``(M, N)`` bool: the free joints each muscle crosses, the nonzero pattern of MuJoCo's tendon Jacobian
+        (through the couplings) at the range midpoint and ``n_postures`` seeded uniform postures."""
+        q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(seed), n_postures)])
+        return np.abs(self.kinematics(q)[1]).max(axis=0) > 1e-12
+
     def site_position(self, q, site: str) -> np.ndarray:
         """World position (B, 3) [m] of a named site, e.g. the hand."""
         q = self.full_q(q)
