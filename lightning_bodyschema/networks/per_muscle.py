@@ -120,9 +120,10 @@ class PerMusclePath(nn.Module):
         phi = v.prod(1)
         if not slopes:
             return phi, None
-        d = derivs.gather(2, index)
-        dphi = torch.stack([d[:, j] * torch.cat([v[:, :j], v[:, j + 1:]], 1).prod(1) for j in range(x.shape[1])], 1)
-        return phi, dphi
+        ones = torch.ones_like(v[:, :1])
+        before = torch.cat([ones, v[:, :-1]], 1).cumprod(1)  # prod_{i<j} v_i
+        after = torch.cat([v[:, 1:], ones], 1).flip(1).cumprod(1).flip(1)  # prod_{i>j} v_i
+        return phi, derivs.gather(2, index) * before * after
 
     def polynomial(self, x: torch.Tensor, slopes: bool = False):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype."""

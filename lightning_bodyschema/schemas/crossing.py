@@ -11,8 +11,10 @@ import torch
 from ..networks.per_muscle import PerMusclePath
 from ..sim.robot import check_muscle_joints, crossing_mapping
 
-#: a slope of a muscle's length on a joint above this RMS over the data [m/rad] is a moment arm (0.1 mm/rad)
+#: a slope of a muscle's length on a joint above this RMS over the data [m/rad] is a moment arm (0.1 mm/rad) ...
 ARM_THRESHOLD_M = 1e-4
+#: ... when it is also at least this share of the muscle's largest (a cubic's misfit leaks onto every joint)
+ARM_SHARE = 0.1
 _DETECT_DEGREE = 3
 
 
@@ -39,16 +41,18 @@ def data_arms_m(q_n: torch.Tensor, length_n: torch.Tensor, arm_scale: torch.Tens
 
 
 def crossing_from_data(q_n, length_n, arm_scale, robot_model, given: Optional[dict]) -> dict:
-    """The joints the data shows each muscle crossing (RMS moment arm above ``ARM_THRESHOLD_M``). Without
+    """The joints the data shows each muscle crossing (RMS moment arm above ``ARM_THRESHOLD_M`` and ``ARM_SHARE``
+    of the muscle's largest). Without
     ``given``: said on stderr, and returned. With it: a warning for every pair ``given`` calls uncrossed where the
     data shows a clear moment arm, with the figure; ``given`` returned."""
     muscles, joints = robot_model.muscle_names, robot_model.joint_names
     arms = data_arms_m(q_n, length_n, arm_scale).cpu()
-    found = arms > ARM_THRESHOLD_M
+    found = arms > torch.clamp(ARM_SHARE * arms.max(1, keepdim=True).values, min=ARM_THRESHOLD_M)
     found[~found.any(1), arms[~found.any(1)].argmax(1)] = True  # a muscle crosses at least one joint
     if given is None:
         mapping = crossing_mapping(found.numpy(), muscles, joints)
-        print(f"muscle_joints detected from the data (none given; RMS moment arm > {1e3 * ARM_THRESHOLD_M:g} mm/rad):"
+        print(f"muscle_joints detected from the data (none given; RMS moment arm > {1e3 * ARM_THRESHOLD_M:g} mm/rad "
+              f"and > {ARM_SHARE:g} of the muscle's largest):"
               f" {mapping}", file=sys.stderr)
         return mapping
     said = torch.tensor([[j in given[m] for j in joints] for m in muscles])

@@ -48,13 +48,15 @@ class StructuredSchema(BodySchema):
         norm: ``"none"`` (the default) or ``"layer"`` (LayerNorm before every activation), both networks.
         torque_model: ``"potential"`` (tau = dV/dq of a learned scalar V), ``"direct"`` (tau regressed per joint) or
             ``"polynomial"`` (per joint, total degree ``torque_degree``, least squares; needs ``"per_muscle"``).
+        torque_degree: total degree of the polynomial torque.
         stiffness_weighted: weigh each muscle's length error by its spring stiffness at the sample's tension,
             ``alpha (f + k)`` [N/m] (a length error then counts as the tension error it causes); False: unit weights.
         torque_weight: weight of the torque regression next to the length regression (both in normalized units).
         qp_reg: weight of ``||f - f_ref||^2`` in the least-squares answer of an unholdable posture (dimensionless).
         length_model: ``"mlp"`` (the default: one dense network, ``hidden`` x ``n_hidden``) or ``"per_muscle"``
             (each muscle's path over the joints it crosses; ``path_degree``, ``path_hidden``, ``path_layers``).
-        path_degree: total degree of each muscle's polynomial (``"per_muscle"``).
+        path_degree, path_terms: each muscle's polynomial has the highest total degree ``<= path_degree`` with at
+            most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
         path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
@@ -70,7 +72,7 @@ class StructuredSchema(BodySchema):
                  stiffness_weighted: bool = True, torque_weight: float = 1.0, qp_reg: float = 1e-6,
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
                  batch_size: int = 256, block: str = "plain", norm: str = "none", length_model: str = "mlp",
-                 path_degree: int = 6, path_hidden: int = 32, path_layers: int = 2,
+                 path_degree: int = 6, path_terms: int = 500, path_hidden: int = 32, path_layers: int = 0,
                  muscle_joints: Optional[dict] = None, torque_degree: int = 6):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
@@ -103,7 +105,7 @@ class StructuredSchema(BodySchema):
         crossing = np.ones((self.n_muscles, self.n_joints), dtype=bool)
         if hp.muscle_joints is not None:
             crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
-        self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers)
+        self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms)
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -118,10 +120,9 @@ class StructuredSchema(BodySchema):
         """Detect the crossings from the data when nothing gave them (said in the log), then fit every muscle's
         polynomial by least squares on the train split's exact lengths ``l_motor + delta(f)``."""
         q_n, target_n = self.normalizer.encode_q(q.to(torch.float64)), self._length_target_n(x.to(torch.float64))
-        given = self.hparams.muscle_joints
-        found = crossing_from_data(q_n, target_n, self._arm_scale(), self.robot_model, given)
-        if given is None:
-            self.hparams.muscle_joints = found
+        if self.hparams.muscle_joints is None or not self.robot_model.has_physics:  # the MJCF needs no check
+            self.hparams.muscle_joints = crossing_from_data(q_n, target_n, self._arm_scale(), self.robot_model,
+                                                            self.hparams.muscle_joints)
             self._build_paths()
             self.length_net.to(self.device)
         self.length_net.fit_polynomial(q_n.to(self.device), target_n.to(self.device))
