@@ -88,7 +88,7 @@ class SchemaLightningModule(L.LightningModule):
         trainer = self.trainer
         if logs_this_step(trainer) or (self._log_train_at_epoch_end and is_last_batch(trainer)):
             self.log("train/loss", loss.detach(), prog_bar=True)
-            if trainer.optimizers:  # a schema fitted by least squares alone has none
+            if trainer.optimizers and trainer.optimizers[0].param_groups:  # none: a least-squares body
                 self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
         return loss
 
