@@ -5,9 +5,12 @@
 * a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles, total degree
   ``<= degree``, whose terms use only the joints that muscle crosses (a coefficient buffer ``(M, P)`` that is
   exactly zero on every other term); it is fitted by least squares (``fit_polynomial``), not by the optimizer;
-* a small MLP per muscle (weights batched as ``(M, ...)`` tensors) whose inputs are the joint angles times the
-  muscle's crossing mask, trained on what the polynomial leaves (e.g. a path that jumps where a wrap switches
-  sides: a global polynomial rings there, the network's SiLU steps stay local).
+* optionally a small MLP per muscle (weights batched as ``(M, ...)`` tensors) whose inputs are the joint angles times
+  the muscle's crossing mask, trained on what the polynomial leaves.
+
+Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) the polynomial cannot follow: it rings
+around the jump, and the moment arms there are its smooth slope, not MuJoCo's one-sided derivative. A QP on this
+body sees a continuous length and moment arm everywhere (no jump to straddle).
 
 ``with_jacobian(x)`` gives the lengths and their exact derivative; the derivative on a joint a muscle does not
 cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lightning.
@@ -113,17 +116,21 @@ class PerMusclePath(nn.Module):
 
     # ------------------------------------------------------------------ the polynomial
     def basis(self, x: torch.Tensor, slopes: bool = False):
-        """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)``."""
+        """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)``: products over the joints of each joint's
+        Legendre polynomial of the term's exponent (a loop over the N joints, batched over samples and terms)."""
         values, derivs = legendre(x, self.degree)
-        index = self.exponents.T.unsqueeze(0).expand(len(x), -1, -1)  # (B, N, P)
-        v = values.gather(2, index)
-        phi = v.prod(1)
+        factors = [values[:, j].index_select(1, self.exponents[:, j]) for j in range(x.shape[1])]  # N x (B, P)
+        before = [torch.ones_like(factors[0])]  # prod_{i<j} factor_i
+        for factor in factors[:-1]:
+            before.append(before[-1] * factor)
+        phi = before[-1] * factors[-1]
         if not slopes:
             return phi, None
-        ones = torch.ones_like(v[:, :1])
-        before = torch.cat([ones, v[:, :-1]], 1).cumprod(1)  # prod_{i<j} v_i
-        after = torch.cat([v[:, 1:], ones], 1).flip(1).cumprod(1).flip(1)  # prod_{i>j} v_i
-        return phi, derivs.gather(2, index) * before * after
+        dphi, after = [], torch.ones_like(phi)  # after: prod_{i>j} factor_i
+        for j in reversed(range(x.shape[1])):
+            dphi.append(derivs[:, j].index_select(1, self.exponents[:, j]) * before[j] * after)
+            after = after * factors[j]
+        return phi, torch.stack(dphi[::-1], 1)
 
     def polynomial(self, x: torch.Tensor, slopes: bool = False):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype."""
@@ -140,12 +147,9 @@ class PerMusclePath(nn.Module):
         return out
 
     @torch.no_grad()
-    def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, outlier_cut: float = 0.0, rounds: int = 2,
-                       ridge: float = 1e-12, chunk: int = 8192) -> None:
+    def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-12, chunk: int = 8192) -> None:
         """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64, all muscles in one
-        batched solve (each muscle's own terms gathered into a padded ``(M, K, K)`` system). With ``outlier_cut``
-        > 0, ``rounds`` refits of the muscles with samples beyond ``outlier_cut`` times their robust residual
-        spread (``_refit_without_outliers``)."""
+        batched solve (each muscle's own terms gathered into a padded ``(M, K, K)`` system)."""
         x, y = x.to(torch.float64), y.to(torch.float64)
         n_terms = self.coef.shape[1]
         gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
@@ -165,23 +169,6 @@ class PerMusclePath(nn.Module):
         solution = torch.linalg.solve(system, b.unsqueeze(-1)).squeeze(-1) * valid
         coef = torch.zeros_like(self.coef, dtype=torch.float64).scatter_(1, order, solution)
         self.coef.copy_(coef * mask)
-        for _ in range(rounds if outlier_cut > 0 else 0):
-            self._refit_without_outliers(x, y, gram, rhs, outlier_cut, ridge, chunk)
-
-    def _refit_without_outliers(self, x, y, gram, rhs, cut: float, ridge: float, chunk: int) -> None:
-        """Refit each muscle that has samples with ``|residual| > cut * 1.4826 median |residual|`` (e.g. the far
-        side of a jump where MuJoCo's wrap switches sides) without them: their rows are taken out of the normal
-        equations. A loop over those few muscles, in this one-time fit only (never in training or adaptation)."""
-        residual = torch.cat([self.polynomial(x[i:i + chunk])[0] - y[i:i + chunk] for i in range(0, len(x), chunk)])
-        spread = 1.4826 * residual.abs().median(0).values
-        outliers = residual.abs() > cut * spread
-        for m in outliers.any(0).nonzero().flatten().tolist():
-            own, rows = self.term_mask[m].nonzero().flatten(), outliers[:, m].nonzero().flatten()
-            phi = self.basis(x[rows])[0][:, own]
-            system = gram[own[:, None], own[None, :]] - phi.T @ phi
-            system = system + ridge * system.diagonal().mean() * torch.eye(len(own), dtype=system.dtype,
-                                                                            device=system.device)
-            self.coef[m, own] = torch.linalg.solve(system, rhs[own, m] - phi.T @ y[rows, m])
 
     # ------------------------------------------------------------------ the network
     def _network(self, x: torch.Tensor, slopes: bool):
