@@ -104,6 +104,9 @@ class PerMusclePath(nn.Module):
         self.register_buffer("exponents", torch.tensor(exponents))
         self.register_buffer("term_mask", torch.tensor(term_mask(crossing, exponents, degrees)))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
+        # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
+        self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
+        self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
         sizes = [n_joints] + [hidden] * n_hidden + [1]
         self.weights = nn.ParameterList(nn.Parameter(_uniform((n_muscles, a, b), a)) for a, b in
                                         zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
@@ -133,11 +136,21 @@ class PerMusclePath(nn.Module):
         return phi, torch.stack(dphi[::-1], 1)
 
     def polynomial(self, x: torch.Tensor, slopes: bool = False):
-        """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype."""
+        """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype.
+
+        Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
+        extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
+        high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``)."""
+        x64 = x.to(torch.float64)
+        inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
         coef = self.coef * self.term_mask
-        phi, dphi = self.basis(x.to(torch.float64), slopes)
-        y = (phi @ coef.T).to(x.dtype)
-        return y, None if dphi is None else torch.einsum("bnp,mp->bmn", dphi, coef).to(x.dtype)
+        phi, dphi = self.basis(inside, slopes or not torch.equal(inside, x64))
+        y = phi @ coef.T
+        if dphi is None:
+            return y.to(x.dtype), None
+        dy = torch.einsum("bnp,mp->bmn", dphi, coef)
+        y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
+        return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
@@ -151,6 +164,8 @@ class PerMusclePath(nn.Module):
         """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64, all muscles in one
         batched solve (each muscle's own terms gathered into a padded ``(M, K, K)`` system)."""
         x, y = x.to(torch.float64), y.to(torch.float64)
+        self.x_lo.copy_(x.amin(0))
+        self.x_hi.copy_(x.amax(0))
         n_terms = self.coef.shape[1]
         gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
         rhs = torch.zeros(n_terms, y.shape[1], dtype=torch.float64, device=x.device)

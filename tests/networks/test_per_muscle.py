@@ -84,3 +84,16 @@ def test_bad_sizes_are_refused(kwargs, match):
 def test_a_muscle_crossing_nothing_is_refused():
     with pytest.raises(BodySchemaInputError, match="every muscle crossing a joint"):
         PerMusclePath(np.array([[1, 0], [0, 0]], dtype=bool))
+
+
+def test_outside_the_fitted_box_the_polynomial_extends_to_first_order():
+    path = PerMusclePath(CROSSING, degree=6, n_hidden=0).double()
+    x = torch.rand(2000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3)) * 1.2 - 0.6  # [-0.6, 0.6]
+    path.fit_polynomial(x, torch.sin(3 * x) @ torch.ones(3, 4, dtype=torch.float64))
+    edge = torch.tensor([[0.2, path.x_hi[1], 0.1]], dtype=torch.float64)
+    beyond = edge + torch.tensor([[0.0, 0.3, 0.0]], dtype=torch.float64)
+    y_edge, dy_edge = path.with_jacobian(edge)
+    y, dy = path.with_jacobian(beyond)
+    torch.testing.assert_close(y, y_edge + 0.3 * dy_edge[:, :, 1], rtol=0, atol=1e-12)
+    torch.testing.assert_close(dy, dy_edge, rtol=0, atol=1e-12)
+    assert (dy[:, ~torch.as_tensor(CROSSING)] == 0).all()
