@@ -26,7 +26,8 @@ def body_errors(schema, q: np.ndarray) -> dict:
     length_mm, arm_mm = 1e3 * np.abs(l_hat - l_true), 1e3 * np.abs(G_hat - G_true)[:, crossed]
     tau_nm, tau_ref = np.linalg.norm(tau_hat - tau_true, axis=1), float(np.median(np.linalg.norm(tau_true, axis=1)))
     pct = lambda a, p: float(np.percentile(a, p))  # noqa: E731
-    return {"length_mm": (pct(length_mm, 50), pct(length_mm, 99)), "arm_mm_per_rad": (pct(arm_mm, 50), pct(arm_mm, 99)),
+    return {"length_mm": (pct(length_mm, 50), pct(length_mm, 99)),
+            "arm_mm_per_rad": (pct(arm_mm, 50), pct(arm_mm, 99)),
             "uncrossed_max_mm_per_rad": 1e3 * float(np.abs(G_hat[:, ~crossed]).max(initial=0.0)),
             "pairs": (int(crossed.sum()), int((~crossed).sum())), "torque_nm": (pct(tau_nm, 50), pct(tau_nm, 99)),
             "torque_ratio": pct(tau_nm, 50) / tau_ref, "tau_bias_median_nm": tau_ref}
@@ -37,10 +38,13 @@ def report(errors: dict) -> str:
     return "\n".join([
         "| quantity | median | p99 |", "|---|---|---|",
         f"| muscle length [mm] | {e['length_mm'][0]:.4g} | {e['length_mm'][1]:.4g} |",
-        f"| moment arms, {crossed} crossed pairs [mm/rad] | {e['arm_mm_per_rad'][0]:.4g} | {e['arm_mm_per_rad'][1]:.4g} |",
-        f"| moment arms, {uncrossed} uncrossed pairs (truly 0), largest [mm/rad] | {e['uncrossed_max_mm_per_rad']:.3g} | |",
+        f"| moment arms, {crossed} crossed pairs [mm/rad] | {e['arm_mm_per_rad'][0]:.4g} | "
+        f"{e['arm_mm_per_rad'][1]:.4g} |",
+        f"| moment arms, {uncrossed} uncrossed pairs (truly 0), largest [mm/rad] | "
+        f"{e['uncrossed_max_mm_per_rad']:.3g} | |",
         f"| torque error [N m] | {e['torque_nm'][0]:.4g} | {e['torque_nm'][1]:.4g} |",
-        f"| torque error / median abs(tau_bias) ({e['tau_bias_median_nm']:.4g} N m) | {100 * e['torque_ratio']:.3g} % | |"])
+        f"| torque error / median abs(tau_bias) ({e['tau_bias_median_nm']:.4g} N m) | "
+        f"{100 * e['torque_ratio']:.3g} % | |"])
 
 
 @exits_cleanly

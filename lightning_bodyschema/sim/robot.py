@@ -116,7 +116,8 @@ def check_muscle_joints(muscle_joints: Mapping, muscles: Sequence[str], joints: 
         raise BodySchemaInputError(f"muscle_joints={muscle_joints!r} must be a mapping {{muscle: [joints]}}")
     unknown = [m for m in muscle_joints if m not in muscles]
     if unknown:
-        raise BodySchemaInputError(f"muscle_joints names unknown muscle {unknown[0]!r}; the muscles are {list(muscles)}")
+        raise BodySchemaInputError(f"muscle_joints names unknown muscle {unknown[0]!r}; the muscles are "
+                                   f"{list(muscles)}")
     missing = [m for m in muscles if m not in muscle_joints]
     if missing:
         raise BodySchemaInputError(f"muscle_joints has no entry for muscle(s) {missing}; give every muscle's joints")

@@ -3,10 +3,11 @@ matches MuJoCo's to micrometres on the paper arm, exactly zero moment arms off t
 bad input, and checkpoints of the dense schema still answering as before."""
 from __future__ import annotations
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
+
+from physics_checks import fit_structured as _fit
 
 from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.data import EquilibriumDataModule, RecordedDataModule
@@ -19,15 +20,6 @@ PAPER_JOINTS = {"shoulder_flexor": ["shoulder"], "shoulder_extensor": ["shoulder
                 "elbow_extensor": ["elbow"], "biarticular_flexor": ["shoulder", "elbow"],
                 "biarticular_extensor": ["shoulder", "elbow"]}
 PER_MUSCLE = dict(length_model="per_muscle", path_degree=10, torque_model="polynomial", torque_degree=8)
-
-
-def _fit(datamodule, epochs=1, **hparams):
-    L.seed_everything(0, verbose=False)
-    schema = StructuredSchema(robot=datamodule.robot, batch_size=64, **hparams)
-    trainer = L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0)
-    trainer.fit(schema, datamodule)
-    return schema.eval(), trainer
 
 
 @pytest.fixture(scope="module")
@@ -132,7 +124,8 @@ def test_recorded_data_detects_the_crossings_and_says_so(recorded_csv, capsys):
 
 def test_a_recorded_mapping_that_misses_a_crossed_joint_warns_with_the_figure(recorded_csv):
     wrong = {**PAPER_JOINTS, "biarticular_flexor": ["elbow"]}
-    with pytest.warns(UserWarning, match=r"'biarticular_flexor' is said not to cross joint 'shoulder'.* [0-9.]+ mm/rad"):
+    said = r"'biarticular_flexor' is said not to cross joint 'shoulder'.* [0-9.]+ mm/rad"
+    with pytest.warns(UserWarning, match=said):
         schema, _ = _fit(RecordedDataModule(recorded_csv, seed=3, muscle_joints=wrong), **PER_MUSCLE)
     assert schema.hparams.muscle_joints["biarticular_flexor"] == ["elbow"]
 
@@ -157,5 +150,6 @@ def test_bad_length_and_torque_models_are_refused():
     with pytest.raises(BodySchemaInputError, match="needs length_model='per_muscle'"):
         StructuredSchema(robot=robot, torque_model="polynomial")
     with pytest.raises(BodySchemaInputError, match="unknown joint 'wrist'"):
-        StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints={**PAPER_JOINTS, "elbow_flexor": "wrist"})
+        StructuredSchema(robot=robot, length_model="per_muscle",
+                         muscle_joints={**PAPER_JOINTS, "elbow_flexor": "wrist"})
     assert check_muscle_joints(PAPER_JOINTS, list(PAPER_JOINTS), ["shoulder", "elbow"]) == PAPER_JOINTS
