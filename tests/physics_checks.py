@@ -91,3 +91,18 @@ def assert_same_commands(fast, ref, tol_n, tol_m):
     assert ok.any()
     np.testing.assert_allclose(fast.f_n[ok], ref.f_n[ok], rtol=0, atol=tol_n)
     np.testing.assert_allclose(fast.l_motor_m[ok], ref.l_motor_m[ok], rtol=0, atol=tol_m)
+
+
+def fit_structured(datamodule, epochs=1, **hparams):
+    """A ``StructuredSchema`` fitted on ``datamodule`` for ``epochs`` (seed 0, batch 64, no logger, no checkpoints, no
+    validation): ``(schema in eval mode, trainer)``."""
+    import lightning as L
+
+    from lightning_bodyschema.schemas import StructuredSchema
+
+    L.seed_everything(0, verbose=False)
+    schema = StructuredSchema(robot=datamodule.robot, batch_size=64, **hparams)
+    trainer = L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0)
+    trainer.fit(schema, datamodule)
+    return schema.eval(), trainer

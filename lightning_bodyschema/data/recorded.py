@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import BodySchemaInputError
 from ..npz import atomic_write_bytes, load_npz, save_npz
 from ..sim import SpringParams
-from ..sim.robot import ModelFreeRobot
+from ..sim.robot import ModelFreeRobot, check_muscle_joints
 from .datamodule import EquilibriumDataModule, check_loader_args, check_split
 from .normalizer import Normalizer
 
@@ -264,13 +264,16 @@ class RecordedDataModule(EquilibriumDataModule):
         units: the units of the file; only ``"SI"``.
         k_n, alpha_per_m: spring constants (paper: 1000 N, 20 1/m), scalar or per muscle.
         f_max_n: tension limit [N], scalar or per muscle; default: the upper tension limits, else 150 N.
+        muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (for ``StructuredSchema``'s
+            ``length_model="per_muscle"``, through ``robot``); default: detected from the data when a fit starts.
     """
 
     def __init__(self, path: str, seed: int = 0, val_fraction: float = 0.2, joints: Optional[Sequence[str]] = None,
                  muscles: Optional[Sequence[str]] = None, q_range: Optional[dict] = None,
                  l_range: Optional[dict] = None, f_range: Optional[dict] = None, units: str = UNITS,
                  k_n: float | list[float] = 1000.0, alpha_per_m: float | list[float] = 20.0,
-                 f_max_n: float | list[float] | None = None, batch_size: int = 64):
+                 f_max_n: float | list[float] | None = None, batch_size: int = 64,
+                 muscle_joints: Optional[dict] = None):
         super(EquilibriumDataModule, self).__init__()  # the simulation module's __init__ builds an MJCF model
         if units != UNITS:
             raise BodySchemaInputError(f"units={units!r} is not supported; recorded data must be in SI units "
@@ -284,11 +287,15 @@ class RecordedDataModule(EquilibriumDataModule):
             path, table, q_range, l_range, f_range, k_n, alpha_per_m, f_max_n)
         check_split(len(self.arrays["q"]), val_fraction)
         self.normalizer = Normalizer(2 * self.robot_model.n_muscles, self.robot_model.n_joints)
+        self.muscle_joints = None if muscle_joints is None else check_muscle_joints(
+            muscle_joints, self.robot_model.muscle_names, self.robot_model.joint_names)
 
     @property
     def robot(self) -> dict:
-        """Names, limits and spring constants: a schema rebuilds the robot from these, with no model."""
-        return {**self.robot_model.as_dict(), "spring": self.spring.as_dict()}
+        """Names, limits and spring constants (and ``muscle_joints`` when given): a schema rebuilds the robot from
+        these, with no model."""
+        robot = {**self.robot_model.as_dict(), "spring": self.spring.as_dict()}
+        return robot if self.muscle_joints is None else {**robot, "muscle_joints": self.muscle_joints}
 
     def _load(self):
         return self.arrays

@@ -3,10 +3,15 @@
 Trained from (q, l_motor, f) samples and the spring law alone (no MJCF: recorded data trains it too):
 
 * the geometric muscle lengths ``l_geo(q)``, regressed on ``l_motor + delta(f)`` (eq:muscle-elongation), with the
-  moment arms ``G(q) = d l_geo / dq`` their exact derivative (``networks.structured.JacobianMLP``);
+  moment arms ``G(q) = d l_geo / dq`` their exact derivative: one dense network over all joints
+  (``length_model="mlp"``, ``networks.structured.JacobianMLP``), or each muscle's path over only the joints it
+  crosses (``"per_muscle"``, ``networks.per_muscle.PerMusclePath``: a least-squares polynomial per muscle plus a
+  small per-muscle network), its moment arm exactly 0 on every other joint;
 * the joint torque the muscles must balance ``tau(q)`` (static equilibrium ``-G^T f = tau``), regressed on
   ``-G(q)^T f`` of the samples: the gradient of a learned potential ``V(q)`` (gravity and joint springs are
-  conservative; ``torque_model="potential"``) or a plain regression (``"direct"``).
+  conservative; ``torque_model="potential"``), a plain regression (``"direct"``), or a polynomial per joint fitted
+  by least squares (``"polynomial"``, with the per-muscle lengths: refitted to the learned moment arms before every
+  validation and checkpoint).
 
 Every command is a small QP on that body per posture (``faults.qp``): tensions closest to ``f_ref`` (half of each
 muscle's f_max) that balance ``tau`` within their box, each fault an exact constraint (cut f = 0; jammed or banded
@@ -23,10 +28,14 @@ from ..adaptation.command import safe_command
 from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
 from ..faults.qp import OK, STATUS_DTYPE, fault_command, intersect_bounds
+from ..networks.per_muscle import PerMusclePath
 from ..networks.structured import JacobianMLP, check_architecture
 from .base import BodySchema
+from .crossing import crossing_from_data, resolve_crossing
 
-TORQUE_MODELS = ("potential", "direct")
+TORQUE_MODELS = ("potential", "direct", "polynomial")
+TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
+LENGTH_MODELS = ("mlp", "per_muscle")
 
 
 class StructuredSchema(BodySchema):
@@ -37,35 +46,67 @@ class StructuredSchema(BodySchema):
         block: ``"plain"`` (the default) or ``"residual"`` (pre-norm residual hidden layers), both networks
             (``networks.structured.JacobianMLP``); the moment arms stay the exact derivative of the lengths.
         norm: ``"none"`` (the default) or ``"layer"`` (LayerNorm before every activation), both networks.
-        torque_model: ``"potential"`` (tau = dV/dq of a learned scalar V) or ``"direct"`` (tau regressed per joint).
+        torque_model: ``"potential"`` (tau = dV/dq of a learned scalar V), ``"direct"`` (tau regressed per joint) or
+            ``"polynomial"`` (per joint, total degree ``torque_degree``, least squares; needs ``"per_muscle"``).
+        torque_degree: total degree of the polynomial torque.
         stiffness_weighted: weigh each muscle's length error by its spring stiffness at the sample's tension,
             ``alpha (f + k)`` [N/m] (a length error then counts as the tension error it causes); False: unit weights.
         torque_weight: weight of the torque regression next to the length regression (both in normalized units).
         qp_reg: weight of ``||f - f_ref||^2`` in the least-squares answer of an unholdable posture (dimensionless).
+        length_model: ``"mlp"`` (the default: one dense network, ``hidden`` x ``n_hidden``) or ``"per_muscle"``
+            (each muscle's path over the joints it crosses; ``path_degree``, ``path_hidden``, ``path_layers``).
+        path_degree, path_terms: each muscle's polynomial has the highest total degree ``<= path_degree`` with at
+            most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
+        path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
+        muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
+            robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
+            the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
         robot, lr, lr_final, batch_size: see ``BodySchema``.
     """
 
     VARIANTS = ("default",)
     MIXED_PRECISION = False  # 16-bit matmuls are coarser than the lengths it learns (training.fit_loop)
-    capabilities = frozenset({"adapts_in_si"})  # contract.ADAPTS_IN_SI: a QP on the learned body, in SI units
+    # contract.ADAPTS_IN_SI: a QP on the learned body, in SI units; REFRESHES_DERIVED_STATE: the polynomial torque
+    capabilities = frozenset({"adapts_in_si", "refreshes_derived_state"})
 
     def __init__(self, hidden: int = 256, n_hidden: int = 3, torque_model: str = "potential",
                  stiffness_weighted: bool = True, torque_weight: float = 1.0, qp_reg: float = 1e-6,
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
-                 batch_size: int = 256, block: str = "plain", norm: str = "none"):
+                 batch_size: int = 256, block: str = "plain", norm: str = "none", length_model: str = "mlp",
+                 path_degree: int = 6, path_terms: int = 500, path_hidden: int = 32, path_layers: int = 0,
+                 muscle_joints: Optional[dict] = None, torque_degree: int = 6):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
         for name, value in (("torque_weight", torque_weight), ("qp_reg", qp_reg)):
             if isinstance(value, bool) or not 0.0 <= float(value) < float("inf"):
                 raise BodySchemaInputError(f"{name}={value!r} must be a finite number >= 0")
+        if length_model not in LENGTH_MODELS:
+            raise BodySchemaInputError(f"length_model={length_model!r}; allowed: {list(LENGTH_MODELS)}")
+        if torque_model == "polynomial" and length_model != "per_muscle":
+            raise BodySchemaInputError("torque_model='polynomial' needs length_model='per_muscle'")
         check_architecture(block, norm)
         self.save_hyperparameters()
-        self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
-        self.torque_net = JacobianMLP(self.n_joints, 1 if torque_model == "potential" else self.n_joints,
-                                      hidden, n_hidden, block, norm)
+        if length_model == "per_muscle":
+            self.hparams.muscle_joints = resolve_crossing(self.robot_model, robot, muscle_joints)
+            self._build_paths()
+        else:
+            self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
+        if torque_model == "polynomial":  # the joints as the "muscles" of a polynomial over every joint
+            self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), torque_degree, 1, 0)
+        else:
+            self.torque_net = JacobianMLP(self.n_joints, 1 if torque_model == "potential" else self.n_joints,
+                                          hidden, n_hidden, block, norm)
         # typical muscle torque per joint [N m]: the unit of the torque networks (set from the data when a fit starts)
         self.register_buffer("tau_scale_nm", torch.ones(self.n_joints, dtype=torch.float64))
+
+    def _build_paths(self) -> None:
+        """The per-muscle path model for ``hparams.muscle_joints`` (None: every joint until the fit detects them)."""
+        joints, hp = self.robot_model.joint_names, self.hparams
+        crossing = np.ones((self.n_muscles, self.n_joints), dtype=bool)
+        if hp.muscle_joints is not None:
+            crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
+        self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms)
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -73,6 +114,36 @@ class StructuredSchema(BodySchema):
         datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if datamodule is not None and stage == "fit":
             self.tau_scale_nm.copy_(self.torque_scale())
+            if self.hparams.get("length_model", "mlp") == "per_muscle":
+                self._fit_paths(*datamodule.splits["train"])
+
+    def _fit_paths(self, q: torch.Tensor, x: torch.Tensor) -> None:
+        """Detect the crossings from the data when nothing gave them (said in the log), then fit every muscle's
+        polynomial by least squares on the train split's exact lengths ``l_motor + delta(f)``."""
+        q_n, target_n = self.normalizer.encode_q(q.to(torch.float64)), self._length_target_n(x.to(torch.float64))
+        if self.hparams.muscle_joints is None or not self.robot_model.has_physics:  # the MJCF needs no check
+            self.hparams.muscle_joints = crossing_from_data(q_n, target_n, self._arm_scale(), self.robot_model,
+                                                            self.hparams.muscle_joints)
+            self._build_paths()
+            self.length_net.to(self.device)
+        self.length_net.fit_polynomial(q_n.to(self.device), target_n.to(self.device))
+        if self.hparams.torque_model == "polynomial":
+            self._fit_torque(q_n.to(self.device), x[:, self.n_muscles:].to(self.device, torch.float64))
+
+    @torch.no_grad()
+    def _fit_torque(self, q_n: torch.Tensor, f: torch.Tensor, chunk: int = 4096) -> None:
+        """Least squares of the polynomial torque on ``-G(q)^T f`` of the learned moment arms, at most
+        ``TORQUE_FIT_POSTURES`` postures (float64)."""
+        q_n, f = q_n[:TORQUE_FIT_POSTURES].to(torch.float64), f[:TORQUE_FIT_POSTURES].to(torch.float64)
+        arm_scale = self._arm_scale().to(q_n)
+        target = torch.cat([-torch.einsum("bmn,bm->bn", self.length_net.with_jacobian(q_n[i:i + chunk].to(
+            self.dtype))[1].to(torch.float64) * arm_scale, f[i:i + chunk]) for i in range(0, len(q_n), chunk)])
+        self.torque_net.fit_polynomial(q_n, target / self.tau_scale_nm.to(q_n))
+
+    def refresh_from_train_split(self, q_n, x_n) -> None:
+        """The polynomial torque refitted to the current moment arms (when the lengths have trained weights)."""
+        if self.hparams.get("torque_model") == "polynomial" and any(True for _ in self.length_net.parameters()):
+            self._fit_torque(q_n, self.normalizer.decode_x(x_n.double())[:, self.n_muscles:])
 
     def torque_scale(self) -> torch.Tensor:
         """(N,) [N m] from the normalizer: ``sqrt(sum_i (l_std_i / half_range_j)^2 f_mean_i^2)``, a typical torque the
@@ -99,7 +170,7 @@ class StructuredSchema(BodySchema):
     def torque(self, q_n: torch.Tensor) -> torch.Tensor:
         """The learned torque the muscles must balance, ``tau (B, N)`` [N m] (``-G^T f = tau`` in equilibrium)."""
         scale = self.tau_scale_nm.to(q_n.dtype)
-        if self.hparams.torque_model == "direct":
+        if self.hparams.torque_model in ("direct", "polynomial"):
             return scale * self.torque_net(q_n)
         # tau_j = dV/dq_j with V = c V_n and c one scalar (a gradient stays a gradient)
         c = (scale * self._half_range().to(q_n.dtype)).mean()
@@ -107,20 +178,40 @@ class StructuredSchema(BodySchema):
         return c * dV_n[:, 0, :] / self._half_range().to(q_n.dtype)
 
     # ------------------------------------------------------------------ training
+    def configure_optimizers(self):
+        """``BodySchema``'s, or none when every part of the body is fitted by least squares (no trainable weight)."""
+        return super().configure_optimizers() if any(True for _ in self.parameters()) else None
+
+    def _length_target_n(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalized geometric lengths ``(l_motor + delta(f) - l_mean) / l_std`` of SI samples ``x (B, 2M)``."""
+        m = self.n_muscles
+        l_motor, f = x[:, :m], x[:, m:]
+        k, alpha = self._spring_tensors(f)
+        l_mean, l_std = self.normalizer.x_mean[:m], self.normalizer.x_std[:m]
+        return (l_motor + torch.log1p(f.clamp_min(0.0) / k) / alpha - l_mean) / l_std
+
+    def _arm_scale(self) -> torch.Tensor:
+        """(M, N) [m/rad per normalized unit]: a normalized length slope times this is a moment arm."""
+        return self.normalizer.x_std[:self.n_muscles, None] / self._half_range()[None, :]
+
     def training_loss(self, q_n, x_n):
         m = self.n_muscles
         x = self.normalizer.decode_x(x_n.double())
-        l_motor, f = x[:, :m], x[:, m:]
+        f = x[:, m:]
         l_mean, l_std = self.normalizer.x_mean[:m], self.normalizer.x_std[:m]
-        k, alpha = self._spring_tensors(f)
-        target_n = ((l_motor + torch.log1p(f.clamp_min(0.0) / k) / alpha - l_mean) / l_std).to(x_n.dtype)
-        l_geo, G, tau = self.body(q_n)
-        error_n = (l_geo - l_mean.to(x_n.dtype)) / l_std.to(x_n.dtype) - target_n
+        target_n = self._length_target_n(x).to(x_n.dtype)
+        if self.hparams.torque_model == "polynomial":  # least squares (refresh_from_train_split): lengths only
+            error_n, torque_loss = self.length_net(q_n) - target_n, torch.zeros((), dtype=x_n.dtype)
+        else:
+            l_geo, G, tau = self.body(q_n)
+            error_n = (l_geo - l_mean.to(x_n.dtype)) / l_std.to(x_n.dtype) - target_n
+            tau_target = -torch.einsum("bmn,bm->bn", G.detach(), f.to(x_n.dtype))
+            torque_loss = ((tau - tau_target) / self.tau_scale_nm.to(x_n.dtype)).pow(2).mean()
         weight = self._length_weight(f, l_std).to(x_n.dtype)
         length_loss = (weight * error_n).pow(2).mean()
-        tau_target = -torch.einsum("bmn,bm->bn", G.detach(), f.to(x_n.dtype))
-        torque_loss = ((tau - tau_target) / self.tau_scale_nm.to(x_n.dtype)).pow(2).mean()
         loss = length_loss + self.hparams.torque_weight * torque_loss
+        if not loss.requires_grad:  # every part fitted by least squares: nothing to train, Lightning still backprops
+            loss = loss.detach().requires_grad_()
         rmse_mm = 1e3 * (error_n.detach() * l_std.to(x_n.dtype)).pow(2).mean().sqrt()
         logs = {"length_loss": length_loss.detach(), "torque_loss": torque_loss.detach(), "l_geo_rmse_mm": rmse_mm}
         return loss, logs

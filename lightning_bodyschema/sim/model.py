@@ -85,6 +85,8 @@ def _weld_free_joints(spec: mujoco.MjSpec):
         spec.delete(element)
 
 
+UNCROSSED_ARM_M = 1e-9  # [m/rad]: a tendon Jacobian entry at most this large is rounding (real arms are mm)
+
 class MusculoskeletalModel:
     """A MuJoCo model whose spatial tendons are the robot's muscles.
 
@@ -356,6 +358,13 @@ class MusculoskeletalModel:
             return lengths[:, idx], jac[:, idx, :], bias
         tangent = self.joint_map.tangent(q)  # (B, nq, N)
         return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, bias)
+
+    def crossing(self, n_postures: int = 64, seed: int = 0) -> np.ndarray:
+        """``(M, N)`` bool: the free joints each muscle crosses, the nonzero pattern of MuJoCo's tendon Jacobian
+        (through the couplings) at the range midpoint and ``n_postures`` seeded uniform postures, above
+        ``UNCROSSED_ARM_M`` (a joint moving both ends of a path alike leaves rounding there, not an arm)."""
+        q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(seed), n_postures)])
+        return np.abs(self.kinematics(q)[1]).max(axis=0) > UNCROSSED_ARM_M
 
     def site_position(self, q, site: str) -> np.ndarray:
         """World position (B, 3) [m] of a named site, e.g. the hand."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -106,3 +106,34 @@ def robot_model_from_dict(robot: dict) -> RobotModel:
                                    "q_range and muscles (recorded data)")
     return ModelFreeRobot(robot["joints"], robot["q_range"], robot["muscles"], robot.get("l_range"),
                           robot.get("f_range"))
+
+
+def check_muscle_joints(muscle_joints: Mapping, muscles: Sequence[str], joints: Sequence[str]) -> dict:
+    """``{muscle: [joints]}``, the joints each muscle crosses, checked: every muscle once, known names, each
+    muscle crossing at least one joint; one ``BodySchemaInputError`` naming the first bad entry. Joints are
+    returned in the robot's order."""
+    if not isinstance(muscle_joints, Mapping):
+        raise BodySchemaInputError(f"muscle_joints={muscle_joints!r} must be a mapping {{muscle: [joints]}}")
+    unknown = [m for m in muscle_joints if m not in muscles]
+    if unknown:
+        raise BodySchemaInputError(f"muscle_joints names unknown muscle {unknown[0]!r}; the muscles are "
+                                   f"{list(muscles)}")
+    missing = [m for m in muscles if m not in muscle_joints]
+    if missing:
+        raise BodySchemaInputError(f"muscle_joints has no entry for muscle(s) {missing}; give every muscle's joints")
+    out = {}
+    for muscle, crossed in muscle_joints.items():
+        crossed = [crossed] if isinstance(crossed, str) else list(crossed)
+        bad = [j for j in crossed if j not in joints]
+        if bad:
+            raise BodySchemaInputError(f"muscle_joints[{muscle!r}] names unknown joint {bad[0]!r}; the joints are "
+                                       f"{list(joints)}")
+        if not crossed:
+            raise BodySchemaInputError(f"muscle_joints[{muscle!r}] is empty; a muscle crosses at least one joint")
+        out[muscle] = [j for j in joints if j in crossed]
+    return {m: out[m] for m in muscles}
+
+
+def crossing_mapping(crossing, muscles: Sequence[str], joints: Sequence[str]) -> dict:
+    """``{muscle: [joints]}`` from a ``(M, N)`` bool array."""
+    return {m: [j for j, c in zip(joints, row) if c] for m, row in zip(muscles, np.asarray(crossing, bool))}

@@ -113,7 +113,8 @@ class SchemaLightningModule(L.LightningModule):
         trainer = self.trainer
         if logs_this_step(trainer) or (self._log_train_at_epoch_end and is_last_batch(trainer)):
             self.log("train/loss", loss.detach(), prog_bar=True)
-            self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
+            if trainer.optimizers and trainer.optimizers[0].param_groups:  # none: a least-squares body
+                self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
         return loss
 
     def on_before_optimizer_step(self, optimizer):

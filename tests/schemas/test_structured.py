@@ -2,10 +2,11 @@
 it trains from a recorded CSV without a model, and its healthy commands hold the paper arm on MuJoCo."""
 from __future__ import annotations
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
+
+from physics_checks import fit_structured as _fit
 
 from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.data import EquilibriumDataModule, RecordedDataModule
@@ -18,15 +19,6 @@ from lightning_bodyschema.sim import (MusculoskeletalModel, SpringParams, elonga
                                       tension_from_elongation)
 
 SPRING = SpringParams()  # the paper's: k 1000 N, alpha 20 1/m, f_max 150 N
-
-
-def _fit(datamodule, epochs, **hparams):
-    L.seed_everything(0, verbose=False)
-    schema = StructuredSchema(robot=datamodule.robot, batch_size=64, **hparams)
-    trainer = L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0)
-    trainer.fit(schema, datamodule)
-    return schema.eval(), trainer
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,218 @@
+"""Per-muscle path models: each muscle's length over only the joints it crosses, with exact moment arms.
+
+``PerMusclePath`` is a sum of two parts, both batched over muscles (no Python loop over muscles):
+
+* a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles, total degree
+  ``<= degree``, whose terms use only the joints that muscle crosses (a coefficient buffer ``(M, P)`` that is
+  exactly zero on every other term); it is fitted by least squares (``fit_polynomial``), not by the optimizer;
+* optionally a small MLP per muscle (weights batched as ``(M, ...)`` tensors) whose inputs are the joint angles times
+  the muscle's crossing mask, trained on what the polynomial leaves.
+
+Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) the polynomial cannot follow: it rings
+around the jump, and the moment arms there are its smooth slope, not MuJoCo's one-sided derivative. A QP on this
+body sees a continuous length and moment arm everywhere (no jump to straddle).
+
+``with_jacobian(x)`` gives the lengths and their exact derivative; the derivative on a joint a muscle does not
+cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lightning.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from ..errors import BodySchemaInputError
+
+
+def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Legendre polynomials ``P_0..P_degree`` of ``x (B, N)`` and their derivatives: two ``(B, N, degree + 1)``."""
+    values, slopes = [torch.ones_like(x)], [torch.zeros_like(x)]
+    if degree >= 1:
+        values.append(x)
+        slopes.append(torch.ones_like(x))
+    for n in range(1, degree):  # (n+1) P_{n+1} = (2n+1) x P_n - n P_{n-1};  P'_{n+1} = P'_{n-1} + (2n+1) P_n
+        values.append(((2 * n + 1) * x * values[n] - n * values[n - 1]) / (n + 1))
+        slopes.append(slopes[n - 1] + (2 * n + 1) * values[n])
+    return torch.stack(values, -1), torch.stack(slopes, -1)
+
+
+def muscle_degrees(crossing: np.ndarray, degree: int, max_terms: int) -> np.ndarray:
+    """``(M,)`` each muscle's total degree: the largest ``d <= degree`` whose polynomial over the ``n`` joints the
+    muscle crosses has at most ``max_terms`` terms (``C(n + d, n)``), at least 1."""
+    n = crossing.sum(1)
+    return np.array([max([1] + [d for d in range(1, degree + 1) if math.comb(k + d, k) <= max_terms]) for k in n])
+
+
+def term_exponents(crossing: np.ndarray, degrees: np.ndarray) -> np.ndarray:
+    """``(P, N)`` exponents of every product term some muscle uses (nonzero exponents only on the joints it
+    crosses, total degree at most its own), ordered by total degree then lexicographically, the constant first."""
+    terms = set()
+    for pattern, degree in {(tuple(c), int(d)) for c, d in zip(crossing.tolist(), degrees)}:  # per pattern, once
+        joints = np.flatnonzero(pattern)
+        for e in itertools.product(range(degree + 1), repeat=len(joints)):
+            if sum(e) <= degree:
+                full = [0] * len(pattern)
+                for j, k in zip(joints, e):
+                    full[j] = k
+                terms.add(tuple(full))
+    return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, crossing.shape[1])
+
+
+def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray) -> np.ndarray:
+    """``(M, P)`` bool: the terms each muscle uses (nonzero exponents only on the joints it crosses, total degree
+    at most its own)."""
+    inside = ((exponents[None, :, :] > 0) <= crossing[:, None, :]).all(-1)
+    return inside & (exponents.sum(1)[None, :] <= degrees[:, None])
+
+
+def check_crossing(crossing) -> np.ndarray:
+    """``crossing (M, N)`` as a bool array; one ``BodySchemaInputError`` if a muscle crosses no joint."""
+    crossing = np.asarray(crossing, dtype=bool)
+    if crossing.ndim != 2 or not crossing.any(1).all():
+        raise BodySchemaInputError(f"crossing must be (muscles, joints) with every muscle crossing a joint; got "
+                                   f"shape {crossing.shape}")
+    return crossing
+
+
+class PerMusclePath(nn.Module):
+    """Lengths ``y (B, M)`` of M muscles at normalized postures ``x (B, N)`` (module docstring).
+
+    Args:
+        crossing: ``(M, N)`` bool array (numpy or nested lists), which joints each muscle crosses.
+        degree, max_terms: each muscle's polynomial has the highest total degree ``<= degree`` with at most
+            ``max_terms`` terms over the joints it crosses (``muscle_degrees``).
+        hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
+    """
+
+    def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6):
+        super().__init__()
+        for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
+                                 ("max_terms", max_terms, 2)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise BodySchemaInputError(f"{name}={value!r} must be an integer >= {low}")
+        crossing = check_crossing(crossing)
+        n_muscles, n_joints = crossing.shape
+        self.n_hidden = n_hidden
+        degrees = muscle_degrees(crossing, degree, max_terms)
+        self.degree = int(degrees.max())
+        exponents = term_exponents(crossing, degrees)
+        self.register_buffer("crossing", torch.tensor(crossing))
+        self.register_buffer("exponents", torch.tensor(exponents))
+        self.register_buffer("term_mask", torch.tensor(term_mask(crossing, exponents, degrees)))  # (M, P)
+        self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
+        # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
+        self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
+        self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
+        sizes = [n_joints] + [hidden] * n_hidden + [1]
+        self.weights = nn.ParameterList(nn.Parameter(_uniform((n_muscles, a, b), a)) for a, b in
+                                        zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
+        self.biases = nn.ParameterList(nn.Parameter(_uniform((n_muscles, 1, b), a)) for a, b in
+                                       zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
+        if n_hidden:
+            with torch.no_grad():  # the network starts at zero: the polynomial alone until it learns
+                self.weights[-1].zero_()
+                self.biases[-1].zero_()
+
+    # ------------------------------------------------------------------ the polynomial
+    def basis(self, x: torch.Tensor, slopes: bool = False):
+        """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)``: products over the joints of each joint's
+        Legendre polynomial of the term's exponent (a loop over the N joints, batched over samples and terms)."""
+        values, derivs = legendre(x, self.degree)
+        factors = [values[:, j].index_select(1, self.exponents[:, j]) for j in range(x.shape[1])]  # N x (B, P)
+        before = [torch.ones_like(factors[0])]  # prod_{i<j} factor_i
+        for factor in factors[:-1]:
+            before.append(before[-1] * factor)
+        phi = before[-1] * factors[-1]
+        if not slopes:
+            return phi, None
+        dphi, after = [], torch.ones_like(phi)  # after: prod_{i>j} factor_i
+        for j in reversed(range(x.shape[1])):
+            dphi.append(derivs[:, j].index_select(1, self.exponents[:, j]) * before[j] * after)
+            after = after * factors[j]
+        return phi, torch.stack(dphi[::-1], 1)
+
+    def polynomial(self, x: torch.Tensor, slopes: bool = False):
+        """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype.
+
+        Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
+        extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
+        high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``)."""
+        x64 = x.to(torch.float64)
+        inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
+        coef = self.coef * self.term_mask
+        phi, dphi = self.basis(inside, slopes or not torch.equal(inside, x64))
+        y = phi @ coef.T
+        if dphi is None:
+            return y.to(x.dtype), None
+        dy = torch.einsum("bnp,mp->bmn", dphi, coef)
+        y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
+        return y.to(x.dtype), dy.to(x.dtype) if slopes else None
+
+    def _apply(self, fn, *args, **kwargs):
+        """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
+        coef = self.coef
+        out = super()._apply(fn, *args, **kwargs)
+        self.coef = coef.to(self.coef.device)
+        return out
+
+    @torch.no_grad()
+    def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-12, chunk: int = 8192) -> None:
+        """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64, all muscles in one
+        batched solve (each muscle's own terms gathered into a padded ``(M, K, K)`` system)."""
+        x, y = x.to(torch.float64), y.to(torch.float64)
+        self.x_lo.copy_(x.amin(0))
+        self.x_hi.copy_(x.amax(0))
+        n_terms = self.coef.shape[1]
+        gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
+        rhs = torch.zeros(n_terms, y.shape[1], dtype=torch.float64, device=x.device)
+        for start in range(0, len(x), chunk):  # chunks of samples bound the memory; the maths is batched
+            phi = self.basis(x[start:start + chunk])[0]
+            gram += phi.T @ phi
+            rhs += phi.T @ y[start:start + chunk]
+        mask = self.term_mask
+        k = int(mask.sum(1).max())
+        order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :k]  # each muscle's terms first
+        valid = mask.gather(1, order)  # (M, K)
+        system = gram[order[:, :, None], order[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
+        scale = system.diagonal(dim1=1, dim2=2).mean(1, keepdim=True).clamp_min(1e-300)
+        system = system + torch.diag_embed(torch.where(valid, ridge * scale, torch.ones_like(scale)))
+        b = rhs.T.gather(1, order) * valid
+        solution = torch.linalg.solve(system, b.unsqueeze(-1)).squeeze(-1) * valid
+        coef = torch.zeros_like(self.coef, dtype=torch.float64).scatter_(1, order, solution)
+        self.coef.copy_(coef * mask)
+
+    # ------------------------------------------------------------------ the network
+    def _network(self, x: torch.Tensor, slopes: bool):
+        """The per-muscle MLPs on masked inputs: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``."""
+        mask = self.crossing.to(x.dtype)  # (M, N)
+        h = torch.einsum("bn,mnk->bmk", x, self.weights[0] * mask[:, :, None]) + self.biases[0].transpose(0, 1)
+        tangent = (self.weights[0] * mask[:, :, None]).unsqueeze(0) if slopes else None  # (1, M, N, K)
+        for w, b in zip(self.weights[1:], self.biases[1:]):
+            a = F.silu(h)
+            if slopes:
+                s = torch.sigmoid(h)
+                tangent = torch.einsum("bmnk,mkj->bmnj", tangent * (s * (1 + h * (1 - s))).unsqueeze(2), w)
+            h = torch.einsum("bmk,mkj->bmj", a, w) + b.transpose(0, 1)
+        return h[..., 0], None if tangent is None else tangent[..., 0].expand(len(x), -1, -1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.polynomial(x)[0]
+        return y + self._network(x, False)[0] if self.n_hidden else y
+
+    def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross."""
+        y, dy = self.polynomial(x, slopes=True)
+        if self.n_hidden:
+            y_net, dy_net = self._network(x, True)
+            y, dy = y + y_net, dy + dy_net
+        return y, dy
+
+
+def _uniform(shape, fan_in: int) -> torch.Tensor:
+    """``nn.Linear``'s default initialization, for batched per-muscle weights."""
+    bound = 1.0 / math.sqrt(fan_in)
+    return torch.empty(shape).uniform_(-bound, bound)

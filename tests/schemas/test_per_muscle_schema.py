@@ -1,0 +1,155 @@
+"""StructuredSchema(length_model="per_muscle"): which joints each muscle crosses (MJCF, user, data), a body that
+matches MuJoCo's to micrometres on the paper arm, exactly zero moment arms off the crossed joints, recorded data,
+bad input, and checkpoints of the dense schema still answering as before."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from physics_checks import fit_structured as _fit
+
+from lightning_bodyschema.apps.dataset_tool import make_dataset_main
+from lightning_bodyschema.data import EquilibriumDataModule, RecordedDataModule
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.schemas import StructuredSchema, load_schema
+from lightning_bodyschema.sim import MusculoskeletalModel
+from lightning_bodyschema.sim.robot import check_muscle_joints
+
+PAPER_JOINTS = {"shoulder_flexor": ["shoulder"], "shoulder_extensor": ["shoulder"], "elbow_flexor": ["elbow"],
+                "elbow_extensor": ["elbow"], "biarticular_flexor": ["shoulder", "elbow"],
+                "biarticular_extensor": ["shoulder", "elbow"]}
+PER_MUSCLE = dict(length_model="per_muscle", path_degree=10, torque_model="polynomial", torque_degree=8)
+
+
+@pytest.fixture(scope="module")
+def paper_arm():
+    return _fit(EquilibriumDataModule(n_samples=1000, seed=0, cache_dir=None), **PER_MUSCLE)
+
+
+def test_crossing_comes_from_the_mjcf():
+    assert MusculoskeletalModel("paper_arm").crossing().tolist() == [
+        [True, False], [True, False], [False, True], [False, True], [True, True], [True, True]]
+
+
+def test_myoelbow_crossing_from_its_tendon_jacobian():
+    pytest.importorskip("myo_sim")
+    elbow = MusculoskeletalModel("myo:myoelbow_2dof")  # the triceps long head and biceps cross the shoulder too
+    crossing = dict(zip(elbow.muscle_names, elbow.crossing()[:, 0]))
+    assert crossing == {"TRIlong_tendon": True, "TRIlat_tendon": False, "TRImed_tendon": False,
+                        "BIClong_tendon": True, "BICshort_tendon": True, "BRA_tendon": False}
+    assert elbow.crossing()[:, 1].all()
+
+
+@pytest.mark.slow
+def test_myoarm_crossing_has_199_uncrossed_pairs():
+    pytest.importorskip("myo_sim")
+    import yaml
+
+    locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]
+    crossing = MusculoskeletalModel("myo:myoarm", locked_joints=locks).crossing()
+    assert crossing.shape == (50, 7) and int((~crossing).sum()) == 199
+    assert sorted(crossing.sum(1).tolist()) == sorted([1] * 6 + [2] * 5 + [3] * 23 + [4] * 14 + [5] * 2)
+
+
+def test_the_learned_body_matches_mujoco_and_moment_arms_vanish_off_the_crossed_joints(paper_arm):
+    schema, _ = paper_arm
+    assert schema.hparams.muscle_joints == PAPER_JOINTS  # stored with the checkpoint's hyperparameters
+    q = schema.robot_model.sample_q(np.random.default_rng(5), 300)
+    l_true, G_true, tau_true = schema.robot_model.kinematics(q)
+    l_geo, G, tau = schema.body_si(torch.as_tensor(q))
+    assert np.median(np.abs(l_geo - l_true)) < 1e-6  # least squares on exact lengths: below a micrometre
+    assert np.median(np.abs(G - G_true)) < 1e-5
+    assert np.median(np.linalg.norm(tau - tau_true, axis=1)) < 0.01 * np.median(np.linalg.norm(tau_true, axis=1))
+    uncrossed = np.abs(G_true).max(0) < 1e-9  # MuJoCo: rounding only (sim.model.UNCROSSED_ARM_M)
+    assert uncrossed.sum() == 4 and (G[:, uncrossed] == 0).all()
+
+
+def test_moment_arms_are_finite_differences_of_the_learned_lengths(paper_arm):
+    schema = paper_arm[0].double()
+    q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(6), 20))
+    G = schema.body_si(q)[1]
+    h = 1e-6
+    for j in range(schema.n_joints):
+        step = torch.zeros(schema.n_joints, dtype=torch.float64)
+        step[j] = h
+        fd = (schema.body_si(q + step)[0] - schema.body_si(q - step)[0]) / (2 * h)
+        np.testing.assert_allclose(G[:, :, j], fd, atol=1e-9, rtol=1e-6)
+    schema.float()
+
+
+def test_checkpoint_round_trip_answers_the_same(paper_arm, tmp_path):
+    schema, trainer = paper_arm
+    path = str(tmp_path / "per_muscle.ckpt")
+    trainer.save_checkpoint(path, weights_only=False)
+    loaded = load_schema(path)
+    q = torch.tensor([[0.3, 0.8], [-0.2, 1.2]], dtype=torch.float64)
+    for a, b in zip(schema.body_si(q), loaded.body_si(q)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_a_dense_schema_checkpoint_without_the_new_options_answers_as_before(tmp_path):
+    """A checkpoint written before length_model existed (its hyperparameters lack the new keys) loads as the dense
+    schema and gives the same body."""
+    schema, trainer = _fit(EquilibriumDataModule(n_samples=200, seed=1, cache_dir=None), hidden=16, n_hidden=2)
+    path = str(tmp_path / "old.ckpt")
+    trainer.save_checkpoint(path, weights_only=False)
+    checkpoint = torch.load(path, weights_only=True)
+    for key in ("length_model", "path_degree", "path_terms", "path_hidden", "path_layers", "muscle_joints",
+                "torque_degree"):
+        del checkpoint["hyper_parameters"][key]
+    torch.save(checkpoint, path)
+    loaded = load_schema(path)
+    q = torch.tensor([[0.3, 0.8], [-0.2, 1.2]], dtype=torch.float64)
+    for a, b in zip(schema.body_si(q), loaded.body_si(q)):
+        np.testing.assert_array_equal(a, b)
+
+
+# ---------------------------------------------------------------------------- recorded data
+@pytest.fixture(scope="module")
+def recorded_csv(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("recorded") / "arm.csv")
+    make_dataset_main(["--n", "600", "--seed", "3", "--out", path])
+    return path
+
+
+def test_recorded_data_detects_the_crossings_and_says_so(recorded_csv, capsys):
+    schema, _ = _fit(RecordedDataModule(recorded_csv, seed=3), **PER_MUSCLE)
+    assert schema.hparams.muscle_joints == PAPER_JOINTS
+    assert "muscle_joints detected from the data" in capsys.readouterr().err
+    q = MusculoskeletalModel("paper_arm").sample_q(np.random.default_rng(7), 50)
+    G = schema.body_si(torch.as_tensor(q))[1]
+    assert (G[:, 0, 1] == 0).all() and (G[:, 2, 0] == 0).all()
+
+
+def test_a_recorded_mapping_that_misses_a_crossed_joint_warns_with_the_figure(recorded_csv):
+    wrong = {**PAPER_JOINTS, "biarticular_flexor": ["elbow"]}
+    said = r"'biarticular_flexor' is said not to cross joint 'shoulder'.* [0-9.]+ mm/rad"
+    with pytest.warns(UserWarning, match=said):
+        schema, _ = _fit(RecordedDataModule(recorded_csv, seed=3, muscle_joints=wrong), **PER_MUSCLE)
+    assert schema.hparams.muscle_joints["biarticular_flexor"] == ["elbow"]
+
+
+@pytest.mark.parametrize("mapping, match", [
+    ({**PAPER_JOINTS, "no_such_muscle": ["elbow"]}, "unknown muscle 'no_such_muscle'; the muscles are"),
+    ({**PAPER_JOINTS, "elbow_flexor": ["wrist"]}, r"muscle_joints\['elbow_flexor'\] names unknown joint 'wrist'; "
+                                                  "the joints are"),
+    ({k: v for k, v in PAPER_JOINTS.items() if k != "elbow_flexor"}, "no entry for muscle"),
+    ({**PAPER_JOINTS, "elbow_flexor": []}, "is empty"),
+])
+def test_bad_muscle_joints_are_refused_in_one_line(recorded_csv, mapping, match):
+    with pytest.raises(BodySchemaInputError, match=match) as err:
+        RecordedDataModule(recorded_csv, seed=3, muscle_joints=mapping)
+    assert "\n" not in str(err.value)
+
+
+def test_bad_length_and_torque_models_are_refused():
+    robot = EquilibriumDataModule(n_samples=20, cache_dir=None).robot
+    with pytest.raises(BodySchemaInputError, match=r"length_model='spline'; allowed: \['mlp', 'per_muscle'\]"):
+        StructuredSchema(robot=robot, length_model="spline")
+    with pytest.raises(BodySchemaInputError, match="needs length_model='per_muscle'"):
+        StructuredSchema(robot=robot, torque_model="polynomial")
+    with pytest.raises(BodySchemaInputError, match="unknown joint 'wrist'"):
+        StructuredSchema(robot=robot, length_model="per_muscle",
+                         muscle_joints={**PAPER_JOINTS, "elbow_flexor": "wrist"})
+    assert check_muscle_joints(PAPER_JOINTS, list(PAPER_JOINTS), ["shoulder", "elbow"]) == PAPER_JOINTS

@@ -1,0 +1,74 @@
+#!/usr/bin/env python
+"""A checkpoint's learned body against MuJoCo's: muscle lengths, moment arms, torque (median and p99).
+
+    python tools/body_errors.py --ckpt runs/myoarm/.../last.ckpt [--postures 2000] [--seed 1]
+
+At ``--postures`` seeded uniform postures of the checkpoint's robot (its MJCF; a checkpoint without a model stops
+with one line): |l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
+(MuJoCo's tendon Jacobian is nonzero), and the largest |G| on the pairs it does not cross (truly 0); the torque
+error ||tau - tau_bias|| [N m] and its ratio to the median ||tau_bias||. Any schema with ``body_si``
+(``StructuredSchema``). One torch thread.
+"""
+import argparse
+
+import numpy as np
+import torch
+
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
+
+
+def body_errors(schema, q: np.ndarray) -> dict:
+    """The learned body's errors against MuJoCo at postures ``q (B, N)`` [rad] (module docstring)."""
+    l_true, G_true, tau_true = schema.robot_model.kinematics(q)
+    l_hat, G_hat, tau_hat = schema.body_si(torch.as_tensor(q))
+    crossed = np.abs(G_true).max(0) > 1e-12  # (M, N)
+    length_mm, arm_mm = 1e3 * np.abs(l_hat - l_true), 1e3 * np.abs(G_hat - G_true)[:, crossed]
+    tau_nm, tau_ref = np.linalg.norm(tau_hat - tau_true, axis=1), float(np.median(np.linalg.norm(tau_true, axis=1)))
+    pct = lambda a, p: float(np.percentile(a, p))  # noqa: E731
+    return {"length_mm": (pct(length_mm, 50), pct(length_mm, 99)),
+            "arm_mm_per_rad": (pct(arm_mm, 50), pct(arm_mm, 99)),
+            "uncrossed_max_mm_per_rad": 1e3 * float(np.abs(G_hat[:, ~crossed]).max(initial=0.0)),
+            "pairs": (int(crossed.sum()), int((~crossed).sum())), "torque_nm": (pct(tau_nm, 50), pct(tau_nm, 99)),
+            "torque_ratio": pct(tau_nm, 50) / tau_ref, "tau_bias_median_nm": tau_ref}
+
+
+def report(errors: dict) -> str:
+    (crossed, uncrossed), e = errors["pairs"], errors
+    return "\n".join([
+        "| quantity | median | p99 |", "|---|---|---|",
+        f"| muscle length [mm] | {e['length_mm'][0]:.4g} | {e['length_mm'][1]:.4g} |",
+        f"| moment arms, {crossed} crossed pairs [mm/rad] | {e['arm_mm_per_rad'][0]:.4g} | "
+        f"{e['arm_mm_per_rad'][1]:.4g} |",
+        f"| moment arms, {uncrossed} uncrossed pairs (truly 0), largest [mm/rad] | "
+        f"{e['uncrossed_max_mm_per_rad']:.3g} | |",
+        f"| torque error [N m] | {e['torque_nm'][0]:.4g} | {e['torque_nm'][1]:.4g} |",
+        f"| torque error / median abs(tau_bias) ({e['tau_bias_median_nm']:.4g} N m) | "
+        f"{100 * e['torque_ratio']:.3g} % | |"])
+
+
+@exits_cleanly
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ckpt", required=True)
+    parser.add_argument("--postures", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args(argv)
+    if args.postures < 1:
+        raise BodySchemaInputError(f"--postures {args.postures}: expected an integer >= 1")
+    torch.set_num_threads(1)
+    from lightning_bodyschema.schemas.loading import load_schema
+
+    schema = load_schema(args.ckpt).eval()
+    if not hasattr(schema, "body_si"):
+        raise BodySchemaInputError(f"{args.ckpt}: a {type(schema).__name__} has no learned body (body_si); "
+                                   "only StructuredSchema checkpoints have one")
+    if not schema.has_physics:
+        raise BodySchemaInputError(f"{args.ckpt}: its robot has no model (recorded data): there is no MuJoCo body "
+                                   "to compare with")
+    q = schema.robot_model.sample_q(np.random.default_rng(args.seed), args.postures)
+    print(report(body_errors(schema, q)))
+
+
+if __name__ == "__main__":
+    main()

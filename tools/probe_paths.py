@@ -1,0 +1,59 @@
+#!/usr/bin/env python
+"""How well per-muscle polynomials reach MuJoCo's myoArm muscle paths: least squares on exact lengths, held out.
+
+    python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
+
+Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
+lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
+crosses, the highest total degree ``<= --degree`` with at most ``--terms`` terms) on the first ``--train`` and prints,
+on the rest: length error median and p99 [mm], moment-arm error on crossed pairs median and p99 [mm/rad], the
+largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, and the worst muscles. One torch thread.
+"""
+import argparse
+import time
+
+import numpy as np
+import torch
+import yaml
+
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.networks.per_muscle import PerMusclePath
+
+
+@exits_cleanly
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1)):
+        parser.add_argument(f"--{name}", type=int, default=default)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    from lightning_bodyschema.sim import MusculoskeletalModel
+
+    locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]
+    body = MusculoskeletalModel("myo:myoarm", locked_joints=locks)
+    q = body.sample_q(np.random.default_rng(args.seed), args.train + args.test)
+    l_m, G, _ = (torch.as_tensor(a) for a in body.kinematics(q))
+    lo, hi = (torch.as_tensor(a) for a in body.q_range.T)
+    q_n, half = 2 * (torch.as_tensor(q) - lo) / (hi - lo) - 1, (hi - lo) / 2
+    mean, std = l_m[:args.train].mean(0), l_m[:args.train].std(0)
+    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms)
+    start = time.perf_counter()
+    path.fit_polynomial(q_n[:args.train], (l_m[:args.train] - mean) / std)
+    seconds = time.perf_counter() - start
+    y, dy = path.with_jacobian(q_n[args.train:])
+    length_mm = 1e3 * ((y * std + mean) - l_m[args.train:]).abs()
+    arm_mm = 1e3 * (dy * (std[:, None] / half[None, :]) - G[args.train:]).abs()
+    crossed = path.crossing
+    per_muscle_p99 = torch.quantile(length_mm, 0.99, dim=0)
+    pct = lambda a, p: float(np.percentile(a.numpy(), p))  # noqa: E731
+    print(f"{path.coef.shape[1]} terms, least squares {seconds:.0f} s; length median {pct(length_mm, 50):.4f} mm, "
+          f"p99 {pct(length_mm, 99):.3f} mm; moment arms (crossed) median {pct(arm_mm[:, crossed], 50):.4f} mm/rad, "
+          f"p99 {pct(arm_mm[:, crossed], 99):.3f}; uncrossed largest {float(dy[:, ~crossed].abs().max()):.3g}; "
+          f"{int((per_muscle_p99 <= 0.1).sum())} of {len(per_muscle_p99)} muscles with p99 <= 0.1 mm")
+    for i in torch.argsort(per_muscle_p99, descending=True)[:8].tolist():
+        print(f"  {body.muscle_names[i]}: crosses {int(crossed[i].sum())}, median "
+              f"{float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm")
+
+
+if __name__ == "__main__":
+    main()
