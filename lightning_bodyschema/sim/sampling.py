@@ -1,0 +1,157 @@
+"""The healthy dataset in fixed chunks, on worker processes: the same bytes whatever the number of workers.
+
+``n`` samples are cut into chunks of ``CHUNK_SAMPLES`` (the last one shorter); chunk ``k`` draws its postures and
+reference tensions from its own seeded stream (``chunk_seed``) and re-draws its unholdable postures itself
+(``generate_equilibrium_samples``). The chunks are concatenated in chunk order, so the data depend on ``(n, seed)``
+and never on how many processes drew them. Workers are started with the ``spawn`` context (MuJoCo and torch dislike
+``fork``) and rebuild the robot from its self-contained XML (``MusculoskeletalModel.xml``: locks, couplings, a welded
+base and gravity are in it), the same model to the bit.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from .equilibrium import EquilibriumSamples, generate_equilibrium_samples
+from .model import MusculoskeletalModel
+from .spring import SpringParams
+
+CHUNK_SAMPLES = 2048  # samples per chunk: part of what shapes the data (a dataset of at most one chunk is drawn
+# from the stream of SeedSequence(seed) alone, as the single-process generator drew it)
+
+_WORKER: dict = {}  # the robot a worker process rebuilt once (its initializer)
+
+
+def default_workers() -> int:
+    """The CPU cores this process may run on (``sched_getaffinity``, else ``os.cpu_count``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_workers(workers) -> int:
+    """Worker processes to use: ``None`` -> every core; 0 or 1 -> in this process; refuse anything but an int >= 0."""
+    if workers is None:
+        return default_workers()
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0:
+        raise BodySchemaInputError(f"workers={workers!r} must be an integer >= 0 (0 or 1: in this process; "
+                                   "None: every core)")
+    return int(workers)
+
+
+def chunk_sizes(n: int) -> list[int]:
+    """Samples of each chunk: ``CHUNK_SAMPLES`` each, the last one the remainder."""
+    full, rest = divmod(int(n), CHUNK_SAMPLES)
+    return [CHUNK_SAMPLES] * full + ([rest] if rest else [])
+
+
+def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
+    """The stream of chunk ``chunk``: ``SeedSequence(seed)`` for chunk 0, its ``chunk``-th spawned child otherwise."""
+    return np.random.SeedSequence(int(seed), spawn_key=(int(chunk),) if chunk else ())
+
+
+def _draw_chunk(model, chunk: int, n: int, seed: int, spring: SpringParams, solver: str):
+    samples = generate_equilibrium_samples(model, n, chunk_seed(seed, chunk), spring, solver=solver)
+    return chunk, samples
+
+
+def _init_worker(xml: str, muscles: list[str]) -> None:
+    _WORKER["model"] = MusculoskeletalModel(xml, muscles=muscles, allow_unloaded=True, lock_uncrossed=False)
+
+
+def _worker_chunk(chunk: int, n: int, seed: int, spring: SpringParams, solver: str):
+    return _draw_chunk(_WORKER["model"], chunk, n, seed, spring, solver)
+
+
+def _in_process(model, jobs):
+    return (_draw_chunk(model, *job) for job in jobs)
+
+
+def _on_workers(model: MusculoskeletalModel, jobs, workers: int):
+    """(chunk, samples) as the workers finish them; on an error or an early exit the chunks not started are
+    cancelled."""
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_init_worker, initargs=(model.xml, model.muscle_names))
+    try:
+        futures = [pool.submit(_worker_chunk, *job) for job in jobs]
+        for future in as_completed(futures):
+            yield future.result()
+    except BrokenProcessPool:
+        raise BodySchemaInputError(
+            f"a dataset worker process died ({workers} spawned): a script that generates data on workers must call it "
+            "under `if __name__ == '__main__':` (spawned workers import the main script), and the machine needs memory "
+            "for every worker; else set workers=1 (data.workers: 1, --workers 1)") from None
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def generate_samples(model: MusculoskeletalModel, n: int, seed: int, spring: SpringParams = SpringParams(),
+                     solver: str = "newton", workers: int | None = None,
+                     progress: bool | None = None) -> EquilibriumSamples:
+    """``n`` healthy equilibrium samples drawn chunk by chunk (module docstring), on ``workers`` processes.
+
+    Args:
+        workers: worker processes (``None``: every core; 0 or 1: in this process; never more than there are
+            chunks). The samples are the same bytes for every value.
+        progress: a progress bar on stderr while more than one chunk is drawn (``None``: when stderr is a terminal).
+    Raises ``BodySchemaInputError`` for bad ``n`` or ``workers``, and as ``generate_equilibrium_samples`` when a
+    chunk's postures cannot be held.
+    """
+    if isinstance(n, bool) or int(n) != n or n <= 0:
+        raise BodySchemaInputError(f"dataset size n={n!r} must be a positive integer")
+    workers, sizes = check_workers(workers), chunk_sizes(n)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    out = EquilibriumSamples(q=np.empty((int(n), model.n_joints)), l_motor=np.empty((int(n), model.n_muscles)),
+                             f=np.empty((int(n), model.n_muscles)), n_redrawn=0)
+    jobs = [(k, size, int(seed), spring, solver) for k, size in enumerate(sizes)]
+    workers = min(workers, len(jobs))
+    chunks = _on_workers(model, jobs, workers) if workers > 1 else _in_process(model, jobs)
+    with ProgressBar(int(n), enabled=len(jobs) > 1 and progress is not False, tty_only=progress is None) as bar:
+        for k, samples in chunks:
+            rows = slice(starts[k], starts[k + 1])
+            out.q[rows], out.l_motor[rows], out.f[rows] = samples.q, samples.l_motor, samples.f
+            out.n_redrawn += samples.n_redrawn
+            bar.update(len(samples.q))
+    return out
+
+
+class ProgressBar:
+    """Samples done out of ``total`` on stderr: tqdm's bar when tqdm is installed, else one rewritten line.
+
+    enabled: draw at all; tty_only: only when stderr is a terminal (quiet in logs and pipes).
+    """
+
+    def __init__(self, total: int, enabled: bool = True, tty_only: bool = True, desc: str = "equilibrium samples"):
+        self.total, self.done, self.desc = int(total), 0, desc
+        self.enabled = enabled and (not tty_only or sys.stderr.isatty())
+        self._tqdm = None
+        if self.enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:
+                return
+            self._tqdm = tqdm(total=self.total, desc=desc, unit="sample", unit_scale=True, file=sys.stderr)
+
+    def update(self, count: int) -> None:
+        self.done += int(count)
+        if self._tqdm is not None:
+            self._tqdm.update(int(count))
+        elif self.enabled:
+            print(f"\r{self.desc}: {self.done}/{self.total} ({100 * self.done / self.total:.0f} %)", end="",
+                  file=sys.stderr, flush=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self._tqdm is not None:
+            self._tqdm.close()
+        elif self.enabled:
+            print(file=sys.stderr)
