@@ -3,29 +3,27 @@
 ``n`` samples are cut into chunks of ``CHUNK_SAMPLES`` (the last one shorter); chunk ``k`` draws its postures and
 reference tensions from its own seeded stream (``chunk_seed``) and re-draws its unholdable postures itself
 (``generate_equilibrium_samples``). The chunks are concatenated in chunk order, so the data depend on ``(n, seed)``
-and never on how many processes drew them. Workers are started with the ``spawn`` context (MuJoCo and torch dislike
-``fork``) and rebuild the robot from its self-contained XML (``MusculoskeletalModel.xml``: locks, couplings, a welded
-base and gravity are in it), the same model to the bit.
+and never on how many processes drew them. Workers are clean interpreters (``process_pool``: no fork of a process
+holding MuJoCo and torch, no re-run of the caller's script) that rebuild the robot from its self-contained XML
+(``MusculoskeletalModel.xml``: locks, couplings, a welded base and gravity are in it), the same model to the bit.
 """
 from __future__ import annotations
 
-import multiprocessing
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
 from ..errors import BodySchemaInputError
 from .equilibrium import EquilibriumSamples, generate_equilibrium_samples
 from .model import MusculoskeletalModel
+from .process_pool import WorkerPool
 from .spring import SpringParams
 
 CHUNK_SAMPLES = 2048  # samples per chunk: part of what shapes the data (a dataset of at most one chunk is drawn
 # from the stream of SeedSequence(seed) alone, as the single-process generator drew it)
 
-_WORKER: dict = {}  # the robot a worker process rebuilt once (its initializer)
+_WORKER: dict = {}  # the robot a worker process rebuilt once (``init_worker``)
 
 
 def default_workers() -> int:
@@ -57,39 +55,27 @@ def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(int(seed), spawn_key=(int(chunk),) if chunk else ())
 
 
-def _draw_chunk(model, chunk: int, n: int, seed: int, spring: SpringParams, solver: str):
-    samples = generate_equilibrium_samples(model, n, chunk_seed(seed, chunk), spring, solver=solver)
-    return chunk, samples
+def _draw_chunk(model, chunk: int, n: int, seed: int, spring: SpringParams, solver: str) -> EquilibriumSamples:
+    return generate_equilibrium_samples(model, n, chunk_seed(seed, chunk), spring, solver=solver)
 
 
-def _init_worker(xml: str, muscles: list[str]) -> None:
+def init_worker(xml: str, muscles: list[str]) -> None:
+    """A worker's setup (``process_pool``): the robot, rebuilt once from its self-contained XML."""
     _WORKER["model"] = MusculoskeletalModel(xml, muscles=muscles, allow_unloaded=True, lock_uncrossed=False)
 
 
-def _worker_chunk(chunk: int, n: int, seed: int, spring: SpringParams, solver: str):
+def worker_chunk(chunk: int, n: int, seed: int, spring: SpringParams, solver: str) -> EquilibriumSamples:
+    """A worker's task (``process_pool``): chunk ``chunk``'s samples."""
     return _draw_chunk(_WORKER["model"], chunk, n, seed, spring, solver)
 
 
-def _in_process(model, jobs):
-    return (_draw_chunk(model, *job) for job in jobs)
-
-
-def _on_workers(model: MusculoskeletalModel, jobs, workers: int):
-    """(chunk, samples) as the workers finish them; on an error or an early exit the chunks not started are
-    cancelled."""
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_init_worker, initargs=(model.xml, model.muscle_names))
-    try:
-        futures = [pool.submit(_worker_chunk, *job) for job in jobs]
-        for future in as_completed(futures):
-            yield future.result()
-    except BrokenProcessPool:
-        raise BodySchemaInputError(
-            f"a dataset worker process died ({workers} spawned): a script that generates data on workers must call it "
-            "under `if __name__ == '__main__':` (spawned workers import the main script), and the machine needs memory "
-            "for every worker; else set workers=1 (data.workers: 1, --workers 1)") from None
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+def _chunks(model: MusculoskeletalModel, jobs: list[tuple], workers: int):
+    """(chunk, samples) of every job, on ``workers`` processes in the order they finish (> 1), else here in order."""
+    if workers <= 1:
+        yield from ((job[0], _draw_chunk(model, *job)) for job in jobs)
+        return
+    with WorkerPool(workers, __name__, "init_worker", (model.xml, model.muscle_names), "worker_chunk") as pool:
+        yield from pool.map_unordered(jobs)
 
 
 def generate_samples(model: MusculoskeletalModel, n: int, seed: int, spring: SpringParams = SpringParams(),
@@ -111,10 +97,8 @@ def generate_samples(model: MusculoskeletalModel, n: int, seed: int, spring: Spr
     out = EquilibriumSamples(q=np.empty((int(n), model.n_joints)), l_motor=np.empty((int(n), model.n_muscles)),
                              f=np.empty((int(n), model.n_muscles)), n_redrawn=0)
     jobs = [(k, size, int(seed), spring, solver) for k, size in enumerate(sizes)]
-    workers = min(workers, len(jobs))
-    chunks = _on_workers(model, jobs, workers) if workers > 1 else _in_process(model, jobs)
     with ProgressBar(int(n), enabled=len(jobs) > 1 and progress is not False, tty_only=progress is None) as bar:
-        for k, samples in chunks:
+        for k, samples in _chunks(model, jobs, min(workers, len(jobs))):
             rows = slice(starts[k], starts[k + 1])
             out.q[rows], out.l_motor[rows], out.f[rows] = samples.q, samples.l_motor, samples.f
             out.n_redrawn += samples.n_redrawn

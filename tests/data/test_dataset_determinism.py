@@ -54,6 +54,7 @@ def test_one_and_four_workers_write_the_same_file(tmp_path, arm):
     table = read_recorded(str(four))
     l_geo, G, tau_bias = arm.kinematics(table.q)
     assert np.abs(np.einsum("bmn,bm->bn", -G, table.f) - tau_bias).max() <= EQUILIBRIUM_TOL_NM
-    np.testing.assert_allclose(table.l_motor, l_geo - elongation_from_tension(table.f, spring_for_model(arm, None, 20.0, None)), atol=1e-12)
+    spring = spring_for_model(arm, None, 20.0, None)  # the tool's spring for this model
+    np.testing.assert_allclose(table.l_motor, l_geo - elongation_from_tension(table.f, spring), atol=1e-12)
     assert len(np.unique(table.q, axis=0)) == n  # no chunk drew another's postures
 
