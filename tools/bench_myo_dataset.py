@@ -8,8 +8,8 @@ resolves them), then draws the dataset's ``--n`` samples (seed data.seed) with `
 each ``--workers`` count (worker start-up included). Prints per count the median wall time, samples per second, the
 CPU time of this process and its workers, the sha256 of the samples (the same for every count) and the peak resident
 memory of this process so far; with ``--out``, the time to write the file; then the accepted fraction and the largest
-torque residual |-G^T f - tau_bias| in the free joints, recomputed with MuJoCo after the draw on every sample (on about 20000
-evenly spread ones past that; the target is <= 1e-6 N m).
+torque residual |-G^T f - tau_bias| in the free joints, recomputed with MuJoCo after the draw on every sample (on
+about 20000 evenly spread ones past that; the target is <= 1e-6 N m).
 """
 import argparse
 import hashlib
