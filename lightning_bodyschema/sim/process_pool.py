@@ -3,9 +3,10 @@
 ``multiprocessing``'s spawn and forkserver contexts re-run the caller's main script in every worker (a script
 without ``if __name__ == "__main__":`` then breaks, and the ``bodyschema`` command would import Lightning and torch
 in each worker), and ``fork`` copies a process holding MuJoCo and torch state. Here each worker is a fresh
-interpreter with the caller's ``sys.path``: it imports ``module``, calls ``module.<setup>(*setup_args)`` once, then
-answers tasks ``module.<task>(*args)`` over its stdin and stdout (pickles; the worker's own prints go to stderr).
-One thread per worker feeds it tasks from a shared queue, so a free worker takes the next task.
+interpreter with the caller's ``sys.path`` and one BLAS/OpenMP thread (the workers fill the cores): it imports
+``module``, calls ``module.<setup>(*setup_args)`` once, then answers tasks ``module.<task>(*args)`` over its stdin
+and stdout (pickles; the worker's own prints go to stderr). One thread per worker feeds it tasks from a shared queue,
+so a free worker takes the next task.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import sys
 import threading
 import traceback
 
+ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}  # one per core
 _CHILD = ("import pickle, sys; sys.path[:0] = pickle.load(sys.stdin.buffer); "
           "from lightning_bodyschema.sim.process_pool import serve; serve()")
 
@@ -68,12 +70,16 @@ class WorkerPool:
     """
 
     def __init__(self, workers: int, module: str, setup: str, setup_args: tuple, task: str):
-        self._header, self._threads = (module, setup, setup_args, task), []
-        self._procs = [subprocess.Popen([sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
-                       for _ in range(int(workers))]
-        for proc in self._procs:
-            self._send(proc, list(sys.path))
-            self._send(proc, self._header)
+        self._threads = []
+        self._procs = [subprocess.Popen([sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                        env={**os.environ, **ONE_THREAD}) for _ in range(int(workers))]
+        try:
+            for proc in self._procs:
+                self._send(proc, list(sys.path))
+                self._send(proc, (module, setup, setup_args, task))
+        except BaseException:
+            self.close(kill=True)
+            raise
 
     @staticmethod
     def _send(proc, obj) -> None:

@@ -3,9 +3,11 @@
 ``n`` samples are cut into chunks of ``CHUNK_SAMPLES`` (the last one shorter); chunk ``k`` draws its postures and
 reference tensions from its own seeded stream (``chunk_seed``) and re-draws its unholdable postures itself
 (``generate_equilibrium_samples``). The chunks are concatenated in chunk order, so the data depend on ``(n, seed)``
-and never on how many processes drew them. Workers are clean interpreters (``process_pool``: no fork of a process
-holding MuJoCo and torch, no re-run of the caller's script) that rebuild the robot from its self-contained XML
-(``MusculoskeletalModel.xml``: locks, couplings, a welded base and gravity are in it), the same model to the bit.
+and never on how many processes drew them; every tension vector is recomputed in closed form from its active set
+(``reproducible_qp``), so the few postures proxsuite settles are the same bytes in every process too. Workers are
+clean interpreters (``process_pool``: no fork of a process holding MuJoCo and torch, no re-run of the caller's
+script) that rebuild the robot from its self-contained XML (``MusculoskeletalModel.xml``: locks, couplings, a welded
+base and gravity are in it), the same model to the bit.
 """
 from __future__ import annotations
 
@@ -15,14 +17,15 @@ import sys
 import numpy as np
 
 from ..errors import BodySchemaInputError
-from .equilibrium import EquilibriumSamples, generate_equilibrium_samples
+from .equilibrium import EQUILIBRIUM_TOL_NM, EquilibriumSamples, generate_equilibrium_samples, solve_equilibrium_qp
 from .model import MusculoskeletalModel
 from .process_pool import WorkerPool
 from .spring import SpringParams
 
-CHUNK_SAMPLES = 2048  # samples per chunk: part of what shapes the data (a dataset of at most one chunk is drawn
-# from the stream of SeedSequence(seed) alone, as the single-process generator drew it)
+CHUNK_SAMPLES = 2048  # samples per chunk: part of what shapes the data (a dataset of at most one chunk draws the
+# postures of the stream of SeedSequence(seed) alone, as the single-stream generator drew them)
 
+ACTIVE_SET_TOL_N = 1e-7  # a tension this close to a bound [N] is on it (the solvers hold bounds to ~1e-12 N)
 _WORKER: dict = {}  # the robot a worker process rebuilt once (``init_worker``)
 
 
@@ -56,7 +59,37 @@ def chunk_seed(seed: int, chunk: int) -> np.random.SeedSequence:
 
 
 def _draw_chunk(model, chunk: int, n: int, seed: int, spring: SpringParams, solver: str) -> EquilibriumSamples:
-    return generate_equilibrium_samples(model, n, chunk_seed(seed, chunk), spring, solver=solver)
+    return generate_equilibrium_samples(model, n, chunk_seed(seed, chunk), spring, solver=solver,
+                                        qp=reproducible_qp)
+
+
+def reproducible_qp(G, tau_bias, f_ref, f_max, solver: str = "newton"):
+    """``solve_equilibrium_qp``, its answers then recomputed by ``exact_from_active_set``: the same bytes in every
+    process. (proxsuite, which settles the few postures the batched Newton leaves, can differ in the last bits from
+    process to process: its answer depends on the process's earlier allocations. The active set it finds does not.)"""
+    f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_max, solver=solver)
+    return exact_from_active_set(G, tau_bias, f_ref, f, f_max), ok
+
+
+def exact_from_active_set(G, tau_bias, f_ref, f, f_max):
+    """The equilibrium QP's answer (``-G^T f = tau_bias``, ``0 <= f <= f_max``, closest to ``f_ref``) in closed form
+    from the active set of an answer ``f``: a function of that set alone, not of ``f``'s last bits.
+
+    On the free tensions F (more than ``ACTIVE_SET_TOL_N`` inside their bounds) the KKT conditions give
+    ``(G_F^T G_F) lam = G_F^T f_ref_F + G_A^T f_A + tau_bias`` and ``f_F = f_ref_F - G_F lam``; the others, ``f_A``,
+    sit on their bounds. A row whose recomputed answer leaves the box or misses the equilibrium keeps ``f``.
+    """
+    hi = np.broadcast_to(np.asarray(f_max, float), f.shape)
+    free = (f > ACTIVE_SET_TOL_N) & (f < hi - ACTIVE_SET_TOL_N)
+    bound = np.where(f <= ACTIVE_SET_TOL_N, 0.0, hi)
+    gram = np.einsum("bmn,bm,bmk->bnk", G, free.astype(float), G)
+    ridge = 1e-12 * np.maximum(np.trace(gram, axis1=1, axis2=2), 1e-30)[:, None, None] * np.eye(G.shape[2])
+    rhs = np.einsum("bmn,bm->bn", G, np.where(free, f_ref, bound)) + tau_bias
+    lam = np.linalg.solve(gram + ridge, rhs[..., None])[..., 0]
+    exact = np.where(free, f_ref - np.einsum("bmn,bn->bm", G, lam), bound)
+    residual = np.abs(np.einsum("bmn,bm->bn", G, exact) + tau_bias).max(axis=1)
+    kept = (residual <= EQUILIBRIUM_TOL_NM) & np.all((exact >= 0.0) & (exact <= hi), axis=1)
+    return np.where(kept[:, None], exact, f)
 
 
 def init_worker(xml: str, muscles: list[str]) -> None:
@@ -70,8 +103,9 @@ def worker_chunk(chunk: int, n: int, seed: int, spring: SpringParams, solver: st
 
 
 def _chunks(model: MusculoskeletalModel, jobs: list[tuple], workers: int):
-    """(chunk, samples) of every job, on ``workers`` processes in the order they finish (> 1), else here in order."""
-    if workers <= 1:
+    """(chunk, samples) of every job, on ``workers`` processes in the order they finish (> 1), else here in order.
+    Workers rebuild the robot from its XML alone: any other kind of model (a subclass, a stand-in) is drawn here."""
+    if workers <= 1 or type(model) is not MusculoskeletalModel:
         yield from ((job[0], _draw_chunk(model, *job)) for job in jobs)
         return
     with WorkerPool(workers, __name__, "init_worker", (model.xml, model.muscle_names), "worker_chunk") as pool:

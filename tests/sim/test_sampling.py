@@ -8,27 +8,27 @@ import pytest
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.sim import SpringParams, generate_equilibrium_samples, sampling
+from lightning_bodyschema.sim.equilibrium import solve_equilibrium_qp
 from lightning_bodyschema.sim.sampling import (CHUNK_SAMPLES, ProgressBar, check_workers, chunk_seed, chunk_sizes,
-                                               default_workers, generate_samples)
-
-
-def _same(a, b):
-    return all(np.array_equal(x, y) for x, y in ((a.q, b.q), (a.l_motor, b.l_motor), (a.f, b.f)))
+                                               default_workers, exact_from_active_set, generate_samples,
+                                               reproducible_qp)
 
 
 def test_each_chunk_is_its_own_seeded_draw(arm):
-    """Rows of chunk k are ``generate_equilibrium_samples`` on chunk k's stream; a dataset of one chunk is the
-    single-stream draw of ``seed`` itself."""
+    """Rows of chunk k are ``generate_equilibrium_samples`` on chunk k's stream with the reproducible QP; a dataset
+    of one chunk has the postures of the single-stream draw of ``seed`` and its tensions to 1e-7 N."""
     n = CHUNK_SAMPLES + 300
     assert chunk_sizes(n) == [CHUNK_SAMPLES, 300] and chunk_sizes(CHUNK_SAMPLES) == [CHUNK_SAMPLES]
     whole = generate_samples(arm, n, 7, workers=0)
-    first = generate_equilibrium_samples(arm, CHUNK_SAMPLES, 7)
-    second = generate_equilibrium_samples(arm, 300, chunk_seed(7, 1))
-    assert np.array_equal(whole.q, np.concatenate([first.q, second.q]))
-    assert np.array_equal(whole.f, np.concatenate([first.f, second.f]))
+    first = generate_equilibrium_samples(arm, CHUNK_SAMPLES, 7, qp=reproducible_qp)
+    second = generate_equilibrium_samples(arm, 300, chunk_seed(7, 1), qp=reproducible_qp)
+    for name in ("q", "l_motor", "f"):
+        assert np.array_equal(getattr(whole, name), np.concatenate([getattr(first, name), getattr(second, name)]))
     assert whole.n_redrawn == first.n_redrawn + second.n_redrawn
-    assert _same(generate_samples(arm, 500, 7, workers=3), generate_equilibrium_samples(arm, 500, 7))
     assert not np.array_equal(second.q, generate_equilibrium_samples(arm, 300, 7).q)  # chunk 1 has its own stream
+    single, plain = generate_samples(arm, 500, 7, workers=3), generate_equilibrium_samples(arm, 500, 7)
+    assert np.array_equal(single.q, plain.q)
+    np.testing.assert_allclose(single.f, plain.f, atol=1e-7)
 
 
 @pytest.mark.parametrize("workers", [-1, 1.5, True, "2", np.float64(2.0)])
@@ -88,3 +88,20 @@ def test_a_worker_that_dies_is_an_error_not_a_hang():
     with pytest.raises(RuntimeError, match=r"worker process died \(exit code 3"):
         with WorkerPool(2, "os", "getpid", (), "_exit") as pool:  # the task os._exit(3) ends its worker
             list(pool.map_unordered([(3,), (3,), (3,)]))
+
+
+def test_exact_answer_from_the_active_set_ignores_the_last_bits(arm, rng):
+    """The dataset's tensions are a function of the QP's active set: proxsuite's answer and the same answer off in
+    its last bits give the same bytes, which hold the equilibrium to 1e-10 N m and equal proxsuite's to 1e-7 N."""
+    f_max = SpringParams().f_max_n
+    q = arm.sample_q(rng, 300)
+    f_ref = f_max * rng.random((300, arm.n_muscles))
+    _, G, tau_bias = arm.kinematics(q)
+    f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_max, solver="proxqp")
+    exact = exact_from_active_set(G, tau_bias, f_ref, f, f_max)
+    nudged = np.clip(f + 1e-11 * rng.standard_normal(f.shape), 0.0, f_max)
+    assert np.array_equal(exact_from_active_set(G, tau_bias, f_ref, nudged, f_max), exact)
+    assert ok.mean() > 0.9 and (exact[ok] == 0).any() and ((exact[ok] > 0) & (exact[ok] < f_max)).any()
+    assert np.abs(np.einsum("bmn,bm->bn", -G[ok], exact[ok]) - tau_bias[ok]).max() <= 1e-10
+    assert exact.min() >= 0.0 and exact.max() <= f_max
+    np.testing.assert_allclose(exact[ok], f[ok], atol=1e-7)
