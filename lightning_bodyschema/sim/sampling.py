@@ -26,6 +26,7 @@ CHUNK_SAMPLES = 2048  # samples per chunk: part of what shapes the data (a datas
 # postures of the stream of SeedSequence(seed) alone, as the single-stream generator drew them)
 
 ACTIVE_SET_TOL_N = 1e-7  # a tension this close to a bound [N] is on it (the solvers hold bounds to ~1e-12 N)
+EXACT_TOL_NM = 1e-9  # the closed-form answer may miss the equilibrium by this much [N m] (the Newton's own stop)
 _WORKER: dict = {}  # the robot a worker process rebuilt once (``init_worker``)
 
 
@@ -75,21 +76,27 @@ def exact_from_active_set(G, tau_bias, f_ref, f, f_max):
     """The equilibrium QP's answer (``-G^T f = tau_bias``, ``0 <= f <= f_max``, closest to ``f_ref``) in closed form
     from the active set of an answer ``f``: a function of that set alone, not of ``f``'s last bits.
 
-    On the free tensions F (more than ``ACTIVE_SET_TOL_N`` inside their bounds) the KKT conditions give
-    ``(G_F^T G_F) lam = G_F^T f_ref_F + G_A^T f_A + tau_bias`` and ``f_F = f_ref_F - G_F lam``; the others, ``f_A``,
-    sit on their bounds. A row whose recomputed answer leaves the box or misses the equilibrium keeps ``f``.
+    The tensions more than ``ACTIVE_SET_TOL_N`` inside their bounds (F) are free, the others sit on their bounds; the
+    KKT conditions make ``f_F`` the point closest to ``f_ref_F`` with ``G_F^T f_F = -(G_A^T f_A + tau_bias)``:
+    ``f_F = f_ref_F - pinv(G_F^T) r`` with ``r = G_F^T f_ref_F + G_A^T f_A + tau_bias`` (the pseudo-inverse by SVD,
+    conditioned as G, not as G^T G), then once more on the remaining residual. A row whose recomputed answer leaves
+    the box or misses the equilibrium by more than both ``f`` and ``EXACT_TOL_NM`` keeps ``f``.
     """
     hi = np.broadcast_to(np.asarray(f_max, float), f.shape)
     free = (f > ACTIVE_SET_TOL_N) & (f < hi - ACTIVE_SET_TOL_N)
-    bound = np.where(f <= ACTIVE_SET_TOL_N, 0.0, hi)
-    gram = np.einsum("bmn,bm,bmk->bnk", G, free.astype(float), G)
-    ridge = 1e-12 * np.maximum(np.trace(gram, axis1=1, axis2=2), 1e-30)[:, None, None] * np.eye(G.shape[2])
-    rhs = np.einsum("bmn,bm->bn", G, np.where(free, f_ref, bound)) + tau_bias
-    lam = np.linalg.solve(gram + ridge, rhs[..., None])[..., 0]
-    exact = np.where(free, f_ref - np.einsum("bmn,bn->bm", G, lam), bound)
-    residual = np.abs(np.einsum("bmn,bm->bn", G, exact) + tau_bias).max(axis=1)
-    kept = (residual <= EQUILIBRIUM_TOL_NM) & np.all((exact >= 0.0) & (exact <= hi), axis=1)
-    return np.where(kept[:, None], exact, f)
+    exact = np.where(free, f_ref, np.where(f <= ACTIVE_SET_TOL_N, 0.0, hi))
+    step = np.linalg.pinv(np.swapaxes(G * free[..., None], 1, 2))  # (B, M, N): rows of the bound tensions are 0
+    for _ in range(2):  # the projection, then one refinement
+        exact = exact - np.einsum("bmn,bn->bm", step, _balance(G, exact, tau_bias))
+    within = np.all((exact >= -ACTIVE_SET_TOL_N) & (exact <= hi + ACTIVE_SET_TOL_N), axis=1)
+    missed_nm, solver_missed_nm = (np.abs(_balance(G, x, tau_bias)).max(axis=1) for x in (exact, f))
+    kept = within & (missed_nm <= np.maximum(solver_missed_nm, EXACT_TOL_NM))
+    return np.where(kept[:, None], np.clip(exact, 0.0, hi), f)
+
+
+def _balance(G, f, tau_bias):
+    """``G^T f + tau_bias`` (B, N) [N m]: zero in equilibrium."""
+    return np.einsum("bmn,bm->bn", G, f) + tau_bias
 
 
 def init_worker(xml: str, muscles: list[str]) -> None:

@@ -65,7 +65,7 @@ def test_one_and_four_workers_write_the_same_file(tmp_path, arm):
 def test_a_chunk_is_the_same_bytes_in_every_worker_process():
     """myoArm's chunks 9 and 13 (2048 samples each, seed 0) drawn four times each on fresh worker processes. When
     written, 1 and 3 of their postures were left to proxsuite, whose last bits depend on where the process's
-    allocator put its arrays (without ``reproducible_qp`` this test failed on about half of its runs); the dataset's
+    allocator put its arrays (without ``reproducible_qp`` the copies differ, in most runs); the dataset's
     tensions come from the active set instead."""
     pytest.importorskip("myo_sim")
     from lightning_bodyschema.apps.common import robot_from_config
