@@ -17,7 +17,7 @@ import sys
 import numpy as np
 
 from ..errors import BodySchemaInputError
-from .equilibrium import EQUILIBRIUM_TOL_NM, EquilibriumSamples, generate_equilibrium_samples, solve_equilibrium_qp
+from .equilibrium import EquilibriumSamples, generate_equilibrium_samples, solve_equilibrium_qp
 from .model import MusculoskeletalModel
 from .process_pool import WorkerPool
 from .spring import SpringParams
