@@ -78,16 +78,21 @@ def exact_from_active_set(G, tau_bias, f_ref, f, f_max):
 
     The tensions more than ``ACTIVE_SET_TOL_N`` inside their bounds (F) are free, the others sit on their bounds; the
     KKT conditions make ``f_F`` the point closest to ``f_ref_F`` with ``G_F^T f_F = -(G_A^T f_A + tau_bias)``:
-    ``f_F = f_ref_F - pinv(G_F^T) r`` with ``r = G_F^T f_ref_F + G_A^T f_A + tau_bias`` (the pseudo-inverse by SVD,
-    conditioned as G, not as G^T G), then once more on the remaining residual. A row whose recomputed answer leaves
-    the box or misses the equilibrium by more than both ``f`` and ``EXACT_TOL_NM`` keeps ``f``.
+    ``f_F = f_ref_F - G_F lam`` with ``(G_F^T G_F) lam = G_F^T f_ref_F + G_A^T f_A + tau_bias``, solved with a ridge of
+    1e-14 of the Gram matrix's mean eigenvalue (G may be rank-deficient) and refined twice on the remaining residual
+    (G_F^T G_F squares G's conditioning). A row whose recomputed answer leaves the box or misses the equilibrium by
+    more than both ``f`` and ``EXACT_TOL_NM`` keeps ``f``.
     """
     hi = np.broadcast_to(np.asarray(f_max, float), f.shape)
     free = (f > ACTIVE_SET_TOL_N) & (f < hi - ACTIVE_SET_TOL_N)
     exact = np.where(free, f_ref, np.where(f <= ACTIVE_SET_TOL_N, 0.0, hi))
-    step = np.linalg.pinv(np.swapaxes(G * free[..., None], 1, 2))  # (B, M, N): rows of the bound tensions are 0
-    for _ in range(2):  # the projection, then one refinement
-        exact = exact - np.einsum("bmn,bn->bm", step, _balance(G, exact, tau_bias))
+    G_free = G * free[..., None]  # the bound tensions' rows are 0
+    gram = np.einsum("bmn,bmk->bnk", G_free, G_free)  # numpy's own loops: no BLAS threading in the bytes
+    mean_eig = np.maximum(np.trace(gram, axis1=1, axis2=2) / G.shape[2], 1e-30)
+    gram += 1e-14 * mean_eig[:, None, None] * np.eye(G.shape[2])
+    for _ in range(3):  # the projection, then two refinements
+        lam = np.linalg.solve(gram, _balance(G, exact, tau_bias)[..., None])[..., 0]
+        exact = exact - np.einsum("bmn,bn->bm", G_free, lam)
     within = np.all((exact >= -ACTIVE_SET_TOL_N) & (exact <= hi + ACTIVE_SET_TOL_N), axis=1)
     missed_nm, solver_missed_nm = (np.abs(_balance(G, x, tau_bias)).max(axis=1) for x in (exact, f))
     kept = within & (missed_nm <= np.maximum(solver_missed_nm, EXACT_TOL_NM))
