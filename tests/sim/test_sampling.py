@@ -105,3 +105,16 @@ def test_exact_answer_from_the_active_set_ignores_the_last_bits(arm, rng):
     assert np.abs(np.einsum("bmn,bm->bn", -G[ok], exact[ok]) - tau_bias[ok]).max() <= 1e-10
     assert exact.min() >= 0.0 and exact.max() <= f_max
     np.testing.assert_allclose(exact[ok], f[ok], atol=1e-7)
+
+
+def test_workers_rebuild_locks_and_gravity_from_the_xml():
+    """A robot with a locked joint and its own gravity: the workers' samples are the in-process ones, and each an
+    equilibrium of the robot as built here (the locked wrist held, gravity as overridden)."""
+    from lightning_bodyschema.sim import MusculoskeletalModel
+
+    robot = MusculoskeletalModel("arm3_8", locked_joints={"wrist": 0.2}, gravity=[0.0, -7.0, 0.0])
+    here, there = (generate_samples(robot, CHUNK_SAMPLES + 50, 2, workers=w) for w in (1, 2))
+    assert all(np.array_equal(getattr(here, k), getattr(there, k)) for k in ("q", "l_motor", "f"))
+    _, G, tau_bias = robot.kinematics(there.q)
+    assert robot.joint_names == ["shoulder", "elbow"] and np.abs(tau_bias).max() > 0.1
+    assert np.abs(np.einsum("bmn,bm->bn", -G, there.f) - tau_bias).max() <= 1e-10
