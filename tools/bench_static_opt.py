@@ -47,7 +47,7 @@ def bench(name, body, n, repeats, singles, cut):
         "solve, tension objective": timed(lambda: body.solve(q, objective="tension"), repeats) / n,
         "MuJoCo kinematics alone": timed(lambda: body.model.kinematics(q), repeats) / n,
         "dataset QP (kinematics + solve_equilibrium_qp)": timed(
-            lambda: solve_equilibrium_qp(*body.model.kinematics(q)[1:], f_ref, f_max), repeats) / n,
+            lambda: solve_equilibrium_qp(*body.model.kinematics(q)[1:], f_ref, f_hi_n=f_max), repeats) / n,
         "one posture at a time (median call)": statistics.median(
             timed(lambda k=k: body.solve(held[k:k + 1]), 1) for k in range(min(singles, len(held)))),
     }

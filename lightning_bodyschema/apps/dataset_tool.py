@@ -35,6 +35,9 @@ def _check_args(args):
     for flag, value in (("--noise-q", args.noise_q), ("--noise-l", args.noise_l), ("--noise-f", args.noise_f)):
         if not np.isfinite(value) or value < 0:
             raise BodySchemaInputError(f"{flag} {value!r} must be a standard deviation >= 0 (SI units: rad, m, N)")
+    if args.workers is not None and args.workers < 0:
+        raise BodySchemaInputError(f"--workers {args.workers} must be >= 0 (0 or 1: in this process; "
+                                   "default: every core)")
     if not 0.0 <= args.mismatch < 1.0:
         raise BodySchemaInputError(f"--mismatch {args.mismatch!r} must lie in [0, 1) (0.1 = up to +-10 %)")
 
@@ -67,6 +70,9 @@ def make_dataset_main(argv=None):
                         help="make the data with a copy of the model whose wrap radii, path sites, link masses and "
                              "spring constants are each scaled by up to +-FRACTION")
     parser.add_argument("--mismatch-seed", type=int, default=0, metavar="S", help="seed of the mismatch draw")
+    parser.add_argument("--workers", type=int, default=None, metavar="N", help="processes that draw the samples "
+                        "(default: every core; 0 or 1: this process); the file is the same bytes for any N")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar (it shows only on a terminal anyway)")
     args = parser.parse_args(argv)
     _check_args(args)
     if args.config:
@@ -78,7 +84,8 @@ def make_dataset_main(argv=None):
     if args.mismatch > 0:
         source, spring = mismatched_robot(model, spring, args.mismatch, args.mismatch_seed)
     start = time.perf_counter()
-    arrays = build_dataset(source, args.n, args.seed, spring, args.qp_solver)
+    arrays = build_dataset(source, args.n, args.seed, spring, args.qp_solver, args.workers,
+                           progress=False if args.quiet else None)
     arrays = add_sensor_noise(arrays, args.noise_q, args.noise_l, args.noise_f, args.seed)
     ranges = {f"q_{j}": lim for j, lim in zip(model.joint_names, model.q_range.tolist())}
     f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), (model.n_muscles,))

@@ -18,6 +18,7 @@ from torch.utils.data import DataLoader
 
 from ..errors import BodySchemaInputError
 from ..sim import MusculoskeletalModel
+from ..sim.sampling import check_workers
 from ..sim.spring import spring_for_model
 from ..training.fit_loop import batches_trained_this_epoch
 from .dataset import load_or_build_dataset
@@ -160,6 +161,9 @@ class EquilibriumDataModule(L.LightningDataModule):
             their reference position anyway (one summary line).
         fixed_base: weld a floating base (free joint, e.g. MyoSuite's legs' pelvis) at the model's reference
             pose; see ``MusculoskeletalModel``.
+        workers: processes that generate the dataset (None: every core; 0 or 1: this process); the data are the
+            same bytes for any number, and the cache key does not depend on it (``sim.sampling``). A progress bar
+            shows on a terminal.
     """
 
     def __init__(self, model: str = "paper_arm", n_samples: int = 800, seed: int = 0, val_fraction: float = 0.2,
@@ -167,8 +171,9 @@ class EquilibriumDataModule(L.LightningDataModule):
                  alpha_per_m: float | list[float] = 20.0, f_max_n: float | list[float] | str | None = None,
                  gravity: Optional[Sequence[float]] = None, qp_solver: str = "newton",
                  cache_dir: Optional[str] = "runs/cache", locked_joints: Optional[dict[str, float]] = None,
-                 batch_size: int = 64, fixed_base: bool = False):
+                 batch_size: int = 64, fixed_base: bool = False, workers: Optional[int] = None):
         super().__init__()
+        check_workers(workers)
         if int(n_samples) != n_samples or n_samples < 10:
             raise BodySchemaInputError(f"n_samples={n_samples!r} must be an integer >= 10")
         check_loader_args(seed, val_fraction, batch_size)
@@ -193,7 +198,7 @@ class EquilibriumDataModule(L.LightningDataModule):
         if self.arrays is None:
             hp = self.hparams
             self.arrays = load_or_build_dataset(self.robot_model, hp.n_samples, hp.seed, self.spring,
-                                                hp.qp_solver, hp.cache_dir)
+                                                hp.qp_solver, hp.cache_dir, hp.get("workers"))
         return self.arrays
 
     def setup(self, stage: str | None = None):

@@ -9,10 +9,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..sim import MusculoskeletalModel, SpringParams, generate_equilibrium_samples
+from ..sim import MusculoskeletalModel, SpringParams
+from ..sim.sampling import generate_samples
 from ..npz import load_npz, save_npz
 
-DATASET_FORMAT_VERSION = 1  # bump when the generator changes what it draws
+DATASET_FORMAT_VERSION = 2  # bump when the generator changes what it draws (2: in chunks, sim.sampling)
 
 
 @dataclass
@@ -33,9 +34,13 @@ class DatasetSpec:
 
 
 def build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring: SpringParams,
-                  qp_solver: str = "newton") -> dict[str, np.ndarray]:
-    """Generate the arrays written to a dataset file: q, l_motor, f (SI units) and the model XML."""
-    samples = generate_equilibrium_samples(model, n_samples, seed, spring, solver=qp_solver)
+                  qp_solver: str = "newton", workers: int | None = None,
+                  progress: bool | None = None) -> dict[str, np.ndarray]:
+    """Generate the arrays written to a dataset file: q, l_motor, f (SI units) and the model XML.
+
+    workers, progress: as ``sim.sampling.generate_samples`` (the same bytes for any number of workers).
+    """
+    samples = generate_samples(model, n_samples, seed, spring, qp_solver, workers, progress)
     print(f"equilibrium dataset: {n_samples} samples of {model.n_joints} joints / {model.n_muscles} muscles; accepted "
           f"fraction of drawn postures {samples.accepted_fraction:.3f} ({samples.n_redrawn} unholdable re-drawn)",
           file=sys.stderr)
@@ -44,10 +49,12 @@ def build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring
 
 
 def load_or_build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int, spring: SpringParams,
-                          qp_solver: str = "newton", cache_dir: str | None = None) -> dict[str, np.ndarray]:
+                          qp_solver: str = "newton", cache_dir: str | None = None, workers: int | None = None,
+                          progress: bool | None = None) -> dict[str, np.ndarray]:
     """Return the dataset, from ``cache_dir`` if a file with the same content key is there and intact.
 
-    A cache file whose stored key does not match (stale, corrupted, or edited) is regenerated.
+    A cache file whose stored key does not match (stale, corrupted, or edited) is regenerated, on ``workers``
+    processes (``build_dataset``); the key does not depend on them (the bytes do not).
     """
     spec = DatasetSpec(model.xml, tuple(model.muscle_names), spring.as_dict(), int(n_samples), int(seed), qp_solver)
     key = spec.key()
@@ -60,7 +67,7 @@ def load_or_build_dataset(model: MusculoskeletalModel, n_samples: int, seed: int
                 return arrays
         except ValueError:
             pass  # unreadable cache: fall through and regenerate it
-    arrays = build_dataset(model, n_samples, seed, spring, qp_solver)
+    arrays = build_dataset(model, n_samples, seed, spring, qp_solver, workers, progress)
     if path:
         save_npz(path, cache_key=np.array(key), content_sha256=np.array(content_digest(arrays)), **arrays)
     return arrays
@@ -70,7 +77,7 @@ def content_digest(arrays) -> str:
     """sha256 of the sample arrays, so a cache file edited or damaged after writing is detected."""
     digest = hashlib.sha256()
     for name in ("q", "l_motor", "f"):
-        digest.update(np.ascontiguousarray(arrays[name], dtype=np.float64).tobytes())
+        digest.update(np.ascontiguousarray(arrays[name], dtype=np.float64))  # the buffer itself: no copy
     return digest.hexdigest()
 
 

@@ -76,11 +76,13 @@ def _unholdable_message(model: MusculoskeletalModel, n_kept: int, n_drawn: int, 
 
 def generate_equilibrium_samples(model: MusculoskeletalModel, n: int, seed: int,
                                  spring: SpringParams = SpringParams(), solver: str = "newton",
-                                 max_draw_factor: int = 20) -> EquilibriumSamples:
+                                 max_draw_factor: int = 20, qp=None) -> EquilibriumSamples:
     """Draw ``n`` healthy equilibrium samples: uniform q in the joint range, uniform f_ref in [0, f_max].
 
     Postures no tension can hold are re-drawn; at most ``max_draw_factor * n`` postures are drawn (an
     accepted fraction of 1/max_draw_factor), past which the error names the joints the muscles fail to hold.
+    qp: the tension solve, called as ``solve_equilibrium_qp`` (its default) is; ``sim.sampling`` passes one whose
+    answers are the same bytes in every process.
     """
     if int(n) != n or n <= 0:
         raise BodySchemaInputError(f"dataset size n={n!r} must be a positive integer")
@@ -95,7 +97,7 @@ def generate_equilibrium_samples(model: MusculoskeletalModel, n: int, seed: int,
         q = model.sample_q(rng, batch)
         f_ref = f_max * rng.random((batch, model.n_muscles))
         l_geo, G, tau_bias = model.kinematics(q)
-        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_hi_n=f_max, solver=solver)
+        f, ok = (qp or solve_equilibrium_qp)(G, tau_bias, f_ref, f_hi_n=f_max, solver=solver)
         kept.append((q[ok], l_geo[ok] - elongation_from_tension(f[ok], spring), f[ok]))
         shortfall.append(np.abs(np.einsum("bmn,bm->bn", -G[~ok], f[~ok]) - tau_bias[~ok]))
         n_drawn += batch
