@@ -193,3 +193,13 @@ def test_solvers_stand_below_everything(graph):
     for module in (m for m in graph if m.startswith(f"{PACKAGE}.solvers")):
         outside = {m for m in reachable(graph, module) if not m.startswith(f"{PACKAGE}.solvers")}
         assert outside <= {PACKAGE, f"{PACKAGE}.errors", f"{PACKAGE}.status"}, f"{module} reaches {sorted(outside)}"
+
+
+def test_the_readmes_layout_names_every_package():
+    """README's "Layout" names every subpackage (``name/``) and top-level module (``name.py``) of the package."""
+    readme = (ROOT.parent / "README.md").read_text()
+    layout = readme.split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    names = {p.name + "/" for p in ROOT.iterdir() if (p / "__init__.py").exists()}
+    names |= {p.name for p in ROOT.glob("*.py") if p.name != "__init__.py"}
+    missing = sorted(n for n in names if f"`{n}`" not in layout)
+    assert not missing, f"README's Layout does not name {missing}"
