@@ -39,9 +39,16 @@ class StructuredAdapterModule(PackageModule):
         super().__init__(schema, [0])
         self.schema, self.max_iter, self.dtype = schema, max_iter, schema.dtype
 
+    def body(self, q_n):
+        """``schema.body(q_n)`` one posture at a time under ``torch.vmap``: the same numbers, and the batch size
+        stays symbolic when exported (the body's networks size a tensor by ``len(x)``, which would fix it)."""
+        def one(q_row):
+            return tuple(t[0] for t in self.schema.body(q_row[None]))
+        return torch.vmap(one)(q_n)
+
     def forward(self, q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed):
         bad, q, bounds = self.faults(q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed)
-        l_geo, G, tau = (t.to(torch.float64) for t in self.schema.body(self.normalized_q(q, self.dtype)))
+        l_geo, G, tau = (t.to(torch.float64) for t in self.body(self.normalized_q(q, self.dtype)))
         box_lo, box_hi = bounds.tension_box(l_geo)
         crossed = (box_lo > box_hi).any(1)  # no tension meets the bounds
         f_ref = (0.5 * self.f_max_n).expand_as(box_lo)
