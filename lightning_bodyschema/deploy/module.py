@@ -66,9 +66,9 @@ def check_supported(schema) -> None:
     if not (diffusion or isinstance(schema, StructuredSchema)):
         raise BodySchemaInputError(f"export supports the diffusion schema (with a SiLU/Tanh eps-MLP) and the "
                                    f"structured schema only; got {type(schema).__name__}")
-    joint_map = getattr(schema.robot_model, "joint_map", None)
-    if joint_map is not None and len(joint_map.names) != schema.n_joints:
-        raise BodySchemaInputError("export supports robots without locked or coupled joints only")
+    joint_map = getattr(schema.robot_model, "joint_map", None)  # the structured body needs no model: free joints
+    if diffusion and joint_map is not None and len(joint_map.names) != schema.n_joints:
+        raise BodySchemaInputError("the diffusion export supports robots without locked or coupled joints only")
 
 
 def _one_weight(builder) -> float:
