@@ -8,7 +8,9 @@ import numpy as np
 import torch
 
 from ..faults.bounds import FaultBounds
-from ..status import Status, status_array
+from ..status import Status
+
+_BY_CODE = np.array(list(Status), dtype=object)  # code -> member (the codes number the members in order)
 
 # healthy motor lengths span a few spreads around their mean; a diverged guidance reaches metres (1e2-1e118 spreads)
 LENGTH_SPREADS = 20.0
@@ -37,77 +39,74 @@ class AdaptationResult:
         return self.status == Status.OK
 
 
-def command_status(x_si: torch.Tensor, bounds: FaultBounds, l_lo_m, l_hi_m, bad=None):
-    """The safe command as tensor ops (the one the exported package traces): ``(l_motor_m, f_n, status, worst)``.
+def command_status(x_si, bounds: FaultBounds, l_lo_m, l_hi_m, bad=None, diagnostics: bool = False):
+    """The safe command, the one every Python adapter runs and the exported packages trace:
+    ``(l_motor_m, f_n, status, worst)``, for numpy arrays or torch tensors alike (all of one backend and device).
 
-    ``x_si (B, 2M)`` float64 [m, N]: a schema's output ``[l_motor, f]``; ``bounds`` its faults (tensors on x_si's
-    device); ``l_lo_m``, ``l_hi_m`` (M,) [m]: the plausible motor lengths; ``bad (B,)`` bool or None: rows whose
-    input was refused. Tensions are clipped into ``[0, f_limit]``. status (B,) int32 ``Status`` codes, the first
-    that applies of bad_input, non_finite, out_of_range (outside the plausible lengths or <= 0), fault_not_met (a
-    jam or band broken by more than ``FAULT_TOL_M``, a cut muscle pulling more than ``FAULT_TOL_N``), ok; rows not
-    ok are NaN. worst: per-case (B,) diagnostics (how far the raw output broke each bound; NaN where not finite).
+    ``x_si (B, 2M)`` float64 [m, N]: a schema's output ``[l_motor, f]``; ``bounds`` its faults; ``l_lo_m``,
+    ``l_hi_m`` (M,) [m]: the plausible motor lengths; ``bad (B,)`` bool or None: rows whose input was refused.
+    Tensions are clipped into ``[0, f_limit]``. status (B,) int32 ``Status`` codes, the first that applies of
+    bad_input, non_finite, out_of_range (outside the plausible lengths or <= 0), fault_not_met (a jam or band broken
+    by more than ``FAULT_TOL_M``, a cut muscle pulling more than ``FAULT_TOL_N``), ok; rows not ok are NaN.
+    worst (``diagnostics``, else None): per-case (B,) arrays of how far the raw output broke each bound (NaN where
+    not finite).
     """
+    xp = torch if torch.is_tensor(x_si) else np
+    pos = (lambda a: a.clamp_min(0.0)) if xp is torch else (lambda a: np.maximum(a, 0.0))  # noqa: E731
     m = x_si.shape[1] // 2
     l_motor, f = x_si[:, :m], x_si[:, m:]
-    finite = torch.isfinite(x_si).all(1)
-    f_safe = torch.minimum(f.clamp_min(0.0), bounds.f_limit_n)
-    zero = torch.zeros_like(l_motor)
-    outside = torch.maximum(torch.maximum(l_lo_m - l_motor, l_motor - l_hi_m), zero)
-    out_of_range = (outside > 0).any(1) | (l_motor <= 0).any(1)
+    finite = xp.isfinite(x_si).all(1)
+    f_safe = xp.minimum(pos(f), bounds.f_limit_n)
+    outside = pos(xp.maximum(l_lo_m - l_motor, l_motor - l_hi_m))
     length_m, cut_n = bounds.broken(l_motor, f_safe)
-    not_met = (length_m > FAULT_TOL_M).any(1) | (cut_n > FAULT_TOL_N).any(1)
-    status = torch.where(not_met, Status.FAULT_NOT_MET.code, Status.OK.code)
-    status = torch.where(out_of_range, Status.OUT_OF_RANGE.code, status)
-    status = torch.where(finite, status, Status.NON_FINITE.code)
+    status = xp.where((length_m > FAULT_TOL_M).any(1) | (cut_n > FAULT_TOL_N).any(1), Status.FAULT_NOT_MET.code,
+                      Status.OK.code)
+    status = xp.where((outside > 0).any(1) | (l_motor <= 0).any(1), Status.OUT_OF_RANGE.code, status)
+    status = xp.where(finite, status, Status.NON_FINITE.code)
     if bad is not None:
-        status = torch.where(bad, Status.BAD_INPUT.code, status)
-    status = status.to(torch.int32)
+        status = xp.where(bad, Status.BAD_INPUT.code, status)
+    status = status.to(torch.int32) if xp is torch else status.astype(np.int32)
     ok = (status == Status.OK.code)[:, None]
-    nan = torch.full_like(l_motor, float("nan"))
-    worst = {"f_clipped_n": (f_safe - f).abs(), "cut_violation_n": cut_n,
-             "jam_violation_m": torch.where(bounds.jam, torch.maximum(l_motor - bounds.l_fixed_m, zero), zero),
-             "weak_violation_n": torch.where(bounds.weak, torch.maximum(f - bounds.f_limit_n, zero), zero),
-             "band_violation_m": torch.where(bounds.band, torch.maximum(torch.maximum(
-                 bounds.band_lo_m - l_motor, l_motor - bounds.band_hi_m), zero), zero),
-             "l_motor_out_of_range_m": outside}
-    worst = {name: torch.where(finite, value.max(1).values, float("nan")) for name, value in worst.items()}
-    return torch.where(ok, l_motor, nan), torch.where(ok, f_safe, nan), status, worst
+    out = (xp.where(ok, l_motor, float("nan")), xp.where(ok, f_safe, float("nan")), status)
+    if not diagnostics:
+        return out + (None,)
+    worst = (xp.abs(f_safe - f), cut_n, xp.where(bounds.jam, pos(l_motor - bounds.l_fixed_m), 0.0),
+             xp.where(bounds.weak, pos(f - bounds.f_limit_n), 0.0),
+             xp.where(bounds.band, pos(xp.maximum(bounds.band_lo_m - l_motor, l_motor - bounds.band_hi_m)), 0.0),
+             outside)
+    return out + ({name: xp.where(finite, xp.amax(value, 1), float("nan")) for name, value in zip(DIAGNOSTICS, worst)},)
 
 
-def plausible_lengths(l_range_m, like: torch.Tensor):
-    """(lo, hi) (M,) float64 tensors like ``like`` from ``motor_length_range``'s (2, M) [m] (lo at least 0: a motor
-    length is positive); None: (0, inf)."""
-    if l_range_m is None:
-        return like.new_zeros(()), like.new_full((), float("inf"))
-    lo, hi = (torch.as_tensor(np.asarray(v, float), dtype=torch.float64, device=like.device) for v in l_range_m)
-    return lo.clamp_min(0.0), hi
+# what ``command_status`` reports per case with ``diagnostics``
+DIAGNOSTICS = ("f_clipped_n", "cut_violation_n", "jam_violation_m", "weak_violation_n", "band_violation_m",
+               "l_motor_out_of_range_m")
 
 
-def safe_command(x_si: torch.Tensor, faults, f_limit_n=None, l_range_m=None) -> AdaptationResult:
-    """The command a controller may send, from a schema's decoded output ``x_si = [l_motor, f] (B, 2M)`` [m, N]:
-    ``command_status`` (the exported package's own) with numpy results.
+def safe_command(x_si, faults, f_limit_n=None, l_range_m=None) -> AdaptationResult:
+    """The command a controller may send, from a schema's decoded output ``x_si = [l_motor, f] (B, 2M)`` [m, N]
+    (a tensor, copied to numpy here: the numpy boundary): ``command_status`` (the exported package's own).
 
-    ``faults``: a ``FaultBounds`` on x_si's device, or a ``Faults`` with ``f_limit_n`` (B, M) [N]
-    (``faults.f_limit(spring.f_max_n)``, a weakened muscle's own limit). ``l_range_m`` (2, M) [m]: the plausible
-    motor lengths (``motor_length_range``; None: any positive length). ``diagnostics``: how far the raw output
-    broke each fault before clipping, and ``clipped_l_motor_m``, ``clipped_f_n``: every finite row's clipped
-    command, whatever its status (what a fault_not_met row would have sent; scorers of the raw adaptation use it).
+    ``faults``: a ``FaultBounds``, or a ``Faults`` with ``f_limit_n`` (B, M) [N] (``faults.f_limit(spring.f_max_n)``,
+    a weakened muscle's own limit). ``l_range_m`` (2, M) [m]: the plausible motor lengths (``motor_length_range``;
+    None: any positive length). ``diagnostics``: how far the raw output broke each fault before clipping, and
+    ``clipped_l_motor_m``, ``clipped_f_n``: every finite row's clipped command, whatever its status (what a
+    fault_not_met row would have sent; scorers of the raw adaptation use it).
     """
-    if isinstance(faults, FaultBounds):
-        bounds, x = faults, x_si.detach().to(faults.f_limit_n.device, torch.float64)
-    else:
-        x = x_si.detach().to(torch.float64)
-        bounds = FaultBounds.from_faults(faults, f_limit_n, like=x)
-    lo, hi = plausible_lengths(l_range_m, x)
-    l_motor, f, status, worst = command_status(x, bounds, lo, hi)
-    m = x.shape[1] // 2
-    finite = torch.isfinite(x).all(1, keepdim=True)
-    clipped = torch.where(finite, torch.cat([x[:, :m], torch.minimum(x[:, m:].clamp_min(0.0), bounds.f_limit_n)], 1),
-                          float("nan"))
-    as_np = lambda t: t.detach().cpu().numpy()  # noqa: E731  (the numpy boundary)
-    diagnostics = {name: as_np(value) for name, value in worst.items()}
-    diagnostics.update(clipped_l_motor_m=as_np(clipped[:, :m]), clipped_f_n=as_np(clipped[:, m:]))
-    return AdaptationResult(as_np(l_motor), as_np(f), status_array(as_np(status).tolist()), diagnostics)
+    x = x_si.detach().to(torch.float64).cpu().numpy() if torch.is_tensor(x_si) else np.asarray(x_si, np.float64)
+    bounds = faults.numpy() if isinstance(faults, FaultBounds) else FaultBounds.from_faults(faults, f_limit_n)
+    lo, hi = (0.0, np.inf) if l_range_m is None else (np.maximum(l_range_m[0], 0.0), l_range_m[1])
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN rows are non_finite
+        l_motor, f, status, worst = command_status(x, bounds, lo, hi, diagnostics=True)
+        m = x.shape[1] // 2
+        finite = np.isfinite(x).all(1, keepdims=True)
+        clipped_f = np.where(finite, np.minimum(np.maximum(x[:, m:], 0.0), bounds.f_limit_n), np.nan)
+    worst.update(clipped_l_motor_m=np.where(finite, x[:, :m], np.nan), clipped_f_n=clipped_f)
+    return AdaptationResult(l_motor, f, statuses(status), worst)
+
+
+def statuses(codes: np.ndarray) -> np.ndarray:
+    """(B,) object array of ``Status`` members from int codes (vectorized ``status.status_array``)."""
+    return _BY_CODE[np.asarray(codes, np.int64)]
 
 
 def motor_length_range(x_mean, x_std, n_muscles: int) -> np.ndarray:

@@ -58,9 +58,8 @@ class Adapter:
         self.check_physics, self.options = check_physics, dict(options or {})
         self.in_si = ADAPTS_IN_SI in schema.capabilities
         self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
-        # the faults' SI bounds, once, on the schema's device (the safe command's and the QP's)
-        self.bounds = FaultBounds.from_faults(faults, schema.spring.f_max_n, schema.spring,
-                                              like=torch.empty(0, device=schema.device))
+        # the faults' SI bounds, once (numpy: the safe command's and the QP's)
+        self.bounds = FaultBounds.from_faults(faults, schema.spring.f_max_n, schema.spring)
         self.l_range_m = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
         if not self.in_si:
             self._prepare_penalty(schema, faults, variant)

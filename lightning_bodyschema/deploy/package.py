@@ -22,9 +22,9 @@ import zipfile
 import numpy as np
 import torch
 
-from ..adaptation.command import FAULT_TOL_M, FAULT_TOL_N, AdaptationResult
+from ..adaptation.command import FAULT_TOL_M, FAULT_TOL_N, AdaptationResult, statuses
 from ..errors import BodySchemaInputError
-from ..status import STATUS_CODES, status_array
+from ..status import STATUS_CODES
 from .module import VARIANT, AdapterModule
 
 FORMAT = "lightning_bodyschema.adapter/1"
@@ -154,7 +154,7 @@ class ExportedAdapter:
         with torch.no_grad():
             l_motor, f, status = self.run(*self.inputs(q_ref, faults, seed))
         codes = status.numpy().astype(np.int32)
-        return AdaptationResult(l_motor.numpy(), f.numpy(), status_array(codes.tolist()), {"status_code": codes})
+        return AdaptationResult(l_motor.numpy(), f.numpy(), statuses(codes), {"status_code": codes})
 
 
 def load_exported(path: str, muscle_names=None, joint_names=None, expected_sha256: str | None = None) -> ExportedAdapter:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -116,7 +117,9 @@ class FaultBounds:
         return cls.from_tensors(*arrays, *springs)
 
     def numpy(self) -> "FaultBounds":
-        """The same bounds as numpy arrays (host copies of tensors)."""
+        """The same bounds as numpy arrays (host copies of tensors; itself when already numpy)."""
+        if _xp(self.f_limit_n) is np:
+            return self
         as_np = lambda a: a.detach().cpu().numpy() if _xp(a) is not np and a is not None else a  # noqa: E731
         return FaultBounds(*(as_np(getattr(self, name)) for name in self.__dataclass_fields__))
 
@@ -126,22 +129,22 @@ class FaultBounds:
                            self.k_n, self.alpha_per_m)
 
     # ------------------------------------------------------------------ the bounds
-    @property
+    @cached_property
     def f_lo_n(self):
         """(B, M) [N]: 0 (a muscle only pulls)."""
         return _fill(self.f_limit_n, 0.0)
 
-    @property
+    @cached_property
     def f_hi_n(self):
         """(B, M) [N]: 0 where cut, else the muscle's limit."""
         return _where(self.cut, 0.0, self.f_limit_n)
 
-    @property
+    @cached_property
     def l_lo_m(self):
         """(B, M) [m]: a band's lo, -inf where free."""
         return _where(self.band, self.band_lo_m, -np.inf)
 
-    @property
+    @cached_property
     def l_hi_m(self):
         """(B, M) [m]: the lower of a jam's l_fixed and a band's hi, +inf where free."""
         return _minimum(_where(self.jam, self.l_fixed_m, np.inf), _where(self.band, self.band_hi_m, np.inf))
@@ -162,9 +165,10 @@ class FaultBounds:
     def broken(self, l_motor_m, f_n):
         """``(length_m, cut_n)`` (B, M): how far ``l_motor_m`` lies outside its length bounds (a jam, a band) [m] and
         how hard a cut muscle pulls [N] (``f_n`` as sent: clipped to 0 <= f <= f_limit); 0 where nothing is broken."""
-        with np.errstate(invalid="ignore"):  # NaN commands give NaN
-            length = _maximum(_maximum(l_motor_m - self.l_hi_m, self.l_lo_m - l_motor_m), _fill(l_motor_m, 0.0))
-        return _where(self.jam | self.band, length, 0.0), _where(self.cut, f_n, 0.0)
+        with np.errstate(invalid="ignore"):  # NaN commands give NaN; +-inf where free gives 0
+            length = _maximum(l_motor_m - self.l_hi_m, self.l_lo_m - l_motor_m)
+            length = np.maximum(length, 0.0) if _xp(length) is np else length.clamp_min(0.0)
+        return length, _where(self.cut, f_n, 0.0)
 
     def invalid(self, f_max_n=None):
         """(B,) bool: the cases that break a rule of ``fault_rules`` (``Faults.validate`` refuses them)."""

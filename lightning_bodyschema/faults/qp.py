@@ -24,7 +24,7 @@ import numpy as np
 
 from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp, solve_qps_batched
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
-from ..status import Status, status_array
+from ..status import Status
 from .bounds import FaultBounds
 from ..sim.dual_newton import NEWTON_TOL_NM, box_least_squares, dual_newton, least_squares_weight
 
@@ -95,7 +95,8 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
     l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)
     l_motor = np.minimum(l_motor, l_hi)  # rounding of exp/log1p only: the box already keeps l_motor <= l_hi
-    status = status_array(np.where(ok, OK.code, INFEASIBLE_LEARNED.code).tolist())
+    status = np.full(len(ok), OK, dtype=object)
+    status[~ok] = INFEASIBLE_LEARNED
     return l_motor, f, status
 
 

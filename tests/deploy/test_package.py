@@ -151,13 +151,14 @@ def test_structured_package_equals_python_in_python_and_cpp(struct_package, stru
     np.testing.assert_allclose(got.f_n[ok], ref.f_n[ok], rtol=0, atol=1e-2)
     names = struct30.robot_model.muscle_names
     for i in range(6):
-        args = [struct_package, "--q", ",".join(map(repr, q[i])), "--sha256", file_sha256(struct_package)]
+        args = [struct_package, "--q", ",".join(repr(float(v)) for v in q[i]), "--sha256", file_sha256(struct_package)]
         args += ["--cut", ",".join(names[j] for j in np.flatnonzero(faults.cut[i]))] if faults.cut[i].any() else []
-        jam = [f"{names[j]}={faults.l_fixed_m[i, j]!r}" for j in np.flatnonzero(faults.fix[i])]
+        jam = [f"{names[j]}={float(faults.l_fixed_m[i, j])!r}" for j in np.flatnonzero(faults.fix[i])]
         args += ["--jam", ",".join(jam)] if jam else []
-        weak = [f"{names[j]}={faults.f_max_n[i, j]!r}" for j in np.flatnonzero(faults.weak[i])]
+        weak = [f"{names[j]}={float(faults.f_max_n[i, j])!r}" for j in np.flatnonzero(faults.weak[i])]
         args += ["--weak", ",".join(weak)] if weak else []
-        band = [f"{names[j]}={faults.l_band_m[i, j, 0]!r}:{faults.l_band_m[i, j, 1]!r}" for j in np.flatnonzero(faults.band[i])]
+        band = [f"{names[j]}={float(faults.l_band_m[i, j, 0])!r}:{float(faults.l_band_m[i, j, 1])!r}"
+                for j in np.flatnonzero(faults.band[i])]
         args += ["--band", ",".join(band)] if band else []
         run = _adapt_once(cpp_build, *args)
         assert run.returncode == 0, run.stderr
