@@ -37,7 +37,7 @@ def main():
     kin, _ = _median_time(lambda: model.kinematics(q), args.repeats)
     _, G, tau = model.kinematics(q)
     f_ref = 150.0 * np.random.default_rng(1).random((len(q), model.n_muscles))
-    qp, _ = _median_time(lambda: solve_equilibrium_qp(G, tau, f_ref, SpringParams().f_max_n), args.repeats)
+    qp, _ = _median_time(lambda: solve_equilibrium_qp(G, tau, f_ref, f_hi_n=SpringParams().f_max_n), args.repeats)
     print(f"100000 postures: MuJoCo kinematics {kin:.3f} s ({1e6 * kin / len(q):.1f} us each), "
           f"QPs {qp:.3f} s ({1e6 * qp / len(q):.1f} us each)")
 

@@ -6,8 +6,8 @@
 
 Builds configs/myoarm.yaml's body (its locked joints), draws postures with ``model.sample_q`` and, per case, one cut
 and one jammed muscle (the jam's motor length is the healthy command's at another posture, as the binding protocol
-draws it); then times ``faults.qp.fault_command`` on the true l_geo, G and tau_bias: today's (batched through
-``sim.equilibrium.solve_qps_batched``) and ``--baseline``'s (that git revision's faults/qp.py: one proxsuite QP per
+draws it); then times ``faults.qp.fault_command`` on the true l_geo, G and tau_bias: today's (``solvers.solve_box_qp``
+on every case at once) and ``--baseline``'s (that git revision's faults/qp.py: one proxsuite QP per
 case, least squares one per case), at batch 1 and ``--batch``, in ms per case (medians of ``--repeats``; the baseline
 on the first ``--old-cases`` cases, its least squares costing up to a second per case). Prints the share of cases
 whose bounds cross or whose torque the box cannot balance and what each kind costs, and how many cases the
@@ -46,7 +46,7 @@ def myoarm_cases(n: int, seed: int = 0):
     q, q_jam = model.sample_q(rng, n), model.sample_q(rng, n)
     f_max = np.broadcast_to(np.asarray(spring.f_max_n, float), (n, m))
     l_jam, G_jam, tau_jam = model.kinematics(q_jam)
-    f_jam, _ = solve_equilibrium_qp(G_jam, tau_jam, 0.5 * f_max, f_max)
+    f_jam, _ = solve_equilibrium_qp(G_jam, tau_jam, 0.5 * f_max, f_hi_n=f_max)
     cut, fix = np.zeros((n, m), bool), np.zeros((n, m), bool)
     i = rng.integers(0, m, n)
     cut[np.arange(n), i], fix[np.arange(n), (i + rng.integers(1, m, n)) % m] = True, True
@@ -64,6 +64,11 @@ def baseline_qp(rev: str):
     module = importlib.util.module_from_spec(spec)
     module.__package__ = "lightning_bodyschema.faults"
     exec(compile(source, f"{rev}:faults/qp.py", "exec"), module.__dict__)
+    if "solve_equilibrium_qp" in module.__dict__:  # its positional bounds (f_max, f_min), proxsuite per case
+        from lightning_bodyschema.sim import solve_equilibrium_qp
+
+        module.solve_equilibrium_qp = lambda G, tau, f_ref, f_max, f_min=0.0, **kw: solve_equilibrium_qp(  # noqa: E731
+            G, tau, f_ref, f_hi_n=f_max, f_lo_n=f_min, **{"solver": "proxqp", **kw})
     return module
 
 

@@ -11,29 +11,27 @@ becomes a box on the tensions f through the spring ``l_motor = l_geo - delta(f)`
 * ``l_motor >= l_lo`` (a band's lo): ``f <= k (exp(alpha (l_geo - l_lo)) - 1)``; below ``l_geo`` the wire is slack
   (f = 0, the motor may stand anywhere above ``l_geo``).
 
-``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` for every case at once by
-the batched dual Newton of ``sim.dual_newton``, and the cases it leaves unsettled by proxsuite (the dataset's QP
-in ``sim.equilibrium``; on more than one thread batched through proxsuite's ``BatchQP`` and ``solve_in_parallel``);
-a case without a solution (bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
-``min ||G^T f + tau||^2 + reg ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. numpy and
-proxsuite only.
+``fault_command`` solves ``min ||f - f_ref||^2  s.t.  -G^T f = tau,  f_lo <= f <= f_hi`` for every case at once
+with ``solvers.solve_box_qp`` (the batched dual Newton, the torque-reach screen, proxsuite on what they leave); a case
+without a solution (bounds that cross, or a torque the box cannot balance) gets the least-squares tensions
+``min ||G^T f + tau||^2 + reg s ||f - f_ref||^2`` within the box and the status ``"infeasible_learned"``. Arrays in
+and out.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from ..sim.equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp, solve_qps_batched
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
+from ..solvers import EQUILIBRIUM_TOL_NM, LS_REG, BoxQP, least_squares_weight, solve_box_qp
 from ..status import Status
 from .bounds import FaultBounds
-from ..sim.dual_newton import NEWTON_TOL_NM, box_least_squares, dual_newton, least_squares_weight
 
 OK, INFEASIBLE_LEARNED = Status.OK, Status.INFEASIBLE_LEARNED
-# proxsuite iterations per command QP: a feasible one converges well within it (BENCHMARKS.md, "Structured schema's
-# command QPs"); one without a solution runs to it before the least-squares answer takes over, so it is kept short
+# proxsuite iterations per command QP the dual Newton leaves: a feasible one converges well within it
+# (BENCHMARKS.md, "Structured schema's command QPs"); one without a solution runs to it
 QP_MAX_ITER = 50
-# the least-squares QP: stationarity to 1 mN of its scaled objective (the rows are best efforts, never commands)
-LS_EPS_N, LS_MAX_ITER = 1e-3, 1000
+# a solver's status -> the command's: the learned body cannot hold the posture (``infeasible`` is the true body's)
+_AS_COMMAND = np.array([INFEASIBLE_LEARNED if s is Status.INFEASIBLE else s for s in Status], dtype=object)
 
 
 def tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> tuple[np.ndarray, np.ndarray]:
@@ -57,47 +55,32 @@ def _bounds_of(f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> FaultBounds:
                        np.where(has_lo, lo, np.nan), np.where(has_lo, np.inf, np.nan), np.array(f_hi), k, alpha)
 
 
-def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = 1e-6, num_threads: int = 1) -> np.ndarray:
+def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = LS_REG, num_threads: int = 1) -> np.ndarray:
     """``argmin ||G^T f + tau||^2 + reg s ||f - f_ref||^2`` over ``f_lo <= f <= f_hi`` per case (B, M) [N], with
-    ``s`` the mean squared moment arm of the case (so ``reg`` is dimensionless): the batched dual Newton, then
-    proxsuite's batch API on the cases it leaves (the objective divided by ``reg s``, solved to ``LS_EPS_N``)."""
-    m = G.shape[1]
-    f, done = box_least_squares(G, tau, f_ref, f_lo, f_hi, reg)
-    weight = least_squares_weight(G, reg)
-    if not done.all():  # proxsuite's batch API on the few the Newton iteration did not settle
-        H = G[~done] @ np.swapaxes(G[~done], 1, 2) / weight[~done, None, None] + np.eye(m)  # (b, M, M)
-        g = np.einsum("bmn,bn->bm", G[~done], tau[~done]) / weight[~done, None] - f_ref[~done]
-        f[~done], _ = solve_qps_batched(H, g, None, None, f_lo[~done], f_hi[~done], LS_EPS_N, LS_MAX_ITER,
-                                        num_threads)
-    return np.clip(f, f_lo, f_hi)
+    ``s`` the mean squared moment arm of the case (``solvers.least_squares_weight``): ``solvers.solve_box_qp`` of
+    that least-squares problem (the dual Newton, proxsuite on the cases it leaves)."""
+    problem = BoxQP.build(G, tau, f_ref, f_lo, f_hi)
+    problem = problem.with_weight(least_squares_weight(problem.G, reg))
+    return solve_box_qp(problem, num_threads=num_threads).f_n.cpu().numpy()
 
 
-def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: SpringParams, reg: float = 1e-6,
+def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: SpringParams, reg: float = LS_REG,
                   max_iter: int = QP_MAX_ITER, num_threads: int = 1):
     """Command ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` on the body ``(l_geo_m, G, tau_nm)`` closest to
     ``f_ref`` (module docstring). Every row is finite and meets every bound (the box and the motor-length bounds);
-    rows whose status is ``"infeasible_learned"`` miss the torque balance (least squares) and are not commands.
-    ``max_iter``: proxsuite's iteration limit of the equilibrium QP; ``num_threads``: 1 solves the equilibrium QPs
-    as the dataset does (one QP updated per case), more through proxsuite's batch API on that many threads."""
+    rows whose status is ``"infeasible_learned"`` miss the torque balance (least squares) and are not commands
+    (``"not_converged"``: no solver settled the row; ``"bad_input"``: a non-finite body, NaN rows).
+    ``max_iter``: proxsuite's iteration limit of an equilibrium QP the dual Newton leaves; ``num_threads``:
+    proxsuite's threads (more than 1: its batch API)."""
     box_lo, box_hi = tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring)
-    ok = ~(box_lo > box_hi).any(1)  # crossed bounds: no tension meets them, straight to least squares
-    box_lo = np.minimum(box_lo, box_hi)
-    f, run = np.empty(box_lo.shape), ok.copy()
-    f[run], ok[run] = dual_newton(G[run], tau_nm[run], f_ref[run], box_lo[run], box_hi[run], 0.0, NEWTON_TOL_NM)
-    run &= ~ok  # stalled: an unholdable torque (no root), or a slow active set: proxsuite decides
-    if run.any():
-        f[run], ok[run] = solve_equilibrium_qp(G[run], tau_nm[run], f_ref[run], box_hi[run], box_lo[run],
-                                               solver="proxqp", max_iter=max_iter, batched=num_threads > 1,
-                                               num_threads=num_threads)
-    if not ok.all():
-        f[~ok] = least_squares_tensions(G[~ok], tau_nm[~ok], f_ref[~ok], box_lo[~ok], box_hi[~ok], reg, num_threads)
+    solution = solve_box_qp(BoxQP.build(G, tau_nm, f_ref, box_lo, box_hi), fallback_max_iter=max_iter, ls_reg=reg,
+                            num_threads=num_threads)
+    f, codes = solution.f_n.cpu().numpy(), solution.status.cpu().numpy()
     l_motor = l_geo_m - elongation_from_tension(f, spring)
     slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
     l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)
     l_motor = np.minimum(l_motor, l_hi)  # rounding of exp/log1p only: the box already keeps l_motor <= l_hi
-    status = np.full(len(ok), OK, dtype=object)
-    status[~ok] = INFEASIBLE_LEARNED
-    return l_motor, f, status
+    return l_motor, f, _AS_COMMAND[codes]
 
 
 def balance_residual_nm(G, tau_nm, f) -> np.ndarray:

@@ -9,159 +9,43 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import proxsuite
 
 from ..errors import BodySchemaInputError
-from .dual_newton import NEWTON_TOL_NM, dual_newton
+from ..solvers import (EQUILIBRIUM_TOL_NM, FALLBACK_MAX_ITER, BoxQP, check_qp_solver, proxsuite_solve,
+                       qpsolvers_solve, solve_box_qp)
+from ..status import Status
 from .model import MusculoskeletalModel
 from .spring import SpringParams, elongation_from_tension
-from .torque_reach import outside_torque_reach
-
-EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint torque residual is below this
-QP_EPS_ABS = 1e-9  # proxsuite's tolerance on the equilibrium QP: far below EQUILIBRIUM_TOL_NM
-_SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
 
 
-def _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int = 2000):
-    """proxsuite's own dense API, one small QP per posture: the fast path.
-
-    One QP object is initialised once and updated per posture (no re-allocation per posture); eps_abs 1e-9
-    keeps the torque residual far below EQUILIBRIUM_TOL_NM. Returns f (B, M) [N] and solved (B,) bool.
-    """
-    batch, n_muscles, n_joints = G.shape
-    A = np.ascontiguousarray(-np.swapaxes(G, 1, 2))  # (B, N, M): equality rows -G^T f = tau_bias
-    g = np.ascontiguousarray(-f_ref)
-    lo, hi = np.ascontiguousarray(f_lo, dtype=float), np.ascontiguousarray(f_hi, dtype=float)
-    qp = proxsuite.proxqp.dense.QP(n_muscles, n_joints, 0, box_constraints=True)
-    qp.settings.eps_abs, qp.settings.eps_rel = QP_EPS_ABS, 0.0
-    qp.settings.max_iter, qp.settings.verbose = max_iter, False
-    f = np.zeros((batch, n_muscles))
-    solved = np.zeros(batch, dtype=bool)
-    for b in range(batch):  # proxsuite solves one QP per call
-        if b == 0:
-            qp.init(np.eye(n_muscles), g[0], A[0], tau_bias[0], None, None, None, l_box=lo[0], u_box=hi[0])
-        else:
-            qp.update(g=g[b], A=A[b], b=tau_bias[b], l_box=lo[b], u_box=hi[b], update_preconditioner=False)
-        qp.solve()
-        solved[b] = qp.results.info.status == _SOLVED
-        f[b] = qp.results.x  # copies: results.x is overwritten by the next solve
-    return f, solved
-
-
-def _dense_qp(n, n_eq, eps_abs, max_iter, qps=None):
-    """A proxsuite dense QP of n variables, n_eq equalities and an n-row box (built in the BatchQP ``qps`` if given),
-    with the tolerance and iteration limit set."""
-    qp = proxsuite.proxqp.dense.QP(n, n_eq, n) if qps is None else qps.init_qp_in_place(n, n_eq, n)
-    qp.settings.eps_abs, qp.settings.eps_rel = eps_abs, 0.0
-    qp.settings.max_iter, qp.settings.verbose = max_iter, False
-    return qp
-
-
-def solve_qps_batched(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_threads: int = 1):
-    """``argmin 0.5 x^T H x + g^T x  s.t.  A x = b,  lo <= x <= hi`` per case.
+def solve_equilibrium_qp(G, tau_bias, f_ref, *, f_hi_n, f_lo_n=0.0, solver: str = "newton",
+                         max_iter: int = FALLBACK_MAX_ITER, num_threads: int = 1):
+    """Tensions closest to ``f_ref`` that hold each posture in static equilibrium: ``solvers.solve_box_qp`` on
+    arrays (the dataset's QP; the solvers' ``BoxQP`` with ``w = 0``).
 
     Args:
-        H: (n, n) or (B, n, n); g: (B, n); A: (B, n_eq, n) and b: (B, n_eq), or both None; lo, hi: (B, n) (+-inf
-        where unbounded). eps_abs: proxsuite's absolute tolerance (eps_rel 0); max_iter: its iteration limit.
-        num_threads: 1 sets up and solves each case on one proxsuite QP in turn; more solves them through
-            proxsuite's ``BatchQP`` and ``solve_in_parallel`` on that many OpenMP threads. Either way the answers
-            agree to the tolerance; from run to run they may differ in the last bits (proxsuite's dense solves do).
+        G: (B, M, N) muscle Jacobians [m/rad]; tau_bias: (B, N) [N m]; f_ref: (B, M) [N].
+        f_hi_n, f_lo_n: keyword only, scalars, (M,) or (B, M) tension bounds [N] (a per-case f_hi_n of 0 models a
+            cut).
+        solver: ``"newton"`` (``solve_box_qp``: the batched dual Newton, the torque-reach screen, proxsuite where
+            they leave a case: fast, the same bytes in every process), ``"proxqp"`` (proxsuite on every case) or any
+            qpsolvers solver name (one call per case).
+        max_iter: proxsuite's iteration limit per posture; a posture with no solution runs to it.
+        num_threads: proxsuite's threads (more than 1: its batch API).
 
     Returns:
-        x (B, n) as proxsuite returns it (not clipped) and solved (B,) bool (proxsuite's status SOLVED).
+        ``f (B, M)`` within the bounds, and ``ok (B,)``: the torque balanced, ``|-G^T f - tau_bias|`` below
+        ``EQUILIBRIUM_TOL_NM`` on every joint.
     """
-    batch, n = g.shape
-    H = np.broadcast_to(H, (batch, n, n))
-    n_eq = 0 if A is None else A.shape[1]
-    eye, x, solved = np.eye(n), np.zeros((batch, n)), np.zeros(batch, dtype=bool)
-    parallel = proxsuite.proxqp.dense.BatchQP(batch) if num_threads > 1 else None
-    qp = _dense_qp(n, n_eq, eps_abs, max_iter) if parallel is None else None
-    for k in range(batch):  # proxsuite sets its QPs up one at a time; the box as n inequality rows
-        case = qp if qp is not None else _dense_qp(n, n_eq, eps_abs, max_iter, parallel)
-        case.init(H[k], g[k], None if A is None else A[k], None if A is None else b[k], eye, lo[k], hi[k])
-        if parallel is None:
-            case.solve()
-            x[k], solved[k] = case.results.x, case.results.info.status == _SOLVED
-    if parallel is not None and batch:
-        proxsuite.proxqp.dense.solve_in_parallel(num_threads=int(num_threads), qps=parallel)
-        for k in range(batch):
-            results = parallel.get(k).results
-            x[k], solved[k] = results.x, results.info.status == _SOLVED
-    return x, solved
-
-
-def _newton_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter: int):
-    """The batched dual Newton (``sim.dual_newton``) on every posture at once, the same bytes in every process
-    (proxsuite's dense solves may differ in the last bits from run to run); proxsuite's own API on the postures it
-    leaves unsettled and the torque-reach screen (``sim.torque_reach``) does not rule out."""
-    f, solved = dual_newton(G, tau_bias, f_ref, f_lo, f_hi, 0.0, NEWTON_TOL_NM)
-    rest = ~solved
-    if rest.any():  # a torque out of the box's reach has no solution: proxsuite would only run to max_iter
-        rest[rest] = ~outside_torque_reach(G[rest], tau_bias[rest], f_lo[rest], f_hi[rest], EQUILIBRIUM_TOL_NM)
-    if rest.any():
-        f[rest], solved[rest] = _proxqp_solve(G[rest], tau_bias[rest], f_ref[rest], f_lo[rest], f_hi[rest], max_iter)
-    return f, solved
-
-
-def _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver):
-    """qpsolvers' unified interface, so a user can plug in any QP solver it knows."""
-    import qpsolvers
-
-    batch, n_muscles, _ = G.shape
-    f = np.zeros((batch, n_muscles))
-    solved = np.zeros(batch, dtype=bool)
-    for b in range(batch):
-        x = qpsolvers.solve_qp(np.eye(n_muscles), -f_ref[b], A=-G[b].T, b=tau_bias[b],
-                               lb=f_lo[b], ub=f_hi[b], solver=solver)
-        if x is not None:
-            f[b], solved[b] = x, True
-    return f, solved
-
-
-def check_qp_solver(solver: str) -> str:
-    """Refuse a QP solver name that qpsolvers does not have installed."""
-    if solver in ("newton", "proxqp"):
-        return solver
-    import qpsolvers
-
-    if solver not in qpsolvers.available_solvers:
-        raise BodySchemaInputError(
-            f"unknown QP solver {solver!r}; installed: {sorted(qpsolvers.available_solvers)}")
-    return solver
-
-
-def solve_equilibrium_qp(G, tau_bias, f_ref, f_max, f_min=0.0, solver: str = "newton", max_iter: int = 2000,
-                         batched: bool = False, num_threads: int = 1):
-    """Tensions closest to ``f_ref`` that hold each posture in static equilibrium.
-
-    Args:
-        G: (B, M, N) muscle Jacobians; tau_bias: (B, N); f_ref: (B, M) [N];
-        f_max, f_min: scalars, (M,) or (B, M) tension bounds [N] (a per-case f_max of 0 models a cut).
-        solver: ``"newton"`` (the batched dual Newton, proxsuite where it stalls: fast, the same bytes in every
-            process), ``"proxqp"`` (proxsuite's own API) or any qpsolvers solver name.
-        max_iter: proxsuite's iteration limit per posture (proxqp only); a posture with no solution runs to it.
-        batched: proxqp through ``solve_qps_batched`` (each QP set up and preconditioned on its own; ``num_threads``
-            > 1: proxsuite's batch API) instead of one QP updated per posture (the dataset's bytes).
-
-    Returns:
-        ``f (B, M)`` clipped into the bounds, and ``ok (B,)``: solved and equilibrium residual
-        ``|-G^T f - tau_bias|`` below ``EQUILIBRIUM_TOL_NM`` on every joint.
-    """
-    batch, n_muscles, _ = G.shape
-    f_lo = np.broadcast_to(np.asarray(f_min, float), (batch, n_muscles))
-    f_hi = np.broadcast_to(np.asarray(f_max, float), (batch, n_muscles))
-    if check_qp_solver(solver) == "proxqp" and batched:
-        f, solved = solve_qps_batched(np.eye(n_muscles), -f_ref, -np.swapaxes(G, 1, 2), tau_bias, f_lo, f_hi,
-                                      QP_EPS_ABS, max_iter, num_threads)
-    elif solver == "proxqp":
-        f, solved = _proxqp_solve(G, tau_bias, f_ref, f_lo, f_hi, max_iter)
-    elif solver == "newton":
-        f, solved = _newton_solve(G, tau_bias, np.asarray(f_ref, float), f_lo, f_hi, max_iter)
+    problem = BoxQP.build(G, tau_bias, f_ref, f_lo_n, f_hi_n)
+    if check_qp_solver(solver) == "newton":
+        solution = solve_box_qp(problem, fallback_max_iter=max_iter, num_threads=num_threads)
+        f, ok = solution.f_n, solution.status == Status.OK.code
     else:
-        f, solved = _qpsolvers_solve(G, tau_bias, f_ref, f_lo, f_hi, solver)
-    f = np.clip(f, f_lo, f_hi)  # remove the solver's ~1e-12 excursions outside the box
-    residual = np.abs(np.einsum("bmn,bm->bn", -G, f) - tau_bias).max(axis=1)
-    return f, solved & (residual <= EQUILIBRIUM_TOL_NM)
+        f, solved = (proxsuite_solve(problem, max_iter, num_threads) if solver == "proxqp"
+                     else qpsolvers_solve(problem, solver))
+        ok = solved & ~problem.crossed & (problem.balance_residual_nm(f) <= EQUILIBRIUM_TOL_NM)
+    return f.cpu().numpy(), ok.cpu().numpy()
 
 
 @dataclass
@@ -211,7 +95,7 @@ def generate_equilibrium_samples(model: MusculoskeletalModel, n: int, seed: int,
         q = model.sample_q(rng, batch)
         f_ref = f_max * rng.random((batch, model.n_muscles))
         l_geo, G, tau_bias = model.kinematics(q)
-        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_max, solver=solver)
+        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_hi_n=f_max, solver=solver)
         kept.append((q[ok], l_geo[ok] - elongation_from_tension(f[ok], spring), f[ok]))
         shortfall.append(np.abs(np.einsum("bmn,bm->bn", -G[~ok], f[~ok]) - tau_bias[~ok]))
         n_drawn += batch

@@ -39,13 +39,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
+from .. import solvers
 from ..errors import BodySchemaInputError
 from ..faults.bounds import FaultBounds
-from . import torque_reach
-from .equilibrium import EQUILIBRIUM_TOL_NM, solve_equilibrium_qp
+from ..solvers import EQUILIBRIUM_TOL_NM, MAX_SCREEN_NORMALS  # noqa: F401  (re-exported: evaluation.feasibility)
+from .equilibrium import solve_equilibrium_qp
 from .spring import SpringParams
-from .torque_reach import MAX_SCREEN_NORMALS  # noqa: F401  (re-exported: evaluation.feasibility)
 
 if TYPE_CHECKING:
     from ..faults.faults import Faults
@@ -55,8 +56,10 @@ JAM_MODELS = ("one_sided", "immobile")
 
 
 def outside_torque_reach(G, tau_bias, lo, hi) -> np.ndarray:
-    """(B,) True where no tension in [lo, hi] (B, M) holds the posture to EQUILIBRIUM_TOL_NM (``sim.torque_reach``)."""
-    return torque_reach.outside_torque_reach(G, tau_bias, lo, hi, EQUILIBRIUM_TOL_NM)
+    """(B,) True where no tension in [lo, hi] (B, M) holds the posture to EQUILIBRIUM_TOL_NM
+    (``solvers.outside_torque_reach`` on arrays)."""
+    args = (torch.as_tensor(x, dtype=torch.float64) for x in (G, tau_bias, lo, hi))
+    return solvers.outside_torque_reach(*args, EQUILIBRIUM_TOL_NM).numpy()
 
 
 def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str = "one_sided",
@@ -89,10 +92,10 @@ def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: Spri
     lo, hi, crossed, f_need = tension_bounds(l_geo, faults, spring, jam_model, jammed_tension_in_torque)
     f_ref = np.broadcast_to(np.asarray(spring.f_max_n, float) / 2.0, lo.shape)
     f, ok = np.full(lo.shape, np.nan), np.zeros(len(lo), bool)
-    # skip hopeless cases: proxsuite runs to its iteration limit on them
-    run = np.flatnonzero(~crossed & ~outside_torque_reach(G, tau_bias, lo, hi))
+    run = np.flatnonzero(~crossed)  # the solver screens the torques out of reach itself
     if run.size:
-        f[run], ok[run] = solve_equilibrium_qp(G[run], tau_bias[run], f_ref[run], hi[run], lo[run], solver=solver)
+        f[run], ok[run] = solve_equilibrium_qp(G[run], tau_bias[run], f_ref[run], f_lo_n=lo[run], f_hi_n=hi[run],
+                                               solver=solver)
     if not jammed_tension_in_torque:
         f = np.where(faults.fix, f_need, f)
     feasible = ok & ~crossed

@@ -9,16 +9,17 @@ The Hessian in f is the identity, so for a multiplier ``lam (N,)`` [N rad/m] the
 
     (1) f(lam) = clip(f_ref - G lam, lo, hi)
     (2) F(lam) = G^T f(lam) + tau - w lam = 0        (the gradient of the concave dual; its root is the optimum)
-    (3) F'(lam) = -(G^T D G + w I),  D = diag(lo < f_ref - G lam < hi)   (the free tensions)
+    (3) F'(lam) = -(G^T D G + w I),  D = diag(lo <= f_ref - G lam <= hi)   (the tensions the clip leaves)
 
-Newton steps on (2) with (3) and a backtracking (Armijo) line search on the dual value, a strictly concave
-piecewise-quadratic function, with a gradient step ``F / L`` (``L`` the dual gradient's Lipschitz constant) where no
-trial is accepted. A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
+Newton steps on (2) with (3) and a line search on the dual value, a concave piecewise-quadratic function: the first
+of the trial steps ``t = 1``, the exact maximiser along the step, ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)`` that
+meets Armijo's condition, else a gradient step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which
+always ascends. A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
 cannot hold has no root) is reported as not converged.
 
-``fixed_iterations=True`` runs exactly ``max_iter`` steps and ``LINE_SEARCH_HALVINGS`` trials each on every case,
-masked where a case has converged: no host synchronisation and no data-dependent shape, so ``torch.export`` can
-trace it; the answers are the eager ones. torch only.
+``fixed_iterations=True`` runs exactly ``max_iter`` steps with every trial on every case, masked where a case has
+converged: no host synchronisation and no data-dependent shape, so ``torch.export`` can trace it; the answers are
+the eager ones. torch only.
 """
 from __future__ import annotations
 
@@ -29,8 +30,10 @@ import torch
 NEWTON_MAX_ITER = 30
 # the stop [N m] of the equilibrium solves: far below EQUILIBRIUM_TOL_NM, a converged row is an equilibrium
 NEWTON_TOL_NM = 1e-9
-LINE_SEARCH_HALVINGS = 12
+LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly singular system still lands
 _ARMIJO = 1e-4
+_RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
+_EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
 
 
 class NewtonResult(NamedTuple):
@@ -58,11 +61,13 @@ def _f64(x, device=None) -> torch.Tensor:
 
 def _evaluate(G, tau, f_ref, lo, hi, w, lam) -> _State:
     """The state at ``lam``: (1), the free mask of (3) and the dual value (the Lagrangian at f(lam))."""
-    free_f = f_ref - (G @ lam.unsqueeze(-1)).squeeze(-1)
-    f = torch.minimum(torch.maximum(free_f, lo), hi)
-    balance = (G.transpose(1, 2) @ f.unsqueeze(-1)).squeeze(-1) + tau
-    value = (0.5 * ((f - f_ref) ** 2).sum(1) + (lam * balance).sum(1) - 0.5 * w * (lam ** 2).sum(1))
-    return _State(lam, f, (free_f > lo) & (free_f < hi), value, balance)
+    free_f = torch.baddbmm(f_ref.unsqueeze(-1), G, lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)
+    f = torch.clamp(free_f, lo, hi)
+    balance = torch.baddbmm(tau.unsqueeze(-1), G.transpose(1, 2), f.unsqueeze(-1)).squeeze(-1)
+    gap = f - f_ref
+    value = 0.5 * torch.linalg.vecdot(gap, gap) + torch.linalg.vecdot(lam, torch.addcmul(balance, w.unsqueeze(1),
+                                                                                         lam, value=-0.5))
+    return _State(lam, f, f == free_f, value, balance)  # free: the clip left it (a tension at a bound is either)
 
 
 def _select(take, new: _State, old: _State) -> _State:
@@ -70,51 +75,126 @@ def _select(take, new: _State, old: _State) -> _State:
     return _State(*(torch.where(take.view(-1, *([1] * (a.dim() - 1))), a, b) for a, b in zip(new, old)))
 
 
-def _line_search(problem, state: _State, residual, step, lipschitz, eager: bool) -> _State:
-    """Backtracking on the dual value (Armijo) along the Newton ``step``, every case at once; where no trial is
-    accepted (a nearly singular Newton system), a gradient step ``residual / lipschitz``, which always ascends (the
-    dual is concave with a ``lipschitz``-continuous gradient). ``eager``: stop once every case has accepted."""
-    t = torch.ones_like(state.value)
-    slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
-    best, todo = state, torch.ones_like(t, dtype=torch.bool)
-    for _ in range(LINE_SEARCH_HALVINGS):
-        trial = _evaluate(*problem, state.lam + t.unsqueeze(1) * step)
-        take = todo & (trial.value >= state.value + _ARMIJO * t * slope)
-        best, todo = _select(take, trial, best), todo & ~take
-        if eager and not bool(todo.any()):
-            return best
-        t = torch.where(todo, 0.5 * t, t)
-    gradient_step = _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
-    return _select(todo, gradient_step, best)
+def _trials(problem, state: _State, step, slope, t):
+    """``(accepted (B,), trial state)``: the first of the steps ``t (B, K)`` along ``step`` that meets Armijo's
+    condition on the dual value, all trials evaluated at once."""
+    G, tau, f_ref, lo, hi, w = problem
+    lam = state.lam.unsqueeze(1) + t.unsqueeze(-1) * step.unsqueeze(1)  # (B, K, N)
+    free_f = torch.baddbmm(f_ref.unsqueeze(1), lam, G.transpose(1, 2), alpha=-1.0)  # (B, K, M)
+    f = torch.clamp(free_f, lo.unsqueeze(1), hi.unsqueeze(1))
+    balance = torch.baddbmm(tau.unsqueeze(1), f, G)  # (B, K, N)
+    gap = f - f_ref.unsqueeze(1)
+    value = 0.5 * (gap * gap).sum(2) + (lam * (balance - 0.5 * w.view(-1, 1, 1) * lam)).sum(2)
+    take = value >= state.value.unsqueeze(1) + _ARMIJO * t * slope.unsqueeze(1)  # (B, K)
+    first = torch.argmax(take.to(torch.int32), dim=1)  # the largest accepted step (0 where none is)
+    return take.any(1), _State(*(_pick(x, first) for x in (lam, f, f == free_f, value, balance)))
 
 
-def _newton_step(problem, state: _State, ridge, lipschitz, eager: bool) -> _State:
-    """One Newton step on (2) with (3) and the line search, for the (sub)batch ``problem``."""
+def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+    """``x[b, first[b]]`` for ``x (B, K, ...)``."""
+    index = first.view(-1, 1, *([1] * (x.dim() - 2))).expand(-1, 1, *x.shape[2:])
+    return x.gather(1, index).squeeze(1)
+
+
+def _exact_step(problem, state: _State, step) -> torch.Tensor:
+    """(B,) the maximiser ``t > 0`` of the dual along ``step`` (NaN where it is not positive). Along the ray the dual
+    is a concave piecewise quadratic: its derivative ``step . F(lam + t step)`` is piecewise linear and
+    decreasing, with a kink where a tension ``u_m - v_m t`` (``u = f_ref - G lam``, ``v = G step``) meets a bound;
+    the root lies between the last kink where it is positive and the next one (or past the last kink, where its
+    slope is ``-w |step|^2``)."""
+    G, tau, f_ref, lo, hi, w = problem
+    u = torch.baddbmm(f_ref.unsqueeze(-1), G, state.lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)  # (B, M)
+    v = (G @ step.unsqueeze(-1)).squeeze(-1)
+    kinks = torch.cat([(u - lo) / v, (u - hi) / v], 1)  # +-inf or NaN where v = 0: dropped below
+    kinks = torch.sort(torch.where(kinks > 0, kinks, torch.inf), 1).values
+    t = torch.cat([torch.zeros_like(kinks[:, :1]), kinks], 1)  # (B, K)
+    finite = torch.isfinite(t)
+    t = torch.where(finite, t, torch.zeros_like(t))
+    f = torch.clamp(u.unsqueeze(1) - v.unsqueeze(1) * t.unsqueeze(2), lo.unsqueeze(1), hi.unsqueeze(1))  # (B, K, M)
+    curvature = w * (step * step).sum(1)  # of the last piece
+    slope0 = (step * tau).sum(1) - w * (step * state.lam).sum(1)
+    derivative = (f * v.unsqueeze(1)).sum(2) + slope0.unsqueeze(1) - curvature.unsqueeze(1) * t
+    falls = finite & (derivative <= 0)
+    k = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first kink where it is <= 0
+    last = finite.sum(1, keepdim=True) - 1
+    k0 = torch.where(falls.any(1, keepdim=True), (k - 1).clamp_min(0), last)
+    t0, d0 = t.gather(1, k0).squeeze(1), derivative.gather(1, k0).squeeze(1)
+    t1, d1 = t.gather(1, k).squeeze(1), derivative.gather(1, k).squeeze(1)
+    inside = t0 + d0 * (t1 - t0) / (d0 - d1)
+    beyond = t0 + d0 / curvature  # past the last kink (inf where w = 0: rejected below)
+    root = torch.where(falls.any(1), torch.where(d0 > d1, inside, t0), beyond)
+    return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
+
+
+def _gradient_step(problem, state: _State, residual) -> _State:
+    """The state after the ascent step ``residual / L``, ``L`` the dual gradient's Lipschitz constant."""
     G, w = problem[0], problem[5]
-    residual = state.balance - w.unsqueeze(1) * state.lam  # (2)
-    n = G.shape[2]
-    hessian = G.transpose(1, 2) @ (state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
-    hessian = hessian + w.view(-1, 1, 1) * torch.eye(n, dtype=G.dtype, device=G.device) + ridge
+    lipschitz = torch.linalg.eigvalsh(G.transpose(1, 2) @ G)[:, -1] + w
+    return _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
+
+
+def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
+    """Armijo's condition on the dual value along the Newton ``step``: the first accepted of ``t = 1``, the exact
+    maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``, every case at once
+    (eager: in the blocks ``_EAGER_BLOCKS``, each on the cases the earlier ones left). Where no trial is accepted
+    (a nearly singular Newton system), a gradient step, which always ascends (the dual is concave with a
+    Lipschitz-continuous gradient)."""
+    slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
+    halvings = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
+    if not eager:
+        t = torch.cat([halvings[:1].expand(len(step), 1), _exact_step(problem, state, step).unsqueeze(1),
+                       halvings[1:].expand(len(step), -1)], 1)
+        accepted, trial = _trials(problem, state, step, slope, t)
+        return _select(accepted, trial, _gradient_step(problem, state, residual))
+    out = _evaluate(*problem, state.lam + step)
+    rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
+    for start, stop in _EAGER_BLOCKS:
+        if rows.numel() == 0:
+            return out
+        sub_problem, sub_state, sub_step, sub_slope = _rows((problem, state, step, slope), rows)
+        t = halvings[start:stop].expand(len(rows), -1)
+        if start == 1:  # the exact maximiser first
+            t = torch.cat([_exact_step(sub_problem, sub_state, sub_step).unsqueeze(1), t], 1)
+        accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope, t)
+        out = _State(*(x.index_copy(0, rows[accepted], y[accepted]) for x, y in zip(out, trial)))
+        rows = rows[~accepted]
+    if rows.numel() == 0:
+        return out
+    sub_problem, sub_state, sub_residual = _rows((problem, state, residual), rows)
+    return _State(*(x.index_copy(0, rows, y) for x, y in zip(out, _gradient_step(sub_problem, sub_state,
+                                                                                     sub_residual))))
+
+
+def _rows(items, rows):
+    """Each tensor, tuple of tensors or ``_State`` of ``items`` at the cases ``rows``."""
+    return tuple(x[rows] if isinstance(x, torch.Tensor) else _State(*(y[rows] for y in x)) if isinstance(x, _State)
+                 else tuple(y[rows] for y in x) for x in items)
+
+
+def _residual(state: _State, w) -> torch.Tensor:
+    """(2): ``F(lam) = G^T f + tau - w lam`` (B, N) [N m]."""
+    return torch.addcmul(state.balance, w.unsqueeze(1), state.lam, value=-1.0)
+
+
+def _newton_step(problem, state: _State, residual, shift, eager: bool) -> _State:
+    """One Newton step on (2) (``residual``) with (3) (``shift``: ``w I`` and the ridge) and the line search, for
+    the (sub)batch ``problem``."""
+    G = problem[0]
+    hessian = torch.baddbmm(shift, G.transpose(1, 2), state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
     step = torch.linalg.solve_ex(hessian, residual.unsqueeze(-1))[0].squeeze(-1)
-    return _line_search(problem, state, residual, step, lipschitz, eager)
+    return _line_search(problem, state, residual, step, eager)
 
 
 def _start(G, tau, f_ref, w):
-    """``(lam_0, ridge, lipschitz)``: the unconstrained multiplier, a tiny ridge (G may be 0) and the dual
-    gradient's Lipschitz constant."""
+    """``(lam_0, shift)``: the unconstrained multiplier and ``w I`` plus a tiny ridge (G may be 0)."""
     n = G.shape[2]
     gram = G.transpose(1, 2) @ G
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     trace = torch.diagonal(gram, dim1=1, dim2=2).sum(1)
-    ridge = 1e-12 * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
-    lipschitz = torch.linalg.eigvalsh(gram)[:, -1] + w
+    ridge = _RIDGE * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
     rhs = (G.transpose(1, 2) @ f_ref.unsqueeze(-1)).squeeze(-1) + tau
     lam = torch.linalg.solve_ex(gram + ridge, rhs.unsqueeze(-1))[0].squeeze(-1)
-    return lam, ridge, lipschitz
-
-
-def _residual_norm(state: _State, w) -> torch.Tensor:
-    return (state.balance - w.unsqueeze(1) * state.lam).abs().amax(1)
+    return lam, ridge + w.view(-1, 1, 1) * eye
 
 
 def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
@@ -130,19 +210,23 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         return NewtonResult(f_ref.clone(), torch.zeros(0, dtype=torch.bool, device=G.device),
                             torch.zeros(0, dtype=torch.int32, device=G.device))
     problem = (G, tau, f_ref, lo, hi, w)
-    lam, ridge, lipschitz = _start(G, tau, f_ref, w)
+    lam, shift = _start(G, tau, f_ref, w)
     state = _evaluate(*problem, lam)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
     for _ in range(max_iter):
-        active = _residual_norm(state, w) > tol
+        residual = _residual(state, w)
+        active = residual.abs().amax(1) > tol
         if fixed_iterations:
-            state = _select(active, _newton_step(problem, state, ridge, lipschitz, False), state)
+            state = _select(active, _newton_step(problem, state, residual, shift, False), state)
         else:
             idx = active.nonzero().squeeze(1)
             if idx.numel() == 0:
                 break
-            sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), ridge[idx],
-                               lipschitz[idx], True)
-            state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
-        iterations = iterations + active.to(torch.int32)
-    return NewtonResult(state.f, _residual_norm(state, w) <= tol, iterations)
+            if idx.numel() == batch:  # every case still runs: no gather
+                state = _newton_step(problem, state, residual, shift, True)
+            else:
+                sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
+                                   shift[idx], True)
+                state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
+        iterations += active
+    return NewtonResult(state.f, _residual(state, w).abs().amax(1) <= tol, iterations)

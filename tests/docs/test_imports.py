@@ -15,7 +15,7 @@ import pytest
 
 PACKAGE = "lightning_bodyschema"
 ROOT = Path(__file__).resolve().parents[2] / PACKAGE
-NO_LIGHTNING = ("sim", "faults", "samplers", "evaluation", "adaptation")
+NO_LIGHTNING = ("sim", "faults", "samplers", "evaluation", "adaptation", "solvers")
 
 
 def module_files(root: Path = ROOT) -> dict[str, Path]:
@@ -144,10 +144,18 @@ def test_control_path_reaches_no_benchmark(graph):
 
 @pytest.mark.parametrize("subpackage", NO_LIGHTNING)
 def test_no_lightning_below_the_shell(subpackage, graph):
-    """``sim``, ``faults``, ``samplers``, ``evaluation`` and ``adaptation`` import no Lightning, even indirectly."""
+    """``sim``, ``faults``, ``samplers``, ``evaluation``, ``adaptation`` and ``solvers`` import no Lightning, even
+    indirectly."""
     files = module_files()
     for module in (m for m in graph if m.startswith(f"{PACKAGE}.{subpackage}")):
         for dependency in {module} | reachable(graph, module):
             lightning = {n for n in imported_names(dependency, files[dependency])
                          if n.split(".")[0] in ("lightning", "pytorch_lightning")}
             assert not lightning, f"{module} -> {dependency} imports {sorted(lightning)}"
+
+
+def test_solvers_stand_below_everything(graph):
+    """``solvers/`` (the box QPs every path shares) reaches nothing of the package but ``errors`` and ``status``."""
+    for module in (m for m in graph if m.startswith(f"{PACKAGE}.solvers")):
+        outside = {m for m in reachable(graph, module) if not m.startswith(f"{PACKAGE}.solvers")}
+        assert outside <= {PACKAGE, f"{PACKAGE}.errors", f"{PACKAGE}.status"}, f"{module} reaches {sorted(outside)}"

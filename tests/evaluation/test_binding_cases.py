@@ -117,7 +117,7 @@ def test_torque_reach_screen_agrees_with_the_qp(model, pool, jammed_pull):
     l_geo, G, tau_bias = model.kinematics(cases.q_ref)
     lo, hi, _, _ = tension_bounds(l_geo, cases.faults, SpringParams(), jammed_tension_in_torque=jammed_pull)
     outside = outside_torque_reach(G, tau_bias, lo, hi)
-    _, solved = solve_equilibrium_qp(G, tau_bias, np.full(lo.shape, 75.0), hi, lo)
+    _, solved = solve_equilibrium_qp(G, tau_bias, np.full(lo.shape, 75.0), f_lo_n=lo, f_hi_n=hi)
     assert outside.any() and not (outside & solved).any()
     assert np.array_equal(outside, ~solved)
     feasible, _ = check_feasible(model, cases, jammed_tension_in_torque=jammed_pull)
@@ -135,5 +135,5 @@ def test_torque_reach_screen_on_many_joints_counts_facets_and_keeps_every_feasib
     assert not outside_torque_reach(G, reachable, lo, hi).any()
     far = reachable + 50.0 * rng.normal(size=reachable.shape)  # 50 N m: beyond 31 muscles x 100 N x ~1 cm
     outside = outside_torque_reach(G, far, lo, hi)
-    _, solved = solve_equilibrium_qp(G, far, np.full(lo.shape, 50.0), hi, lo)
+    _, solved = solve_equilibrium_qp(G, far, np.full(lo.shape, 50.0), f_lo_n=lo, f_hi_n=hi)
     assert outside.all() and not solved.any()

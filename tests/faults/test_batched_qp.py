@@ -1,5 +1,6 @@
-"""The command QPs batched through proxsuite's BatchQP: the same answers as one QP per case, the closed form where no
-bound is active, and least-squares answers that are optimal within their box where no tension holds the posture."""
+"""The command QPs (``fault_command`` on ``solvers.solve_box_qp``): proxsuite's answers on one thread or its BatchQP,
+the closed form where no bound is active, and least-squares answers that are optimal within their box where no
+tension holds the posture."""
 from __future__ import annotations
 
 import numpy as np
@@ -25,16 +26,16 @@ def _free(batch):
     return np.zeros((batch, M)), np.full((batch, M), 150.0), np.full((batch, M), -np.inf), np.full((batch, M), np.inf)
 
 
-def test_batched_equilibrium_qp_matches_one_qp_per_case():
+def test_proxsuite_on_one_or_two_threads_matches_the_newton():
     _, G, tau, _ = _body(64, seed=0)
     f_ref = np.random.default_rng(1).uniform(0.0, 150.0, (64, M))  # many bounds active
-    f_loop, ok_loop = solve_equilibrium_qp(G, tau, f_ref, 150.0)
-    assert ok_loop.all() and ((f_loop < 1e-6) | (f_loop > 150 - 1e-6)).sum() > 16  # the box shapes the answers
+    f_newton, ok_newton = solve_equilibrium_qp(G, tau, f_ref, f_hi_n=150.0)
+    assert ok_newton.all() and ((f_newton < 1e-6) | (f_newton > 150 - 1e-6)).sum() > 16  # the box shapes the answers
     for threads in (1, 2):  # one QP set up per case in turn; proxsuite's BatchQP + solve_in_parallel
-        f_batch, ok_batch = solve_equilibrium_qp(G, tau, f_ref, 150.0, batched=True, num_threads=threads)
-        assert ok_batch.all()
-        np.testing.assert_allclose(f_batch, f_loop, atol=1e-7, rtol=0)
-        assert (balance_residual_nm(G, tau, f_batch) <= 1e-6).all()
+        f_qp, ok_qp = solve_equilibrium_qp(G, tau, f_ref, f_hi_n=150.0, solver="proxqp", num_threads=threads)
+        assert ok_qp.all()
+        np.testing.assert_allclose(f_qp, f_newton, atol=1e-6, rtol=0)  # proxsuite's eps_abs 1e-9 N m on the balance
+        assert (balance_residual_nm(G, tau, f_qp) <= 1e-6).all()
 
 
 def test_no_active_bound_gives_the_projection_onto_the_balance():

@@ -40,7 +40,7 @@ class ExactBodySchema(BodySchema):
         l_geo, G, tau_bias = self.robot_model.kinematics(q)
         lo, hi = bounds.numpy().tension_box(l_geo)  # length bounds become tension bounds through the spring
         f_ref = np.full_like(lo, self.spring.f_max_n / 2.0)
-        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, hi, np.minimum(lo, hi))
+        f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_lo_n=np.minimum(lo, hi), f_hi_n=hi)
         f = np.where((ok & (lo <= hi).all(1))[:, None], f, np.nan)
         return torch.as_tensor(l_geo - elongation_from_tension(f, self.spring)), torch.as_tensor(f)
 

@@ -68,16 +68,16 @@ def test_qpsolvers_path_agrees_with_native_proxqp(arm, rng):
     q = arm.sample_q(rng, 5)
     _, G, tau = arm.kinematics(q)
     f_ref = 150 * rng.random((5, arm.n_muscles))
-    f_native, ok_native = solve_equilibrium_qp(G, tau, f_ref, 150.0)
+    f_native, ok_native = solve_equilibrium_qp(G, tau, f_ref, f_hi_n=150.0)
     assert ok_native.all()
-    from lightning_bodyschema.sim.equilibrium import _qpsolvers_solve
+    from lightning_bodyschema.solvers import BoxQP, qpsolvers_solve
 
     # the same problem through qpsolvers' unified interface (proxqp backend) gives the same tensions
-    f_qps, solved = _qpsolvers_solve(G, tau, f_ref, np.zeros_like(f_ref), np.full_like(f_ref, 150.0), "proxqp")
+    f_qps, solved = qpsolvers_solve(BoxQP.build(G, tau, f_ref, 0.0, 150.0), "proxqp")
     assert solved.all()
     np.testing.assert_allclose(f_qps, f_native, atol=1e-4)
     with pytest.raises(BodySchemaInputError, match="unknown QP solver"):
-        solve_equilibrium_qp(G, tau, f_ref, 150.0, solver="no_such_solver")
+        solve_equilibrium_qp(G, tau, f_ref, f_hi_n=150.0, solver="no_such_solver")
 
 
 def test_infeasible_draws_are_refused(arm):

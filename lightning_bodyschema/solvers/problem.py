@@ -1,0 +1,104 @@
+"""One box-QP problem and one solution type for every tension QP of the package.
+
+Per case (``G (M, N)`` [m/rad], ``tau (N,)`` [N m], tensions ``f (M,)`` [N])::
+
+    min_f  1/2 ||f - f_ref||^2 + 1/(2 w) ||G^T f + tau||^2    s.t.  lo <= f <= hi       w > 0: least squares
+    min_f  1/2 ||f - f_ref||^2   s.t.  G^T f + tau = 0,  lo <= f <= hi                  w = 0: equilibrium
+
+(the equilibrium ``-G^T f = tau``: the torque the muscles balance). Every field is a float64 tensor on one device.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from ..errors import BodySchemaInputError
+
+
+class BoxQP(NamedTuple):
+    """A batch of the module docstring's problems, validated (``BoxQP.build``).
+
+    ``G (B, M, N)`` [m/rad], ``tau_nm (B, N)``, ``f_ref_n, lo_n, hi_n (B, M)`` [N] (+-inf where unbounded),
+    ``w_m2 (B,)`` [m^2] (0: the equilibrium QP); ``crossed (B,)`` bool: some ``lo > hi`` in the given bounds (no
+    tension meets them; ``lo_n`` is then lowered to ``hi_n`` so the box is never empty); ``bad_input (B,)`` bool:
+    a non-finite G, tau or f_ref, or a NaN bound (the row is not solved)."""
+
+    G: torch.Tensor
+    tau_nm: torch.Tensor
+    f_ref_n: torch.Tensor
+    lo_n: torch.Tensor
+    hi_n: torch.Tensor
+    w_m2: torch.Tensor
+    crossed: torch.Tensor
+    bad_input: torch.Tensor
+
+    @classmethod
+    def build(cls, G, tau_nm, f_ref_n, lo_n, hi_n, w_m2=0.0, device=None) -> "BoxQP":
+        """The problem from tensors or arrays: ``f_ref_n, lo_n, hi_n`` a scalar, ``(M,)`` or ``(B, M)``; ``w_m2`` a
+        scalar or ``(B,)``, finite and >= 0. On ``device`` (default: G's). Raises ``BodySchemaInputError`` naming
+        the first field of the wrong shape."""
+        G = _tensor("G", G, device)
+        if G.dim() != 3:
+            raise BodySchemaInputError(f"G has shape {tuple(G.shape)}; allowed: (B, M, N)")
+        batch, m, n = G.shape
+        tau = _shaped("tau_nm", tau_nm, (batch, n), G.device)
+        f_ref, lo, hi = (_shaped(name, x, (batch, m), G.device)
+                         for name, x in (("f_ref_n", f_ref_n), ("lo_n", lo_n), ("hi_n", hi_n)))
+        w = _shaped("w_m2", w_m2, (batch,), G.device)
+        if not bool(((w >= 0) & torch.isfinite(w)).all()):
+            raise BodySchemaInputError(f"w_m2 has {w[~((w >= 0) & torch.isfinite(w))][0].item()!r}; allowed: "
+                                       "finite numbers >= 0")
+        finite = torch.isfinite(G).flatten(1).all(1) & torch.isfinite(tau).all(1) & torch.isfinite(f_ref).all(1)
+        bad = ~finite | torch.isnan(lo).any(1) | torch.isnan(hi).any(1) | (lo == np.inf).any(1) | (hi == -np.inf).any(1)
+        crossed = (lo > hi).any(1) & ~bad
+        return cls(G, tau, f_ref, torch.minimum(lo, hi), hi, w, crossed, bad)
+
+    @property
+    def batch(self) -> int:
+        return self.G.shape[0]
+
+    def take(self, idx: torch.Tensor) -> "BoxQP":
+        """The cases ``idx`` (indices or a (B,) mask)."""
+        return BoxQP(*(x[idx] for x in self))
+
+    def with_weight(self, w_m2: torch.Tensor) -> "BoxQP":
+        """The same cases as least-squares problems of weight ``w_m2 (B,)``."""
+        return self._replace(w_m2=w_m2)
+
+    def balance_residual_nm(self, f_n: torch.Tensor) -> torch.Tensor:
+        """``max_j |G^T f + tau|`` per case (B,) [N m]: how far ``f`` is from balancing the torque."""
+        return ((self.G.transpose(1, 2) @ f_n.unsqueeze(-1)).squeeze(-1) + self.tau_nm).abs().amax(1)
+
+
+class Solution(NamedTuple):
+    """``f_n (B, M)`` [N] float64 on the problem's device, within the box (NaN rows where the input was bad);
+    ``status (B,)`` int32 codes of ``lightning_bodyschema.status.Status``; ``iterations (B,)`` int32: the dual
+    Newton's steps."""
+
+    f_n: torch.Tensor
+    status: torch.Tensor
+    iterations: torch.Tensor
+
+
+def _tensor(name: str, x, device) -> torch.Tensor:
+    try:
+        if isinstance(x, np.ndarray) and not x.flags.writeable:  # torch warns on read-only arrays (broadcasts)
+            x = np.array(x, dtype=np.float64)
+        return torch.as_tensor(x, dtype=torch.float64, device=device)
+    except (TypeError, ValueError, RuntimeError) as error:
+        raise BodySchemaInputError(f"{name} is not numeric ({error}); allowed: arrays or tensors of numbers") from None
+
+
+def _shaped(name: str, x, shape: tuple, device) -> torch.Tensor:
+    """``x`` as a float64 tensor broadcast to ``shape`` (a contiguous copy), or the error naming it."""
+    t = _tensor(name, x, device)
+    try:
+        return t.expand(shape).contiguous() if t.dim() <= len(shape) else _wrong(name, t, shape)
+    except RuntimeError:
+        return _wrong(name, t, shape)
+
+
+def _wrong(name: str, t: torch.Tensor, shape: tuple):
+    raise BodySchemaInputError(f"{name} has shape {tuple(t.shape)}; allowed: a shape that broadcasts to {shape}")

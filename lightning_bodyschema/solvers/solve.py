@@ -1,0 +1,147 @@
+"""``solve_box_qp``: every case of a ``BoxQP`` at once, the dual Newton first and the fallbacks on what it leaves.
+
+1. the batched dual Newton (``solvers.newton``) on every case with an uncrossed box, ``FIRST_PASS`` steps;
+2. an equilibrium case it leaves unsettled gets the box least squares (``solvers.least_squares``); that residual and
+   the torque-reach screen (``solvers.torque_reach``, along the least squares' residual among its directions) prove
+   most of those without an equilibrium;
+3. the rest of the Newton's steps (to ``max_iter``, from its start) on the others, then proxsuite
+   (``fallback="proxsuite"``) on what they leave, to ``EQUILIBRIUM_TOL_NM``;
+4. a case without a solution keeps the least-squares tensions and the status ``INFEASIBLE``: crossed bounds, a torque
+   the screen puts out of the box's reach, or a least-squares residual too large for any balancing tension to exist
+   (``_least_squares_proves_no_balance``). ``NOT_CONVERGED`` (with the least-squares tensions) where neither the
+   solvers settle a case nor a proof rules it out. A least-squares problem (``w > 0``) the Newton leaves goes to
+   proxsuite.
+
+torch on the problem's device; numpy only inside ``solvers.backends``. Prints nothing.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+from ..errors import BodySchemaInputError
+from ..status import Status
+from .backends import LS_MAX_ITER, proxsuite_solve
+from .least_squares import LS_REG, least_squares_weight
+from .newton import NEWTON_MAX_ITER, NEWTON_TOL_NM, dual_newton
+from .problem import BoxQP, Solution
+from .torque_reach import outside_torque_reach, residual_direction
+
+EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint torque residual is below this
+FALLBACKS = ("proxsuite", "none")
+FIRST_PASS = 10  # dual Newton steps before the cases it leaves are screened (holdable ones rarely need more)
+FALLBACK_MAX_ITER = 2000  # proxsuite's iteration limit per equilibrium QP (a case without a solution runs to it)
+_OK, _INFEASIBLE, _NOT_CONVERGED = Status.OK.code, Status.INFEASIBLE.code, Status.NOT_CONVERGED.code
+
+
+class _Options(NamedTuple):
+    tol: float
+    max_iter: int
+    fallback: str
+    fallback_max_iter: int
+    ls_reg: float
+    num_threads: int
+
+
+def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
+                 fallback: str = "proxsuite", fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG,
+                 num_threads: int = 1) -> Solution:
+    """The ``Solution`` of every case of ``problem`` (module docstring).
+
+    Args:
+        tol, max_iter: the dual Newton's stop [N m] and step limit (a case the screen rules out after
+            ``FIRST_PASS`` steps stops there).
+        fallback: ``"proxsuite"`` or ``"none"`` (the Newton, the screen and the least squares only).
+        fallback_max_iter: proxsuite's iteration limit per equilibrium QP.
+        ls_reg: the dimensionless weight of ``||f - f_ref||^2`` in the least squares of a case without a solution.
+        num_threads: proxsuite's threads (1: one QP per case in turn; more: its ``BatchQP``).
+    """
+    options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads)
+    _check_options(options)
+    f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
+    f[problem.bad_input] = torch.nan
+    status = torch.full((problem.batch,), _NOT_CONVERGED, dtype=torch.int32, device=f.device)
+    status[problem.bad_input] = Status.BAD_INPUT.code
+    iterations = torch.zeros_like(status)
+    run = ~problem.bad_input & ~problem.crossed
+    if bool(run.any()):
+        newton = dual_newton(*problem.take(run)[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS))
+        f[run], iterations[run] = newton.f, newton.iterations
+        status[run] = torch.where(newton.converged, _OK, _NOT_CONVERGED).to(torch.int32)
+    unsettled = status == _NOT_CONVERGED
+    for rows, settle in ((unsettled & (problem.w_m2 > 0), _least_squares_rest),
+                         (unsettled & (problem.w_m2 == 0), _no_equilibrium_yet)):
+        if bool(rows.any()):
+            f[rows], status[rows], iterations[rows] = settle(problem.take(rows), iterations[rows], options)
+    return Solution(f, status, iterations)
+
+
+def _check_options(options: _Options):
+    if options.fallback not in FALLBACKS:
+        raise BodySchemaInputError(f"fallback={options.fallback!r}; allowed: {list(FALLBACKS)}")
+    for name, least in (("max_iter", 0), ("fallback_max_iter", 1), ("num_threads", 1)):
+        value = getattr(options, name)
+        if isinstance(value, bool) or int(value) != value or value < least:
+            raise BodySchemaInputError(f"{name}={value!r}; allowed: an integer >= {least}")
+
+
+def _newton_rest(problem: BoxQP, options: _Options):
+    """``(f, converged, iterations)``: the dual Newton to ``max_iter`` on cases its first ``FIRST_PASS`` steps left
+    (from the same start: the answer of one run to ``max_iter``)."""
+    result = dual_newton(*problem[:6], tol=options.tol, max_iter=options.max_iter)
+    return result.f, result.converged, result.iterations
+
+
+def _least_squares_rest(problem: BoxQP, iterations, options: _Options):
+    """``(f, status, iterations)`` of least-squares cases the Newton's first pass left: the rest of its steps,
+    proxsuite on what they leave."""
+    f, settled, iterations = _newton_rest(problem, options)
+    if options.fallback == "proxsuite" and not bool(settled.all()):
+        f[~settled], settled[~settled] = proxsuite_solve(problem.take(~settled), LS_MAX_ITER, options.num_threads)
+    return f, torch.where(settled, _OK, _NOT_CONVERGED).to(torch.int32), iterations
+
+
+def _least_squares(problem: BoxQP, options: _Options):
+    """``(f, settled)`` of the least-squares ``problem``: the dual Newton, proxsuite on what it leaves."""
+    result = dual_newton(*problem[:6])
+    f, settled = result.f, result.converged
+    if options.fallback == "proxsuite" and not bool(settled.all()):
+        f[~settled], settled[~settled] = proxsuite_solve(problem.take(~settled), LS_MAX_ITER, options.num_threads)
+    return f, settled
+
+
+def _no_equilibrium_yet(problem: BoxQP, iterations, options: _Options):
+    """``(f, status, iterations)`` of equilibrium cases the Newton's first pass left (crossed ones included):
+    steps 2 to 4 of the module docstring, the rest of the Newton's steps on the cases nothing rules out first."""
+    w_ls = least_squares_weight(problem.G, options.ls_reg)
+    f_ls, settled = _least_squares(problem.with_weight(w_ls), options)
+    outside = problem.crossed | (settled & _least_squares_proves_no_balance(problem, f_ls, w_ls))
+    if not bool(outside.all()):
+        rows = problem.take(~outside)
+        outside[~outside] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM,
+                                                 residual_direction(rows.G, rows.tau_nm, f_ls[~outside]))
+    status = torch.where(outside, _INFEASIBLE, _NOT_CONVERGED).to(torch.int32)
+    f, todo = f_ls.clone(), ~outside
+    if bool(todo.any()):
+        f_newton, converged, iterations[todo] = _newton_rest(problem.take(todo), options)
+        f[todo] = torch.where(converged.unsqueeze(1), f_newton, f[todo])
+        status[todo] = torch.where(converged, _OK, _NOT_CONVERGED).to(torch.int32)
+        todo[todo.clone()] = ~converged
+    if options.fallback == "proxsuite" and bool(todo.any()):
+        rows = problem.take(todo)
+        f_qp, solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads)
+        ok = solved & (rows.balance_residual_nm(f_qp) <= EQUILIBRIUM_TOL_NM)
+        f[todo] = torch.where(ok.unsqueeze(1), f_qp, f_ls[todo])
+        status[todo] = torch.where(ok, _OK, _NOT_CONVERGED).to(torch.int32)
+    return f, status, iterations
+
+
+def _least_squares_proves_no_balance(problem: BoxQP, f_ls, w_m2) -> torch.Tensor:
+    """(B,) True where the least-squares minimiser ``f_ls`` (weight ``w_m2``) shows that no tension in the box
+    balances the torque: a balancing f would give the objective ``||f - f_ref||^2 <= R^2`` (R the farthest point of
+    the box from f_ref), so ``||G^T f_ls + tau||^2 <= w R^2`` whenever one exists."""
+    reach = torch.maximum(problem.hi_n - problem.f_ref_n, problem.f_ref_n - problem.lo_n)
+    radius = torch.linalg.vector_norm(reach, dim=1)
+    residual = (problem.G.transpose(1, 2) @ f_ls.unsqueeze(-1)).squeeze(-1) + problem.tau_nm
+    return torch.linalg.vector_norm(residual, dim=1) > w_m2.sqrt() * radius + EQUILIBRIUM_TOL_NM

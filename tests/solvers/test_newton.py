@@ -1,0 +1,97 @@
+"""The torch dual Newton solves the box QPs exactly: proxsuite's answers to 1e-8 N, KKT conditions, unholdable cases,
+the same answer with a fixed iteration count, float64 on CPU from arrays."""
+import numpy as np
+import pytest
+import torch
+
+from lightning_bodyschema.solvers import BoxQP, dual_newton, least_squares_weight, proxsuite_solve
+
+TIGHT = 1e-12  # proxsuite's eps_abs for the reference answers: its own error far below 1e-8 N
+
+
+def _body(batch, m=12, n=4, seed=0):
+    rng = np.random.default_rng(seed)
+    G = rng.normal(scale=0.02, size=(batch, m, n))  # moment arms ~2 cm
+    f_true = rng.uniform(0.0, 200.0, size=(batch, m))
+    tau = -np.einsum("bmn,bm->bn", G, f_true)  # holdable by construction
+    return rng, G, tau, np.zeros((batch, m)), np.full((batch, m), 200.0)
+
+
+def kkt_residuals(problem: BoxQP, f):
+    """(stationarity [N], complementarity [N^2], primal infeasibility [N m]) of the equilibrium QP per case: the
+    multiplier ``lam`` fitted on the free tensions, ``r = f - f_ref + G lam`` must vanish there, be >= 0 at lower
+    and <= 0 at upper bounds; ``|r_i| * distance to the bound`` is the complementarity gap."""
+    G, f_ref, lo, hi = problem.G, problem.f_ref_n, problem.lo_n, problem.hi_n
+    free = ((f > lo + 1e-7) & (f < hi - 1e-7)).to(G.dtype)
+    lam = torch.linalg.lstsq(free.unsqueeze(-1) * G, (free * (f_ref - f)).unsqueeze(-1)).solution.squeeze(-1)
+    r = f - f_ref + (G @ lam.unsqueeze(-1)).squeeze(-1)
+    wrong_sign = torch.where(f <= lo + 1e-7, (-r).clamp_min(0), torch.where(f >= hi - 1e-7, r.clamp_min(0), r.abs()))
+    gap = (r.abs() * torch.minimum(f - lo, hi - f)).amax(1)
+    primal = torch.maximum(problem.balance_residual_nm(f), torch.maximum(lo - f, f - hi).amax(1).clamp_min(0))
+    return wrong_sign.amax(1), gap, primal
+
+
+def test_equilibrium_matches_proxsuite_with_active_bounds_and_meets_kkt():
+    rng, G, tau, lo, hi = _body(64)
+    f_ref = rng.uniform(-100.0, 300.0, size=lo.shape)  # far out of the box: many bounds active
+    problem = BoxQP.build(G, tau, f_ref, lo, hi)
+    result = dual_newton(*problem[:6])
+    f_qp, ok_qp = proxsuite_solve(problem, 10000, eps_abs=TIGHT)
+    assert result.converged.all() and ok_qp.all() and result.f.dtype == torch.float64
+    assert ((result.f <= problem.lo_n) | (result.f >= problem.hi_n)).sum() > 64  # the active set is exercised
+    torch.testing.assert_close(result.f, f_qp, rtol=0.0, atol=1e-8)
+    stationarity, complementarity, primal = kkt_residuals(problem, result.f)
+    assert stationarity.max() <= 1e-8 and complementarity.max() <= 1e-6 and primal.max() <= 1e-9
+
+
+def test_a_torque_the_box_cannot_hold_does_not_converge():
+    _, G, tau, lo, hi = _body(8, seed=1)
+    result = dual_newton(G, 100.0 * tau + 50.0, np.full(lo.shape, 100.0), lo, hi)
+    f = result.f.numpy()
+    assert not result.converged.any() and np.all((f >= lo) & (f <= hi)) and (result.iterations == 30).all()
+
+
+def test_least_squares_meets_its_kkt_conditions_and_matches_proxsuite():
+    rng, G, tau, lo, hi = _body(32, seed=2)
+    tau = 50.0 * tau + rng.normal(scale=20.0, size=tau.shape)  # mostly out of reach
+    problem = BoxQP.build(G, tau, 100.0, lo, hi)
+    problem = problem.with_weight(least_squares_weight(problem.G, 1e-2))
+    result = dual_newton(*problem[:6])
+    assert result.converged.all()
+    f, f_ref, w = result.f.numpy(), 100.0, problem.w_m2.numpy()
+    grad = (f - f_ref) + np.einsum("bmn,bn->bm", G, np.einsum("bmn,bm->bn", G, f) + tau) / w[:, None]
+    free = (f > lo + 1e-9) & (f < hi - 1e-9)
+    scale = np.abs(grad).max()
+    assert np.abs(grad[free]).max() <= 1e-6 * scale  # stationary on the free tensions
+    assert grad[f <= lo + 1e-9].min() >= -1e-6 * scale and grad[f >= hi - 1e-9].max() <= 1e-6 * scale
+    f_qp, solved = proxsuite_solve(problem, 10000, eps_abs=1e-10)
+    assert solved.all()
+    torch.testing.assert_close(result.f, f_qp, rtol=0.0, atol=1e-6)  # proxsuite's tolerance on the scaled objective
+
+
+def test_fixed_iterations_give_the_eager_answer():
+    rng, G, tau, lo, hi = _body(48, seed=3)
+    tau[:5] = 100.0 * tau[:5] + 50.0  # some never converge
+    f_ref = rng.uniform(-100.0, 300.0, size=lo.shape)
+    eager = dual_newton(G, tau, f_ref, lo, hi)
+    fixed = dual_newton(G, tau, f_ref, lo, hi, fixed_iterations=True)
+    torch.testing.assert_close(fixed.f, eager.f, rtol=0.0, atol=1e-9)
+    assert torch.equal(fixed.converged, eager.converged) and torch.equal(fixed.iterations, eager.iterations)
+    assert not eager.converged[:5].any() and eager.converged[5:].all()
+
+
+def test_an_empty_batch_and_a_zero_body():
+    empty = dual_newton(np.zeros((0, 3, 2)), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros((0, 3)), np.ones((0, 3)))
+    assert empty.f.shape == (0, 3) and empty.converged.shape == (0,)
+    zero = dual_newton(np.zeros((1, 3, 2)), np.zeros((1, 2)), np.full((1, 3), 0.5), np.zeros((1, 3)), np.ones((1, 3)))
+    assert zero.converged.all() and torch.allclose(zero.f, torch.full((1, 3), 0.5, dtype=torch.float64))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_the_newton_runs_on_cuda_and_gives_the_cpu_answer():
+    rng, G, tau, lo, hi = _body(64, seed=4)
+    f_ref = rng.uniform(-100.0, 300.0, size=lo.shape)
+    cpu = dual_newton(G, tau, f_ref, lo, hi)
+    cuda = dual_newton(*(torch.as_tensor(x, device="cuda") for x in (G, tau, f_ref, lo, hi)))
+    assert cuda.f.device.type == "cuda" and cuda.f.dtype == torch.float64
+    torch.testing.assert_close(cuda.f.cpu(), cpu.f, rtol=0.0, atol=1e-8)

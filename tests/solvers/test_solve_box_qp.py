@@ -1,0 +1,103 @@
+"""``solve_box_qp``: statuses from the one vocabulary, proxsuite's answers on OK rows, least-squares KKT conditions on
+INFEASIBLE rows, the fallbacks, bad input."""
+import numpy as np
+import pytest
+import torch
+
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.solvers import BoxQP, least_squares_weight, proxsuite_solve, solve_box_qp
+from lightning_bodyschema.status import Status
+
+OK, INFEASIBLE, NOT_CONVERGED = Status.OK.code, Status.INFEASIBLE.code, Status.NOT_CONVERGED.code
+M, N = 8, 3
+
+
+def _body(batch, seed):
+    """Moment arms (B, M, N) of +-1..3 cm and the torque of tensions in [20, 130] N (holdable in [0, 150])."""
+    rng = np.random.default_rng(seed)
+    G = rng.choice([-1.0, 1.0], (batch, M, N)) * rng.uniform(0.01, 0.03, (batch, M, N))
+    return rng, G, -np.einsum("bmn,bm->bn", G, rng.uniform(20.0, 130.0, (batch, M)))
+
+
+def _least_squares_kkt(problem: BoxQP, f, reg):
+    """Max wrong-signed gradient [N] of ``||G^T f + tau||^2 / (reg s) + ||f - f_ref||^2`` over the box (0 at its
+    minimiser): stationary where free, pointing out of the box at a bound (to 1 mN)."""
+    w = least_squares_weight(problem.G, reg)
+    residual = (problem.G.transpose(1, 2) @ f.unsqueeze(-1)).squeeze(-1) + problem.tau_nm
+    grad = (problem.G @ residual.unsqueeze(-1)).squeeze(-1) / w.unsqueeze(1) + f - problem.f_ref_n
+    at_lo, at_hi = f <= problem.lo_n + 1e-3, f >= problem.hi_n - 1e-3
+    pinned = problem.lo_n >= problem.hi_n
+    wrong = torch.where(pinned, 0.0, torch.where(at_lo, (-grad).clamp_min(0),
+                                                 torch.where(at_hi, grad.clamp_min(0), grad.abs())))
+    return wrong.amax(1)
+
+
+def test_ok_rows_equal_proxsuite_and_unholdable_rows_are_infeasible_least_squares():
+    rng, G, tau = _body(96, seed=0)
+    tau[:12] *= 3.0  # three times the torque of tensions below 130 N: beyond 150 N on these arms
+    hi = np.full((96, M), 150.0)
+    hi[12:18, 0], lo = -1.0, np.zeros((96, M))  # crossed bounds
+    problem = BoxQP.build(G, tau, rng.uniform(0.0, 150.0, (96, M)), lo, hi)
+    solution = solve_box_qp(problem)
+    assert solution.f_n.dtype == torch.float64 and solution.status.dtype == torch.int32
+    ok = solution.status == OK
+    assert (solution.status[12:18] == INFEASIBLE).all() and ok[18:].all()  # crossed; holdable
+    assert (solution.status[:12] == INFEASIBLE).sum() >= 8 and set(solution.status[:12].tolist()) <= {OK, INFEASIBLE}
+    infeasible = solution.status == INFEASIBLE
+    f_qp, solved = proxsuite_solve(problem.take(ok), 10000, eps_abs=1e-12)
+    assert solved.all()
+    torch.testing.assert_close(solution.f_n[ok], f_qp, rtol=0.0, atol=1e-8)
+    assert (problem.balance_residual_nm(solution.f_n)[ok] <= 1e-9).all()
+    assert (problem.balance_residual_nm(solution.f_n)[infeasible[:12].nonzero()] > 1e-3).all()
+    assert (solution.f_n >= problem.lo_n).all() and (solution.f_n <= problem.hi_n).all()
+    # 1 N of stationarity where the gradient's terms reach 1e5..1e8 N
+    assert (_least_squares_kkt(problem.take(infeasible), solution.f_n[infeasible], 1e-6) <= 1.0).all()
+
+
+def test_without_proxsuite_an_unsettled_holdable_case_is_not_converged_and_proxsuite_settles_it():
+    rng, G, tau = _body(16, seed=1)
+    problem = BoxQP.build(G, tau, rng.uniform(-50.0, 200.0, (16, M)), 0.0, 150.0)
+    newton_only = solve_box_qp(problem, max_iter=0, fallback="none")  # the Newton does not move
+    assert (newton_only.status != INFEASIBLE).all() and (newton_only.status == NOT_CONVERGED).any()
+    assert (newton_only.iterations == 0).all()
+    settled = solve_box_qp(problem, max_iter=0)
+    assert (settled.status == OK).all()
+    torch.testing.assert_close(settled.f_n, solve_box_qp(problem).f_n, rtol=0.0, atol=1e-6)  # proxsuite's eps
+
+
+def test_the_screen_settles_unholdable_cases_without_proxsuite():
+    _, G, tau = _body(24, seed=2)
+    problem = BoxQP.build(G, 5.0 * tau, 75.0, 0.0, 150.0)
+    screened, full = solve_box_qp(problem, fallback="none"), solve_box_qp(problem)
+    assert torch.equal(screened.status, full.status) and (screened.status == INFEASIBLE).sum() > 20
+    assert set(screened.status.tolist()) <= {OK, INFEASIBLE}
+    assert (screened.f_n >= 0.0).all() and (screened.f_n <= 150.0).all()
+
+
+def test_least_squares_problems_and_threads():
+    rng, G, tau = _body(40, seed=3)
+    tau[::4] *= 3.0
+    problem = BoxQP.build(G, tau, 75.0, 0.0, 150.0)
+    one, two = solve_box_qp(problem), solve_box_qp(problem, num_threads=2)
+    assert torch.equal(one.status, two.status) and (one.status == INFEASIBLE).any() and (one.status == OK).any()
+    torch.testing.assert_close(two.f_n, one.f_n, rtol=0.0, atol=1e-7)
+    weighted = problem.with_weight(least_squares_weight(problem.G, 1e-6))
+    least_squares = solve_box_qp(weighted)
+    assert (least_squares.status == OK).all()  # a least-squares problem always has its answer
+    assert (_least_squares_kkt(weighted, least_squares.f_n, 1e-6) <= 1.0).all()
+
+
+def test_bad_rows_and_bad_arguments():
+    _, G, tau = _body(4, seed=4)
+    G[1, 0, 0] = np.nan
+    solution = solve_box_qp(BoxQP.build(G, tau, 75.0, 0.0, 150.0))
+    assert solution.status[1] == Status.BAD_INPUT.code and torch.isnan(solution.f_n[1]).all()
+    assert (solution.status[[0, 2, 3]] == OK).all()
+    with pytest.raises(BodySchemaInputError, match="tau_nm has shape"):
+        BoxQP.build(G, tau[:, :2], 75.0, 0.0, 150.0)
+    with pytest.raises(BodySchemaInputError, match="G has shape"):
+        BoxQP.build(G[0], tau, 75.0, 0.0, 150.0)
+    with pytest.raises(BodySchemaInputError, match="w_m2"):
+        BoxQP.build(G, tau, 75.0, 0.0, 150.0, w_m2=-1.0)
+    with pytest.raises(BodySchemaInputError, match="fallback='cvxpy'"):
+        solve_box_qp(BoxQP.build(G, tau, 75.0, 0.0, 150.0), fallback="cvxpy")
