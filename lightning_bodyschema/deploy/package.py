@@ -99,7 +99,14 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
         dim = Dim("batch", min=1, max=MAX_BATCH)
         shapes = tuple({0: dim} for _ in INPUTS[:-1]) + (None,)
     with torch.no_grad():
-        program = export(module, example, dynamic_shapes=shapes, strict=False)
+        try:
+            program = export(module, example, dynamic_shapes=shapes, strict=False)
+        except torch._dynamo.exc.UserError as error:  # a dynamic batch the traced code fixed to one size
+            if shapes is None or "specialized it to be a constant" not in str(error):
+                raise
+            raise BodySchemaInputError(f"{module.kind} adapter: its code fixes the batch size when traced, so it "
+                                       "cannot be exported for a dynamic batch; give a static one (--batch-sizes "
+                                       "1)") from None
     metadata = package_metadata(schema, module, ckpt_sha256, batch)
     folder = os.path.dirname(os.path.abspath(out))
     os.makedirs(folder, exist_ok=True)

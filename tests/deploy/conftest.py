@@ -33,11 +33,11 @@ def struct_cases(struct30, dm):
 
 @pytest.fixture(scope="session")
 def struct_package(struct30, tmp_path_factory):
-    """struct30's adapter package (dynamic batch)."""
+    """struct30's adapter package for batch 1 (what a control loop sends, and what the C++ example runs)."""
     from lightning_bodyschema.deploy import export_package
 
     path = str(tmp_path_factory.mktemp("deploy") / "structured.pt2")
-    return export_package(struct30, path, ckpt_sha256="test-session")
+    return export_package(struct30, path, batch=1, ckpt_sha256="test-session")
 
 
 @pytest.fixture(scope="session")
