@@ -50,9 +50,22 @@ inline std::map<int, std::string> parse_status_codes(const std::string& json) {
   return out;
 }
 
+// A JSON array of numbers at any depth, flattened, e.g. [[-1.5, 1.5], [0, 2.2]] (the metadata's joint ranges).
+inline std::vector<double> parse_numbers(const std::string& json) {
+  std::vector<double> out;
+  size_t i = 0;
+  while ((i = json.find_first_of("-0123456789", i)) != std::string::npos) {
+    size_t used = 0;
+    out.push_back(std::stod(json.substr(i), &used));
+    i += used;
+  }
+  return out;
+}
+
 struct Adapter {
   std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
   std::vector<std::string> joints, muscles;
+  std::vector<double> q_range;  // lo, hi of each joint [rad], in joint order
   std::map<int, std::string> status_names;
   std::string kind;  // "diffusion" or "structured"
   int64_t default_seed = 0;
@@ -72,6 +85,8 @@ struct Adapter {
     muscles = parse_string_list(meta.at("muscle_names"));
     status_names = parse_status_codes(meta.at("status_codes"));
     kind = meta.count("schema_kind") ? meta.at("schema_kind") : "diffusion";
+    q_range = parse_numbers(meta.at("q_range_rad"));
+    if (q_range.size() != 2 * joints.size()) throw std::runtime_error(path + ": bad q_range_rad in its metadata");
     default_seed = std::stoll(meta.at("seeds").substr(1));
   }
 

@@ -1,6 +1,6 @@
 // A control loop a user can copy: load the package once, allocate the input buffers once, one call per tick.
 //   control_loop PACKAGE.pt2 [--ticks 10000] [--cut muscle] [--json] [--sha256 HEX]
-// Each tick writes the next posture of a slow sweep through the joint ranges into the q buffer (a real controller
+// Each tick writes the next posture of a slow sweep inside the joint ranges (metadata) into the q buffer (a real controller
 // writes its reference posture and current faults there), calls the package and uses the command only when the
 // status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
 // growth [kB] over the loop. Runs a diffusion or a structured package alike; --sha256 refuses a package whose digest
@@ -64,7 +64,10 @@ int main(int argc, char** argv) {
   long sent = 0, rss_start = 0;
   double first_us = 0.0;
   for (long t = 0; t <= ticks; ++t) {
-    for (size_t j = 0; j < n; ++j) q[j] = 0.3 * std::sin(0.001 * t + j);  // the reference posture of this tick
+    for (size_t j = 0; j < n; ++j) {  // the reference posture of this tick: a slow sweep inside the joint ranges
+      const double lo = adapter->q_range[2 * j], hi = adapter->q_range[2 * j + 1];
+      q[j] = lo + (hi - lo) * (0.5 + 0.4 * std::sin(0.001 * t + j));
+    }
     auto start = clock::now();
     auto out = adapter->run(inputs);
     double us = std::chrono::duration<double, std::micro>(clock::now() - start).count();

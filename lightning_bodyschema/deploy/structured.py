@@ -17,9 +17,9 @@ from ..solvers.newton import NEWTON_TOL_NM, dual_newton
 from ..status import Status
 from .module import PackageModule
 
-# the Newton steps the package runs on every case (the Python adapter stops a case when it settles, and hands the
-# few that have not settled after as many steps to proxsuite)
-PACKAGE_NEWTON_ITER = 30
+# the Newton steps the package runs on every case: the Python adapter stops a case when it settles (a holdable
+# posture takes a handful of steps with the exact line search) and hands the few it has not settled to proxsuite
+PACKAGE_NEWTON_ITER = 12
 
 
 class StructuredAdapterModule(PackageModule):
