@@ -1,8 +1,8 @@
 // A control loop a user can copy: load the package once, allocate the input buffers once, one call per tick.
 //   control_loop PACKAGE.pt2 [--ticks 10000] [--cut muscle] [--json] [--sha256 HEX]
-// Each tick writes the next posture of a slow sweep inside the joint ranges (metadata) into the q buffer (a real controller
-// writes its reference posture and current faults there), calls the package and uses the command only when the
-// status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
+// Each tick writes the next posture of a slow sweep inside the joint ranges (metadata) into the q buffer (a real
+// controller writes its reference posture and current faults there), calls the package and uses the command only
+// when the status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
 // growth [kB] over the loop. Runs a diffusion or a structured package alike; --sha256 refuses a package whose digest
 // is not HEX before loading it (exit 1).
 #include <algorithm>
