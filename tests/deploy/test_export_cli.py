@@ -42,3 +42,13 @@ def test_a_pinned_digest_is_checked_before_anything_is_loaded(tmp_path, monkeypa
         load_exported(str(path), expected_sha256="abc")
     with pytest.raises(BodySchemaInputError, match="corrupt or truncated"):  # the right digest: on to the checks
         load_exported(str(path), expected_sha256=file_sha256(str(path)).upper())
+
+
+def test_check_package_bad_input_exits_2_with_one_line(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("check_package", os.path.join(REPO, "tools", "check_package.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with pytest.raises(SystemExit) as exit_info:
+        module.main(["--ckpt", str(tmp_path / "none.ckpt"), "--package", str(tmp_path / "none.pt2"), "--cases", "0"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.startswith("error: ") and err.count("\n") == 1 and "--cases 0" in err
