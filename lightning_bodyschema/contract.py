@@ -15,10 +15,10 @@ training step, validation in physical units, checkpoints, ``adapt``/``adapter`` 
     tensors, minimizing ``penalty`` (a ``faults.penalty.BoxPenalty``: call it for L_adapt, ``grad``/``residual``
     for its gradient) per case; for generative schemas (AE, VAE, diffusion). The penalty is built once per fault
     set from ``penalty_builder(variant)``; ``fault_projection`` may add a projection the sampler takes as an option.
-  - ``ADAPTS_IN_SI``: ``adapt_si(q_rad, constraints, variant, **options) -> (l_motor_m, f_n)``, both (B, M)
-    float64 tensors, from postures ``q_rad (B, N)`` [rad] (float64 tensor) and the faults' constraints in SI units
-    (``Faults.constraints(f_max_n)``: ``faults.constraints`` intervals, tension bounds included); for schemas that
-    solve for the command directly (e.g. a QP on a learned body).
+  - ``ADAPTS_IN_SI``: ``adapt_si(q_rad, bounds, variant, **options) -> (l_motor_m, f_n)``, both (B, M)
+    float64 tensors, from postures ``q_rad (B, N)`` [rad] (float64 tensor) and the faults' SI bounds
+    (``faults.bounds.FaultBounds``: tension and motor-length bounds, the tension box through the spring); for
+    schemas that solve for the command directly (e.g. a QP on a learned body).
 
   Either way the result goes through the same safe-command step and physics check. A schema declaring neither is
   a plain regressor: ``adapt`` refuses it.
@@ -78,7 +78,7 @@ class SchemaContract(Protocol):
 
     def adapt_normalized(self, q_n, penalty, variant: str, **options): ...
 
-    def adapt_si(self, q_rad, constraints, variant: str, **options) -> tuple[Any, Any]: ...
+    def adapt_si(self, q_rad, bounds, variant: str, **options) -> tuple[Any, Any]: ...
 
 
 def check_capabilities(cls: type, base: type) -> None:

@@ -1,14 +1,17 @@
 #!/usr/bin/env python
-"""Tail latency of the adapter at batch 1, one path at a time: N consecutive calls each.
+"""Tail latency of the adapter at batch 1, one schema and path at a time: N consecutive calls each.
 
-    python tools/bench_deploy.py --ckpt CKPT --package runs/adapter.pt2 [--cpp-build build/cpp] [--calls 10000]
-        [--paths eager,compiled,aoti,aoti_wrapper,cpp] [--cut shoulder_flexor]
+    python tools/bench_deploy.py --ckpt CKPT --package runs/adapter.pt2 [--ckpt CKPT2 --package PKG2 ...]
+        [--cpp-build build/cpp] [--calls 10000] [--paths eager,compiled,aoti,aoti_wrapper,cpp] [--cut MUSCLE]
 
-Paths: ``eager`` the prepared Python adapter (``schema.adapter(faults, n_steps=20, check_physics=False)``),
-``compiled`` the same with ``compiled=True`` (torch.compile, cpp_wrapper), ``aoti`` the package's raw call from
-Python on tensors allocated once, ``aoti_wrapper`` ``load_exported(...)(q, faults)`` (numpy in and out), ``cpp``
-examples/cpp's ``control_loop`` (build it first; see README "Deploy in a C++ controller"). Prints one markdown row per path: first call
-after loading [ms], p50, p99, p99.9, max [us] and resident-memory growth [kB] over the calls after the first.
+One table for every (checkpoint, package) pair given, diffusion and structured alike. Paths: ``eager`` the
+prepared Python adapter (``schema.adapter(faults, check_physics=False)``, 20 steps for the diffusion schema),
+``compiled`` the same with ``compiled=True`` (diffusion only: torch.compile, cpp_wrapper), ``aoti`` the package's
+raw call from Python on tensors allocated once, ``aoti_wrapper`` ``load_exported(...)(q, faults)`` (numpy in and
+out), ``cpp`` examples/cpp's ``control_loop`` (build it first; see README "Deploy in a C++ controller"). Prints one
+markdown row per schema and path: first call after loading [ms], p50, p99, p99.9, max [us], resident-memory growth
+[kB] over the calls after the first, and how many calls answered ok. ``--cut``: the one cut muscle of every call
+(default: the robot's first muscle; '' none).
 """
 import json
 import os
@@ -36,29 +39,37 @@ def postures(q_range, calls: int) -> np.ndarray:
 
 
 def timed(load, qs) -> dict:
-    """Load, then one call per posture: the first alone, the rest as latencies; RSS growth after the first."""
+    """Load, then one call per posture: the first alone, the rest as latencies; RSS growth after the first. A call
+    returns its status code (0: ok); ``ok`` counts the calls after the first."""
     start = time.perf_counter()
     fn = load()
     fn(qs[:1])
+    ok = 0
     first_ms = 1e3 * (time.perf_counter() - start)
     rss, lat = rss_kb(), np.empty(len(qs) - 1)
     for i in range(1, len(qs)):
         t0 = time.perf_counter()
-        fn(qs[i:i + 1])
+        code = fn(qs[i:i + 1])
         lat[i - 1] = time.perf_counter() - t0
-    return summary(first_ms, 1e6 * lat, rss_kb() - rss)
+        ok += int(code == 0)
+    return summary(first_ms, 1e6 * lat, rss_kb() - rss, ok)
 
 
-def summary(first_ms, lat_us, rss_growth_kb) -> dict:
+def summary(first_ms, lat_us, rss_growth_kb, ok) -> dict:
     p50, p99, p999 = np.percentile(lat_us, [50, 99, 99.9])
     return {"first_ms": first_ms, "p50_us": p50, "p99_us": p99, "p999_us": p999, "max_us": float(np.max(lat_us)),
-            "rss_growth_kb": rss_growth_kb}
+            "rss_growth_kb": rss_growth_kb, "ok": ok}
 
 
 def python_path(schema, faults, compiled: bool):
+    from lightning_bodyschema.schemas import DiffusionSchema
+
+    options = {"n_steps": 20} if isinstance(schema, DiffusionSchema) else {}
+    options.update({"compiled": True} if compiled else {})
+
     def load():
-        adapter = schema.adapter(faults, n_steps=20, check_physics=False, **({"compiled": True} if compiled else {}))
-        return lambda q: adapter(q)
+        adapter = schema.adapter(faults, check_physics=False, **options)
+        return lambda q: adapter(q).status[0].code
     return load
 
 
@@ -70,12 +81,12 @@ def aoti_path(package: str, faults, raw: bool):
     def load():
         adapter = load_exported(package)
         if not raw:
-            return lambda q: adapter(q, faults)
+            return lambda q: adapter(q, faults).status[0].code
         tensors = adapter.inputs(np.zeros((1, len(adapter.joint_names))), faults)
 
         def call(q):
             tensors[0].copy_(torch_from(q))
-            return adapter.run(*tensors)
+            return int(adapter.run(*tensors)[2][0])
         return call
     return load
 
@@ -95,44 +106,61 @@ def cpp_path(build: str, package: str, calls: int, cut: str) -> dict:
     out = json.loads(subprocess.run(args, capture_output=True, text=True, check=True).stdout)
     wall = time.perf_counter() - start
     return {"first_ms": out["load_ms"] + out["first_call_us"] / 1e3, "p50_us": out["p50_us"], "p99_us": out["p99_us"],
-            "p999_us": out["p999_us"], "max_us": out["max_us"], "rss_growth_kb": out["rss_growth_kb"], "wall_s": wall}
+            "p999_us": out["p999_us"], "max_us": out["max_us"], "rss_growth_kb": out["rss_growth_kb"], "wall_s": wall,
+            "ok": out["ok_ticks"]}
 
 
 @exits_cleanly
 def main(argv=None):
     parser = argument_parser("Tail latency of the adapter at batch 1 on each deployment path.", checkpoint=True)
-    parser.add_argument("--ckpt", required=True, help="the diffusion checkpoint the package was exported from")
-    parser.add_argument("--package", required=True, help="the exported package (tools/export_adapter.py)")
+    parser.add_argument("--ckpt", required=True, action="append", help="a checkpoint a package was exported from "
+                        "(diffusion or structured; repeat with --package for one table of several)")
+    parser.add_argument("--package", required=True, action="append", help="its package (tools/export_adapter.py)")
     parser.add_argument("--cpp-build", default=None, help="build folder of examples/cpp (for the cpp path)")
     parser.add_argument("--calls", type=int, default=10000, help="consecutive calls per path (default 10000)")
     parser.add_argument("--paths", default=",".join(PATHS), help=f"comma-separated, of {list(PATHS)}")
-    parser.add_argument("--cut", default="shoulder_flexor", help="the one fault of every call (a cut muscle; '' none)")
+    parser.add_argument("--cut", default=None, help="the one cut muscle of every call (default: the first; '' none)")
     args = parser.parse_args(argv)
     paths = args.paths.split(",")
     unknown = sorted(set(paths) - set(PATHS))
-    if unknown or args.calls < 10:
-        raise BodySchemaInputError(f"--paths {unknown} unknown (allowed {list(PATHS)}) or --calls {args.calls} < 10")
+    if unknown or args.calls < 10 or len(args.ckpt) != len(args.package):
+        raise BodySchemaInputError(f"--paths {unknown} unknown (allowed {list(PATHS)}), --calls {args.calls} < 10, or "
+                                   f"{len(args.ckpt)} --ckpt for {len(args.package)} --package (give pairs)")
+    if "cpp" in paths and args.cpp_build is None:
+        raise BodySchemaInputError("the cpp path needs --cpp-build (the examples/cpp build folder)")
     torch_one_thread()
-    schema = load_checked_schema(args)
-    from lightning_bodyschema.faults import Faults
+    print(f"batch 1, {args.calls} calls per path")
+    print("| schema | path | first call after load [ms] | p50 [us] | p99 [us] | p99.9 [us] | max [us] | RSS growth [kB] "
+          "| ok calls |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for ckpt, package in zip(args.ckpt, args.package):
+        args.ckpt = ckpt  # what load_checked_schema reads
+        schema = load_checked_schema(args)
+        for path in paths:
+            row = bench_path(schema, package, path, args)
+            if row is None:
+                continue
+            print(f"| {type(schema).__name__} ({schema.n_muscles} muscles) | {path} | {row['first_ms']:.1f} | "
+                  f"{row['p50_us']:.0f} | {row['p99_us']:.0f} | {row['p999_us']:.0f} | {row['max_us']:.0f} | "
+                  f"{row['rss_growth_kb']} | {row['ok']}/{args.calls} |", flush=True)
 
-    cut = [[args.cut]] if args.cut else [[]]
-    faults = Faults.from_names(schema.robot_model.muscle_names, cut=cut, n_cases=1)
+
+def bench_path(schema, package: str, path: str, args):
+    """One row (``summary``) of ``schema`` on ``path``; None where the path does not apply (compiled: diffusion)."""
+    from lightning_bodyschema.faults import Faults
+    from lightning_bodyschema.schemas import DiffusionSchema
+
+    names = schema.robot_model.muscle_names
+    cut = names[0] if args.cut is None else args.cut
+    faults = Faults.from_names(names, cut=[[cut]] if cut else [[]], n_cases=1)
+    if path == "cpp":
+        return cpp_path(args.cpp_build, package, args.calls, cut)
+    if path == "compiled" and not isinstance(schema, DiffusionSchema):
+        return None
     qs = postures(schema.robot_model.q_range, args.calls)
-    print(f"batch 1, {args.calls} calls per path, cut {args.cut or 'none'}")
-    print("| path | first call after load [ms] | p50 [us] | p99 [us] | p99.9 [us] | max [us] | RSS growth [kB] |")
-    print("|---|---|---|---|---|---|---|")
-    for path in paths:
-        if path == "cpp":
-            if args.cpp_build is None:
-                raise BodySchemaInputError("the cpp path needs --cpp-build (the examples/cpp build folder)")
-            row = cpp_path(args.cpp_build, args.package, args.calls, args.cut)
-        elif path in ("eager", "compiled"):
-            row = timed(python_path(schema, faults, path == "compiled"), qs)
-        else:
-            row = timed(aoti_path(args.package, faults, path == "aoti"), qs)
-        print(f"| {path} | {row['first_ms']:.1f} | {row['p50_us']:.0f} | {row['p99_us']:.0f} | {row['p999_us']:.0f} "
-              f"| {row['max_us']:.0f} | {row['rss_growth_kb']} |", flush=True)
+    if path in ("eager", "compiled"):
+        return timed(python_path(schema, faults, path == "compiled"), qs)
+    return timed(aoti_path(package, faults, path == "aoti"), qs)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ def myoarm_cases(n: int, seed: int = 0):
     import yaml
 
     from lightning_bodyschema.faults import Faults
-    from lightning_bodyschema.faults.qp import intersect_bounds
+    from lightning_bodyschema.faults.bounds import FaultBounds
     from lightning_bodyschema.sim import MusculoskeletalModel, elongation_from_tension, solve_equilibrium_qp
     from lightning_bodyschema.sim.spring import spring_for_model
 
@@ -51,9 +51,9 @@ def myoarm_cases(n: int, seed: int = 0):
     i = rng.integers(0, m, n)
     cut[np.arange(n), i], fix[np.arange(n), (i + rng.integers(1, m, n)) % m] = True, True
     faults = Faults(cut, fix, np.where(fix, l_jam - elongation_from_tension(f_jam, spring), np.nan))
-    f_lo, f_hi, l_lo, l_hi = intersect_bounds(faults.constraints(spring.f_max_n), (n, m))
+    b = FaultBounds.from_faults(faults, spring.f_max_n, spring)
     l_geo, G, tau = model.kinematics(q)
-    return dict(zip(ARGS, (l_geo, G, tau, 0.5 * f_max, f_lo, np.minimum(f_hi, f_max), l_lo, l_hi))), spring, faults, q
+    return dict(zip(ARGS, (l_geo, G, tau, 0.5 * f_max, b.f_lo_n, b.f_hi_n, b.l_lo_m, b.l_hi_m))), spring, faults, q
 
 
 def baseline_qp(rev: str):

@@ -1,12 +1,14 @@
 #!/usr/bin/env python
-"""Export a diffusion checkpoint's prepared adapter to one AOTInductor package for C++ (and Python) controllers.
+"""Export a diffusion or structured checkpoint's prepared adapter to one AOTInductor package for C++ (and Python)
+controllers.
 
     python tools/export_adapter.py --ckpt CKPT --out runs/adapter.pt2 [--steps 20] [--batch-sizes dynamic|N]
         [--seeds 0,1,2]
 
-One package serves every fault set (faults are inputs); see README "Deploy in a C++ controller" and ``lightning_bodyschema.deploy``.
-Compiling needs a C++ compiler and takes tens of seconds. The file is written atomically. Bad input exits with
-code 2 and one line on stderr.
+One package serves every fault set (faults are inputs); see README "Deploy in a C++ controller" and
+``lightning_bodyschema.deploy``. ``--steps`` and ``--seeds`` are the diffusion sampler's. Compiling needs a C++
+compiler and takes tens of seconds. The file is written atomically; its SHA-256 is printed (pin it when loading:
+a package runs compiled code). Bad input exits with code 2 and one line on stderr.
 """
 import time
 
@@ -24,17 +26,19 @@ def _seeds(text: str) -> list:
 
 @exits_cleanly
 def main(argv=None):
-    parser = argument_parser("Export the prepared diffusion adapter (faults as inputs) to one AOTInductor .pt2 "
-                             "package with its metadata.", checkpoint=True)
-    parser.add_argument("--ckpt", required=True, help="trained diffusion schema checkpoint (.ckpt)")
+    parser = argument_parser("Export the prepared diffusion or structured adapter (faults as inputs) to one "
+                             "AOTInductor .pt2 package with its metadata.", checkpoint=True)
+    parser.add_argument("--ckpt", required=True, help="trained diffusion or structured schema checkpoint (.ckpt)")
     parser.add_argument("--out", required=True, help="package to write (.pt2), atomically")
-    parser.add_argument("--steps", type=int, default=20, help="strided denoising steps (default 20)")
+    parser.add_argument("--steps", type=int, default=20, help="diffusion: strided denoising steps (default 20)")
     parser.add_argument("--batch-sizes", default="dynamic",
                         help="'dynamic' (1..4096 cases per call, default) or one static batch size, e.g. 1")
     parser.add_argument("--seeds", default=None,
-                        help="x_T draws the package may pick by its seed input (default: the schema's sample_seed)")
+                        help="diffusion: x_T draws the package may pick by its seed input (default: the schema's "
+                        "sample_seed)")
     args = parser.parse_args(argv)
     from lightning_bodyschema.deploy.package import export_package, file_sha256, parse_batch
+    from lightning_bodyschema.schemas import StructuredSchema
 
     if not args.out.endswith(".pt2"):
         raise BodySchemaInputError(f"--out {args.out!r}: an AOTInductor package ends in .pt2")
@@ -46,14 +50,18 @@ def main(argv=None):
     from lightning_bodyschema.deploy.module import check_supported
 
     check_supported(schema)
-    if not 1 <= args.steps <= schema.schedule.n_timesteps:
+    structured = isinstance(schema, StructuredSchema)
+    if structured and seeds is not None:
+        raise BodySchemaInputError("--seeds: the structured schema draws nothing; export it without --seeds")
+    if not structured and not 1 <= args.steps <= schema.schedule.n_timesteps:
         raise BodySchemaInputError(f"--steps {args.steps}: must be in 1..{schema.schedule.n_timesteps}")
     if seeds is not None:  # the schema's own draw first: the package's default seed
         seeds = [int(schema.hparams.sample_seed)] + [s for s in seeds if s != int(schema.hparams.sample_seed)]
     start = time.perf_counter()
     export_package(schema, args.out, args.steps, batch, file_sha256(args.ckpt), seeds)
-    print(f"wrote {args.out} ({type(schema).__name__}, {args.steps} steps, batch {batch}) in "
-          f"{time.perf_counter() - start:.0f} s")
+    what = "structured" if structured else f"diffusion, {args.steps} steps"
+    print(f"wrote {args.out} ({type(schema).__name__}: {what}, batch {batch}) in {time.perf_counter() - start:.0f} s")
+    print(f"sha256 {file_sha256(args.out)}  (pin it: load_exported(path, expected_sha256=...), --sha256 in C++)")
 
 
 if __name__ == "__main__":

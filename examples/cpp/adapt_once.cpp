@@ -1,8 +1,9 @@
 // One adapted command from an exported adapter package, printed as one JSON line.
 //   adapt_once PACKAGE.pt2 --q 0.3,-0.2 [--cut m1,m2] [--jam m=l_fixed_m,...] [--weak m=f_max_n,...]
-//              [--band m=lo_m:hi_m,...] [--seed N]
-// Exit codes: 0 a result was printed (its "status" says whether to send it), 1 the package cannot be used,
-// 2 bad arguments.
+//              [--band m=lo_m:hi_m,...] [--seed N] [--sha256 HEX]
+// Runs a diffusion or a structured package alike. --sha256: refuse a package whose digest is not HEX (the one the
+// export printed) before loading it. Exit codes: 0 a result was printed (its "status" says whether to send it),
+// 1 the package cannot be used (missing, corrupt, another digest), 2 bad arguments.
 #include <cstdio>
 #include <iostream>
 #include <sstream>
@@ -69,10 +70,13 @@ std::string json_list(const torch::Tensor& row) {
 int main(int argc, char** argv) {
   if (argc < 2) {
     std::cerr << "usage: adapt_once PACKAGE.pt2 --q q1,q2,... [--cut m,...] [--jam m=l,...] [--weak m=f,...] "
-                 "[--band m=lo:hi,...] [--seed N]\n";
+                 "[--band m=lo:hi,...] [--seed N] [--sha256 HEX]\n";
     return 2;
   }
-  auto adapter = bodyschema::open_adapter(argv[1]);
+  std::string pinned;  // read first: the digest is checked before the package is loaded
+  for (int i = 2; i + 1 < argc; i += 2)
+    if (std::string(argv[i]) == "--sha256") pinned = argv[i + 1];
+  auto adapter = bodyschema::open_adapter(argv[1], pinned);
   if (!adapter) return 1;
   auto inputs = adapter->make_inputs(1);
   try {
@@ -96,6 +100,8 @@ int main(int argc, char** argv) {
         fill_pairs(*adapter, value, flag, inputs[4]);
       } else if (flag == "--band") {
         fill_pairs(*adapter, value, flag, inputs[5], inputs[6]);
+      } else if (flag == "--sha256") {
+        // checked before loading
       } else if (flag == "--seed") {
         inputs[7] = torch::scalar_tensor(static_cast<int64_t>(number(value, "--seed")), torch::kInt64);
       } else {

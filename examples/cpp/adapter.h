@@ -2,11 +2,14 @@
 // Inputs, in order (float64 unless said): q_ref (B, N) [rad]; cut, jam (B, M) masks 0/1; l_fixed_m (B, M) [m];
 // f_weak_n (B, M) [N]; band_lo_m, band_hi_m (B, M) [m] (NaN where a fault does not apply); seed () int64.
 // Outputs: l_motor_m (B, M) [m], f_n (B, M) [N] (NaN rows unless ok), status (B,) int32 (metadata "status_codes").
+// The same for a diffusion and a structured package (metadata "schema_kind"). A package holds a compiled shared
+// library and loading it runs its code: pin the SHA-256 the export printed (open_adapter's `sha256`).
 #pragma once
 
 #include <torch/csrc/inductor/aoti_package/model_package_loader.h>
 #include <torch/torch.h>
 
+#include <cctype>
 #include <cmath>
 #include <iostream>
 #include <limits>
@@ -15,6 +18,8 @@
 #include <stdexcept>
 #include <string>
 #include <vector>
+
+#include "sha256.h"
 
 namespace bodyschema {
 
@@ -45,10 +50,24 @@ inline std::map<int, std::string> parse_status_codes(const std::string& json) {
   return out;
 }
 
+// A JSON array of numbers at any depth, flattened, e.g. [[-1.5, 1.5], [0, 2.2]] (the metadata's joint ranges).
+inline std::vector<double> parse_numbers(const std::string& json) {
+  std::vector<double> out;
+  size_t i = 0;
+  while ((i = json.find_first_of("-0123456789", i)) != std::string::npos) {
+    size_t used = 0;
+    out.push_back(std::stod(json.substr(i), &used));
+    i += used;
+  }
+  return out;
+}
+
 struct Adapter {
   std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
   std::vector<std::string> joints, muscles;
+  std::vector<double> q_range;  // lo, hi of each joint [rad], in joint order
   std::map<int, std::string> status_names;
+  std::string kind;  // "diffusion" or "structured"
   int64_t default_seed = 0;
 
   // Throws std::runtime_error (with the reason) for a missing, corrupt or foreign package.
@@ -65,6 +84,9 @@ struct Adapter {
     joints = parse_string_list(meta.at("joint_names"));
     muscles = parse_string_list(meta.at("muscle_names"));
     status_names = parse_status_codes(meta.at("status_codes"));
+    kind = meta.count("schema_kind") ? meta.at("schema_kind") : "diffusion";
+    q_range = parse_numbers(meta.at("q_range_rad"));
+    if (q_range.size() != 2 * joints.size()) throw std::runtime_error(path + ": bad q_range_rad in its metadata");
     default_seed = std::stoll(meta.at("seeds").substr(1));
   }
 
@@ -90,9 +112,19 @@ struct Adapter {
   std::vector<torch::Tensor> run(const std::vector<torch::Tensor>& inputs) { return loader->run(inputs); }
 };
 
-// The package at `path`, or nullptr after printing "error: <reason>" on stderr (a program then exits 1).
-inline std::unique_ptr<Adapter> open_adapter(const std::string& path) {
+// The package at `path`, or nullptr after printing "error: <reason>" on stderr (a program then exits 1). With a
+// pinned `sha256` (64 hex digits) a file with another digest is refused before anything in it is loaded.
+inline std::unique_ptr<Adapter> open_adapter(const std::string& path, std::string sha256 = "") {
   try {
+    if (!sha256.empty()) {
+      for (auto& c : sha256) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+      if (sha256.size() != 64 || sha256.find_first_not_of("0123456789abcdef") != std::string::npos)
+        throw std::runtime_error("--sha256 '" + sha256 + "': give the 64 hex digits the export printed");
+      std::string actual = file_sha256(path);
+      if (actual != sha256)
+        throw std::runtime_error(path + " has SHA-256 " + actual + ", not the pinned " + sha256 +
+                                 ": refused unloaded (a package runs compiled code)");
+    }
     return std::make_unique<Adapter>(path);
   } catch (const std::exception& e) {
     std::cerr << "error: " << e.what() << "\n";

@@ -1,9 +1,10 @@
 // A control loop a user can copy: load the package once, allocate the input buffers once, one call per tick.
-//   control_loop PACKAGE.pt2 [--ticks 10000] [--cut muscle] [--json]
-// Each tick writes the next posture of a slow sweep through the joint ranges into the q buffer (a real controller
-// writes its reference posture and current faults there), calls the package and uses the command only when the
-// status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
-// growth [kB] over the loop.
+//   control_loop PACKAGE.pt2 [--ticks 10000] [--cut muscle] [--json] [--sha256 HEX]
+// Each tick writes the next posture of a slow sweep inside the joint ranges (metadata) into the q buffer (a real
+// controller writes its reference posture and current faults there), calls the package and uses the command only
+// when the status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
+// growth [kB] over the loop. Runs a diffusion or a structured package alike; --sha256 refuses a package whose digest
+// is not HEX before loading it (exit 1).
 #include <algorithm>
 #include <chrono>
 #include <fstream>
@@ -31,24 +32,25 @@ double percentile(std::vector<double> v, double p) {
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::cerr << "usage: control_loop PACKAGE.pt2 [--ticks N] [--cut muscle] [--json]\n";
+    std::cerr << "usage: control_loop PACKAGE.pt2 [--ticks N] [--cut muscle] [--json] [--sha256 HEX]\n";
     return 2;
   }
   long ticks = 10000;
-  std::string cut;
+  std::string cut, pinned;
   bool json = false;
   for (int i = 2; i < argc; ++i) {
     std::string flag = argv[i];
     if (flag == "--ticks" && i + 1 < argc) ticks = std::stol(argv[++i]);
     else if (flag == "--cut" && i + 1 < argc) cut = argv[++i];
     else if (flag == "--json") json = true;
+    else if (flag == "--sha256" && i + 1 < argc) pinned = argv[++i];
     else { std::cerr << "error: unknown option " << flag << "\n"; return 2; }
   }
   if (ticks < 1) { std::cerr << "error: --ticks must be >= 1\n"; return 2; }
   at::set_num_threads(1);
   using clock = std::chrono::steady_clock;
   auto t_load = clock::now();
-  auto adapter = bodyschema::open_adapter(argv[1]);
+  auto adapter = bodyschema::open_adapter(argv[1], pinned);
   if (!adapter) return 1;
   double load_ms = std::chrono::duration<double, std::milli>(clock::now() - t_load).count();
   auto inputs = adapter->make_inputs(1);  // the buffers: allocated once, written every tick
@@ -62,7 +64,10 @@ int main(int argc, char** argv) {
   long sent = 0, rss_start = 0;
   double first_us = 0.0;
   for (long t = 0; t <= ticks; ++t) {
-    for (size_t j = 0; j < n; ++j) q[j] = 0.3 * std::sin(0.001 * t + j);  // the reference posture of this tick
+    for (size_t j = 0; j < n; ++j) {  // the reference posture of this tick: a slow sweep inside the joint ranges
+      const double lo = adapter->q_range[2 * j], hi = adapter->q_range[2 * j + 1];
+      q[j] = lo + (hi - lo) * (0.5 + 0.4 * std::sin(0.001 * t + j));
+    }
     auto start = clock::now();
     auto out = adapter->run(inputs);
     double us = std::chrono::duration<double, std::micro>(clock::now() - start).count();

@@ -4,9 +4,10 @@ check postures -> encode -> the schema's ``adapt_normalized`` -> decode -> safe 
 ``BodySchema.adapt``/``adapter`` are the entry points; the steps are public so a controller can reuse them.
 Never imports Lightning; takes the schema as an object with the ``BodySchema`` interface.
 """
-from .command import STATUSES, AdaptationResult, safe_command
+from ..status import Status
+from .command import AdaptationResult, command_status, safe_command
 from .physics import flag_infeasible, mark_unchecked
 from .pipeline import Adapter, check_postures
 
-__all__ = ["Adapter", "AdaptationResult", "STATUSES", "safe_command", "flag_infeasible", "mark_unchecked",
+__all__ = ["Adapter", "AdaptationResult", "Status", "command_status", "safe_command", "flag_infeasible", "mark_unchecked",
            "check_postures"]

@@ -6,6 +6,7 @@ import torch
 
 from ..contract import ADAPTATION_CAPABILITIES, ADAPTS_IN_SI
 from ..errors import BodySchemaInputError
+from ..faults.bounds import FaultBounds
 from .command import AdaptationResult, motor_length_range, safe_command
 from ..variants import check_variant
 from .physics import flag_infeasible, mark_unchecked
@@ -37,7 +38,8 @@ class Adapter:
 
     The schema (a ``contract.SchemaContract``) declares how it adapts, and the adapter dispatches on it:
     ``adapts_normalized``: prepare the penalty L_adapt of eq:latent-opt (and the variant's fault projection); per call
-    check postures -> encode -> ``adapt_normalized`` -> decode. ``adapts_in_si``: prepare the faults' SI constraints;
+    check postures -> encode -> ``adapt_normalized`` -> decode. ``adapts_in_si``: prepare the faults' SI bounds
+    (``FaultBounds``);
     per call check postures -> ``adapt_si`` on q [rad]. Then, either way, ``safe_command`` -> ``flag_infeasible``
     (when ``check_physics``; ``mark_unchecked`` when the robot has no model to check on).
 
@@ -56,10 +58,10 @@ class Adapter:
         self.check_physics, self.options = check_physics, dict(options or {})
         self.in_si = ADAPTS_IN_SI in schema.capabilities
         self.f_limit_n = faults.f_limit(schema.spring.f_max_n)
+        # the faults' SI bounds, once (numpy: the safe command's and the QP's)
+        self.bounds = FaultBounds.from_faults(faults, schema.spring.f_max_n, schema.spring)
         self.l_range_m = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
-        if self.in_si:
-            self.constraints = faults.constraints(schema.spring.f_max_n)
-        else:
+        if not self.in_si:
             self._prepare_penalty(schema, faults, variant)
 
     def _prepare_penalty(self, schema, faults, variant: str) -> None:
@@ -76,7 +78,7 @@ class Adapter:
         with torch.inference_mode(False), torch.no_grad():
             q_rad = torch.as_tensor(q, device=schema.device)  # on the schema's device until safe_command
             if self.in_si:
-                l_motor_m, f_n = schema.adapt_si(q_rad, self.constraints, self.variant, **self.options)
+                l_motor_m, f_n = schema.adapt_si(q_rad, self.bounds, self.variant, **self.options)
                 return torch.cat([l_motor_m, f_n], dim=1).to(torch.float64)
             x_n = schema.adapt_normalized(schema.encode_q(q_rad), self.penalty, self.variant, **self.options)
         return schema.decode(x_n)
@@ -84,7 +86,7 @@ class Adapter:
     def __call__(self, q_ref) -> AdaptationResult:
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
-        return self._checked(safe_command(self._adapted_si(q), self.faults, self.f_limit_n, self.l_range_m), q)
+        return self._checked(safe_command(self._adapted_si(q), self.bounds, l_range_m=self.l_range_m), q)
 
     def _checked(self, result: AdaptationResult, q: np.ndarray) -> AdaptationResult:
         """``result`` with the physics check's verdict (``check_physics``), or ``unchecked`` where there is no model."""

@@ -9,6 +9,7 @@ import torch
 from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
 from ..variants import check_variant
+from ..status import Status, status_array
 from .command import AdaptationResult
 
 
@@ -27,7 +28,7 @@ def adapt_to_target(schema, target_xyz, faults, site: str = "hand", variant: str
     error = np.linalg.norm(schema.robot_model.site_position(q, site) - target, axis=1)  # MuJoCo is the judge
     reached = error <= tol_m
     n, m = len(target), schema.n_muscles
-    out = AdaptationResult(np.full((n, m), np.nan), np.full((n, m), np.nan), np.full(n, "unreachable", dtype="<U16"))
+    out = AdaptationResult(np.full((n, m), np.nan), np.full((n, m), np.nan), status_array(Status.UNREACHABLE, size=n))
     if reached.any():
         inner = schema.adapt(q[reached], faults.take(reached), variant, **options)
         out.l_motor_m[reached], out.f_n[reached], out.status[reached] = inner.l_motor_m, inner.f_n, inner.status

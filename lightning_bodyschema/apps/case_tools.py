@@ -5,6 +5,7 @@ import time
 
 from .._numpy import to_numpy
 from ..errors import BodySchemaInputError
+from ..status import status_codes, status_names
 from .common import (ADAPT_SAMPLERS, NAME_ARRAYS, argument_parser, check_out, check_robot_names, check_schema_options,
                      count_values, exits_cleanly, import_user_modules, load_checked_schema, resolve_sampler,
                      robot_names, torch_one_thread, write_npz)
@@ -138,7 +139,8 @@ def adapt_cases_main(argv=None):
     result = adapt_cases(schema, cases, args.variant, options, args.ckpt)
     adapt_seconds = time.perf_counter() - adapt_start
     arrays = cases.arrays()  # the five case arrays, and f_max / l_band when the file has them
-    arrays.update(l_motor=result.l_motor_m, f=result.f_n, status=result.status, **robot_names(schema.robot_model))
+    arrays.update(l_motor=result.l_motor_m, f=result.f_n, status=status_names(result.status),
+                  status_code=status_codes(result.status), **robot_names(schema.robot_model))
     write_npz(args.out, arrays)
     print(f"wrote {args.out}: {len(cases)} cases, {int(result.ok.sum())} ok (status: {count_values(result.status)}); "
           f"{type(schema).__name__}, variant {args.variant}, sampler {args.sampler}; adapted in {adapt_seconds:.2f} s "

@@ -117,6 +117,7 @@ def main(argv=None):
     if args.json:
         check_out(args.json, args.ckpt)
     torch_one_thread()
+    from ..evaluation.benchmark import scored_command
     from ..schemas.loading import load_datamodule
 
     schema = load_checked_schema(args)
@@ -129,7 +130,7 @@ def main(argv=None):
         start = time.perf_counter()
         result = schema.adapt(cases.q_ref, cases.faults, variant=variant, check_physics=False, **options)
         ms = 1e3 * (time.perf_counter() - start) / len(cases.q_ref)
-        runs[label] = {"metrics": score(schema, cases, result.l_motor_m, result.f_n), "ms_per_case": ms,
+        runs[label] = {"metrics": score(schema, cases, *scored_command(result)), "ms_per_case": ms,
                        "status": result.status}
     keep = None
     if args.subset == "feasible":

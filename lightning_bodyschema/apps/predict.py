@@ -40,6 +40,7 @@ from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.faults import muscle_index
 from ..npz import atomic_write_bytes, load_npz, save_npz
+from ..status import status_codes, status_names
 
 REQUEST_KEYS = ("q_ref", "target", "cut", "jam", "weak", "band")
 NPZ_ARRAYS = ("q_ref", "target", "cut", "fix", "l_fixed", "f_max", "l_band", "cond", "joints", "muscles")
@@ -207,7 +208,7 @@ def predict(schema, requests: Requests, variant: str = "default", site: str = "h
     if reading not in READINGS:
         raise BodySchemaInputError(f"unknown reading {reading!r}; allowed: {list(READINGS)}")
     n, m = len(requests), schema.n_muscles
-    out = {"status": np.full(n, "", dtype="<U16"), "q_ref": requests.q_ref.copy(), "target": requests.target,
+    out = {"status": np.full(n, None, dtype=object), "q_ref": requests.q_ref.copy(), "target": requests.target,
            "target_error_m": np.full(n, np.nan), "l_motor": np.full((n, m), np.nan), "f": np.full((n, m), np.nan)}
     for rows, by_target in ((np.flatnonzero(~requests.by_target), False), (np.flatnonzero(requests.by_target), True)):
         if rows.size == 0:
@@ -221,6 +222,7 @@ def predict(schema, requests: Requests, variant: str = "default", site: str = "h
         else:
             result = schema.adapt(requests.q_ref[rows], faults, variant=variant, **options)
         out["l_motor"][rows], out["f"][rows], out["status"][rows] = result.l_motor_m, result.f_n, result.status
+    out["status"], out["status_code"] = status_names(out["status"]), status_codes(out["status"])  # files: no objects
     out.update(_fault_arrays(requests.faults))
     if evaluate:
         out.update(evaluate_predictions(schema, out, requests.faults, jammed_pull=reading == "phys"))

@@ -1,10 +1,16 @@
-"""Export the prepared adapter (``AdapterModule``) to one AOTInductor ``.pt2`` package, and load it back.
+"""Export a schema's prepared adapter (``AdapterModule`` for the diffusion schema, ``StructuredAdapterModule`` for
+the structured one) to one AOTInductor ``.pt2`` package, and load it back.
 
 ``export_package(schema, out)`` traces the module with ``torch.export`` and compiles it with
 ``torch._inductor.aoti_compile_and_package`` (a C++ compiler is needed, tens of seconds); the package carries its
-metadata (``METADATA_KEYS``: names, units, status codes, the checkpoint's hash, ...) as strings, readable from
-Python (``aoti_load_package(p).get_metadata()``) and C++ (``AOTIModelPackageLoader::get_metadata``).
-``load_exported(path)`` returns ``ExportedAdapter``: ``(q_ref, faults) -> AdaptationResult`` without the schema.
+metadata (``package_metadata``: the schema kind, names, units, status codes, the checkpoint's hash, ...) as strings,
+readable from Python (``aoti_load_package(p).get_metadata()``) and C++ (``AOTIModelPackageLoader::get_metadata``).
+``load_exported(path, expected_sha256=None)`` returns ``ExportedAdapter``: ``(q_ref, faults) -> AdaptationResult``
+without the schema, for either kind.
+
+A package holds a compiled shared library: loading one runs its code (unlike a checkpoint read with
+``weights_only=True``). Pin the digest the export prints (``expected_sha256``): a file whose SHA-256 differs is
+refused before anything in it is loaded.
 """
 from __future__ import annotations
 
@@ -16,9 +22,10 @@ import zipfile
 import numpy as np
 import torch
 
-from ..adaptation.command import AdaptationResult
+from ..adaptation.command import FAULT_TOL_M, FAULT_TOL_N, AdaptationResult, statuses
 from ..errors import BodySchemaInputError
-from .module import FAULT_TOL_M, FAULT_TOL_N, STATUS_CODES, VARIANT, AdapterModule
+from ..status import STATUS_CODES
+from .module import VARIANT, AdapterModule
 
 FORMAT = "lightning_bodyschema.adapter/1"
 INPUTS = ("q_ref", "cut", "jam", "l_fixed_m", "f_weak_n", "band_lo_m", "band_hi_m", "seed")
@@ -37,13 +44,15 @@ def file_sha256(path: str) -> str:
     return digest.hexdigest()
 
 
-def package_metadata(schema, module: AdapterModule, ckpt_sha256: str, batch) -> dict[str, str]:
-    """The package's metadata: every value a string (JSON for lists and dicts)."""
+def package_metadata(schema, module, ckpt_sha256: str, batch) -> dict[str, str]:
+    """The package's metadata: every value a string (JSON for lists and dicts); ``schema_kind`` is
+    ``"diffusion"`` or ``"structured"`` (``n_steps``: denoising steps, or the structured package's Newton steps)."""
     robot = schema.robot_model
     spring = {name: np.asarray(getattr(schema.spring, name), float).tolist()
               for name in ("k_n", "alpha_per_m", "f_max_n")}
     values = {"format": FORMAT, "schema_class": f"{type(schema).__module__}.{type(schema).__qualname__}",
-              "variant": VARIANT, "n_steps": module.n_steps, "joint_names": list(robot.joint_names),
+              "schema_kind": module.kind, "variant": VARIANT,
+              "n_steps": getattr(module, "n_steps", getattr(module, "max_iter", None)), "joint_names": list(robot.joint_names),
               "muscle_names": list(robot.muscle_names), "q_range_rad": np.asarray(robot.q_range, float).tolist(),
               "inputs": list(INPUTS), "outputs": ["l_motor_m", "f_n", "status"], "units": UNITS,
               "status_codes": STATUS_CODES, "spring": spring, "seeds": module.seeds, "checkpoint_sha256": ckpt_sha256,
@@ -64,12 +73,25 @@ def parse_batch(text: str):
     return batch
 
 
+def package_module(schema, n_steps: int = 20, seeds=None):
+    """The tensor-only module of ``schema``'s adapter: ``AdapterModule`` (diffusion; ``n_steps`` denoising steps,
+    ``seeds``) or ``StructuredAdapterModule`` (structured; ``seeds`` must be None); anything else is refused."""
+    from ..schemas import StructuredSchema
+    from .structured import StructuredAdapterModule
+
+    if isinstance(schema, StructuredSchema):
+        if seeds is not None:
+            raise BodySchemaInputError("the structured schema draws nothing: export it without seeds")
+        return StructuredAdapterModule(schema)
+    return AdapterModule(schema, n_steps, seeds)
+
+
 def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:
-    """Write the AOTInductor package of ``schema``'s adapter to ``out`` (atomically: a temporary file in the same
-    folder, then a rename). Returns ``out``."""
+    """Write the AOTInductor package of ``schema``'s adapter (``package_module``) to ``out`` (atomically: a
+    temporary file in the same folder, then a rename). Returns ``out``."""
     from torch.export import Dim, export
 
-    module = AdapterModule(schema, n_steps, seeds).eval()
+    module = package_module(schema, n_steps, seeds).eval()
     batch = parse_batch(batch)
     example = module.example_inputs(2 if batch == "dynamic" else batch)
     shapes = None
@@ -77,7 +99,14 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
         dim = Dim("batch", min=1, max=MAX_BATCH)
         shapes = tuple({0: dim} for _ in INPUTS[:-1]) + (None,)
     with torch.no_grad():
-        program = export(module, example, dynamic_shapes=shapes, strict=False)
+        try:
+            program = export(module, example, dynamic_shapes=shapes, strict=False)
+        except torch._dynamo.exc.UserError as error:  # a dynamic batch the traced code fixed to one size
+            if shapes is None or "specialized it to be a constant" not in str(error):
+                raise
+            raise BodySchemaInputError(f"{module.kind} adapter: its code fixes the batch size when traced, so it "
+                                       "cannot be exported for a dynamic batch; give a static one (--batch-sizes "
+                                       "1)") from None
     metadata = package_metadata(schema, module, ckpt_sha256, batch)
     folder = os.path.dirname(os.path.abspath(out))
     os.makedirs(folder, exist_ok=True)
@@ -94,15 +123,16 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
 
 
 class ExportedAdapter:
-    """A loaded package: ``adapter(q_ref (B, N) [rad], faults) -> AdaptationResult`` (string statuses, NaN rows
-    where not ok; ``diagnostics["status_code"]`` the package's integer codes). ``metadata``: the parsed metadata;
-    ``run(*tensors)``: the raw package call (``INPUTS`` in order)."""
+    """A loaded package of either kind: ``adapter(q_ref (B, N) [rad], faults) -> AdaptationResult`` (``Status``
+    members, NaN rows where not ok; ``diagnostics["status_code"]`` the package's integer codes). ``metadata``: the
+    parsed metadata (``schema_kind``: ``"diffusion"`` or ``"structured"``); ``run(*tensors)``: the raw package
+    call (``INPUTS`` in order)."""
 
     def __init__(self, runner, metadata: dict, path: str):
         self.runner, self.path = runner, path
         self.metadata = {key: _parsed(value) for key, value in metadata.items()}
         self.joint_names, self.muscle_names = self.metadata["joint_names"], self.metadata["muscle_names"]
-        self.status_names = np.array(sorted(self.metadata["status_codes"], key=self.metadata["status_codes"].get))
+        self.kind = self.metadata.get("schema_kind", "diffusion")
         self.seed = int(self.metadata["seeds"][0])
 
     def run(self, *tensors):
@@ -130,16 +160,19 @@ class ExportedAdapter:
     def __call__(self, q_ref, faults, seed=None) -> AdaptationResult:
         with torch.no_grad():
             l_motor, f, status = self.run(*self.inputs(q_ref, faults, seed))
-        codes = status.numpy().astype(np.int64)
-        return AdaptationResult(l_motor.numpy(), f.numpy(), self.status_names[codes].astype("<U16"),
-                                {"status_code": codes})
+        codes = status.numpy().astype(np.int32)
+        return AdaptationResult(l_motor.numpy(), f.numpy(), statuses(codes), {"status_code": codes})
 
 
-def load_exported(path: str, muscle_names=None, joint_names=None) -> ExportedAdapter:
-    """Load a package written by ``export_package``; refuse, in one line, a file that is not one (missing, corrupt,
-    truncated) or a package for another robot (``muscle_names``/``joint_names`` given and different)."""
+def load_exported(path: str, muscle_names=None, joint_names=None, expected_sha256: str | None = None) -> ExportedAdapter:
+    """Load a package written by ``export_package`` (either kind); refuse, in one line, a file that is not one
+    (missing, corrupt, truncated), one whose SHA-256 is not ``expected_sha256`` (checked before anything in it is
+    loaded: a package runs compiled code), or a package for another robot (``muscle_names``/``joint_names`` given
+    and different)."""
     if not os.path.isfile(path):
         raise BodySchemaInputError(f"no adapter package at {path!r}")
+    if expected_sha256 is not None:
+        check_digest(path, expected_sha256)
     try:
         with zipfile.ZipFile(path) as archive:
             broken = archive.testzip()
@@ -163,6 +196,17 @@ def load_exported(path: str, muscle_names=None, joint_names=None) -> ExportedAda
             raise BodySchemaInputError(f"{path!r} was exported for another robot: its {what} are {packaged}, "
                                        f"this robot's are {list(expected)}")
     return adapter
+
+
+def check_digest(path: str, expected_sha256: str) -> None:
+    """Refuse, in one line, a file whose SHA-256 is not ``expected_sha256`` (64 hex digits, any case)."""
+    expected = str(expected_sha256).strip().lower()
+    if len(expected) != 64 or any(c not in "0123456789abcdef" for c in expected):
+        raise BodySchemaInputError(f"expected_sha256={expected_sha256!r}: give the 64 hex digits the export printed")
+    actual = file_sha256(path)
+    if actual != expected:
+        raise BodySchemaInputError(f"{path!r} has SHA-256 {actual}, not the pinned {expected}: refused unloaded "
+                                   "(a package runs compiled code)")
 
 
 def _parsed(value: str):

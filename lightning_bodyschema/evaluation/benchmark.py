@@ -24,6 +24,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..sim import MusculoskeletalModel, SpringParams
+from ..status import Status, status_names
 from .cases import FaultCases
 from .feasibility import oracle_commands
 from .forward_solver import ForwardSolverParams
@@ -151,7 +152,7 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
         oracle = oracle_scores(model, spring, cases, params, settle_check, score=bool(oracle))
     seconds["oracle"] = oracle.seconds
     start = time.perf_counter()
-    commands = {"adapted": (result.l_motor_m, result.f_n), "unadapted": (l_plain, f_plain)}
+    commands = {"adapted": scored_command(result), "unadapted": (l_plain, f_plain)}
     metrics = {kind: {reading: _score(model, spring, cases, *command, params, reading) for reading in READINGS}
                for kind, command in commands.items()}
     seconds["evaluate"] = time.perf_counter() - start
@@ -164,4 +165,14 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
         seconds["settle"] = time.perf_counter() - start
     if oracle.metrics is not None:
         metrics["oracle"] = oracle.metrics
-    return BenchmarkResult(cases, oracle.feasible, metrics, np.asarray(result.status), seconds)
+    return BenchmarkResult(cases, oracle.feasible, metrics, status_names(result.status), seconds)
+
+
+def scored_command(result) -> tuple[np.ndarray, np.ndarray]:
+    """(l_motor, f) (B, M) the benchmark scores: the adapted commands, and for a ``fault_not_met`` row the clipped
+    command it would have sent (the E_cut/E_fix/E_band residuals measure exactly how far it breaks its faults)."""
+    clipped = result.diagnostics.get("clipped_l_motor_m"), result.diagnostics.get("clipped_f_n")
+    not_met = (np.asarray(result.status) == Status.FAULT_NOT_MET)[:, None]
+    if clipped[0] is None or not not_met.any():
+        return result.l_motor_m, result.f_n
+    return np.where(not_met, clipped[0], result.l_motor_m), np.where(not_met, clipped[1], result.f_n)

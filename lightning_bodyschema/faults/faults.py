@@ -2,6 +2,7 @@
 against the model."""
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
@@ -111,27 +112,15 @@ class Faults:
             if shape != (batch, n_muscles) + tail:
                 expected = ", ".join(["B", str(n_muscles)] + [str(t) for t in tail])
                 raise BodySchemaInputError(f"faults.{name} has shape {shape}; expected ({expected})")
-        _refuse_cases(self.cut & self.fix, "the same muscle is both cut and jammed")
-        _refuse_cases(self.cut.all(axis=1)[:, None], "every muscle is cut: nothing can hold the arm")
-        _refuse_cases(self.fix & ~np.isfinite(self.l_fixed_m), "a jammed muscle has a NaN/inf l_fixed")
-        with np.errstate(invalid="ignore"):  # NaN where not jammed
-            _refuse_cases(self.fix & (self.l_fixed_m <= 0), "a jammed motor length l_fixed is <= 0 m (a motor "
-                          "length is positive)")
-        if self.f_max_n is not None:  # NaN: the robot's f_max
-            _refuse_cases(np.isinf(self.f_max_n) | (self.f_max_n < 0),
-                          "f_max_n of a weakened muscle is negative or inf")
-            if f_max_n is not None:
-                healthy = np.broadcast_to(np.asarray(f_max_n, float), self.cut.shape)
-                with np.errstate(invalid="ignore"):
-                    _refuse_cases(self.weak & (self.f_max_n >= healthy), f"a weakened f_max_n is at or above the "
-                                  f"healthy f_max {_shown(f_max_n)} N (a weakening lies below it)")
-        if self.l_band_m is not None:
-            band, (lo, hi) = self.band, np.moveaxis(self.l_band_m, -1, 0)
-            _refuse_cases(band & ~(np.isfinite(lo) & np.isfinite(hi)), "a length band has a NaN/inf bound")
-            with np.errstate(invalid="ignore"):
-                _refuse_cases(band & (lo > hi), "a length band has lo > hi")
-                _refuse_cases(band & (hi <= 0), "a length band lies at or below 0 m (a motor length is positive)")
-            _refuse_cases(band & self.cut, "the same muscle is both cut and length-banded")
+        nan = np.full(self.cut.shape, np.nan)
+        band = np.stack([nan, nan], -1) if self.l_band_m is None else self.l_band_m
+        healthy = None if f_max_n is None else np.broadcast_to(np.asarray(f_max_n, float), self.cut.shape)
+        with np.errstate(invalid="ignore"):  # NaN where a fault is off
+            rules = fault_rules(self.cut, self.fix, self.l_fixed_m, nan if self.f_max_n is None else self.f_max_n,
+                                band[..., 0], band[..., 1], healthy)
+        for name, bad in rules:
+            what = RULES[name]
+            _refuse_cases(bad, what if name != "weak_not_below" else what.format(_shown(f_max_n)))
         return self
 
     def constraints(self, f_max_n) -> list:
@@ -145,6 +134,37 @@ class Faults:
         if self.band.any():  # only when used: a fault-free batch runs exactly the paper's loss
             out.append(LengthBand(self.band, self.l_band_m[..., 0], self.l_band_m[..., 1]))
         return out
+
+
+# the rules every fault set obeys: Faults.validate refuses a case that breaks one, the exported package answers
+# bad_input (both ask ``fault_rules``)
+RULES = {"cut_and_jammed": "the same muscle is both cut and jammed",
+         "all_cut": "every muscle is cut: nothing can hold the arm",
+         "jam_not_finite": "a jammed muscle has a NaN/inf l_fixed",
+         "jam_not_positive": "a jammed motor length l_fixed is <= 0 m (a motor length is positive)",
+         "weak_bad": "f_max_n of a weakened muscle is negative or inf",
+         "weak_not_below": "a weakened f_max_n is at or above the healthy f_max {} N (a weakening lies below it)",
+         "band_not_finite": "a length band has a NaN/inf bound",
+         "band_crossed": "a length band has lo > hi",
+         "band_not_positive": "a length band lies at or below 0 m (a motor length is positive)",
+         "cut_and_banded": "the same muscle is both cut and length-banded"}
+
+
+def fault_rules(cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, f_max_n=None) -> list:
+    """``[(rule, (B, M) bool)]``: where each rule of ``RULES`` is broken, for numpy arrays or torch tensors alike
+    (traceable). ``cut``, ``jam`` bool masks; ``l_fixed_m``, ``f_weak_n``, ``band_lo_m``, ``band_hi_m`` NaN where
+    off; ``f_max_n``: the healthy limit (None: the weakening is not compared with it)."""
+    xp = sys.modules["torch"] if type(cut).__module__.startswith("torch") else np
+    weak, band = ~xp.isnan(f_weak_n), ~(xp.isnan(band_lo_m) & xp.isnan(band_hi_m))
+    every = cut.all(1)[:, None]  # (B, 1)
+    rules = [("cut_and_jammed", cut & jam), ("all_cut", every), ("jam_not_finite", jam & ~xp.isfinite(l_fixed_m)),
+             ("jam_not_positive", jam & (l_fixed_m <= 0)), ("weak_bad", weak & (xp.isinf(f_weak_n) | (f_weak_n < 0)))]
+    if f_max_n is not None:
+        rules.append(("weak_not_below", weak & (f_weak_n >= f_max_n)))
+    finite = xp.isfinite(band_lo_m) & xp.isfinite(band_hi_m)
+    rules += [("band_not_finite", band & ~finite), ("band_crossed", band & (band_lo_m > band_hi_m)),
+              ("band_not_positive", band & (band_hi_m <= 0)), ("cut_and_banded", band & cut)]
+    return rules
 
 
 def muscle_index(muscle, names) -> int:

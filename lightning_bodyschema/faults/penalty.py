@@ -56,6 +56,43 @@ class BoxPenalty:
         return r if self.uniform_weight is None else r.mul_(self.uniform_weight)
 
 
+class BoundsPenalty:
+    """L_adapt with ONE weight c for every term, from a batch's ``FaultBounds`` as tensor ops (traceable by
+    ``torch.export``): two boxes per element of normalized x (B, D), A (a jam's l_fixed on l; the tension box on f)
+    and B (a band on l); where only one applies the other adds an exact 0, and a jam and a band on one motor add up
+    as ``PenaltyBuilder``'s two slots do. ``box_a``, ``box_b``: (lo, hi) pairs, ``both`` their intersection (the
+    projection's box), normalized as ``PenaltyBuilder`` does (SI bounds in float64, then cast to ``dtype``)."""
+
+    def __init__(self, bounds, x_mean: torch.Tensor, x_std: torch.Tensor, weight: float, dtype=torch.float32):
+        m, inf = bounds.cut.shape[1], float("inf")
+        lcols, fcols = slice(0, m), slice(m, 2 * m)
+
+        def normalized(bound_si, cols):
+            return ((bound_si - x_mean[cols]) / x_std[cols]).to(dtype)
+        jam_hi = torch.where(bounds.jam, normalized(torch.where(bounds.jam, bounds.l_fixed_m, 0.0), lcols), inf)
+        band_lo = torch.where(bounds.band, normalized(torch.where(bounds.band, bounds.band_lo_m, 0.0), lcols), -inf)
+        band_hi = torch.where(bounds.band, normalized(torch.where(bounds.band, bounds.band_hi_m, 0.0), lcols), inf)
+        f_lo, f_hi = normalized(bounds.f_lo_n, fcols), normalized(bounds.f_hi_n, fcols)
+        free = torch.full_like(jam_hi, inf)
+        self.box_a = (torch.cat([-free, f_lo], 1), torch.cat([jam_hi, f_hi], 1))
+        self.box_b = (torch.cat([band_lo, -free], 1), torch.cat([band_hi, free], 1))
+        self.both = (torch.maximum(self.box_a[0], self.box_b[0]), torch.minimum(self.box_a[1], self.box_b[1]))
+        self.uniform_weight = float(weight)
+
+    def residual(self, x: torch.Tensor, out=None) -> torch.Tensor:
+        """dL/dx / c (B, D) (``out``: accepted for ``BoxPenalty``'s signature, not needed in a graph)."""
+        (lo_a, hi_a), (lo_b, hi_b) = self.box_a, self.box_b
+        return (x - torch.clamp(x, lo_a, hi_a)) + (x - torch.clamp(x, lo_b, hi_b))
+
+    def grad(self, x: torch.Tensor) -> torch.Tensor:
+        return self.uniform_weight * self.residual(x)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        r_a = x - torch.clamp(x, *self.box_a)
+        r_b = x - torch.clamp(x, *self.box_b)
+        return 0.5 * self.uniform_weight * (r_a * r_a + r_b * r_b).sum(-1)
+
+
 class PenaltyBuilder:
     """Turns a batch's constraints (``Faults.constraints``) into its ``BoxPenalty`` on normalized x.
 

@@ -58,6 +58,11 @@ class FaultProjection:
             active = w2 != 0
             lo_n = torch.where(active, torch.maximum(lo_n, lo), lo_n)
             hi_n = torch.where(active, torch.minimum(hi_n, hi), hi_n)
+        return cls.from_normalized_box(lo_n, hi_n, x_mean, x_std, k_n, alpha_per_m, mode)
+
+    @classmethod
+    def from_normalized_box(cls, lo_n, hi_n, x_mean, x_std, k_n, alpha_per_m, mode: str = "spring"):
+        """From the feasible box ``lo_n``, ``hi_n`` (B, D) in normalized units (a ``BoundsPenalty``'s ``both``)."""
         mean, std = (torch.as_tensor(np.asarray(v, np.float64), dtype=lo_n.dtype, device=lo_n.device)
                      for v in (x_mean, x_std))
         return cls(lo_n * std + mean, hi_n * std + mean, mean, std, k_n, alpha_per_m, mode)

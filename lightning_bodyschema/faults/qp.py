@@ -24,39 +24,35 @@ import numpy as np
 from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
 from ..solvers import EQUILIBRIUM_TOL_NM, LS_REG, BoxQP, least_squares_weight, solve_box_qp
 from ..status import Status
-from .constraints import LENGTH
+from .bounds import FaultBounds
 
-OK, INFEASIBLE_LEARNED = "ok", "infeasible_learned"
+OK, INFEASIBLE_LEARNED = Status.OK, Status.INFEASIBLE_LEARNED
 # proxsuite iterations per command QP the dual Newton leaves: a feasible one converges well within it
 # (BENCHMARKS.md, "Structured schema's command QPs"); one without a solution runs to it
 QP_MAX_ITER = 50
-STATUS_DTYPE = "<U18"
-# the solvers' status codes as this module names them (INFEASIBLE: the learned body cannot hold the posture)
-_STATUS_NAMES = np.array([INFEASIBLE_LEARNED if s is Status.INFEASIBLE else s.value for s in Status], dtype=STATUS_DTYPE)
-
-
-def intersect_bounds(constraints, shape) -> tuple[np.ndarray, ...]:
-    """(f_lo, f_hi, l_lo, l_hi), each (B, M) in N or m (+-inf where unbounded): the intersection of the intervals of
-    ``constraints`` (``faults.constraints``: ``Faults.constraints(f_max)`` gives them, tension limits included)."""
-    bounds = {col: [np.full(shape, -np.inf), np.full(shape, np.inf)] for col in ("f", LENGTH)}
-    for c in constraints:
-        lower, upper = (np.broadcast_to(np.asarray(b, float), shape) for b in c.bounds())
-        lo, hi = bounds[c.column]
-        mask = np.asarray(c.mask, bool)
-        np.copyto(lo, np.maximum(lo, lower), where=mask)
-        np.copyto(hi, np.minimum(hi, upper), where=mask)
-    return bounds["f"][0], bounds["f"][1], bounds[LENGTH][0], bounds[LENGTH][1]
+# a solver's status -> the command's: the learned body cannot hold the posture (``infeasible`` is the true body's)
+_AS_COMMAND = np.array([INFEASIBLE_LEARNED if s is Status.INFEASIBLE else s for s in Status], dtype=object)
 
 
 def tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> tuple[np.ndarray, np.ndarray]:
-    """The tension box (B, M) [N] that the tension and motor-length bounds give at lengths ``l_geo_m`` (module
-    docstring); where the two cross, lo > hi and no tension meets them."""
-    with np.errstate(over="ignore", invalid="ignore"):
-        by_hi = np.where(np.isfinite(l_hi), tension_from_elongation(l_geo_m - np.where(np.isfinite(l_hi), l_hi, 0.0),
-                                                                    spring), -np.inf)
-        by_lo = np.where(np.isfinite(l_lo), tension_from_elongation(l_geo_m - np.where(np.isfinite(l_lo), l_lo, 0.0),
-                                                                    spring), np.inf)
-    return np.maximum(np.maximum(f_lo, by_hi), 0.0), np.minimum(f_hi, by_lo)
+    """The tension box (B, M) [N] that the tension bounds ``[f_lo, f_hi]`` and the motor-length bounds
+    ``[l_lo, l_hi]`` (+-inf where free) give at lengths ``l_geo_m`` (``FaultBounds.tension_box``, module docstring);
+    where the two cross, lo > hi and no tension meets them."""
+    return _bounds_of(f_lo, f_hi, l_lo, l_hi, spring).tension_box(np.asarray(l_geo_m, float))
+
+
+def _bounds_of(f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> FaultBounds:
+    """The ``FaultBounds`` of plain SI bounds (a tension lower bound above 0 is not a fault: refused)."""
+    f_lo, f_hi, l_lo, l_hi = (np.asarray(a, float) for a in (f_lo, f_hi, l_lo, l_hi))
+    if (f_lo > 0).any():
+        raise ValueError("tension_box: a tension lower bound is 0 (a lower tension comes from a motor-length bound)")
+    shape = np.broadcast_shapes(f_lo.shape, f_hi.shape, l_lo.shape, l_hi.shape)
+    lo, hi, f_hi = (np.broadcast_to(a, shape) for a in (l_lo, l_hi, f_hi))
+    off = np.zeros(shape, bool)
+    k, alpha = (np.broadcast_to(np.asarray(v, float), shape[-1:]) for v in (spring.k_n, spring.alpha_per_m))
+    has_lo = np.isfinite(lo)  # a lower length bound alone: a band [lo, inf)
+    return FaultBounds(off, np.isfinite(hi), off, has_lo, np.where(np.isfinite(hi), hi, np.nan),
+                       np.where(has_lo, lo, np.nan), np.where(has_lo, np.inf, np.nan), np.array(f_hi), k, alpha)
 
 
 def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = LS_REG, num_threads: int = 1) -> np.ndarray:
@@ -84,7 +80,7 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
     l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)
     l_motor = np.minimum(l_motor, l_hi)  # rounding of exp/log1p only: the box already keeps l_motor <= l_hi
-    return l_motor, f, _STATUS_NAMES[codes]
+    return l_motor, f, _AS_COMMAND[codes]
 
 
 def balance_residual_nm(G, tau_nm, f) -> np.ndarray:
@@ -92,5 +88,5 @@ def balance_residual_nm(G, tau_nm, f) -> np.ndarray:
     return np.abs(-np.einsum("bmn,bm->bn", G, f) - tau_nm).max(1)
 
 
-__all__ = ["fault_command", "intersect_bounds", "tension_box", "least_squares_tensions", "balance_residual_nm",
+__all__ = ["fault_command", "tension_box", "least_squares_tensions", "balance_residual_nm",
            "OK", "INFEASIBLE_LEARNED", "EQUILIBRIUM_TOL_NM"]

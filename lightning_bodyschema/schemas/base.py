@@ -82,9 +82,9 @@ class BodySchema(SchemaLightningModule):
         ``adapts_normalized``."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
-    def adapt_si(self, q_rad: torch.Tensor, constraints: list, variant: str, **options):
+    def adapt_si(self, q_rad: torch.Tensor, bounds, variant: str, **options):
         """Adapted ``(l_motor_m, f_n)`` (B, M) float64 tensors at postures ``q_rad (B, N)`` [rad] under the faults'
-        SI ``constraints`` (``Faults.constraints``); capability ``adapts_in_si``."""
+        SI ``bounds`` (``faults.bounds.FaultBounds``); capability ``adapts_in_si``."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
     @property

@@ -97,13 +97,27 @@ class DiffusionSchema(BodySchema):
         return (weight * (target - self.eps_model(x_t, t, q_n)).pow(2).mean(-1)).mean(), {}
 
     # ------------------------------------------------------------------ sampler settings
-    def _timesteps(self, n_steps: Optional[int], spacing: str) -> tuple[int, ...]:
-        """The descending steps for ``n_steps`` (``_n_steps``) with ``spacing`` (unused for all T steps)."""
-        T = self.schedule.n_timesteps
+    def timesteps(self, n_steps: Optional[int], spacing: str) -> tuple[int, ...]:
+        """The descending steps of a call over ``n_steps`` (None: ``sample_steps``, else all T; checked) with
+        ``spacing`` (unused for all T steps)."""
+        T, n_steps = self.schedule.n_timesteps, self._n_steps(n_steps)
         if n_steps == T:
             return tuple(range(T - 1, -1, -1))
         return self.inference_cache.get(("timesteps", n_steps, spacing),
                                         lambda: tuple(self.schedule.timesteps(n_steps, spacing)))
+
+    def denoising_plan(self, steps, eta: float, guidance, c_w: float = 1.0, guided: bool = True):
+        """The fast loop's ``samplers.DenoisePlan`` over ``steps`` (``timesteps``) with ``eta`` and ``guidance`` (a
+        resolved ``GuidanceConfig``), the penalty's one weight ``c_w`` folded in (``guided``: a penalty is given),
+        through the network's frozen snapshot; cached per settings until the weights change. None where the network
+        has no frozen snapshot (then only the autograd reference samples). ``_denoise`` and the exported package
+        (``deploy``) both sample from it."""
+        frozen = self.inference_cache.get(("frozen_eps",), self.eps_model.frozen)
+        if frozen is None:
+            return None
+        return self.inference_cache.get(("plan", tuple(steps), float(eta), guidance, float(c_w), bool(guided)),
+                                        lambda: plan_denoising(frozen, self.schedule, steps, eta, guidance, c_w,
+                                                               guided, self.prediction))
 
     def _n_steps(self, n_steps: Optional[int]) -> int:
         """The step count of a call: ``n_steps``, else ``sample_steps``, else all T (checked: an int in 1..T)."""
@@ -155,7 +169,7 @@ class DiffusionSchema(BodySchema):
         n_steps = self._n_steps(n_steps)
         preset = self.SAMPLE.with_overrides(eta=eta, spacing=spacing)
         with torch.no_grad():
-            return self._denoise(q_n, None, self._timesteps(n_steps, preset.spacing), preset.eta, preset.guidance,
+            return self._denoise(q_n, None, self.timesteps(n_steps, preset.spacing), preset.eta, preset.guidance,
                                  fast, compiled)
 
     def adapt_normalized(self, q_n, penalty, variant, n_steps=None, fast=True, compiled=None, inference_mode=True,
@@ -177,7 +191,7 @@ class DiffusionSchema(BodySchema):
         guidance = preset.guidance
         if projection is None and (guidance.inpaint != "none" or guidance.project_xt):
             projection = self.fault_projection(variant, penalty, guidance.inpaint)
-        return self._denoise(q_n, penalty, self._timesteps(n_steps, preset.spacing), preset.eta, guidance, fast,
+        return self._denoise(q_n, penalty, self.timesteps(n_steps, preset.spacing), preset.eta, guidance, fast,
                              compiled, inference_mode, projection)
 
     def _denoise(self, q_n, penalty, steps, eta, guidance, fast, compiled, inference_mode=True, projection=None):
@@ -192,9 +206,7 @@ class DiffusionSchema(BodySchema):
             return reference_loop(self.eps_model, self.schedule, q_n, x_T, penalty, guidance, steps, eta, projection,
                                   self.prediction)
         c_w = 1.0 if penalty is None or penalty.uniform_weight is None else penalty.uniform_weight
-        plan = self.inference_cache.get(("plan", steps, float(eta), guidance, c_w, penalty is not None),
-                                        lambda: plan_denoising(frozen, self.schedule, steps, eta, guidance, c_w,
-                                                               penalty is not None, self.prediction))
+        plan = self.denoising_plan(steps, eta, guidance, c_w, penalty is not None)
         biases = self.eps_model.step_biases(frozen, q_n, steps)
         inpaint = projection if guidance.inpaint != "none" else None
         return denoise(frozen, plan, biases, x_T, penalty, compiled, inference_mode, inpaint)

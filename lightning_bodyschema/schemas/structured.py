@@ -27,9 +27,12 @@ import torch
 from ..adaptation.command import safe_command
 from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
-from ..faults.qp import OK, STATUS_DTYPE, fault_command, intersect_bounds
+from ..faults import Faults
+from ..faults.bounds import FaultBounds
+from ..faults.qp import OK, fault_command
 from ..networks.per_muscle import PerMusclePath
 from ..networks.structured import JacobianMLP, check_architecture
+from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
 
@@ -237,28 +240,26 @@ class StructuredSchema(BodySchema):
             q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
             return tuple(t.detach().to(torch.float64).cpu().numpy() for t in self.body(q_n))
 
-    def solve_si(self, q_rad: torch.Tensor, constraints=None, reg: Optional[float] = None):
-        """The QP's best effort at ``q_rad (B, N)`` [rad] under ``constraints`` (``Faults.constraints(f_max)``; None:
-        healthy): ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` as float64 arrays, every row finite and within
-        every fault bound; rows with status ``"infeasible_learned"`` are least-squares answers (``faults.qp``)."""
+    def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
+        """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:
+        healthy): ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` as float64 arrays and ``Status`` members, every
+        row finite and within every fault bound; rows with status ``infeasible_learned`` are least-squares answers
+        (``faults.qp``)."""
         l_geo, G, tau = self.body_si(q_rad)
-        shape = l_geo.shape
-        f_max = np.broadcast_to(np.asarray(self.spring.f_max_n, float), shape)
-        if constraints is None:
-            f_lo, f_hi, l_lo, l_hi = np.zeros(shape), f_max, np.full(shape, -np.inf), np.full(shape, np.inf)
-        else:
-            f_lo, f_hi, l_lo, l_hi = intersect_bounds(constraints, shape)
-            f_hi = np.minimum(f_hi, f_max)
+        f_max = np.broadcast_to(np.asarray(self.spring.f_max_n, float), l_geo.shape)
+        if bounds is None:
+            bounds = FaultBounds.from_faults(Faults.none(*l_geo.shape), self.spring.f_max_n, self.spring)
+        b = bounds.numpy()
         reg = self.hparams.qp_reg if reg is None else reg
-        return fault_command(l_geo, G, tau, 0.5 * f_max, f_lo, f_hi, l_lo, l_hi, self.spring, reg)
+        return fault_command(l_geo, G, tau, 0.5 * f_max, b.f_lo_n, b.f_hi_n, b.l_lo_m, b.l_hi_m, self.spring, reg)
 
-    def adapt_si(self, q_rad: torch.Tensor, constraints, variant: str = "default", reg: Optional[float] = None):
-        """Adapted commands at ``q_rad (B, N)`` [rad] under ``constraints`` (``Faults.constraints(f_max)``):
+    def adapt_si(self, q_rad: torch.Tensor, bounds, variant: str = "default", reg: Optional[float] = None):
+        """Adapted commands at ``q_rad (B, N)`` [rad] under ``bounds`` (the faults' ``FaultBounds``):
         ``(l_motor_m (B, M), f_n (B, M))``, float64 tensors on q_rad's device (the contract's ``adapts_in_si``).
-        Rows the learned body cannot hold are NaN (``solve_si`` gives their status and least-squares best effort).""" 
+        Rows the learned body cannot hold are NaN (``solve_si`` gives their status and least-squares best effort)."""
         if variant not in self.VARIANTS:
             raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
-        l_motor, f, status = self.solve_si(q_rad, constraints, reg)
+        l_motor, f, status = self.solve_si(q_rad, bounds, reg)
         bad = (status != OK)[:, None]
         as_tensor = lambda a: torch.as_tensor(np.where(bad, np.nan, a), device=q_rad.device)  # noqa: E731
         return as_tensor(l_motor), as_tensor(f)
@@ -292,13 +293,12 @@ class StructuredAdapter(Adapter):
     def __call__(self, q_ref):
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
-        l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.constraints, self.options.get("reg"))
+        l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.bounds, self.options.get("reg"))
         x_si = torch.as_tensor(np.where((status == OK)[:, None], np.concatenate([l_motor, f], 1), np.nan))
-        result = safe_command(x_si, self.faults, self.f_limit_n, self.l_range_m)
-        result.status = result.status.astype(STATUS_DTYPE)
+        result = safe_command(x_si, self.bounds, l_range_m=self.l_range_m)
         result.status[status != OK] = status[status != OK]
         result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)
         result = self._checked(result, q)
         if self.check_physics and schema.has_physics:  # the physical reason wins
-            result.status[~result.diagnostics["feasible"] & (status != OK)] = "infeasible"
+            result.status[~result.diagnostics["feasible"] & (status != OK)] = Status.INFEASIBLE
         return result

@@ -2,8 +2,8 @@
 
 The one feasibility computation: ``BodySchema.adapt``'s physics check (``adaptation.physics``), the benchmark's
 feasible subsets and the physics oracle (``evaluation.feasibility``) all ask it. It takes a robot with physics
-(``kinematics``) and a ``faults.Faults``-like batch (``cut``, ``fix``, ``l_fixed_m``, ``weak``, ``band``,
-``l_band_m``, ``f_limit``), and imports neither.
+(``kinematics``) and a ``faults.Faults`` batch, whose tension box at q_ref is ``faults.bounds.FaultBounds``'s (the
+one the adapters and the exported package use).
 
 At the fixed posture q_ref the unknowns are the tensions f (M,). A command (l_motor, f) with a perfect
 score (E_cut = E_fix = E_tau = E_q = 0) exists iff some f satisfies
@@ -43,9 +43,10 @@ import torch
 
 from .. import solvers
 from ..errors import BodySchemaInputError
+from ..faults.bounds import FaultBounds
 from ..solvers import EQUILIBRIUM_TOL_NM, MAX_SCREEN_NORMALS  # noqa: F401  (re-exported: evaluation.feasibility)
 from .equilibrium import solve_equilibrium_qp
-from .spring import SpringParams, elongation_from_tension, tension_from_elongation
+from .spring import SpringParams
 
 if TYPE_CHECKING:
     from ..faults.faults import Faults
@@ -68,20 +69,10 @@ def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str
     on jammed muscles, raised to phi(l_geo - hi) on banded ones (0 elsewhere)."""
     if jam_model not in JAM_MODELS:
         raise BodySchemaInputError(f"jam_model={jam_model!r}; allowed: {list(JAM_MODELS)}")
-    f_max = faults.f_limit(spring.f_max_n)  # a weakened muscle's own limit, else the robot's
-    fix = faults.fix
-    with np.errstate(over="ignore"):  # an absurd jam stretch overflows phi to inf: infeasible, as it should be
-        stretch = np.where(fix, np.maximum(0.0, l_geo - np.where(fix, faults.l_fixed_m, 0.0)), 0.0)
-        f_need = np.where(fix, tension_from_elongation(stretch, spring), 0.0)
-        crossed = np.any(fix & (stretch > elongation_from_tension(f_max, spring)), axis=1)
-        if faults.l_band_m is not None:  # banded motor: f in [phi(l_geo - hi), phi(l_geo - lo)]
-            band = faults.band
-            band_lo, band_hi = (np.where(band, tension_from_elongation(l_geo - np.nan_to_num(faults.l_band_m[..., k]),
-                                                                      spring), v) for k, v in ((1, 0.0), (0, np.inf)))
-            f_need, f_max = np.maximum(f_need, band_lo), np.minimum(f_max, band_hi)
-            crossed |= np.any(band & (f_need > f_max), axis=1)
-    lo = np.minimum(f_need, f_max)  # keep lo <= hi so the QP is well posed; ``crossed`` remembers
-    hi = np.where(faults.cut, 0.0, f_max)
+    box_lo, hi = FaultBounds.from_faults(faults, spring.f_max_n, spring).tension_box(l_geo)
+    crossed = np.any(box_lo > hi, axis=1)  # an absurd jam stretch overflows phi to inf: crossed, as it should be
+    f_need, fix = box_lo, faults.fix  # phi(d_j) on jammed muscles, raised to phi(l_geo - hi) on banded ones
+    lo = np.minimum(box_lo, hi)  # keep lo <= hi so the QP is well posed; ``crossed`` remembers
     if jam_model == "immobile":
         hi = np.where(fix, lo, hi)
     if not jammed_tension_in_torque:

@@ -33,7 +33,7 @@ import torch
 
 from ..errors import BodySchemaInputError
 from ..faults.faults import Faults
-from ..faults.qp import intersect_bounds, tension_box
+from ..faults.bounds import FaultBounds
 from .._numpy import to_numpy
 from ..sim.model import MusculoskeletalModel
 from ..sim.spring import elongation_from_tension, spring_for_model
@@ -150,8 +150,7 @@ class StaticBody:
         without muscle curves, no cap on one with them), and the affine tension ``f = s a + p`` (None without
         curves); a cut muscle has ``s = p = 0``."""
         f_cap = self.spring.f_max_n if self.curves is None else np.inf
-        lo, hi, l_lo, l_hi = intersect_bounds(faults.constraints(f_cap), l_geo_m.shape)
-        lo, hi = tension_box(l_geo_m, lo, hi, l_lo, l_hi, self.spring)
+        lo, hi = FaultBounds.from_faults(faults, f_cap, self.spring).tension_box(l_geo_m)
         if self.curves is None:
             return lo, hi, None, None
         s, p = self.curves.affine(l_geo_m)
@@ -210,7 +209,8 @@ class StaticBody:
 
     def _motor_lengths(self, l_geo_m, f, faults: Faults):
         """``l_motor = l - delta(f)`` [m]; a slack wire's motor at its band's lower end (as ``faults.qp``)."""
-        _, _, l_lo, l_hi = intersect_bounds(faults.constraints(np.inf), l_geo_m.shape)
+        bounds = FaultBounds.from_faults(faults, np.inf)
+        l_lo, l_hi = bounds.l_lo_m, bounds.l_hi_m
         l_motor = l_geo_m - elongation_from_tension(f, self.spring)
         l_motor = np.where((f <= 0.0) & np.isfinite(l_lo), np.maximum(l_motor, l_lo), l_motor)
         return np.minimum(l_motor, l_hi)

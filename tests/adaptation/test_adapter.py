@@ -5,7 +5,7 @@ import torch
 from physics_checks import mixed_faults
 
 from lightning_bodyschema.adaptation import check_postures, flag_infeasible, safe_command
-from lightning_bodyschema.adaptation.command import motor_length_range
+from lightning_bodyschema.adaptation.command import FAULT_TOL_N, motor_length_range
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
 
@@ -31,14 +31,30 @@ def test_a_prepared_adapter_returns_what_adapt_returns_latent(latent60, dm):
 
 
 def test_safe_command_never_passes_a_non_finite_row_or_a_tension_outside_its_limits():
-    faults = Faults.from_names(["a", "b"], cut=[["a"], [], []], weak=[{}, {"b": 40.0}, {}])
-    x = torch.tensor([[0.3, 0.3, 5.0, 80.0], [0.3, 0.3, -3.0, 90.0], [np.nan, 0.3, 10.0, 10.0]], dtype=torch.float64)
+    faults = Faults.from_names(["a", "b"], cut=[["a"], [], [], ["a"]], weak=[{}, {"b": 40.0}, {}, {}])
+    x = torch.tensor([[0.3, 0.3, 5.0, 80.0], [0.3, 0.3, -3.0, 90.0], [np.nan, 0.3, 10.0, 10.0],
+                      [0.3, 0.3, 0.009, 80.0]], dtype=torch.float64)
     result = safe_command(x, faults, faults.f_limit(150.0))
-    assert result.status.tolist() == ["ok", "ok", "non_finite"]
-    np.testing.assert_array_equal(result.f_n[:2], [[5.0, 80.0], [0.0, 40.0]])  # clipped into [0, f_max']
-    assert np.isnan(result.f_n[2]).all() and np.isnan(result.l_motor_m[2]).all()
-    np.testing.assert_allclose(result.diagnostics["cut_violation_n"][:2], [5.0, 0.0])
+    # a cut muscle pulling 5 N is no command; 9 mN is within the package's tolerance (FAULT_TOL_N)
+    assert result.status.tolist() == ["fault_not_met", "ok", "non_finite", "ok"]
+    np.testing.assert_array_equal(result.f_n[1], [0.0, 40.0])  # clipped into [0, f_max']
+    np.testing.assert_array_equal(result.diagnostics["clipped_f_n"][:2], [[5.0, 80.0], [0.0, 40.0]])
+    assert np.isnan(result.f_n[[0, 2]]).all() and np.isnan(result.l_motor_m[[0, 2]]).all()
+    np.testing.assert_allclose(result.diagnostics["cut_violation_n"][[0, 1, 3]], [5.0, 0.0, 0.009])
     np.testing.assert_allclose(result.diagnostics["weak_violation_n"][:2], [0.0, 50.0])  # before the clip
+
+
+def test_a_command_that_breaks_a_jam_or_band_beyond_the_tolerance_is_never_ok():
+    """The band-above-jam case: no length meets both, so any command breaks one of them (fault_not_met, NaN)."""
+    faults = Faults.from_names(["a", "b"], jam=[{"a": 0.30}, {"a": 0.30}, {"a": 0.30}, {}],
+                               band=[{}, {}, {"a": [0.32, 0.35]}, {"b": [0.20, 0.25]}])
+    x = torch.tensor([[0.300009, 0.3, 5.0, 5.0], [0.30002, 0.3, 5.0, 5.0], [0.30, 0.3, 5.0, 5.0],
+                      [0.3, 0.2501, 5.0, 5.0]], dtype=torch.float64)
+    result = safe_command(x, faults, faults.f_limit(150.0))
+    assert result.status.tolist() == ["ok", "fault_not_met", "fault_not_met", "fault_not_met"]
+    np.testing.assert_allclose(result.diagnostics["jam_violation_m"], [9e-6, 2e-5, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(result.diagnostics["band_violation_m"], [0.0, 0.0, 0.02, 1e-4], atol=1e-12)
+    assert np.isnan(result.l_motor_m[1:]).all() and np.isnan(result.f_n[1:]).all()
 
 
 def test_a_finite_but_absurd_motor_length_is_out_of_range_never_ok():
@@ -78,6 +94,7 @@ def test_the_physics_check_blanks_commands_no_physics_can_realize(diff60, dm):
                              schema.robot_model, q, faults, schema.spring)
     assert result.status.tolist() == ["infeasible", "ok"] and np.isnan(result.f_n[0]).all()
     assert np.isfinite(result.diagnostics["best_effort_f_n"][0]).all()
+    assert result.diagnostics["cut_violation_n"][0] > FAULT_TOL_N  # its healthy command breaks the cuts too
 
 
 def test_infeasible_is_reported_before_a_diverged_or_absurd_row(diff60, dm):

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from lightning_bodyschema.adaptation.command import motor_length_range
+from lightning_bodyschema.adaptation.command import FAULT_TOL_M, FAULT_TOL_N, motor_length_range
+from lightning_bodyschema.faults.bounds import FaultBounds
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.faults import Faults
 from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema
@@ -85,13 +86,40 @@ def test_adapted_commands_are_pinned(schemas, name, run):
         pinned_l = PIN[f"out/{name}/{run}/{group}/l"]
         l_range = motor_length_range(schema.normalizer.x_mean, schema.normalizer.x_std, schema.n_muscles)
         assert ((pinned_l[absurd] < l_range[0]) | (pinned_l[absurd] > l_range[1])).any(1).all()
-        keep = ~absurd
+        # deliberate change: a command that breaks a fault bound beyond the package's tolerances is fault_not_met
+        # (was ok), NaN; the command it would have sent stays in diagnostics and is still the pinned one
+        not_met = _not_met(result, faults, schema, f"out/{name}/{run}/{group}", ~absurd)
+        keep = ~absurd & ~not_met
         _same_rows(result.l_motor_m, f"out/{name}/{run}/{group}/l", keep)
         _same_rows(result.f_n, f"out/{name}/{run}/{group}/f", keep)
         assert result.status[keep].tolist() == PIN[f"out/{name}/{run}/{group}/status"][keep].tolist()
 
 
+def _broken(pinned: str, faults: Faults, schema) -> np.ndarray:
+    """(B,) bool: the pinned command breaks a jam or band by more than FAULT_TOL_M, or a cut by more than FAULT_TOL_N."""
+    length_m, cut_n = FaultBounds.from_faults(faults, schema.spring.f_max_n).broken(PIN[f"{pinned}/l"],
+                                                                                     PIN[f"{pinned}/f"])
+    return (length_m > FAULT_TOL_M).any(1) | (cut_n > FAULT_TOL_N).any(1)
+
+
+def _not_met(result, faults: Faults, schema, pinned: str, sane: np.ndarray) -> np.ndarray:
+    """(B,) the rows that became fault_not_met: exactly the ``sane`` (not out_of_range) rows pinned ok whose pinned
+    command breaks a fault; the command they would have sent (``clipped_*``) is the pinned one."""
+    not_met = result.status == "fault_not_met"
+    assert (not_met == (_broken(pinned, faults, schema) & (PIN[f"{pinned}/status"] == "ok") & sane)).all()
+    _same_rows(result.diagnostics["clipped_l_motor_m"], f"{pinned}/l", not_met)
+    _same_rows(result.diagnostics["clipped_f_n"], f"{pinned}/f", not_met)
+    return not_met
+
+
 @pytest.mark.parametrize("name", list(CLASSES))
 def test_physics_check_statuses_are_pinned(schemas, name):
+    """As pinned, but an ok row whose command (the default variant's, pinned unchecked) breaks a fault bound is now
+    fault_not_met."""
     q, faults = _faults("paper")
-    assert schemas[name].adapt(q, faults).status.tolist() == PIN[f"out/{name}/checked/status"].tolist()
+    status = schemas[name].adapt(q, faults).status
+    pinned = PIN[f"out/{name}/checked/status"]
+    became = (status == "fault_not_met") & (pinned == "ok")
+    assert (status[~became] == pinned[~became]).all()
+    run = "s20_fast" if name == "diff" else "fast"
+    assert not became.any() or _broken(f"out/{name}/{run}/paper", faults, schemas[name])[became].all()

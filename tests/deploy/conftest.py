@@ -6,7 +6,7 @@ import subprocess
 import pytest
 import torch
 
-from physics_checks import mixed_faults
+from physics_checks import mixed_faults, train_schema
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -15,6 +15,29 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 def mixed_cases(diff60, dm):
     """(q_ref, faults): 42 cases of cut, jammed, weakened and banded muscles (some bands empty under their jam)."""
     return mixed_faults(diff60[0], dm, n=42)
+
+
+@pytest.fixture(scope="session")
+def struct30(dm):
+    """A small StructuredSchema of the paper arm (2 x 64 SiLU, 30 epochs, float32): ok and infeasible_learned rows."""
+    from lightning_bodyschema.schemas import StructuredSchema
+
+    return train_schema(StructuredSchema, 30, dm, hidden=64, n_hidden=2, batch_size=64)[0]
+
+
+@pytest.fixture(scope="session")
+def struct_cases(struct30, dm):
+    """(q_ref, faults): 42 mixed cases (cut, jammed, weakened, banded; some bands above their jam) for struct30."""
+    return mixed_faults(struct30, dm, n=42)
+
+
+@pytest.fixture(scope="session")
+def struct_package(struct30, tmp_path_factory):
+    """struct30's adapter package for batch 1 (what a control loop sends, and what the C++ example runs)."""
+    from lightning_bodyschema.deploy import export_package
+
+    path = str(tmp_path_factory.mktemp("deploy") / "structured.pt2")
+    return export_package(struct30, path, batch=1, ckpt_sha256="test-session")
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from lightning_bodyschema.deploy import STATUS_CODES, load_exported
+from lightning_bodyschema.adaptation.command import AdaptationResult
+from lightning_bodyschema.deploy import STATUS_CODES, file_sha256, load_exported
 from lightning_bodyschema.deploy.module import FAULT_TOL_M
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
@@ -21,13 +22,15 @@ def test_package_equals_python_on_mixed_faults(package, diff60, mixed_cases):
     schema = diff60[0]
     q, faults = mixed_cases
     ref = schema.adapter(faults, n_steps=20, check_physics=False)(q)
-    got = load_exported(package, schema.robot_model.muscle_names, schema.robot_model.joint_names)(q, faults)
+    got = load_exported(package, schema.robot_model.muscle_names, schema.robot_model.joint_names,
+                        expected_sha256=file_sha256(package))(q, faults)
     ok = got.status == "ok"
-    assert ok.sum() >= 30 and (ref.status[ok] == "ok").all()
+    assert ok.sum() >= 30 and (got.status == ref.status).all()  # the same status on every case
     np.testing.assert_allclose(got.l_motor_m[ok], ref.l_motor_m[ok], rtol=0, atol=1e-6)
     np.testing.assert_allclose(got.f_n[ok], ref.f_n[ok], rtol=0, atol=2e-3)
-    not_met = got.status == "fault_not_met"  # a band above its jam: Python's ok command breaks one of them
+    not_met = got.status == "fault_not_met"  # a band above its jam: the command breaks one of them
     broken = np.maximum(ref.diagnostics["band_violation_m"], ref.diagnostics["jam_violation_m"])
+    assert not_met.any()
     assert (got.status[~ok] == "fault_not_met").all() and (broken[not_met] > FAULT_TOL_M).all()
     assert np.isnan(got.l_motor_m[~ok]).all() and np.isnan(got.f_n[~ok]).all()
     one = load_exported(package)(q[:1], faults.take([0]))  # batch 1 from the same (dynamic) package
@@ -40,7 +43,7 @@ def test_metadata_names_units_codes_and_checkpoint(package, diff60):
     assert meta["muscle_names"] == list(robot.muscle_names) and meta["joint_names"] == list(robot.joint_names)
     assert meta["status_codes"] == STATUS_CODES and meta["checkpoint_sha256"] == "test-session"
     assert meta["n_steps"] == 20 and meta["units"]["l_motor_m"] == "m" and meta["spring"]["k_n"] == 1000.0
-    assert meta["schema_class"].endswith("DiffusionSchema")
+    assert meta["schema_class"].endswith("DiffusionSchema") and meta["schema_kind"] == "diffusion"
 
 
 def test_bad_values_are_a_bad_input_status_never_an_ok_command(package, diff60, mixed_cases):
@@ -121,7 +124,54 @@ def test_cpp_refuses_corrupt_packages_and_unknown_muscles(package, cpp_build, tm
     assert run.returncode == 2 and "unknown muscle 'tail_flexor'" in run.stderr
     run = _adapt_once(cpp_build, package, "--q", "nan,0.1")
     assert run.returncode == 0 and json.loads(run.stdout.replace("NaN", "null"))["status"] == "bad_input"
-    loop = subprocess.run([str(cpp_build / "control_loop"), package, "--ticks", "200", "--json"], capture_output=True,
-                          text=True, timeout=300)
+    loop = subprocess.run([str(cpp_build / "control_loop"), package, "--ticks", "200", "--json", "--sha256",
+                           file_sha256(package).upper()], capture_output=True, text=True, timeout=300)
     assert loop.returncode == 0, loop.stderr
     assert json.loads(loop.stdout)["ok_ticks"] == 200
+    forged = tmp_path / "forged.pt2"  # one byte changed: refused by its digest before it is loaded
+    data = bytearray(open(package, "rb").read())
+    data[len(data) // 2] ^= 1
+    forged.write_bytes(bytes(data))
+    for program, extra in (("adapt_once", ["--q", "0.1,0.1"]), ("control_loop", ["--ticks", "5"])):
+        run = subprocess.run([str(cpp_build / program), str(forged), *extra, "--sha256", file_sha256(package)],
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 1 and "refused unloaded" in run.stderr and run.stderr.count("\n") == 1
+
+
+def test_structured_package_equals_python_in_python_and_cpp(struct_package, struct30, struct_cases, cpp_build):
+    """The structured schema's package: Python's statuses on every case and its ok commands (1e-5 m, 1e-2 N), from
+    load_exported and from the unchanged C++ example."""
+    q, faults = struct_cases
+    ref = struct30.adapter(faults, check_physics=False)(q)
+    adapter = load_exported(struct_package, expected_sha256=file_sha256(struct_package))
+    rows = [adapter(q[i:i + 1], faults.take([i])) for i in range(len(q))]  # a batch-1 package: one call per case
+    got = AdaptationResult(*(np.concatenate([getattr(r, k) for r in rows]) for k in ("l_motor_m", "f_n", "status")))
+    assert adapter.kind == "structured" and adapter.metadata["schema_class"].endswith("StructuredSchema")
+    ok = got.status == "ok"
+    assert (got.status == ref.status).all() and 5 <= ok.sum() < len(q)
+    np.testing.assert_allclose(got.l_motor_m[ok], ref.l_motor_m[ok], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(got.f_n[ok], ref.f_n[ok], rtol=0, atol=1e-2)
+    names = struct30.robot_model.muscle_names
+    for i in range(6):
+        args = [struct_package, "--q", ",".join(repr(float(v)) for v in q[i]), "--sha256", file_sha256(struct_package)]
+        args += ["--cut", ",".join(names[j] for j in np.flatnonzero(faults.cut[i]))] if faults.cut[i].any() else []
+        jam = [f"{names[j]}={float(faults.l_fixed_m[i, j])!r}" for j in np.flatnonzero(faults.fix[i])]
+        args += ["--jam", ",".join(jam)] if jam else []
+        weak = [f"{names[j]}={float(faults.f_max_n[i, j])!r}" for j in np.flatnonzero(faults.weak[i])]
+        args += ["--weak", ",".join(weak)] if weak else []
+        band = [f"{names[j]}={float(faults.l_band_m[i, j, 0])!r}:{float(faults.l_band_m[i, j, 1])!r}"
+                for j in np.flatnonzero(faults.band[i])]
+        args += ["--band", ",".join(band)] if band else []
+        run = _adapt_once(cpp_build, *args)
+        assert run.returncode == 0, run.stderr
+        line = json.loads(run.stdout.replace("NaN", "null"))
+        assert line["status"] == ref.status[i]
+        if line["status"] == "ok":
+            np.testing.assert_allclose(line["l_motor_m"], ref.l_motor_m[i], rtol=0, atol=1e-5)
+            np.testing.assert_allclose(line["f_n"], ref.f_n[i], rtol=0, atol=1e-2)
+    run = _adapt_once(cpp_build, struct_package, "--q", "0.1,0.1", "--cut", "tail_flexor")
+    assert run.returncode == 2 and "unknown muscle 'tail_flexor'" in run.stderr and run.stderr.count("\n") == 1
+    with pytest.raises(BodySchemaInputError, match="unknown muscle 'tail_flexor'"):
+        Faults.from_names(adapter.muscle_names, cut=[["tail_flexor"]])
+    with pytest.raises(BodySchemaInputError, match="another robot"):
+        load_exported(struct_package, muscle_names=names[::-1])

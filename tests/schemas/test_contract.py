@@ -16,9 +16,8 @@ from torch import nn
 from lightning_bodyschema.contract import (ADAPTS_IN_SI, ADAPTS_NORMALIZED, EPOCH_HOOK, REFRESHES_DERIVED_STATE,
                                            SchemaContract)
 from lightning_bodyschema.evaluation import make_fault_cases, oracle_commands
-from lightning_bodyschema.faults.constraints import LENGTH
 from lightning_bodyschema.schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema
-from lightning_bodyschema.sim import elongation_from_tension, solve_equilibrium_qp, tension_from_elongation
+from lightning_bodyschema.sim import elongation_from_tension, solve_equilibrium_qp
 
 
 class ExactBodySchema(BodySchema):
@@ -36,18 +35,10 @@ class ExactBodySchema(BodySchema):
     def generate(self, q_n):
         return self.net(q_n)
 
-    def adapt_si(self, q_rad, constraints, variant, **options):
+    def adapt_si(self, q_rad, bounds, variant, **options):
         q = q_rad.numpy()
         l_geo, G, tau_bias = self.robot_model.kinematics(q)
-        lo, hi = np.zeros_like(l_geo), np.full_like(l_geo, np.inf)
-        for constraint in constraints:  # length bounds become tension bounds through the spring
-            lower, upper = (np.broadcast_to(np.asarray(b, float), l_geo.shape) for b in constraint.bounds())
-            if constraint.column == LENGTH:
-                with np.errstate(invalid="ignore"):
-                    lower, upper = (tension_from_elongation(np.maximum(l_geo - upper, 0.0), self.spring),
-                                    tension_from_elongation(np.maximum(l_geo - lower, 0.0), self.spring))
-            lo = np.where(constraint.mask, np.maximum(lo, lower), lo)
-            hi = np.where(constraint.mask, np.minimum(hi, upper), hi)
+        lo, hi = bounds.numpy().tension_box(l_geo)  # length bounds become tension bounds through the spring
         f_ref = np.full_like(lo, self.spring.f_max_n / 2.0)
         f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_lo_n=np.minimum(lo, hi), f_hi_n=hi)
         f = np.where((ok & (lo <= hi).all(1))[:, None], f, np.nan)
@@ -82,7 +73,7 @@ def test_adaptation_goes_where_the_capability_says(dm):
 
     faults = Faults.none(1, si.n_muscles)
     adapter = si.adapter(faults, check_physics=False)
-    assert adapter.in_si and hasattr(adapter, "constraints") and not hasattr(adapter, "penalty")
+    assert adapter.in_si and not hasattr(adapter, "penalty")
     assert not DiffusionSchema.capabilities & {ADAPTS_IN_SI}
 
 

@@ -31,3 +31,10 @@ def test_arrays_keep_long_names_and_compare_with_strings():
     assert list(status_array("ok", size=3) == "ok") == [True] * 3
     with pytest.raises(ValueError):
         status_array(["no_such_status"])
+
+
+def test_codes_to_members_vectorized_is_the_vocabulary():
+    from lightning_bodyschema.adaptation.command import statuses
+
+    codes = np.array([m.code for m in Status][::-1], np.int32)
+    assert list(statuses(codes)) == list(Status)[::-1] and statuses(codes).dtype == object

@@ -1,0 +1,66 @@
+"""``StructuredAdapterModule``: the structured schema's prepared adapter as a tensor-only module (``deploy.module``'s
+signature and outputs), for ``torch.export``.
+
+Per case, as ``StructuredSchema.solve_si`` and ``faults.qp.fault_command`` do: the learned body at the posture
+(``schema.body``: lengths ``l_geo``, moment arms ``G``, the torque ``tau``), the faults' tension box through the
+spring (``FaultBounds.tension_box``), the tensions closest to ``f_ref`` (half of each muscle's f_max) that balance
+``tau`` inside the box by the batched dual Newton of ``solvers.newton`` with a fixed iteration cap (traceable), then
+``l_motor = l_geo - delta(f)`` and the shared safe command. A case whose box crosses, or whose Newton does not
+settle within the cap (a torque the box cannot balance), is ``infeasible_learned`` with a NaN row, as in Python.
+"""
+from __future__ import annotations
+
+import torch
+
+from ..errors import BodySchemaInputError
+from ..solvers.newton import NEWTON_TOL_NM, dual_newton
+from ..status import Status
+from .module import PackageModule
+
+# the Newton steps the package runs on every case: the Python adapter stops a case when it settles (a holdable
+# posture takes a handful of steps with the exact line search) and hands the few it has not settled to proxsuite
+PACKAGE_NEWTON_ITER = 12
+
+
+class StructuredAdapterModule(PackageModule):
+    """The tensor-only adapter of a trained ``StructuredSchema`` (module docstring); ``max_iter``: the Newton steps
+    every case runs. The ``seed`` input must be 0 (the structured schema draws nothing)."""
+
+    kind = "structured"
+
+    def __init__(self, schema, max_iter: int = PACKAGE_NEWTON_ITER):
+        from ..schemas import StructuredSchema
+
+        if not isinstance(schema, StructuredSchema):
+            raise BodySchemaInputError(f"StructuredAdapterModule exports the structured schema; got "
+                                       f"{type(schema).__name__}")
+        if isinstance(max_iter, bool) or not isinstance(max_iter, int) or not 1 <= max_iter <= 1000:
+            raise BodySchemaInputError(f"max_iter={max_iter!r}: Newton steps per case, an int in 1..1000")
+        super().__init__(schema, [0])
+        self.schema, self.max_iter, self.dtype = schema, max_iter, schema.dtype
+
+    def body(self, q_n):
+        """``schema.body(q_n)`` one posture at a time under ``torch.vmap``: the same numbers, and the batch size
+        stays symbolic when exported (the body's networks size a tensor by ``len(x)``, which would fix it)."""
+        def one(q_row):
+            return tuple(t[0] for t in self.schema.body(q_row[None]))
+        return torch.vmap(one)(q_n)
+
+    def forward(self, q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed):
+        bad, q, bounds = self.faults(q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed)
+        l_geo, G, tau = (t.to(torch.float64) for t in self.body(self.normalized_q(q, self.dtype)))
+        box_lo, box_hi = bounds.tension_box(l_geo)
+        crossed = (box_lo > box_hi).any(1)  # no tension meets the bounds
+        f_ref = (0.5 * self.f_max_n).expand_as(box_lo)
+        newton = dual_newton(G, tau, f_ref, torch.minimum(box_lo, box_hi), box_hi, 0.0, NEWTON_TOL_NM, self.max_iter,
+                             fixed_iterations=True)
+        held = newton.converged & ~crossed
+        f = newton.f
+        l_motor = l_geo - torch.log1p(f.clamp_min(0.0) / self.k_n) / self.alpha_per_m
+        l_lo = bounds.l_lo_m  # a slack wire: the motor may stand anywhere above l_geo, so inside its band
+        l_motor = torch.where((f <= 0.0) & torch.isfinite(l_lo), torch.maximum(l_motor, l_lo), l_motor)
+        l_motor = torch.minimum(l_motor, bounds.l_hi_m)  # rounding of exp/log1p only: the box keeps l_motor <= l_hi
+        x = torch.where(held[:, None], torch.cat([l_motor, f], 1), float("nan"))
+        l_motor, f, status = self.safe(x, bounds, bad)
+        status = torch.where(~held & ~bad, Status.INFEASIBLE_LEARNED.code, status).to(torch.int32)
+        return l_motor, f, status

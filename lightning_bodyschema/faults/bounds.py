@@ -1,0 +1,182 @@
+"""``FaultBounds``: one batch of faults as SI bounds on the tensions f and the motor lengths l_motor, and the tension
+box those bounds give through the spring at given muscle lengths.
+
+Per muscle (``Faults``: cut, jammed, weakened, length-banded; the robot's f_max and spring):
+
+* tensions ``f_lo_n <= f <= f_hi_n``: ``[0, 0]`` cut, ``[0, f_max']`` weakened, ``[0, f_max]`` otherwise;
+* motor lengths ``l_lo_m <= l_motor <= l_hi_m``: a jam's ``l_fixed`` and a band's hi above, a band's lo below;
+* through the spring ``l_motor = l_geo - delta(f)`` (sim/spring.py) at lengths ``l_geo``, ``tension_box``:
+  ``l_motor <= l_hi`` is ``f >= k (exp(alpha (l_geo - l_hi)) - 1)`` (the tension the spring gives with the motor at
+  ``l_hi``; reeling in, a higher tension, is allowed) and ``l_motor >= l_lo`` is
+  ``f <= k (exp(alpha (l_geo - l_lo)) - 1)`` (below ``l_geo`` the wire is slack: f = 0, the motor anywhere above).
+  Where the two cross (lo > hi) no tension meets them.
+
+Every method works on numpy arrays and torch tensors alike (the backend of the fields; torch: any device, float64,
+traceable by ``torch.export``), so the feasibility check (numpy), the adapters and the exported graph (torch) share
+it. Built from ``Faults`` (``from_faults``) or from the exported package's tensor inputs (``from_tensors``); the
+rules a fault set must obey are ``faults.fault_rules`` (``Faults.validate`` and the package both ask them).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from .faults import fault_rules
+
+
+def _xp(a):
+    """torch for tensors, numpy for arrays (torch is not imported here)."""
+    return sys.modules["torch"] if type(a).__module__.startswith("torch") else np
+
+
+def _fill(like, value):
+    return np.full_like(like, value, dtype=float) if _xp(like) is np else sys.modules["torch"].full_like(like, value)
+
+
+def _where(cond, a, b):
+    xp = _xp(cond)
+    if xp is np:
+        return np.where(cond, a, b)
+    torch = xp
+    return torch.where(cond, a if torch.is_tensor(a) else torch.as_tensor(a, dtype=torch.float64, device=cond.device),
+                       b if torch.is_tensor(b) else torch.as_tensor(b, dtype=torch.float64, device=cond.device))
+
+
+def _minimum(a, b):
+    return (np if _xp(a) is np else sys.modules["torch"]).minimum(a, b)
+
+
+def _maximum(a, b):
+    return (np if _xp(a) is np else sys.modules["torch"]).maximum(a, b)
+
+
+def _isnan(a):
+    return (np if _xp(a) is np else sys.modules["torch"]).isnan(a)
+
+
+def _isfinite(a):
+    return (np if _xp(a) is np else sys.modules["torch"]).isfinite(a)
+
+
+def _phi(delta_m, k_n, alpha_per_m):
+    """The spring's tension [N] at elongation ``delta_m`` (0 when slack), inf where exp overflows."""
+    xp = _xp(delta_m)
+    stretch = np.clip(delta_m, 0.0, None) if xp is np else delta_m.clamp_min(0.0)
+    return k_n * xp.expm1(alpha_per_m * stretch)
+
+
+@dataclass(frozen=True)
+class FaultBounds:
+    """SI bounds of one batch of faults (module docstring). Masks ``cut``, ``jam``, ``weak``, ``band`` (B, M) bool;
+    ``l_fixed_m``, ``band_lo_m``, ``band_hi_m`` (B, M) [m], NaN where off; ``f_limit_n`` (B, M) [N]: a weakened
+    muscle's limit, else the robot's f_max; ``k_n``, ``alpha_per_m``: the spring (scalars or (M,); None: no spring,
+    ``tension_box`` unavailable). numpy arrays or torch tensors, all of one backend."""
+
+    cut: Any
+    jam: Any
+    weak: Any
+    band: Any
+    l_fixed_m: Any
+    band_lo_m: Any
+    band_hi_m: Any
+    f_limit_n: Any
+    k_n: Any = None
+    alpha_per_m: Any = None
+
+    @classmethod
+    def from_tensors(cls, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, f_max_n, k_n=None,
+                     alpha_per_m=None) -> "FaultBounds":
+        """From the exported package's inputs: ``cut``, ``jam`` (B, M) masks (bool, or 1.0 where on), ``l_fixed_m``,
+        ``f_weak_n`` (NaN: not weakened), ``band_lo_m``, ``band_hi_m`` (NaN: free) (B, M); ``f_max_n`` the robot's
+        limit (scalar or (M,)). Not validated (``fault_rules`` says what is broken)."""
+        cut, jam = (m if m.dtype == bool or str(m.dtype) == "torch.bool" else m == 1.0 for m in (cut, jam))
+        weak, band = ~_isnan(f_weak_n), ~(_isnan(band_lo_m) & _isnan(band_hi_m))
+        f_limit = _where(weak, f_weak_n, _fill(f_weak_n, 0.0) + f_max_n)  # the robot's limit broadcast to (B, M)
+        return cls(cut, jam, weak, band, l_fixed_m, band_lo_m, band_hi_m, f_limit, k_n, alpha_per_m)
+
+    @classmethod
+    def from_faults(cls, faults, f_max_n, spring=None, like=None) -> "FaultBounds":
+        """From ``faults`` (a ``Faults``), the robot's ``f_max_n`` (scalar or (M,)) [N] and ``spring`` (a
+        ``SpringParams``; None: no tension box); numpy arrays, or float64 tensors on ``like``'s device."""
+        nan = np.full(np.shape(faults.cut), np.nan)
+        band = np.stack([nan, nan], -1) if faults.l_band_m is None else np.asarray(faults.l_band_m, float)
+        arrays = [np.asarray(faults.cut, bool), np.asarray(faults.fix, bool), np.asarray(faults.l_fixed_m, float),
+                  nan if faults.f_max_n is None else np.asarray(faults.f_max_n, float), band[..., 0], band[..., 1],
+                  np.asarray(f_max_n, float)]
+        springs = [None, None] if spring is None else [np.broadcast_to(np.asarray(v, float), nan.shape[-1:])
+                                                       for v in (spring.k_n, spring.alpha_per_m)]
+        if like is not None:
+            torch = sys.modules["torch"]
+            as_t = lambda a: None if a is None else torch.as_tensor(  # noqa: E731
+                np.array(a), dtype=torch.bool if a.dtype == bool else torch.float64, device=like.device)
+            arrays, springs = [as_t(a) for a in arrays], [as_t(a) for a in springs]
+        return cls.from_tensors(*arrays, *springs)
+
+    def numpy(self) -> "FaultBounds":
+        """The same bounds as numpy arrays (host copies of tensors; itself when already numpy)."""
+        if _xp(self.f_limit_n) is np:
+            return self
+        as_np = lambda a: a.detach().cpu().numpy() if _xp(a) is not np and a is not None else a  # noqa: E731
+        return FaultBounds(*(as_np(getattr(self, name)) for name in self.__dataclass_fields__))
+
+    def take(self, rows) -> "FaultBounds":
+        """The cases ``rows`` (indices or a (B,) bool mask; the spring is shared)."""
+        return FaultBounds(*(getattr(self, name)[rows] for name in list(self.__dataclass_fields__)[:8]),
+                           self.k_n, self.alpha_per_m)
+
+    # ------------------------------------------------------------------ the bounds
+    @cached_property
+    def f_lo_n(self):
+        """(B, M) [N]: 0 (a muscle only pulls)."""
+        return _fill(self.f_limit_n, 0.0)
+
+    @cached_property
+    def f_hi_n(self):
+        """(B, M) [N]: 0 where cut, else the muscle's limit."""
+        return _where(self.cut, 0.0, self.f_limit_n)
+
+    @cached_property
+    def l_lo_m(self):
+        """(B, M) [m]: a band's lo, -inf where free."""
+        return _where(self.band, self.band_lo_m, -np.inf)
+
+    @cached_property
+    def l_hi_m(self):
+        """(B, M) [m]: the lower of a jam's l_fixed and a band's hi, +inf where free."""
+        return _minimum(_where(self.jam, self.l_fixed_m, np.inf), _where(self.band, self.band_hi_m, np.inf))
+
+    def tension_box(self, l_geo_m):
+        """``(lo, hi)`` (B, M) [N]: the tensions that meet every bound at muscle lengths ``l_geo_m`` (module
+        docstring); lo > hi where they cross (then no tension meets them)."""
+        if self.k_n is None:
+            raise ValueError("FaultBounds without a spring has no tension box")
+        l_lo, l_hi = self.l_lo_m, self.l_hi_m
+        with np.errstate(over="ignore", invalid="ignore"):  # an absurd stretch overflows to inf: crossed, as it should
+            has_hi, has_lo = _isfinite(l_hi), _isfinite(l_lo)
+            by_hi = _phi(l_geo_m - _where(has_hi, l_hi, 0.0), self.k_n, self.alpha_per_m)
+            by_lo = _phi(l_geo_m - _where(has_lo, l_lo, 0.0), self.k_n, self.alpha_per_m)
+            return (_maximum(self.f_lo_n, _where(has_hi, by_hi, 0.0)),
+                    _minimum(self.f_hi_n, _where(has_lo, by_lo, np.inf)))
+
+    def broken(self, l_motor_m, f_n):
+        """``(length_m, cut_n)`` (B, M): how far ``l_motor_m`` lies outside its length bounds (a jam, a band) [m] and
+        how hard a cut muscle pulls [N] (``f_n`` as sent: clipped to 0 <= f <= f_limit); 0 where nothing is broken."""
+        with np.errstate(invalid="ignore"):  # NaN commands give NaN; +-inf where free gives 0
+            length = _maximum(l_motor_m - self.l_hi_m, self.l_lo_m - l_motor_m)
+            length = np.maximum(length, 0.0) if _xp(length) is np else length.clamp_min(0.0)
+        return length, _where(self.cut, f_n, 0.0)
+
+    def invalid(self, f_max_n=None):
+        """(B,) bool: the cases that break a rule of ``fault_rules`` (``Faults.validate`` refuses them)."""
+        bad = None
+        for _, mask in fault_rules(self.cut, self.jam, self.l_fixed_m, _where(self.weak, self.f_limit_n, np.nan),
+                                   self.band_lo_m, self.band_hi_m, f_max_n):
+            bad = mask if bad is None else bad | mask
+        return bad.any(1)
+
+
+__all__ = ["FaultBounds"]

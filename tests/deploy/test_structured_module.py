@@ -1,0 +1,69 @@
+"""The structured schema's tensor-only package module (eager, and traced by torch.export): the statuses and commands
+of the Python adapter, the faults' bounds met, bad input refused row by row."""
+import numpy as np
+import pytest
+import torch
+from test_module import module_inputs
+
+from lightning_bodyschema.adaptation.command import FAULT_TOL_M
+from lightning_bodyschema.deploy.structured import StructuredAdapterModule
+from lightning_bodyschema.faults.bounds import FaultBounds
+from lightning_bodyschema.status import Status, status_array
+from lightning_bodyschema.errors import BodySchemaInputError
+
+
+def _run(module, q, faults, seed=0):
+    with torch.no_grad():
+        l_motor, f, status = module(*module_inputs(q, faults, seed))
+    return l_motor.numpy(), f.numpy(), status_array(status.numpy().tolist())
+
+
+def test_structured_module_equals_the_python_adapter(struct30, struct_cases):
+    q, faults = struct_cases
+    ref = struct30.adapter(faults, check_physics=False)(q)
+    l_motor, f, status = _run(StructuredAdapterModule(struct30), q, faults)
+    assert (status == ref.status).all()
+    ok = status == Status.OK
+    assert 5 <= ok.sum() < len(q) and (status[~ok] == Status.INFEASIBLE_LEARNED).any()
+    np.testing.assert_allclose(l_motor[ok], ref.l_motor_m[ok], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(f[ok], ref.f_n[ok], rtol=0, atol=1e-2)
+    assert np.isnan(l_motor[~ok]).all() and np.isnan(f[~ok]).all()
+    # every ok command meets every fault: cut f = 0, jams and bands to FAULT_TOL_M, f within [0, f_limit]
+    bounds = FaultBounds.from_faults(faults.take(ok), struct30.spring.f_max_n)
+    length_m, cut_n = bounds.broken(l_motor[ok], f[ok])
+    assert length_m.max() <= FAULT_TOL_M and cut_n.max() == 0.0
+    assert (f[ok] >= 0).all() and (f[ok] <= bounds.f_limit_n + 1e-9).all()
+
+
+def test_structured_module_refuses_bad_rows_and_other_seeds(struct30, struct_cases):
+    q, faults = struct_cases
+    module = StructuredAdapterModule(struct30)
+    tensors = [t.clone() for t in module_inputs(q[:4], faults.take(np.arange(4)))]
+    tensors[0][0, 0] = float("nan")  # NaN posture
+    tensors[2][1, 0], tensors[3][1, 0] = 1.0, -0.1  # a jam at a negative length
+    tensors[5][2, 1], tensors[6][2, 1] = 0.3, 0.2  # a band with lo > hi
+    with torch.no_grad():
+        l_motor, f, status = module(*tensors)
+        _, _, other_seed = module(*module_inputs(q[:4], faults.take(np.arange(4)), seed=3))
+    assert (status[:3].numpy() == Status.BAD_INPUT.code).all() and torch.isnan(l_motor[:3]).all()
+    ref = struct30.adapter(faults.take([3]), check_physics=False)(q[3:4])
+    assert status_array(status[3:].tolist())[0] == ref.status[0]
+    assert (other_seed.numpy() == Status.BAD_INPUT.code).all()
+    with pytest.raises(BodySchemaInputError, match="structured schema"):
+        StructuredAdapterModule(object())
+
+
+@pytest.mark.slow
+def test_the_exported_program_is_the_eager_module(struct30, struct_cases):
+    """torch.export of the module (the Newton's fixed iteration cap) answers as the eager module."""
+    from torch.export import export
+
+    q, faults = struct_cases
+    module = StructuredAdapterModule(struct30).eval()
+    with torch.no_grad():
+        program = export(module, module_inputs(q, faults), strict=False)
+        got = program.module()(*module_inputs(q, faults))
+        want = module(*module_inputs(q, faults))
+    assert torch.equal(got[2], want[2])
+    torch.testing.assert_close(got[0], want[0], rtol=0, atol=1e-12, equal_nan=True)
+    torch.testing.assert_close(got[1], want[1], rtol=0, atol=1e-9, equal_nan=True)
