@@ -93,7 +93,7 @@ def safe_command(x_si, faults, f_limit_n=None, l_range_m=None) -> AdaptationResu
     fault_not_met row would have sent; scorers of the raw adaptation use it).
     """
     x = x_si.detach().to(torch.float64).cpu().numpy() if torch.is_tensor(x_si) else np.asarray(x_si, np.float64)
-    bounds = faults.numpy() if isinstance(faults, FaultBounds) else FaultBounds.from_faults(faults, f_limit_n)
+    bounds = faults.on_host() if isinstance(faults, FaultBounds) else FaultBounds.from_faults(faults, f_limit_n)
     lo, hi = (0.0, np.inf) if l_range_m is None else (np.maximum(l_range_m[0], 0.0), l_range_m[1])
     with np.errstate(invalid="ignore", over="ignore"):  # NaN rows are non_finite
         l_motor, f, status, worst = command_status(x, bounds, lo, hi, diagnostics=True)

@@ -116,7 +116,7 @@ class FaultBounds:
             arrays, springs = [as_t(a) for a in arrays], [as_t(a) for a in springs]
         return cls.from_tensors(*arrays, *springs)
 
-    def numpy(self) -> "FaultBounds":
+    def on_host(self) -> "FaultBounds":
         """The same bounds as numpy arrays (host copies of tensors; itself when already numpy)."""
         if _xp(self.f_limit_n) is np:
             return self

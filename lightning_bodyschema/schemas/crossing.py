@@ -8,6 +8,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..networks.per_muscle import PerMusclePath
 from ..sim.robot import check_muscle_joints, crossing_mapping
 
@@ -50,7 +51,7 @@ def crossing_from_data(q_n, length_n, arm_scale, robot_model, given: Optional[di
     found = arms > torch.clamp(ARM_SHARE * arms.max(1, keepdim=True).values, min=ARM_THRESHOLD_M)
     found[~found.any(1), arms[~found.any(1)].argmax(1)] = True  # a muscle crosses at least one joint
     if given is None:
-        mapping = crossing_mapping(found.numpy(), muscles, joints)
+        mapping = crossing_mapping(to_numpy(found), muscles, joints)
         print(f"muscle_joints detected from the data (none given; RMS moment arm > {1e3 * ARM_THRESHOLD_M:g} mm/rad "
               f"and > {ARM_SHARE:g} of the muscle's largest):"
               f" {mapping}", file=sys.stderr)

@@ -249,7 +249,7 @@ class StructuredSchema(BodySchema):
         f_max = np.broadcast_to(np.asarray(self.spring.f_max_n, float), l_geo.shape)
         if bounds is None:
             bounds = FaultBounds.from_faults(Faults.none(*l_geo.shape), self.spring.f_max_n, self.spring)
-        b = bounds.numpy()
+        b = bounds.on_host()
         reg = self.hparams.qp_reg if reg is None else reg
         return fault_command(l_geo, G, tau, 0.5 * f_max, b.f_lo_n, b.f_hi_n, b.l_lo_m, b.l_hi_m, self.spring, reg)
 

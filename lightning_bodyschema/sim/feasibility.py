@@ -43,6 +43,7 @@ import torch
 
 from .. import solvers
 from ..errors import BodySchemaInputError
+from .._numpy import to_numpy
 from ..faults.bounds import FaultBounds
 from ..solvers import EQUILIBRIUM_TOL_NM, MAX_SCREEN_NORMALS  # noqa: F401  (re-exported: evaluation.feasibility)
 from .equilibrium import solve_equilibrium_qp
@@ -59,7 +60,7 @@ def outside_torque_reach(G, tau_bias, lo, hi) -> np.ndarray:
     """(B,) True where no tension in [lo, hi] (B, M) holds the posture to EQUILIBRIUM_TOL_NM
     (``solvers.outside_torque_reach`` on arrays)."""
     args = (torch.as_tensor(x, dtype=torch.float64) for x in (G, tau_bias, lo, hi))
-    return solvers.outside_torque_reach(*args, EQUILIBRIUM_TOL_NM).numpy()
+    return to_numpy(solvers.outside_torque_reach(*args, EQUILIBRIUM_TOL_NM))
 
 
 def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str = "one_sided",
