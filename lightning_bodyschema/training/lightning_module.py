@@ -212,9 +212,11 @@ class SchemaLightningModule(L.LightningModule):
         return {"q": batch[0].cpu().numpy(), "l_motor": l_motor, "f": f}
 
     def on_save_checkpoint(self, checkpoint):
-        if self._refresh_derived_state():  # Lightning took the state_dict before this hook: update its buffers
-            state = checkpoint.get("state_dict", {})
-            state.update({name: buf.detach().clone() for name, buf in self.named_buffers() if name in state})
+        before = {name: buf.detach().clone() for name, buf in self.named_buffers()}
+        if self._refresh_derived_state():  # Lightning took the state_dict before this hook: update the buffers the
+            state = checkpoint.get("state_dict", {})  # refresh changed (others may hold a weight average's values)
+            state.update({name: buf.detach().clone() for name, buf in self.named_buffers()
+                          if name in state and not torch.equal(buf, before[name])})
         # minibatch order and diffusion noise come from torch's global RNG: a resumed fit must continue
         # the same stream to end with the same weights as an uninterrupted one
         checkpoint["torch_rng_state"] = torch.get_rng_state()
