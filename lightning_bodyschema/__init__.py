@@ -1,5 +1,5 @@
 """lightning_bodyschema: learn and adapt the body schema of musculoskeletal robots."""
-__version__ = "0.1.0"
+__version__ = "0.3.0"  # = pyproject.toml's version (tests/docs/test_version.py)
 
 _STATICS = ("static_optimization", "StaticBody", "StaticResult")
 
