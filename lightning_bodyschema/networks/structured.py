@@ -39,8 +39,8 @@ class JacobianMLP(nn.Module):
             weight and bias, before every activation).
     ``forward(x)`` gives y; ``with_jacobian(x)`` gives ``(y, J)`` with ``J (B, out_dim, in_dim) = dy/dx``, exact (the
     chain rule through each layer, LayerNorm and residual add, differentiable by autograd in the weights), at about
-    ``in_dim + 1`` times the cost. The default (plain, none) holds only ``layers``: its state_dict keys are the same
-    as before the options existed; ``norm="layer"`` adds ``norms`` (one per activation).
+    ``in_dim + 1`` times the cost. The default (plain, none) holds only ``layers`` (one ``nn.Linear`` per layer);
+    ``norm="layer"`` adds ``norms`` (one per activation).
     """
 
     def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, n_hidden: int = 3, block: str = "plain",

@@ -53,8 +53,8 @@ class GuidanceConfig:
       steps the predicted x0 is still far from the data, and snapping it costs accuracy in conditions where the
       faults need little change.
     inpaint_n_guide: guidance steps per timestep where the step inpaints (at least ``n_guide``). With one, the eps the
-      step keeps was predicted before the guidance moved x_t, and on faults no command can meet that stale pair
-      diverged (4 of 500 binding cases, most infeasible paper cases); the second re-predicts eps at the guided x_t.
+      step keeps was predicted before the guidance moved x_t, and where no command can meet the faults that stale pair
+      can diverge; the second re-predicts eps at the guided x_t.
     recurrence: denoise t -> t' then re-noise t' -> t with fresh seeded noise, ``recurrence`` times per step
       (universal guidance's recurrence; 1: none). Autograd reference loop only.
     project_xt: also project x_t itself (scaled to x0 units) after every step, as projected diffusion models do.
