@@ -109,6 +109,9 @@ int main(int argc, char** argv) {
       }
     }
     if (!have_q) throw std::invalid_argument("--q is required");
+  } catch (const bodyschema::NotThisRobot& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return 1;
   } catch (const std::exception& e) {
     std::cerr << "error: " << e.what() << "\n";
     return 2;

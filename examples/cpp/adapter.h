@@ -23,6 +23,12 @@
 
 namespace bodyschema {
 
+// A request the package cannot answer for this robot (a fault on a muscle it does not have): exit 1, like a package
+// that does not load; plain std::invalid_argument is a malformed command line (exit 2).
+struct NotThisRobot : std::invalid_argument {
+  using std::invalid_argument::invalid_argument;
+};
+
 // A JSON array of strings, e.g. ["a", "b"] (what the package's metadata holds for names).
 inline std::vector<std::string> parse_string_list(const std::string& json) {
   std::vector<std::string> out;
@@ -95,7 +101,7 @@ struct Adapter {
       if (muscles[i] == name) return static_cast<int>(i);
     std::string known;
     for (const auto& m : muscles) known += (known.empty() ? "" : ", ") + m;
-    throw std::invalid_argument("unknown muscle '" + name + "'; the package's muscles are: " + known);
+    throw NotThisRobot("unknown muscle '" + name + "'; the package's muscles are: " + known);
   }
 
   // Inputs for `batch` healthy cases (q zero, no fault): allocate once, then write into them every tick.

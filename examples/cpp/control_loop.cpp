@@ -56,7 +56,7 @@ int main(int argc, char** argv) {
   auto inputs = adapter->make_inputs(1);  // the buffers: allocated once, written every tick
   if (!cut.empty()) {
     try { inputs[1][0][adapter->muscle_index(cut)] = 1.0; }
-    catch (const std::exception& e) { std::cerr << "error: " << e.what() << "\n"; return 2; }
+    catch (const std::exception& e) { std::cerr << "error: " << e.what() << "\n"; return 1; }  // NotThisRobot
   }
   double* q = inputs[0].data_ptr<double>();
   const size_t n = adapter->joints.size();
