@@ -13,6 +13,7 @@ from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import FaultCases
 from lightning_bodyschema.npz import load_npz, save_npz
 from lightning_bodyschema.schemas import load_datamodule
+from lightning_bodyschema.status import status_codes
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CASE_ARRAYS = ("q_ref", "cut", "fix", "l_fixed", "cond")
@@ -110,11 +111,12 @@ def test_adapt_cases_writes_safe_commands_beside_the_unchanged_cases(made, adapt
     assert code == 0, err
     assert len(stdout.strip().splitlines()) == 1 and "120 cases" in stdout and " ok" in stdout
     cases, result = load_npz(str(made[0]["seed0"])), load_npz(str(out))
-    assert sorted(result) == sorted(CASE_ARRAYS + ("l_motor", "f", "status", "joints", "muscles"))
+    assert sorted(result) == sorted(CASE_ARRAYS + ("l_motor", "f", "status", "status_code", "joints", "muscles"))
     for name in CASE_ARRAYS:
         assert result[name].dtype == cases[name].dtype
         np.testing.assert_array_equal(result[name], cases[name])  # NaN == NaN here
     assert result["l_motor"].shape == result["f"].shape == (120, N_MUSCLES) and result["status"].shape == (120,)
+    assert (status_codes(result["status"]) == result["status_code"]).all()  # names and codes of one vocabulary
     ok = result["status"] == "ok"
     assert ok.sum() > 0 and f"{ok.sum()} ok" in stdout
     assert np.isfinite(result["l_motor"][ok]).all() and np.isfinite(result["f"][ok]).all()

@@ -38,7 +38,7 @@ class ExactBodySchema(BodySchema):
     def adapt_si(self, q_rad, bounds, variant, **options):
         q = q_rad.numpy()
         l_geo, G, tau_bias = self.robot_model.kinematics(q)
-        lo, hi = bounds.numpy().tension_box(l_geo)  # length bounds become tension bounds through the spring
+        lo, hi = bounds.on_host().tension_box(l_geo)  # length bounds become tension bounds through the spring
         f_ref = np.full_like(lo, self.spring.f_max_n / 2.0)
         f, ok = solve_equilibrium_qp(G, tau_bias, f_ref, f_lo_n=np.minimum(lo, hi), f_hi_n=hi)
         f = np.where((ok & (lo <= hi).all(1))[:, None], f, np.nan)
