@@ -21,20 +21,25 @@ from lightning_bodyschema.sim.spring import spring_for_model
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = """
 import hashlib, yaml
-from lightning_bodyschema.data import EquilibriumDataModule
+from lightning_bodyschema.sim.model import MusculoskeletalModel
 from lightning_bodyschema.sim.sampling import generate_samples
+from lightning_bodyschema.sim.spring import spring_for_model
 locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]
-dm = EquilibriumDataModule(model="myo:myoarm", n_samples=10, locked_joints=locks)
-s = generate_samples(dm.robot_model, 3000, 0, dm.spring, workers=1)
+model = MusculoskeletalModel("myo:myoarm", locked_joints=locks)  # the robot configs/myoarm.yaml's data module builds
+s = generate_samples(model, 3000, 0, spring_for_model(model, None, 20.0, None), workers=1)
 print(hashlib.sha256(s.q.tobytes() + s.l_motor.tobytes() + s.f.tobytes()).hexdigest())
 """
 
 
 def test_two_processes_generate_the_same_bytes():
+    """Three fresh processes at once (no Lightning in them), one digest."""
     pytest.importorskip("myo_sim")
     assert len(chunk_sizes(3000)) == 2  # the chunked path, stitched
-    digests = {subprocess.run([sys.executable, "-c", SCRIPT], cwd=ROOT, capture_output=True, text=True,
-                              check=True).stdout.strip().splitlines()[-1] for _ in range(3)}
+    runs = [subprocess.Popen([sys.executable, "-c", SCRIPT], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True) for _ in range(3)]
+    outputs = [run.communicate(timeout=300) for run in runs]
+    assert all(run.returncode == 0 for run in runs), [err[-2000:] for _, err in outputs]
+    digests = {out.strip().splitlines()[-1] for out, _ in outputs}
     assert len(digests) == 1, digests
 
 
