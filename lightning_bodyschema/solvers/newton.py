@@ -38,6 +38,7 @@ LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly sin
 _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 _EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
+_CERTIFY_STEPS = frozenset(range(3, 64, 2))  # the steps before which the infeasibility test runs (and after the last)
 
 
 class NewtonResult(NamedTuple):
@@ -161,9 +162,10 @@ def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
         accepted, trial = _trials(problem, state, step, slope, t)
         return _select(accepted, trial, _gradient_step(problem, state, residual))
     out = _evaluate(*problem, state.lam + step)
-    fails = (out.value < state.value + _ARMIJO * slope) & ~_settled_step(state, out.free, _residual(out, problem[5]),
-                                                                        problem[5])
-    rows = fails.nonzero().squeeze(1)  # the cases the full step fails
+    rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
+    if rows.numel():
+        old, new = _State(*(x[rows] for x in state)), _State(*(x[rows] for x in out))
+        rows = rows[~_settled_step(old, new.free, _residual(new, problem[5][rows]), problem[5][rows])]
     halvings = _halvings(step) if rows.numel() else None
     for start, stop in _EAGER_BLOCKS:
         if rows.numel() == 0:
@@ -235,7 +237,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     """The problem of the module docstring for ``G (B, M, N)``, ``tau (B, N)``, ``f_ref, lo, hi (B, M)`` (float64
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
     ``fixed_iterations``: exactly ``max_iter`` masked steps (traceable by ``torch.export``), the eager answer.
-    ``infeasible_tol`` [N m]: before each step, an equilibrium case whose multiplier proves that no tension balances
+    ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... and after the last, an equilibrium case whose multiplier proves that no tension balances
     ``tau`` to it (``_separated``) stops there, ``infeasible`` (None: no such test, ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
@@ -248,10 +250,11 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     lam, shift = _start(G, tau, f_ref, w)
     state = _evaluate(*problem, lam)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
-    for _ in range(max_iter):
+    for k in range(max_iter):
         residual = _residual(state, w)
-        active = residual.abs().amax(1) > tol
-        if infeasible_tol is not None:
+        size = residual.abs().amax(1)
+        active = size > tol
+        if infeasible_tol is not None and k in _CERTIFY_STEPS:
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
         if fixed_iterations:
@@ -259,7 +262,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         else:
             idx = active.nonzero().squeeze(1)
             if idx.numel() == 0:
-                break
+                return NewtonResult(state.f, size <= tol, iterations, infeasible)
             if idx.numel() == batch:  # every case still runs: no gather
                 state = _newton_step(problem, state, residual, shift, True)
             else:
@@ -267,7 +270,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
                                    shift[idx], True)
                 state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
+    size = _residual(state, w).abs().amax(1)
     if infeasible_tol is not None:  # what the last step leaves
-        unsettled = _residual(state, w).abs().amax(1) > tol
-        infeasible = infeasible | (unsettled & _separated(problem, state.lam, infeasible_tol))
-    return NewtonResult(state.f, _residual(state, w).abs().amax(1) <= tol, iterations, infeasible)
+        infeasible = infeasible | ((size > tol) & _separated(problem, state.lam, infeasible_tol))
+    return NewtonResult(state.f, size <= tol, iterations, infeasible)

@@ -68,26 +68,36 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
     options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads, fallback_eps_abs,
                        least_squares)
     _check_options(options)
-    f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
-    f[problem.bad_input] = torch.nan
-    status = torch.full((problem.batch,), _NOT_CONVERGED, dtype=torch.int32, device=f.device)
-    status[problem.bad_input] = Status.BAD_INPUT.code
-    iterations = torch.zeros_like(status)
-    run = (~problem.bad_input & ~problem.crossed).nonzero().squeeze(1)
-    if run.numel() == problem.batch:  # every case: no gather
-        f, status, iterations = _first_pass(problem, tol, max_iter)
-    elif run.numel():
-        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
+    f, status, iterations = _solvable_first_pass(problem, tol, max_iter)
     unsettled = status == _NOT_CONVERGED
-    rows = unsettled & (problem.w_m2 > 0)
-    if bool(rows.any()):
-        f[rows], status[rows], iterations[rows] = _least_squares_rest(problem.take(rows), iterations[rows], options)
-    rows = (unsettled | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
-    if bool(rows.any()):
+    least = unsettled & (problem.w_m2 > 0)
+    equilibrium = (unsettled | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
+    any_least, any_equilibrium = torch.stack([least.any(), equilibrium.any()]).tolist()  # one host sync
+    if any_least:
+        f[least], status[least], iterations[least] = _least_squares_rest(problem.take(least), iterations[least],
+                                                                         options)
+    if any_equilibrium:
+        rows = equilibrium
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
                                                                       status[rows] == _INFEASIBLE, iterations[rows],
                                                                       options)
     return Solution(f, status, iterations)
+
+
+def _solvable_first_pass(problem: BoxQP, tol: float, max_iter: int):
+    """``(f, status, iterations)``: ``_first_pass`` on the cases with valid input and an uncrossed box; the others
+    NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled later)."""
+    skip = problem.bad_input | problem.crossed
+    if not bool(skip.any()):  # every case: no gather
+        return _first_pass(problem, tol, max_iter)
+    f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
+    f = torch.where(problem.bad_input.unsqueeze(1), torch.nan, f)
+    status = torch.where(problem.bad_input, Status.BAD_INPUT.code, _NOT_CONVERGED).to(torch.int32)
+    iterations = torch.zeros_like(status)
+    run = (~skip).nonzero().squeeze(1)
+    if run.numel():
+        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
+    return f, status, iterations
 
 
 def _first_pass(problem: BoxQP, tol: float, max_iter: int):
@@ -138,14 +148,20 @@ def _proofs(problem: BoxQP, f_first, proven, options: _Options):
     """``(f_ls, outside)``: the least-squares tensions (``f_first`` on proven cases with ``least_squares=False``)
     and where no equilibrium exists: crossed, ``proven``, or shown by the least squares."""
     outside = problem.crossed | proven
-    need = torch.ones_like(outside) if options.least_squares else ~outside
-    f_ls = f_first.clone()
+    if options.least_squares:
+        f_ls, shown = _least_squares_proof(problem, options)
+        return f_ls, outside | shown
+    f_ls, need = f_first.clone(), ~outside
     if bool(need.any()):
-        rows = problem.take(need)
-        w_ls = least_squares_weight(rows.G, options.ls_reg)
-        f_ls[need], settled = _least_squares(rows.with_weight(w_ls), options)
-        outside[need] |= settled & _least_squares_proves_no_balance(rows, f_ls[need], w_ls)
+        f_ls[need], outside[need] = _least_squares_proof(problem.take(need), options)
     return f_ls, outside
+
+
+def _least_squares_proof(problem: BoxQP, options: _Options):
+    """``(f_ls, shown)``: the least-squares tensions and where they show that no equilibrium exists."""
+    w_ls = least_squares_weight(problem.G, options.ls_reg)
+    f_ls, settled = _least_squares(problem.with_weight(w_ls), options)
+    return f_ls, settled & _least_squares_proves_no_balance(problem, f_ls, w_ls)
 
 
 def _no_equilibrium_yet(problem: BoxQP, f_first, proven, iterations, options: _Options):
