@@ -15,7 +15,8 @@ Newton steps on (2) with (3) and a line search on the dual value, a concave piec
 of the trial steps ``t = 1``, the exact maximiser along the step, ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)`` that
 meets Armijo's condition (or, for ``t = 1``, keeps the free set and lowers ``max |F|``: there the dual is the
 quadratic the step maximises, and Armijo's test may fail on the rounding of the dual value alone), else a gradient
-step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends. A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
+step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends.
+A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
 cannot hold has no root) is reported as not converged.
 
 ``fixed_iterations=True`` runs exactly ``max_iter`` steps with every trial on every case, masked where a case has
@@ -38,7 +39,7 @@ LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly sin
 _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 _EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
-_CERTIFY_STEPS = frozenset(range(3, 64, 2))  # the steps before which the infeasibility test runs (and after the last)
+_CERTIFY_STEPS = frozenset(range(5, 64, 2))  # the steps before which the infeasibility test runs (and after the last)
 
 
 class NewtonResult(NamedTuple):
@@ -163,7 +164,9 @@ def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
         return _select(accepted, trial, _gradient_step(problem, state, residual))
     out = _evaluate(*problem, state.lam + step)
     rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
-    if rows.numel():
+    if rows.numel() == len(step):  # every case: no gather
+        rows = rows[~_settled_step(state, out.free, _residual(out, problem[5]), problem[5])]
+    elif rows.numel():
         old, new = _State(*(x[rows] for x in state)), _State(*(x[rows] for x in out))
         rows = rows[~_settled_step(old, new.free, _residual(new, problem[5][rows]), problem[5][rows])]
     halvings = _halvings(step) if rows.numel() else None
@@ -237,8 +240,9 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     """The problem of the module docstring for ``G (B, M, N)``, ``tau (B, N)``, ``f_ref, lo, hi (B, M)`` (float64
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
     ``fixed_iterations``: exactly ``max_iter`` masked steps (traceable by ``torch.export``), the eager answer.
-    ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... and after the last, an equilibrium case whose multiplier proves that no tension balances
-    ``tau`` to it (``_separated``) stops there, ``infeasible`` (None: no such test, ``infeasible`` all False)."""
+    ``infeasible_tol`` [N m]: before steps 6, 8, 10, ... and after the last, an equilibrium case whose multiplier
+    proves that no tension balances ``tau`` to it (``_separated``) stops, ``infeasible`` (None: no such test,
+    ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
     batch = G.shape[0]
