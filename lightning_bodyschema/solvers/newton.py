@@ -39,7 +39,9 @@ LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly sin
 _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 _EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
-_CERTIFY_STEPS = frozenset(range(5, 64, 2))  # the steps before which the infeasibility test runs (and after the last)
+# the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
+# spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
+_CERTIFY_STEPS, _CERTIFY_STEPS_FEW, _FEW = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
 
 
 class NewtonResult(NamedTuple):
@@ -240,9 +242,9 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     """The problem of the module docstring for ``G (B, M, N)``, ``tau (B, N)``, ``f_ref, lo, hi (B, M)`` (float64
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
     ``fixed_iterations``: exactly ``max_iter`` masked steps (traceable by ``torch.export``), the eager answer.
-    ``infeasible_tol`` [N m]: before steps 6, 8, 10, ... and after the last, an equilibrium case whose multiplier
-    proves that no tension balances ``tau`` to it (``_separated``) stops, ``infeasible`` (None: no such test,
-    ``infeasible`` all False)."""
+    ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... (6, 8, ... on at most ``_FEW`` cases) and after the last,
+    an equilibrium case whose multiplier proves that no tension balances ``tau`` to it (``_separated``) stops,
+    ``infeasible`` (None: no such test, ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
     batch = G.shape[0]
@@ -258,7 +260,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         residual = _residual(state, w)
         size = residual.abs().amax(1)
         active = size > tol
-        if infeasible_tol is not None and k in _CERTIFY_STEPS:
+        if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > _FEW else _CERTIFY_STEPS_FEW):
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
         if fixed_iterations:
