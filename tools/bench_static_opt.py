@@ -1,19 +1,20 @@
 #!/usr/bin/env python
 """Static optimization speed and checks on myoArm and myoLegs (issue 34), and the README's trajectory figure.
 
-    python tools/bench_static_opt.py --n 2000 --repeats 3 [--plot docs/static_opt.png]
+    python tools/bench_static_opt.py --n 2000 --repeats 3 [--bodies myoArm myoLegs] [--plot docs/static_opt.png]
 
 Per body: the median time per posture of ``StaticBody.solve`` on ``--n`` seeded postures in one batch, of one
 posture at a time (``--singles`` calls), and side by side the MuJoCo kinematics alone and the dataset's equilibrium
 QP (``sim.equilibrium.solve_equilibrium_qp``, f_ref uniform in [0, f_max]) on the same postures; the status counts;
 on myoArm the largest MuJoCo residual (``statics.check.mujoco_residual_nm``) of a sample of ok rows. The machine's
-load average is printed with the timings: they depend on it.
+load average is printed with the timings: they depend on it. One torch thread.
 """
 import argparse
 import os
 import statistics
 
 import numpy as np
+import torch
 import yaml
 
 from lightning_bodyschema.apps.reproduce import _median_seconds as timed  # a warm-up call, then the median
@@ -104,9 +105,13 @@ def main():
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--singles", type=int, default=30)
     parser.add_argument("--plot", help="write the README's trajectory figure (myoArm) to this path")
+    parser.add_argument("--bodies", nargs="+", choices=["myoArm", "myoLegs"], default=["myoArm", "myoLegs"])
     args = parser.parse_args()
+    torch.set_num_threads(1)
     cuts = {"myoArm": "BIClong_tendon", "myoLegs": "soleus_r_tendon"}
     for name, build in bodies().items():
+        if name not in args.bodies:
+            continue
         body = build()
         result = bench(name, body, args.n, args.repeats, args.singles, cuts[name])
         if name == "myoArm":

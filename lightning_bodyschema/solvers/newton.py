@@ -13,8 +13,10 @@ The Hessian in f is the identity, so for a multiplier ``lam (N,)`` [N rad/m] the
 
 Newton steps on (2) with (3) and a line search on the dual value, a concave piecewise-quadratic function: the first
 of the trial steps ``t = 1``, the exact maximiser along the step, ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)`` that
-meets Armijo's condition, else a gradient step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which
-always ascends. A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
+meets Armijo's condition (or, for ``t = 1``, keeps the free set and lowers ``max |F|``: there the dual is the
+quadratic the step maximises, and Armijo's test may fail on the rounding of the dual value alone), else a gradient
+step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends.
+A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
 cannot hold has no root) is reported as not converged.
 
 ``fixed_iterations=True`` runs exactly ``max_iter`` steps with every trial on every case, masked where a case has
@@ -23,9 +25,12 @@ the eager ones. torch only.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
+
+from .problem import separation_gap_nm
 
 NEWTON_MAX_ITER = 30
 # the stop [N m] of the equilibrium solves: far below EQUILIBRIUM_TOL_NM, a converged row is an equilibrium
@@ -34,15 +39,20 @@ LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly sin
 _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 _EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
+# the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
+# spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
+_CERTIFY_STEPS, _CERTIFY_STEPS_FEW, _FEW = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
 
 
 class NewtonResult(NamedTuple):
     """``f (B, M)`` [N] in the box; ``converged (B,)`` bool: ``max |F(lam)| <= tol`` (then f balances ``tau`` to
-    ``tol`` plus ``w |lam|``); ``iterations (B,)`` int32: the Newton steps each case took."""
+    ``tol`` plus ``w |lam|``); ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)``
+    bool: proven to have no tension in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``)."""
 
     f: torch.Tensor
     converged: torch.Tensor
     iterations: torch.Tensor
+    infeasible: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -86,8 +96,16 @@ def _trials(problem, state: _State, step, slope, t):
     gap = f - f_ref.unsqueeze(1)
     value = 0.5 * (gap * gap).sum(2) + (lam * (balance - 0.5 * w.view(-1, 1, 1) * lam)).sum(2)
     take = value >= state.value.unsqueeze(1) + _ARMIJO * t * slope.unsqueeze(1)  # (B, K)
+    take[:, 0] |= _settled_step(state, f[:, 0] == free_f[:, 0], balance[:, 0] - w.unsqueeze(1) * lam[:, 0], w)
     first = torch.argmax(take.to(torch.int32), dim=1)  # the largest accepted step (0 where none is)
     return take.any(1), _State(*(_pick(x, first) for x in (lam, f, f == free_f, value, balance)))
+
+
+def _settled_step(state: _State, free, residual, w) -> torch.Tensor:
+    """(B,) True where a full step kept the free set and lowered the residual ``max |F|``: on an unchanged free set
+    the dual is the quadratic the step maximises, so it ascends even where its gain is below the rounding of the
+    dual value (Armijo's test then fails on rounding alone)."""
+    return (free == state.free).all(1) & (residual.abs().amax(1) < _residual(state, w).abs().amax(1))
 
 
 def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
@@ -148,6 +166,11 @@ def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
         return _select(accepted, trial, _gradient_step(problem, state, residual))
     out = _evaluate(*problem, state.lam + step)
     rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
+    if rows.numel() == len(step):  # every case: no gather
+        rows = rows[~_settled_step(state, out.free, _residual(out, problem[5]), problem[5])]
+    elif rows.numel():
+        old, new = _State(*(x[rows] for x in state)), _State(*(x[rows] for x in out))
+        rows = rows[~_settled_step(old, new.free, _residual(new, problem[5][rows]), problem[5][rows])]
     halvings = _halvings(step) if rows.numel() else None
     for start, stop in _EAGER_BLOCKS:
         if rows.numel() == 0:
@@ -203,31 +226,49 @@ def _start(G, tau, f_ref, w):
     return lam, ridge + w.view(-1, 1, 1) * eye
 
 
+def _separated(problem, lam, tol_nm: float) -> torch.Tensor:
+    """(B,) True where the multiplier's direction proves that no tension in the box balances ``tau`` to ``tol_nm``
+    on every joint (an equilibrium case, ``w = 0``). Along ``u = lam / |lam|`` the dual grows by ``u . tau -
+    max_f u . (-G^T f)`` per unit of ``|lam|``: where that is positive the dual is unbounded and the QP has no
+    solution (``problem.separation_gap_nm``; exact, a case with a solution is never marked)."""
+    G, tau, _, lo, hi, w = problem
+    u = lam / torch.clamp(torch.linalg.vector_norm(lam, dim=1, keepdim=True), min=1e-300)
+    gap = separation_gap_nm(G, tau, lo, hi, u.unsqueeze(1)).squeeze(1)
+    return (gap > math.sqrt(G.shape[2]) * tol_nm) & (w == 0)
+
+
 def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
-                fixed_iterations: bool = False) -> NewtonResult:
+                fixed_iterations: bool = False, infeasible_tol: float | None = None) -> NewtonResult:
     """The problem of the module docstring for ``G (B, M, N)``, ``tau (B, N)``, ``f_ref, lo, hi (B, M)`` (float64
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
-    ``fixed_iterations``: exactly ``max_iter`` masked steps (traceable by ``torch.export``), the eager answer."""
+    ``fixed_iterations``: exactly ``max_iter`` masked steps (traceable by ``torch.export``), the eager answer.
+    ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... (6, 8, ... on at most ``_FEW`` cases) and after the last,
+    an equilibrium case whose multiplier proves that no tension balances ``tau`` to it (``_separated``) stops,
+    ``infeasible`` (None: no such test, ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
     batch = G.shape[0]
     w = _f64(w, G.device).expand(batch)
+    infeasible = torch.zeros(batch, dtype=torch.bool, device=G.device)
     if batch == 0 and not fixed_iterations:
-        return NewtonResult(f_ref.clone(), torch.zeros(0, dtype=torch.bool, device=G.device),
-                            torch.zeros(0, dtype=torch.int32, device=G.device))
+        return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible)
     problem = (G, tau, f_ref, lo, hi, w)
     lam, shift = _start(G, tau, f_ref, w)
     state = _evaluate(*problem, lam)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
-    for _ in range(max_iter):
+    for k in range(max_iter):
         residual = _residual(state, w)
-        active = residual.abs().amax(1) > tol
+        size = residual.abs().amax(1)
+        active = size > tol
+        if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > _FEW else _CERTIFY_STEPS_FEW):
+            infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
+            active = active & ~infeasible
         if fixed_iterations:
             state = _select(active, _newton_step(problem, state, residual, shift, False), state)
         else:
             idx = active.nonzero().squeeze(1)
             if idx.numel() == 0:
-                break
+                return NewtonResult(state.f, size <= tol, iterations, infeasible)
             if idx.numel() == batch:  # every case still runs: no gather
                 state = _newton_step(problem, state, residual, shift, True)
             else:
@@ -235,4 +276,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
                                    shift[idx], True)
                 state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
-    return NewtonResult(state.f, _residual(state, w).abs().amax(1) <= tol, iterations)
+    size = _residual(state, w).abs().amax(1)
+    if infeasible_tol is not None:  # what the last step leaves
+        infeasible = infeasible | ((size > tol) & _separated(problem, state.lam, infeasible_tol))
+    return NewtonResult(state.f, size <= tol, iterations, infeasible)

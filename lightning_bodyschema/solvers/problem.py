@@ -82,6 +82,18 @@ class Solution(NamedTuple):
     iterations: torch.Tensor
 
 
+def separation_gap_nm(G, tau, lo, hi, normals) -> torch.Tensor:
+    """(B, K) ``u . tau - max_f u . (-G^T f)`` over the box ``lo <= f <= hi`` (B, M) for the unit directions ``u =
+    normals (B, K, N)``: where it is positive, u separates tau from the torque zonotope {-G^T f} and every f in the box
+    leaves ``|u . (G^T f + tau)| >= gap`` (some joint's residual ``>= gap / sqrt(N)``). An unbounded side along
+    ``c = -G u`` gives the gap -inf (no proof)."""
+    reach = -(G @ normals.transpose(1, 2)).transpose(1, 2)  # (B, K, M): c_m per direction
+    zero = torch.zeros((), dtype=G.dtype, device=G.device)  # an infinite bound along c_m = 0 adds nothing
+    support = torch.where(reach > 0, hi.unsqueeze(1) * reach,
+                          torch.where(reach < 0, lo.unsqueeze(1) * reach, zero)).sum(-1)
+    return (normals @ tau.unsqueeze(-1)).squeeze(-1) - support
+
+
 def _tensor(name: str, x, device) -> torch.Tensor:
     try:
         if isinstance(x, np.ndarray) and not x.flags.writeable:  # torch warns on read-only arrays (broadcasts)

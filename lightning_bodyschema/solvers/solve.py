@@ -1,12 +1,14 @@
 """``solve_box_qp``: every case of a ``BoxQP`` at once, the dual Newton first and the fallbacks on what it leaves.
 
-1. the batched dual Newton (``solvers.newton``) on every case with an uncrossed box, ``FIRST_PASS`` steps;
+1. the batched dual Newton (``solvers.newton``) on every case with an uncrossed box, ``FIRST_PASS`` steps; an
+   equilibrium case whose multiplier proves that no tension balances its torque stops there, ``INFEASIBLE``;
 2. an equilibrium case it leaves unsettled gets the box least squares (``solvers.least_squares``); that residual and
    the torque-reach screen (``solvers.torque_reach``, along the least squares' residual among its directions) prove
    most of those without an equilibrium;
 3. the rest of the Newton's steps (to ``max_iter``, from its start) on the others, then proxsuite
    (``fallback="proxsuite"``) on what they leave, to ``EQUILIBRIUM_TOL_NM``;
-4. a case without a solution keeps the least-squares tensions and the status ``INFEASIBLE``: crossed bounds, a torque
+4. a case without a solution keeps the least-squares tensions (``least_squares=False``: the Newton's, where step 1
+   proved it) and the status ``INFEASIBLE``: crossed bounds, the Newton's proof, a torque
    the screen puts out of the box's reach, or a least-squares residual too large for any balancing tension to exist
    (``_least_squares_proves_no_balance``). ``NOT_CONVERGED`` (with the least-squares tensions) where neither the
    solvers settle a case nor a proof rules it out. A least-squares problem (``w > 0``) the Newton leaves goes to
@@ -43,11 +45,12 @@ class _Options(NamedTuple):
     ls_reg: float
     num_threads: int
     fallback_eps_abs: float | None
+    least_squares: bool
 
 
 def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
                  fallback: str = "proxsuite", fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG,
-                 num_threads: int = 1, fallback_eps_abs: float | None = None) -> Solution:
+                 num_threads: int = 1, fallback_eps_abs: float | None = None, least_squares: bool = True) -> Solution:
     """The ``Solution`` of every case of ``problem`` (module docstring).
 
     Args:
@@ -59,31 +62,52 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
         num_threads: proxsuite's threads (1: one QP per case in turn; more: its ``BatchQP``).
         fallback_eps_abs: proxsuite's absolute tolerance on an equilibrium QP (None: ``backends.QP_EPS_ABS``); set it
             with a tight ``tol`` so that the cases proxsuite settles are as exact as the Newton's.
+        least_squares: False: an equilibrium case proven without a solution keeps the Newton's tensions instead of
+            the least squares' (not solved for it: for a caller that discards those rows).
     """
-    options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads, fallback_eps_abs)
+    options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads, fallback_eps_abs,
+                       least_squares)
     _check_options(options)
-    f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
-    f[problem.bad_input] = torch.nan
-    status = torch.full((problem.batch,), _NOT_CONVERGED, dtype=torch.int32, device=f.device)
-    status[problem.bad_input] = Status.BAD_INPUT.code
-    iterations = torch.zeros_like(status)
-    run = (~problem.bad_input & ~problem.crossed).nonzero().squeeze(1)
-    if run.numel() == problem.batch:  # every case: no gather
-        f, status, iterations = _first_pass(problem, tol, max_iter)
-    elif run.numel():
-        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
+    f, status, iterations = _solvable_first_pass(problem, tol, max_iter)
     unsettled = status == _NOT_CONVERGED
-    for rows, settle in ((unsettled & (problem.w_m2 > 0), _least_squares_rest),
-                         (unsettled & (problem.w_m2 == 0), _no_equilibrium_yet)):
-        if bool(rows.any()):
-            f[rows], status[rows], iterations[rows] = settle(problem.take(rows), iterations[rows], options)
+    least = unsettled & (problem.w_m2 > 0)
+    equilibrium = (unsettled | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
+    any_least, any_equilibrium = torch.stack([least.any(), equilibrium.any()]).tolist()  # one host sync
+    if any_least:
+        f[least], status[least], iterations[least] = _least_squares_rest(problem.take(least), iterations[least],
+                                                                         options)
+    if any_equilibrium:
+        rows = equilibrium
+        f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
+                                                                      status[rows] == _INFEASIBLE, iterations[rows],
+                                                                      options)
     return Solution(f, status, iterations)
 
 
+def _solvable_first_pass(problem: BoxQP, tol: float, max_iter: int):
+    """``(f, status, iterations)``: ``_first_pass`` on the cases with valid input and an uncrossed box; the others
+    NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled later)."""
+    skip = problem.bad_input | problem.crossed
+    if not bool(skip.any()):  # every case: no gather
+        return _first_pass(problem, tol, max_iter)
+    f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
+    f = torch.where(problem.bad_input.unsqueeze(1), torch.nan, f)
+    status = torch.where(problem.bad_input, Status.BAD_INPUT.code, _NOT_CONVERGED).to(torch.int32)
+    iterations = torch.zeros_like(status)
+    run = (~skip).nonzero().squeeze(1)
+    if run.numel():
+        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
+    return f, status, iterations
+
+
 def _first_pass(problem: BoxQP, tol: float, max_iter: int):
-    """``(f, status, iterations)`` after the dual Newton's first ``FIRST_PASS`` steps (OK where it converged)."""
-    newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS))
-    return newton.f, torch.where(newton.converged, _OK, _NOT_CONVERGED).to(torch.int32), newton.iterations
+    """``(f, status, iterations)`` after the dual Newton's first ``FIRST_PASS`` steps: OK where it converged,
+    INFEASIBLE where its multiplier proves an equilibrium case without a solution (``dual_newton``'s
+    ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``)."""
+    newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS),
+                         infeasible_tol=max(tol, EQUILIBRIUM_TOL_NM))
+    status = torch.where(newton.converged, _OK, torch.where(newton.infeasible, _INFEASIBLE, _NOT_CONVERGED))
+    return newton.f, status.to(torch.int32), newton.iterations
 
 
 def _check_options(options: _Options):
@@ -120,12 +144,31 @@ def _least_squares(problem: BoxQP, options: _Options):
     return f, settled
 
 
-def _no_equilibrium_yet(problem: BoxQP, iterations, options: _Options):
-    """``(f, status, iterations)`` of equilibrium cases the Newton's first pass left (crossed ones included):
-    steps 2 to 4 of the module docstring, the rest of the Newton's steps on the cases nothing rules out first."""
+def _proofs(problem: BoxQP, f_first, proven, options: _Options):
+    """``(f_ls, outside)``: the least-squares tensions (``f_first`` on proven cases with ``least_squares=False``)
+    and where no equilibrium exists: crossed, ``proven``, or shown by the least squares."""
+    outside = problem.crossed | proven
+    if options.least_squares:
+        f_ls, shown = _least_squares_proof(problem, options)
+        return f_ls, outside | shown
+    f_ls, need = f_first.clone(), ~outside
+    if bool(need.any()):
+        f_ls[need], outside[need] = _least_squares_proof(problem.take(need), options)
+    return f_ls, outside
+
+
+def _least_squares_proof(problem: BoxQP, options: _Options):
+    """``(f_ls, shown)``: the least-squares tensions and where they show that no equilibrium exists."""
     w_ls = least_squares_weight(problem.G, options.ls_reg)
     f_ls, settled = _least_squares(problem.with_weight(w_ls), options)
-    outside = problem.crossed | (settled & _least_squares_proves_no_balance(problem, f_ls, w_ls))
+    return f_ls, settled & _least_squares_proves_no_balance(problem, f_ls, w_ls)
+
+
+def _no_equilibrium_yet(problem: BoxQP, f_first, proven, iterations, options: _Options):
+    """``(f, status, iterations)`` of equilibrium cases the Newton's first pass left or ``proven`` without a
+    solution (crossed ones included): steps 2 to 4 of the module docstring, the rest of the Newton's steps on the
+    cases nothing rules out first."""
+    f_ls, outside = _proofs(problem, f_first, proven, options)
     if not bool(outside.all()):
         rows = problem.take(~outside)
         outside[~outside] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM,

@@ -11,6 +11,7 @@ import math
 import torch
 
 from .least_squares import box_least_squares
+from .problem import separation_gap_nm
 
 MAX_SCREEN_NORMALS = 256  # at most this many facet normals (else: the joint axes and a residual direction)
 
@@ -54,10 +55,6 @@ def outside_torque_reach(G, tau, lo, hi, tol_nm: float, direction: torch.Tensor 
         normals = torch.eye(G.shape[2], dtype=G.dtype, device=G.device).expand(G.shape[0], -1, -1)
     normals = torch.cat(extra + [normals], dim=1)
     normals = torch.cat([normals, -normals], dim=1)  # both orientations of every direction
-    reach = -(G @ normals.transpose(1, 2)).transpose(1, 2)  # (B, K, M): c_m per direction
-    zero = torch.zeros((), dtype=G.dtype, device=G.device)  # an infinite bound along c_m = 0 adds nothing
-    support = torch.where(reach > 0, hi.unsqueeze(1) * reach,
-                          torch.where(reach < 0, lo.unsqueeze(1) * reach, zero)).sum(-1)
-    gap = (normals @ tau.unsqueeze(-1)).squeeze(-1) - support
+    gap = separation_gap_nm(G, tau, lo, hi, normals)
     # a gap d forces |u . residual| >= d, so some joint's residual >= d / sqrt(N): the QP's own tolerance
     return (gap > math.sqrt(G.shape[2]) * tol_nm).any(1)

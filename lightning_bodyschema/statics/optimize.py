@@ -97,7 +97,7 @@ def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str):
                           np.where(to_numpy(out), Status.INFEASIBLE.code, Status.NOT_CONVERGED.code))
     else:
         solution = solve_box_qp(problem, tol=STATIC_TOL_NM, fallback_max_iter=PROXQP_MAX_ITER,
-                                fallback_eps_abs=PROXQP_EPS)
+                                fallback_eps_abs=PROXQP_EPS, least_squares=False)  # rows not ok are NaN
         x, status = solution.f_n, to_numpy(solution.status)
     return np.clip(to_numpy(x), lo, hi), status
 

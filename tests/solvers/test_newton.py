@@ -95,3 +95,30 @@ def test_the_newton_runs_on_cuda_and_gives_the_cpu_answer():
     cuda = dual_newton(*(torch.as_tensor(x, device="cuda") for x in (G, tau, f_ref, lo, hi)))
     assert cuda.f.device.type == "cuda" and cuda.f.dtype == torch.float64
     torch.testing.assert_close(cuda.f.cpu(), cpu.f, rtol=0.0, atol=1e-8)
+
+
+def test_the_multiplier_certificate_proves_unholdable_cases_and_never_a_holdable_one():
+    rng, G, tau, lo, hi = _body(64, seed=5)
+    out = rng.random(64) < 0.5
+    tau[out] = 30.0 * tau[out] + rng.normal(scale=5.0, size=tau[out].shape)  # far outside the torque zonotope
+    problem = BoxQP.build(G, tau, 100.0, lo, hi)
+    result = dual_newton(*problem[:6], infeasible_tol=1e-6)
+    f_qp, ok_qp = proxsuite_solve(problem, 10000, eps_abs=TIGHT)
+    holdable = ok_qp & (problem.balance_residual_nm(f_qp) <= 1e-6)
+    assert holdable.sum() >= 20 and (~holdable).sum() >= 20
+    assert not (result.infeasible & holdable).any() and torch.equal(result.converged, holdable)
+    assert torch.equal(result.infeasible, ~holdable)  # every unholdable one proven, not run to the step limit
+    assert result.iterations[~holdable].max() < 30
+    plain = dual_newton(*problem[:6])  # without the test: the same answers where it converges
+    assert not plain.infeasible.any()
+    torch.testing.assert_close(result.f[holdable], plain.f[holdable], rtol=0.0, atol=0.0)
+
+
+def test_a_tight_stop_is_met_below_the_rounding_of_the_dual_value():
+    """Tensions near 1e5 N: the dual value's rounding (~1e-6) swamps the last steps' gain, yet the Newton reaches a
+    1e-12 N m residual (a full step on an unchanged free set is taken where it lowers the residual)."""
+    rng, G, tau, lo, hi = _body(32, seed=6)
+    problem = BoxQP.build(G, 500.0 * tau, rng.uniform(-5e4, 2e5, size=lo.shape), lo, 500.0 * hi)
+    result = dual_newton(*problem[:6], tol=1e-12)
+    stationarity, _, primal = kkt_residuals(problem, result.f)
+    assert result.converged.all() and primal.max() <= 1e-11 and stationarity.max() <= 1e-6  # of 1e5 N

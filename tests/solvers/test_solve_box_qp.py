@@ -74,6 +74,23 @@ def test_the_screen_settles_unholdable_cases_without_proxsuite():
     assert (screened.f_n >= 0.0).all() and (screened.f_n <= 150.0).all()
 
 
+def test_without_least_squares_unholdable_rows_keep_the_newtons_tensions_and_the_same_statuses(monkeypatch):
+    rng, G, tau = _body(48, seed=4)
+    tau[::3] *= 4.0
+    problem = BoxQP.build(G, tau, rng.uniform(0.0, 150.0, (48, M)), 0.0, 150.0)
+    full = solve_box_qp(problem)
+    import lightning_bodyschema.solvers.solve as solve_module
+
+    calls = []
+    monkeypatch.setattr(solve_module, "_least_squares", lambda *a: calls.append(a))  # must not be needed
+    lean = solve_box_qp(problem, least_squares=False)
+    assert not calls and torch.equal(lean.status, full.status) and (full.status == INFEASIBLE).sum() >= 10
+    ok = full.status == OK
+    assert torch.equal(lean.f_n[ok], full.f_n[ok])
+    assert (lean.f_n >= 0.0).all() and (lean.f_n <= 150.0).all()
+    assert (problem.balance_residual_nm(lean.f_n)[~ok] > 1e-3).all()
+
+
 def test_least_squares_problems_and_threads():
     rng, G, tau = _body(40, seed=3)
     tau[::4] *= 3.0
