@@ -144,14 +144,20 @@ def _exact_step(problem, state: _State, step) -> torch.Tensor:
     return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
 
 
-def _gradient_step(problem, state: _State, residual) -> _State:
-    """The state after the ascent step ``residual / L``, ``L`` the dual gradient's Lipschitz constant."""
+def _lipschitz(problem) -> torch.Tensor:
+    """(B,) the dual gradient's Lipschitz constant: the largest eigenvalue of ``G^T G`` plus ``w``."""
     G, w = problem[0], problem[5]
-    lipschitz = torch.linalg.eigvalsh(G.transpose(1, 2) @ G)[:, -1] + w
+    return torch.linalg.eigvalsh(G.transpose(1, 2) @ G)[:, -1] + w
+
+
+def _gradient_step(problem, state: _State, residual, lipschitz=None) -> _State:
+    """The state after the ascent step ``residual / L``, ``L`` the dual gradient's Lipschitz constant (computed
+    here when not given)."""
+    lipschitz = _lipschitz(problem) if lipschitz is None else lipschitz
     return _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
 
 
-def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
+def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=None) -> _State:
     """Armijo's condition on the dual value along the Newton ``step``: the first accepted of ``t = 1``, the exact
     maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``, every case at once
     (eager: in the blocks ``_EAGER_BLOCKS``, each on the cases the earlier ones left). Where no trial is accepted
@@ -160,10 +166,11 @@ def _line_search(problem, state: _State, residual, step, eager: bool) -> _State:
     slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
     if not eager:
         halvings = _halvings(step)
-        t = torch.cat([halvings[:1].expand(len(step), 1), _exact_step(problem, state, step).unsqueeze(1),
-                       halvings[1:].expand(len(step), -1)], 1)
+        batch = step.shape[0]  # not len(): a symbolic batch size stays symbolic under torch.export
+        t = torch.cat([halvings[:1].expand(batch, 1), _exact_step(problem, state, step).unsqueeze(1),
+                       halvings[1:].expand(batch, -1)], 1)
         accepted, trial = _trials(problem, state, step, slope, t)
-        return _select(accepted, trial, _gradient_step(problem, state, residual))
+        return _select(accepted, trial, _gradient_step(problem, state, residual, lipschitz))
     out = _evaluate(*problem, state.lam + step)
     rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
     if rows.numel() == len(step):  # every case: no gather
@@ -205,13 +212,13 @@ def _residual(state: _State, w) -> torch.Tensor:
     return torch.addcmul(state.balance, w.unsqueeze(1), state.lam, value=-1.0)
 
 
-def _newton_step(problem, state: _State, residual, shift, eager: bool) -> _State:
+def _newton_step(problem, state: _State, residual, shift, eager: bool, lipschitz=None) -> _State:
     """One Newton step on (2) (``residual``) with (3) (``shift``: ``w I`` and the ridge) and the line search, for
-    the (sub)batch ``problem``."""
+    the (sub)batch ``problem`` (``lipschitz``: the gradient step's constant, made once by a fixed-step run)."""
     G = problem[0]
     hessian = torch.baddbmm(shift, G.transpose(1, 2), state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
     step = torch.linalg.solve_ex(hessian, residual.unsqueeze(-1))[0].squeeze(-1)
-    return _line_search(problem, state, residual, step, eager)
+    return _line_search(problem, state, residual, step, eager, lipschitz)
 
 
 def _start(G, tau, f_ref, w):
@@ -256,6 +263,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     lam, shift = _start(G, tau, f_ref, w)
     state = _evaluate(*problem, lam)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
+    lipschitz = _lipschitz(problem) if fixed_iterations else None  # every fixed step may take a gradient step
     for k in range(max_iter):
         residual = _residual(state, w)
         size = residual.abs().amax(1)
@@ -264,7 +272,7 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
         if fixed_iterations:
-            state = _select(active, _newton_step(problem, state, residual, shift, False), state)
+            state = _select(active, _newton_step(problem, state, residual, shift, False, lipschitz), state)
         else:
             idx = active.nonzero().squeeze(1)
             if idx.numel() == 0:
