@@ -247,7 +247,8 @@ def evaluate_predictions(schema, out: dict, faults: Faults, jammed_pull: bool) -
     n = len(out["status"])
     ok = np.flatnonzero(out["status"] == "ok")
     metrics = {name: np.full(n, np.nan) for name in METRICS + EXTRA_METRICS + ("E_q_phys",)}
-    metrics.update(feasible=np.zeros(n, bool), settle_status=np.full(n, "", dtype="<U20"))
+    longest = max(len(member.name) for member in SettleStatus)  # sized by the names: none is cut
+    metrics.update(feasible=np.zeros(n, bool), settle_status=np.full(n, "", dtype=f"<U{longest}"))
     if ok.size == 0:
         return metrics
     sub = faults.take(ok)

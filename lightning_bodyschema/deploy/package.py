@@ -22,6 +22,7 @@ import zipfile
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..adaptation.command import FAULT_TOL_M, FAULT_TOL_N, AdaptationResult, statuses
 from ..errors import BodySchemaInputError
 from ..status import STATUS_CODES
@@ -160,8 +161,8 @@ class ExportedAdapter:
     def __call__(self, q_ref, faults, seed=None) -> AdaptationResult:
         with torch.no_grad():
             l_motor, f, status = self.run(*self.inputs(q_ref, faults, seed))
-        codes = status.numpy().astype(np.int32)
-        return AdaptationResult(l_motor.numpy(), f.numpy(), statuses(codes), {"status_code": codes})
+        codes = to_numpy(status).astype(np.int32)
+        return AdaptationResult(to_numpy(l_motor), to_numpy(f), statuses(codes), {"status_code": codes})
 
 
 def load_exported(path: str, muscle_names=None, joint_names=None, expected_sha256: str | None = None) -> ExportedAdapter:

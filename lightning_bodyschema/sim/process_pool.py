@@ -31,6 +31,7 @@ def serve() -> None:
     os.dup2(2, 1)  # prints, Python's or a C library's, go to stderr, never into the answers
     requests = sys.stdin.buffer
     module_name, setup, setup_args, task = pickle.load(requests)
+    # module_name comes from the parent process (the package's own code: sim.sampling), never from a user's file
     module = importlib.import_module(module_name)
     getattr(module, setup)(*setup_args)
     while True:
@@ -51,7 +52,7 @@ def _portable(err: Exception) -> Exception:
     try:
         pickle.loads(pickle.dumps(err))
         return err
-    except Exception:
+    except (pickle.PickleError, TypeError, AttributeError, ValueError):  # an exception that does not travel
         return RuntimeError(f"dataset worker failed:\n{traceback.format_exc()}")
 
 
