@@ -73,7 +73,7 @@ def status_codes(values: Iterable) -> np.ndarray:
 def status_names(values: Iterable) -> np.ndarray:
     """(B,) str array of the names (numpy sizes it to the longest: nothing is cut), for files."""
     names = [_member(v).value for v in np.asarray(values, dtype=object).ravel()]
-    return np.array(names, dtype=str) if names else np.array([], dtype="<U1")
+    return np.array(names, dtype=str)  # numpy sizes a str array to its longest element
 
 
 __all__ = ["Status", "STATUS_CODES", "status_array", "status_codes", "status_names"]
