@@ -1,7 +1,6 @@
 """Schemas through the real CLI, Lightning and TensorBoard, at small sizes."""
 import glob
 import os
-import subprocess
 import sys
 
 import numpy as np
@@ -100,18 +99,17 @@ def test_subclass_example_trains_through_the_cli(tmp_path):
     assert eq < 5.0
 
 
-def run_cli(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "lightning_bodyschema.cli", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=300)
-
-
-def test_print_config_and_rerun_in_same_folder(tmp_path):
-    out = run_cli("fit", "--config", f"{ROOT}/configs/diff.yaml", "--print_config", cwd=tmp_path)
-    assert out.returncode == 0 and "DiffusionSchema" in out.stdout and "n_timesteps: 200" in out.stdout
+def test_print_config_and_rerun_in_same_folder(tmp_path, monkeypatch, capsys):
+    """In-process (the console script's own process is tested in tests/cli/test_cli_usability.py)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as printed:
+        cli_main(["fit", "--config", f"{ROOT}/configs/diff.yaml", "--print_config"])
+    out = capsys.readouterr().out
+    assert printed.value.code in (0, None) and "DiffusionSchema" in out and "n_timesteps: 200" in out
     for _ in range(2):  # the second run must not fail on the saved config.yaml of the first
-        done = run_cli("fit", "--model=VAESchema", "--trainer.max_epochs=1", "--trainer.default_root_dir=run",
-                       "--trainer.logger=false", "--data.cache_dir=cache", cwd=tmp_path)
-        assert done.returncode == 0, done.stderr[-2000:]
+        cli_main(["fit", "--model=VAESchema", "--trainer.max_epochs=1", "--trainer.default_root_dir=run",
+                  "--trainer.logger=false", "--data.cache_dir=cache"])
+    assert len(glob.glob("run/**/config.yaml", recursive=True)) >= 1
 
 
 # Bad CLI input (exit 2, one line, no traceback, nothing written; real subprocesses too): tests/cli/test_bad_input.py
