@@ -17,6 +17,7 @@ import numpy as np
 import torch
 import yaml
 
+from lightning_bodyschema.apps.common import count_values
 from lightning_bodyschema.apps.reproduce import _median_seconds as timed  # a warm-up call, then the median
 from lightning_bodyschema.sim.equilibrium import solve_equilibrium_qp
 from lightning_bodyschema.statics import StaticBody
@@ -36,7 +37,7 @@ def bodies():
 def bench(name, body, n, repeats, singles, cut):
     q = body.model.sample_q(np.random.default_rng(0), n)
     result = body.solve(q)
-    counts = dict(zip(*np.unique(status_names(result.status), return_counts=True)))
+    counts = count_values(status_names(result.status))
     held = q[result.ok]
     f_max = np.broadcast_to(np.asarray(body.spring.f_max_n, float), (len(q), body.model.n_muscles))
     f_ref = f_max * np.random.default_rng(1).random(f_max.shape)
