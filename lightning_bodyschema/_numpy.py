@@ -1,9 +1,9 @@
 """The one way a tensor leaves torch for numpy: ``to_numpy``.
 
 A tensor may live on any device (CUDA, in a schema moved with ``.to("cuda")``) and may require grad; numpy sees
-only host memory. Every numpy boundary of the package goes through ``to_numpy`` (or calls ``.cpu()`` right before
-``.numpy()``): ``tests/training/test_numpy_boundary.py`` checks both, in the source and with a tensor that refuses
-``.numpy()`` unless it was moved to the host first.
+only host memory. Every numpy boundary of the package goes through ``to_numpy`` (or moves the tensor to the host
+with ``.cpu()`` right before converting it): ``tests/training/test_numpy_boundary.py`` checks both, in the source
+and with a tensor that refuses the conversion unless it was moved to the host first.
 """
 from __future__ import annotations
 

@@ -50,10 +50,20 @@ _BY_CODE = {code: member for member, code in _CODES.items()}
 STATUS_CODES = {member.value: code for member, code in _CODES.items()}  # name -> code, for files and the package
 
 
+_MEMBERS = np.array(list(Status), dtype=object)  # code -> member (the codes number the members in order)
+
+
 def status_array(values: Iterable, size: int | None = None) -> np.ndarray:
-    """An object array of ``Status`` members from names, codes or members (no fixed width: nothing is cut)."""
+    """An object array of ``Status`` members from names, codes or members (no fixed width: nothing is cut); an
+    integer array of codes is looked up in one indexing op (the hot path of every adapter)."""
     if size is not None and np.ndim(values) == 0:
         values = [values] * size
+    if isinstance(values, np.ndarray) and values.dtype.kind in "iu":
+        codes = values.ravel().astype(np.int64)
+        bad = (codes < 0) | (codes >= len(_MEMBERS))
+        if bad.any():
+            raise ValueError(f"unknown status code {int(codes[bad][0])}; known: {sorted(_BY_CODE)}")
+        return _MEMBERS[codes]
     return np.array([_member(v) for v in np.asarray(values, dtype=object).ravel()] or [], dtype=object)
 
 

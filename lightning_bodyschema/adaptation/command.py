@@ -8,9 +8,8 @@ import numpy as np
 import torch
 
 from ..faults.bounds import FaultBounds
-from ..status import Status
+from ..status import Status, status_array
 
-_BY_CODE = np.array(list(Status), dtype=object)  # code -> member (the codes number the members in order)
 
 # healthy motor lengths span a few spreads around their mean; a diverged guidance reaches metres (1e2-1e118 spreads)
 LENGTH_SPREADS = 20.0
@@ -105,8 +104,8 @@ def safe_command(x_si, faults, f_limit_n=None, l_range_m=None) -> AdaptationResu
 
 
 def statuses(codes: np.ndarray) -> np.ndarray:
-    """(B,) object array of ``Status`` members from int codes (vectorized ``status.status_array``)."""
-    return _BY_CODE[np.asarray(codes, np.int64)]
+    """(B,) object array of ``Status`` members from int codes (``status.status_array``'s one-op lookup)."""
+    return status_array(np.asarray(codes, np.int64))
 
 
 def motor_length_range(x_mean, x_std, n_muscles: int) -> np.ndarray:

@@ -38,3 +38,10 @@ def test_codes_to_members_vectorized_is_the_vocabulary():
 
     codes = np.array([m.code for m in Status][::-1], np.int32)
     assert list(statuses(codes)) == list(Status)[::-1] and statuses(codes).dtype == object
+
+
+def test_an_unknown_code_in_an_array_is_refused():
+    with pytest.raises(ValueError, match="unknown status code 99"):
+        status_array(np.array([0, 99]))
+    with pytest.raises(ValueError, match="unknown status code -1"):
+        status_array(np.array([-1], np.int32))
