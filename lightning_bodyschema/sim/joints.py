@@ -21,6 +21,14 @@ COUPLING_TOL_RAD = 1e-6  # a full posture given by the user may miss its couplin
 _RANGE_GRID = 4001  # points per free joint range probed for dependents leaving their own range
 
 
+def _horner(x: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """``coef[0] + coef[1] x + ...`` at x (B,): numpy's ``polyval`` without its per-call overhead."""
+    out = np.full_like(x, coef[-1])
+    for c in coef[-2::-1]:
+        out = out * x + c
+    return out
+
+
 @dataclass
 class JointMap:
     """Free joints, locked joints and polynomial couplings of a compiled model (joint = qpos index)."""
@@ -78,21 +86,21 @@ class JointMap:
         for j, value in self.locked.items():
             full[:, j] = value
         for j, k, coef in self.deps:
-            x = full[:, k] - self.qpos0[k]
-            full[:, j] = self.qpos0[j] + np.polynomial.polynomial.polyval(x, coef)
+            full[:, j] = self.qpos0[j] + _horner(full[:, k] - self.qpos0[k], coef)
         return full
 
-    def tangent(self, q: np.ndarray) -> np.ndarray:
-        """E = d full_q / d q (B, nq, N): 1 for a free joint, the polynomial's slope for its followers."""
+    def tangent(self, q: np.ndarray, full: np.ndarray | None = None) -> np.ndarray:
+        """E = d full_q / d q (B, nq, N): 1 for a free joint, the polynomial's slope for its followers.
+        ``full``: ``full_q(q)`` where the caller has it already."""
         batch, n_free = len(q), len(self.free)
         column = {j: c for c, j in enumerate(self.free)}
         e = np.zeros((batch, len(self.qpos0), n_free))
         e[:, self.free, np.arange(n_free)] = 1.0
-        full = self.full_q(q)
+        full = self.full_q(q) if full is None else full
         for j, k, coef in self.deps:
             if k in column:  # a follower of a locked joint does not move
-                x = full[:, k] - self.qpos0[k]
-                e[:, j, column[k]] = np.polynomial.polynomial.polyval(x, np.polynomial.polynomial.polyder(coef))
+                slope = coef[1:] * np.arange(1, len(coef))  # d/dx of a0 + a1 x + ... + a4 x^4
+                e[:, j, column[k]] = _horner(full[:, k] - self.qpos0[k], slope)
         return e
 
     def residual(self, full: np.ndarray) -> np.ndarray:

@@ -283,7 +283,10 @@ class MusculoskeletalModel:
 
     @property
     def muscle_names(self) -> list[str]:
-        return [self._name(mujoco.mjtObj.mjOBJ_TENDON, i) for i in self.muscle_ids]
+        ids = tuple(int(i) for i in self.muscle_ids)  # muscle_ids may be reassigned: names cached per selection
+        if getattr(self, "_muscle_names_of", (None,))[0] != ids:
+            self._muscle_names_of = (ids, [self._name(mujoco.mjtObj.mjOBJ_TENDON, i) for i in ids])
+        return list(self._muscle_names_of[1])
 
     @property
     def q_range(self) -> np.ndarray:
@@ -356,7 +359,7 @@ class MusculoskeletalModel:
         idx = self.muscle_ids
         if self.joint_map.identity:
             return lengths[:, idx], jac[:, idx, :], bias
-        tangent = self.joint_map.tangent(q)  # (B, nq, N)
+        tangent = self.joint_map.tangent(q, full)  # (B, nq, N)
         return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, bias)
 
     def crossing(self, n_postures: int = 64, seed: int = 0) -> np.ndarray:
