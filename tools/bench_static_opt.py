@@ -10,6 +10,7 @@ on myoArm the largest MuJoCo residual (``statics.check.mujoco_residual_nm``) of 
 load average is printed with the timings: they depend on it. One torch thread.
 """
 import argparse
+import copy
 import os
 import statistics
 
@@ -42,12 +43,16 @@ def bench(name, body, n, repeats, singles, cut):
     f_max = np.broadcast_to(np.asarray(body.spring.f_max_n, float), (len(q), body.model.n_muscles))
     f_ref = f_max * np.random.default_rng(1).random(f_max.shape)
     kin = body.model.kinematics(q)
+    threaded = copy.copy(body)
+    threaded.threads = 2
     rows = {
         "solve, all postures": timed(lambda: body.solve(q), repeats) / n,
+        "solve, all postures, kinematics on 2 threads": timed(lambda: threaded.solve(q), repeats) / n,
         "solve, ok postures only": timed(lambda: body.solve(held), repeats) / len(held),
         f"solve, {cut} cut": timed(lambda: body.solve(q, {"cut": [cut]}), repeats) / n,
         "solve, tension objective": timed(lambda: body.solve(q, objective="tension"), repeats) / n,
         "MuJoCo kinematics alone": timed(lambda: body.model.kinematics(q), repeats) / n,
+        "MuJoCo kinematics alone, 2 threads": timed(lambda: body.model.kinematics(q, 2), repeats) / n,
         "dataset QP (kinematics + solve_equilibrium_qp)": timed(
             lambda: solve_equilibrium_qp(*body.model.kinematics(q)[1:], f_ref, f_hi_n=f_max), repeats) / n,
         "one posture at a time (median call)": statistics.median(

@@ -150,6 +150,8 @@ def _parser():
                         "muscle actuators) or min sum f^2 (default otherwise)")
     parser.add_argument("--solver", choices=["newton", "proxqp"], default="newton")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1,
+                        help="threads for MuJoCo's kinematics (default: every core; the same answers for any count)")
     return parser
 
 
@@ -162,7 +164,8 @@ def _body(args):
     locks.update(_name_value(t, "--lock") for t in args.lock)
     options["fixed_base"] = options["fixed_base"] or args.fixed_base
     return StaticBody(options.pop("source"), locked_joints=locks, k_n=data.get("k_n"),
-                      alpha_per_m=data.get("alpha_per_m", 20.0), f_max_n=data.get("f_max_n"), **options)
+                      alpha_per_m=data.get("alpha_per_m", 20.0), f_max_n=data.get("f_max_n"), threads=args.threads,
+                      **options)
 
 
 @exits_cleanly

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from typing import Mapping, Sequence
 
 import mujoco
@@ -86,6 +87,16 @@ def _weld_free_joints(spec: mujoco.MjSpec):
 
 
 UNCROSSED_ARM_M = 1e-9  # [m/rad]: a tendon Jacobian entry at most this large is rounding (real arms are mm)
+
+def _thread_count(threads, batch: int) -> int:
+    """The threads worth starting for ``batch`` postures (at least ``MIN_POSTURES_PER_THREAD`` each)."""
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise BodySchemaInputError(f"threads={threads!r}; give an integer >= 1")
+    return int(max(1, min(threads, batch // MIN_POSTURES_PER_THREAD)))
+
+
+MIN_POSTURES_PER_THREAD = 32  # below this a thread's start costs more than its share of MuJoCo's work
+
 
 class MusculoskeletalModel:
     """A MuJoCo model whose spatial tendons are the robot's muscles.
@@ -327,25 +338,12 @@ class MusculoskeletalModel:
                     f"[{lo[j]:.6g}, {hi[j]:.6g}] ({np.unique(rows).size} posture(s) out of range)")
         return q
 
-    def kinematics(self, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Batched ``l_geo (B, M)``, ``G (B, M, N)`` and ``tau_bias (B, N)`` at postures ``q (B, N)``.
-
-        With couplings or locks, G and tau_bias are in the free joints: ``G = J_ten E``,
-        ``tau_bias = E^T (qfrc_bias - qfrc_passive)`` with ``E = d q_full / d q`` (sim/joints.py).
-        Passive forces (joint and tendon springs, gravity compensation) are part of tau_bias when the
-        model has any: a non-muscle tendon with stiffness pulls as MuJoCo says, in the equilibrium
-        and in the settle simulation alike.
-        """
-        q = self.check_q(q)
-        full = self.joint_map.full_q(q)
-        m, d = self.mj_model, self._data
-        rows, cols, entries = self._dense_index
-        batch = q.shape[0]
-        lengths = np.empty((batch, m.ntendon))
-        jac = np.zeros((batch, m.ntendon, m.nv))
-        bias = np.empty((batch, m.nv))
+    def _fill_kinematics(self, full, rows, d, out) -> None:
+        """MuJoCo's tendon lengths, tendon Jacobian and bias forces of postures ``full[rows]`` into ``out``."""
+        m, (lengths, jac, bias) = self.mj_model, out
+        tendon_rows, cols, entries = self._dense_index
         d.qvel[:] = 0.0
-        for b in range(batch):  # MuJoCo evaluates one posture per call
+        for b in rows:  # MuJoCo evaluates one posture per call
             d.qpos[:] = full[b]
             mujoco.mj_kinematics(m, d)
             mujoco.mj_comPos(m, d)
@@ -355,7 +353,38 @@ class MusculoskeletalModel:
                 mujoco.mj_passive(m, d)
                 bias[b] -= d.qfrc_passive
             lengths[b] = d.ten_length
-            jac[b, rows, cols] = d.ten_J[entries]
+            jac[b, tendon_rows, cols] = d.ten_J[entries]
+
+    def _thread_data(self, threads: int) -> list:
+        """One ``MjData`` per thread, made once (the first is the model's own)."""
+        pool = self.__dict__.setdefault("_datas", [self._data])
+        pool.extend(mujoco.MjData(self.mj_model) for _ in range(threads - len(pool)))
+        return pool[:threads]
+
+    def kinematics(self, q, threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Batched ``l_geo (B, M)``, ``G (B, M, N)`` and ``tau_bias (B, N)`` at postures ``q (B, N)``.
+
+        With couplings or locks, G and tau_bias are in the free joints: ``G = J_ten E``,
+        ``tau_bias = E^T (qfrc_bias - qfrc_passive)`` with ``E = d q_full / d q`` (sim/joints.py).
+        Passive forces (joint and tendon springs, gravity compensation) are part of tau_bias when the
+        model has any: a non-muscle tendon with stiffness pulls as MuJoCo says, in the equilibrium
+        and in the settle simulation alike. ``threads``: MuJoCo's per-posture calls on that many threads (each
+        with its own ``MjData``; the same numbers whatever the count).
+        """
+        q = self.check_q(q)
+        full = self.joint_map.full_q(q)
+        m = self.mj_model
+        batch = q.shape[0]
+        out = (np.empty((batch, m.ntendon)), np.zeros((batch, m.ntendon, m.nv)), np.empty((batch, m.nv)))
+        threads = _thread_count(threads, batch)
+        if threads == 1:
+            self._fill_kinematics(full, range(batch), self._data, out)
+        else:  # MuJoCo releases the GIL inside its calls
+            chunks = np.array_split(np.arange(batch), threads)
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(self._fill_kinematics, [full] * threads, chunks, self._thread_data(threads),
+                              [out] * threads))
+        lengths, jac, bias = out
         idx = self.muscle_ids
         if self.joint_map.identity:
             return lengths[:, idx], jac[:, idx, :], bias

@@ -35,7 +35,7 @@ from ..errors import BodySchemaInputError
 from ..faults.faults import Faults
 from ..faults.bounds import FaultBounds
 from .._numpy import to_numpy
-from ..sim.model import MusculoskeletalModel
+from ..sim.model import MusculoskeletalModel, _thread_count
 from ..sim.spring import elongation_from_tension, spring_for_model
 from ..solvers import EQUILIBRIUM_TOL_NM, BoxQP, outside_torque_reach, proxsuite_solve, solve_box_qp
 from ..status import Status, status_array
@@ -106,10 +106,11 @@ class StaticBody:
     """The true body of static optimization, built once: a ``MusculoskeletalModel`` (any MJCF path, packaged name or
     ``myo:<name>``; ``muscles``, ``gravity``, ``locked_joints``, ``fixed_base`` as the data module takes them; the
     model's own ``<equality joint>`` couplings hold), its spring (``k_n``, ``alpha_per_m``, ``f_max_n``:
-    ``sim.spring.spring_for_model``) and, where every muscle has one, its MuJoCo muscle actuators' curves."""
+    ``sim.spring.spring_for_model``) and, where every muscle has one, its MuJoCo muscle actuators' curves.
+    ``threads``: MuJoCo's kinematics of a batch on that many threads (the same answers whatever the count)."""
 
     def __init__(self, model: str = "paper_arm", muscles=None, gravity=None, locked_joints=None,
-                 fixed_base: bool = False, k_n=None, alpha_per_m=20.0, f_max_n=None):
+                 fixed_base: bool = False, k_n=None, alpha_per_m=20.0, f_max_n=None, threads: int = 1):
         if not isinstance(model, str):
             raise BodySchemaInputError(f"model={model!r}: give a packaged name, myo:<name>, an MJCF path or MJCF "
                                        "text (a StaticBody is built from the model's source)")
@@ -117,6 +118,8 @@ class StaticBody:
                                           fixed_base=fixed_base)
         self.spring = spring_for_model(self.model, k_n, alpha_per_m, f_max_n)
         self.curves: Optional[MuscleCurves] = read_muscle_curves(model, self.model.muscle_names, fixed_base)
+        _thread_count(threads, 0)  # refuse a bad count now, not at the first solve
+        self.threads = threads
 
     @property
     def default_objective(self) -> str:
@@ -167,7 +170,7 @@ class StaticBody:
         faults = self.fault_batch(faults, len(q))
         if solver not in ("newton", "proxqp"):
             raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
-        l_geo, G, tau = self.model.kinematics(q)
+        l_geo, G, tau = self.model.kinematics(q, self.threads)
         lo, hi, s, p = self.tension_bounds(l_geo, faults)
         # the QP's variable: activations, or tensions in units of the mean f_max (the same argmin, and proxsuite's
         # absolute tolerance then means the same as on activations)

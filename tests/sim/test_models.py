@@ -168,3 +168,20 @@ def test_datamodule_on_arm3_8_normalizes_q_ranges_to_unit_interval():
     assert q_train.shape == (160, 3) and x_train.shape == (160, 16)
     q_n = dm.normalizer.encode_q(q_train)
     assert q_n.min() >= -1.0 and q_n.max() <= 1.0
+
+
+def test_kinematics_on_threads_are_the_same_numbers():
+    """Each thread has its own MjData; the answers do not depend on how postures are split among threads."""
+    model = MusculoskeletalModel("opensim_like_arm")
+    q = model.sample_q(np.random.default_rng(3), 200)
+    one = model.kinematics(q)
+    for threads in (2, 3):
+        for a, b in zip(one, model.kinematics(q, threads=threads)):
+            assert a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True, "2"])
+def test_a_bad_thread_count_is_refused(threads):
+    model = MusculoskeletalModel("opensim_like_arm")
+    with pytest.raises(BodySchemaInputError, match=r"threads=.*integer >= 1"):
+        model.kinematics(np.zeros((1, model.n_joints)), threads=threads)

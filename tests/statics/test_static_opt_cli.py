@@ -82,6 +82,7 @@ def test_npz_with_faults_file(tmp_path):
     (("r_shoulder_elev", "r_elbow_flex", "wrist"), [[0.0, 1.0, 0.0]], [], r"columns \['wrist'\] are not free joints"),
     (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--cut", "BRAx"], "unknown muscle 'BRAx'"),
     (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--weak", "BRA_tendon"], "expected NAME=NUMBER"),
+    (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--threads", "0"], r"threads=0; give an integer >= 1"),
 ])
 def test_bad_input_exits_2_with_one_line_and_no_file(tmp_path, capsys, columns, rows, extra, match):
     out = tmp_path / "out.csv"
