@@ -148,12 +148,15 @@ class StaticBody:
             raise BodySchemaInputError(f"faults has {len(faults)} rows for {batch} postures; give 1 or {batch}")
         return faults if len(faults) == batch else faults.take(np.zeros(batch, dtype=int))
 
-    def tension_bounds(self, l_geo_m, faults: Faults):
-        """``(lo, hi, s, p)`` (B, M) [N]: the tensions the faults and the spring allow (the spring's f_max on a body
-        without muscle curves, no cap on one with them), and the affine tension ``f = s a + p`` (None without
-        curves); a cut muscle has ``s = p = 0``."""
-        f_cap = self.spring.f_max_n if self.curves is None else np.inf
-        lo, hi = FaultBounds.from_faults(faults, f_cap, self.spring).tension_box(l_geo_m)
+    def fault_bounds(self, faults: Faults) -> FaultBounds:
+        """``faults`` as SI bounds: the spring's f_max caps tensions on a body without muscle curves, nothing on one
+        with them (their activations are capped instead)."""
+        return FaultBounds.from_faults(faults, self.spring.f_max_n if self.curves is None else np.inf, self.spring)
+
+    def tension_bounds(self, l_geo_m, faults: Faults, bounds: Optional[FaultBounds] = None):
+        """``(lo, hi, s, p)`` (B, M) [N]: the tensions the faults and the spring allow (``fault_bounds``), and the
+        affine tension ``f = s a + p`` (None without curves); a cut muscle has ``s = p = 0``."""
+        lo, hi = (bounds or self.fault_bounds(faults)).tension_box(l_geo_m)
         if self.curves is None:
             return lo, hi, None, None
         s, p = self.curves.affine(l_geo_m)
@@ -171,7 +174,8 @@ class StaticBody:
         if solver not in ("newton", "proxqp"):
             raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
         l_geo, G, tau = self.model.kinematics(q, self.threads)
-        lo, hi, s, p = self.tension_bounds(l_geo, faults)
+        bounds = self.fault_bounds(faults)
+        lo, hi, s, p = self.tension_bounds(l_geo, faults, bounds)
         # the QP's variable: activations, or tensions in units of the mean f_max (the same argmin, and proxsuite's
         # absolute tolerance then means the same as on activations)
         unit = float(np.mean(self.spring.f_max_n))
@@ -189,7 +193,7 @@ class StaticBody:
             with np.errstate(invalid="ignore"):
                 status[(status == Status.ACTIVATION_ABOVE_ONE) & (activation.max(1) <= 1.0 + 1e-12)] = Status.OK
         return StaticResult(self.model.joint_names, self.model.muscle_names, q, f,
-                            self._motor_lengths(l_geo, f, faults), activation, status, objective,
+                            self._motor_lengths(l_geo, f, bounds), activation, status, objective,
                             faults, [] if self.curves is None else list(self.curves.actuators))
 
     def _objective(self, objective):
@@ -210,9 +214,8 @@ class StaticBody:
                                        f"or {shape} [N]")
         return np.broadcast_to(f_ref, shape).copy()
 
-    def _motor_lengths(self, l_geo_m, f, faults: Faults):
+    def _motor_lengths(self, l_geo_m, f, bounds: FaultBounds):
         """``l_motor = l - delta(f)`` [m]; a slack wire's motor at its band's lower end (as ``faults.qp``)."""
-        bounds = FaultBounds.from_faults(faults, np.inf)
         l_lo, l_hi = bounds.l_lo_m, bounds.l_hi_m
         l_motor = l_geo_m - elongation_from_tension(f, self.spring)
         l_motor = np.where((f <= 0.0) & np.isfinite(l_lo), np.maximum(l_motor, l_lo), l_motor)
