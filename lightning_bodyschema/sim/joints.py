@@ -11,6 +11,7 @@ manifold, so the equilibrium balances torques in these coordinates and the const
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import mujoco
 import numpy as np
@@ -22,9 +23,10 @@ _RANGE_GRID = 4001  # points per free joint range probed for dependents leaving 
 
 
 def _horner(x: np.ndarray, coef: np.ndarray) -> np.ndarray:
-    """``coef[0] + coef[1] x + ...`` at x (B,): numpy's ``polyval`` without its per-call overhead."""
-    out = np.full_like(x, coef[-1])
-    for c in coef[-2::-1]:
+    """``coef[d, 0] + coef[d, 1] x[:, d] + ...`` at x (B, D), coefficients (D, K): numpy's ``polyval`` (the same
+    operations, so the same numbers) for every coupling at once."""
+    out = np.broadcast_to(coef[:, -1], x.shape).copy()
+    for c in coef[:, -2::-1].T:
         out = out * x + c
     return out
 
@@ -85,7 +87,8 @@ class JointMap:
         full[:, self.free] = q
         for j, value in self.locked.items():
             full[:, j] = value
-        for j, k, coef in self.deps:
+        if self.deps:  # every follower at once: a followed joint is free or locked, never a follower itself
+            j, k, coef = self._dep_arrays
             full[:, j] = self.qpos0[j] + _horner(full[:, k] - self.qpos0[k], coef)
         return full
 
@@ -97,11 +100,18 @@ class JointMap:
         e = np.zeros((batch, len(self.qpos0), n_free))
         e[:, self.free, np.arange(n_free)] = 1.0
         full = self.full_q(q) if full is None else full
-        for j, k, coef in self.deps:
-            if k in column:  # a follower of a locked joint does not move
-                slope = coef[1:] * np.arange(1, len(coef))  # d/dx of a0 + a1 x + ... + a4 x^4
-                e[:, j, column[k]] = _horner(full[:, k] - self.qpos0[k], slope)
+        moving = [i for i, (_, k, _) in enumerate(self.deps) if k in column]  # a locked joint's followers stay
+        if moving:
+            j, k, coef = (a[moving] for a in self._dep_arrays)
+            slope = coef[:, 1:] * np.arange(1, coef.shape[1])  # d/dx of a0 + a1 x + ... + a4 x^4
+            e[:, j, [column[int(c)] for c in k]] = _horner(full[:, k] - self.qpos0[k], slope)
         return e
+
+    @cached_property
+    def _dep_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The couplings as arrays: followers (D,), followed joints (D,), coefficients a0..a4 (D, 5)."""
+        return (np.array([d[0] for d in self.deps]), np.array([d[1] for d in self.deps]),
+                np.array([d[2] for d in self.deps], float))
 
     def residual(self, full: np.ndarray) -> np.ndarray:
         """(B,) largest miss of the couplings and locks by full postures (B, nq) [rad or m]."""

@@ -294,9 +294,9 @@ class MusculoskeletalModel:
 
     @property
     def muscle_names(self) -> list[str]:
-        ids = tuple(int(i) for i in self.muscle_ids)  # muscle_ids may be reassigned: names cached per selection
+        ids = np.asarray(self.muscle_ids).tobytes()  # muscle_ids may be reassigned: names cached per selection
         if getattr(self, "_muscle_names_of", (None,))[0] != ids:
-            self._muscle_names_of = (ids, [self._name(mujoco.mjtObj.mjOBJ_TENDON, i) for i in ids])
+            self._muscle_names_of = (ids, [self._name(mujoco.mjtObj.mjOBJ_TENDON, i) for i in self.muscle_ids])
         return list(self._muscle_names_of[1])
 
     @property

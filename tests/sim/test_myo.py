@@ -361,3 +361,20 @@ def test_myo_benchmarks_refuse_bad_input_with_one_line_and_exit_2(args, named):
     out = subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env, cwd=REPO, timeout=120)
     errors = [line for line in out.stderr.splitlines() if line.startswith("error:")]
     assert out.returncode == 2 and len(errors) == 1 and named in errors[0] and "Traceback" not in out.stderr
+
+
+def test_every_coupling_is_numpys_polynomial_and_its_slope(myoarm, rng):
+    """myoArm couples 11 joints to others at once (all at once in ``JointMap``): each follower equals numpy's own
+    ``polyval`` of its coupling, and its column of the tangent the derivative polynomial, to the bit."""
+    jm = myoarm.joint_map
+    assert len(jm.deps) >= 10
+    q = myoarm.sample_q(rng, 64)
+    full, tangent = jm.full_q(q), jm.tangent(q)
+    column = {j: c for c, j in enumerate(jm.free)}
+    P = np.polynomial.polynomial
+    for j, k, coef in jm.deps:
+        x = full[:, k] - jm.qpos0[k]
+        assert np.array_equal(full[:, j], jm.qpos0[j] + P.polyval(x, coef))
+        if k in column:
+            assert np.array_equal(tangent[:, j, column[k]], P.polyval(x, P.polyder(coef)))
+            assert np.count_nonzero(tangent[:, j]) == np.count_nonzero(tangent[:, j, column[k]])
