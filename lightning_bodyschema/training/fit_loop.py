@@ -33,6 +33,15 @@ def logs_this_step(trainer) -> bool:
     return trainer._logger_connector.should_update_logs
 
 
+def write_to_loggers(trainer, metrics: dict) -> None:
+    """Write ``metrics`` (name -> float) to every logger of ``trainer`` at the step Lightning writes this training
+    step's ``self.log`` values (the step Lightning's ``LearningRateMonitor`` writes at), bypassing Lightning's
+    metric collection: they appear in the loggers, not in ``trainer.callback_metrics``."""
+    step = trainer.fit_loop.epoch_loop._batches_that_stepped
+    for logger in trainer.loggers:
+        logger.log_metrics(metrics, step=step)
+
+
 def batches_trained_this_epoch(trainer) -> int:
     """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""
     return trainer.fit_loop.epoch_loop.batch_progress.current.processed
