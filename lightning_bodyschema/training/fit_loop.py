@@ -33,13 +33,23 @@ def logs_this_step(trainer) -> bool:
     return trainer._logger_connector.should_update_logs
 
 
-def write_to_loggers(trainer, metrics: dict) -> None:
-    """Write ``metrics`` (name -> float) to every logger of ``trainer`` at the step Lightning writes this training
-    step's ``self.log`` values (the step Lightning's ``LearningRateMonitor`` writes at), bypassing Lightning's
-    metric collection: they appear in the loggers, not in ``trainer.callback_metrics``."""
+def publish_train_metrics(trainer, metrics: dict, prog_bar: tuple = (), to_loggers: bool = True) -> None:
+    """What ``self.log(name, value)`` in a training step leaves behind, without Lightning's metric collection
+    (whose every ``self.log`` costs a sizeable share of a small minibatch step): ``metrics`` (name -> 0-dim
+    tensor) in ``trainer.callback_metrics`` and ``trainer.logged_metrics`` (what monitors and callbacks read),
+    those named in ``prog_bar`` as numbers in ``trainer.progress_bar_metrics``, and with ``to_loggers`` written
+    to every logger at the step Lightning writes this training step's values at, beside ``epoch`` as Lightning
+    adds it, then saved (``logger.save()``, as Lightning does after each write)."""
+    scalars = {name: float(value) for name, value in metrics.items()}
+    trainer.callback_metrics.update(metrics)
+    trainer.logged_metrics.update(metrics)
+    trainer.progress_bar_metrics.update({name: scalars[name] for name in prog_bar if name in scalars})
+    if not to_loggers:
+        return
     step = trainer.fit_loop.epoch_loop._batches_that_stepped
     for logger in trainer.loggers:
-        logger.log_metrics(metrics, step=step)
+        logger.log_metrics({**scalars, "epoch": trainer.current_epoch}, step=step)
+        logger.save()
 
 
 def batches_trained_this_epoch(trainer) -> int:

@@ -19,7 +19,7 @@ from .finite import all_finite, non_finite_flag
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
                        mixed_precision_refusal,
-                       monitors_train_metrics, weight_averaging_last, write_to_loggers)
+                       monitors_train_metrics, publish_train_metrics, weight_averaging_last)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
@@ -112,21 +112,15 @@ class SchemaLightningModule(L.LightningModule):
 
     def _log_train(self, trainer, loss) -> None:
         """train/loss and train/lr on the steps the loggers write, and at each epoch's last batch when a monitor
-        (EarlyStopping, ModelCheckpoint, ReduceLROnPlateau) reads train/*. A ``self.log`` costs a sizeable share of a
-        minibatch step here, so it is called only then, and only for what Lightning's metrics must hold: train/lr
-        goes straight to the loggers at the same step (as Lightning's ``LearningRateMonitor`` writes it) unless a
-        monitor reads train/*."""
+        (EarlyStopping, ModelCheckpoint, ReduceLROnPlateau) reads train/*; published as a training step's
+        ``self.log(..., prog_bar=True)`` leaves them (``fit_loop.publish_train_metrics``)."""
         writes, monitored = logs_this_step(trainer), self._log_train_at_epoch_end and is_last_batch(trainer)
         if not (writes or monitored):
             return
-        self.log("train/loss", loss.detach(), prog_bar=True)
-        if not (trainer.optimizers and trainer.optimizers[0].param_groups):  # none: a least-squares body
-            return
-        lr = trainer.optimizers[0].param_groups[0]["lr"]
-        if self._log_train_at_epoch_end:
-            self.log("train/lr", lr)
-        else:
-            write_to_loggers(trainer, {"train/lr": lr})
+        metrics = {"train/loss": loss.detach()}
+        if trainer.optimizers and trainer.optimizers[0].param_groups:  # none: a least-squares body
+            metrics["train/lr"] = torch.tensor(trainer.optimizers[0].param_groups[0]["lr"])
+        publish_train_metrics(trainer, metrics, prog_bar=("train/loss",), to_loggers=writes)
 
     def on_before_optimizer_step(self, optimizer):
         """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
