@@ -52,6 +52,27 @@ def publish_train_metrics(trainer, metrics: dict, prog_bar: tuple = (), to_logge
         logger.save()
 
 
+def remember_batch_hook_owners(trainer) -> bool:
+    """Make Lightning's choice between the data module's and the LightningModule's batch hooks
+    (``on_before_batch_transfer``, ``transfer_batch_to_device``, ``on_after_batch_transfer``) once per attached
+    data, not at every batch: Lightning 2.x asks ``is_overridden`` of both twice per hook and batch, and the
+    answer is fixed while its data-hook selector (one per ``fit`` / ``validate`` / ...) lives. The selector's
+    ``get_instance`` is memoised on that selector alone. False (nothing changed) where this Lightning keeps no
+    such selector."""
+    selector = getattr(getattr(trainer, "_data_connector", None), "_datahook_selector", None)
+    get_instance = getattr(selector, "get_instance", None)
+    if get_instance is None or "get_instance" in vars(selector):
+        return get_instance is not None
+    owners: dict = {}
+
+    def remembered(hook_name: str):
+        if hook_name not in owners:
+            owners[hook_name] = get_instance(hook_name)
+        return owners[hook_name]
+    selector.get_instance = remembered
+    return True
+
+
 def batches_trained_this_epoch(trainer) -> int:
     """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""
     return trainer.fit_loop.epoch_loop.batch_progress.current.processed

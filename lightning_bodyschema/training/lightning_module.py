@@ -19,7 +19,8 @@ from .finite import all_finite, non_finite_flag
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
                        mixed_precision_refusal,
-                       monitors_train_metrics, publish_train_metrics, weight_averaging_last)
+                       monitors_train_metrics, publish_train_metrics, remember_batch_hook_owners,
+                       weight_averaging_last)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
@@ -173,6 +174,7 @@ class SchemaLightningModule(L.LightningModule):
         self.skipped_steps = 0
         self._minibatch_affine = self.normalizer.affine()  # the normalizer is set (setup) and on this device
         self._log_train_at_epoch_end = monitors_train_metrics(self.trainer)
+        remember_batch_hook_owners(self.trainer)
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
             # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would

@@ -135,3 +135,33 @@ def test_the_data_module_hands_cpu_batches_over_and_lets_lightning_move_the_rest
     assert [t.device.type for t in moved] == ["meta", "meta"] and [t.shape for t in moved] == [q[:4].shape, x[:4].shape]
     as_list = dm.transfer_batch_to_device([q[:4], x[:4]], torch.device("meta"), 0)
     assert isinstance(as_list, list) and as_list[0].device.type == "meta"
+
+
+def test_batch_hooks_are_chosen_once_per_fit_and_still_reach_the_data_module(dm):
+    """Lightning's choice of the data module's or the LightningModule's batch hooks is remembered for the fit
+    (``fit_loop.remember_batch_hook_owners``; it returns False on a Lightning without the selector it memoises,
+    which fails here first), and every batch still goes through the data module's ``transfer_batch_to_device``."""
+    from lightning_bodyschema.data import EquilibriumDataModule
+    from lightning_bodyschema.training.fit_loop import remember_batch_hook_owners
+
+    class Counting(EquilibriumDataModule):
+        transfers = 0
+
+        def transfer_batch_to_device(self, batch, device, dataloader_idx):
+            Counting.transfers += 1
+            return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
+    data = Counting(cache_dir=None)
+    seen = {}
+
+    class Probe(Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            selector = trainer._data_connector._datahook_selector
+            seen["memoised"] = "get_instance" in vars(selector)
+            seen["owner"] = selector.get_instance("transfer_batch_to_device")
+            seen["again"] = remember_batch_hook_owners(trainer)
+
+    L.seed_everything(0)
+    fit(data, DiffusionSchema(robot=data.robot), max_epochs=1, callbacks=[Probe()])
+    assert seen == {"memoised": True, "owner": data, "again": True}
+    assert Counting.transfers == 10  # one per minibatch
