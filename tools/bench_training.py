@@ -8,8 +8,10 @@ one-weight module through the same Trainer setup and through a plain loop: the d
 per-step cost (its floor), which bounds the ratio any Lightning step of this maths can reach.
 
     python tools/bench_training.py --epochs 2000 --repeats 3
+    python tools/bench_training.py --epochs 300 --hook-times   # where a step's time goes, hook by hook
 """
 import argparse
+import contextlib
 import statistics
 import sys
 import tempfile
@@ -110,10 +112,58 @@ def floor_runs(epochs, steps_per_epoch, logdir):
     return plain, lightning
 
 
+@contextlib.contextmanager
+def timed_hooks(acc: dict):
+    """While open, every hook Lightning calls (module, callbacks, strategy, data module) adds its CPU time in ns to
+    ``acc["depth kind.hook"]`` (inclusive of the hooks it calls, which count at depth + 1)."""
+    from lightning.pytorch.trainer import call
+
+    kinds = {"_call_lightning_module_hook": "module", "_call_callback_hooks": "callback",
+             "_call_strategy_hook": "strategy", "_call_lightning_datamodule_hook": "datamodule"}
+    originals, depth = {name: getattr(call, name) for name in kinds}, [0]
+
+    def timed(fn, kind):
+        def run(trainer, hook, *args, **kwargs):
+            depth[0] += 1
+            start = time.thread_time_ns()
+            try:
+                return fn(trainer, hook, *args, **kwargs)
+            finally:
+                depth[0] -= 1
+                key = f"{depth[0]} {kind}.{hook}"
+                acc[key] = acc.get(key, 0) + time.thread_time_ns() - start
+        return run
+    try:
+        for name, kind in kinds.items():
+            setattr(call, name, timed(originals[name], kind))
+        yield acc
+    finally:
+        for name, original in originals.items():
+            setattr(call, name, original)
+
+
+def hook_times(fits: dict, steps: int) -> None:
+    """Print each Lightning hook's CPU time per optimizer step in each fit of ``fits`` (name -> callable), side by
+    side: where a step's time goes beyond its maths."""
+    per_fit = {}
+    for fit_name, fit in fits.items():
+        with timed_hooks({}) as acc:
+            fit()
+        per_fit[fit_name] = {key: value / 1e3 / steps for key, value in acc.items()}
+    keys = sorted({key for times in per_fit.values() for key in times},
+                  key=lambda key: -max(times.get(key, 0.0) for times in per_fit.values()))
+    print("hook CPU time per optimizer step (us; 'depth kind.hook', inclusive): " + " | ".join(per_fit))
+    for key in keys:
+        if max(times.get(key, 0.0) for times in per_fit.values()) >= 0.5:
+            print(f"  {key:55s} " + " ".join(f"{times.get(key, 0.0):9.2f}" for times in per_fit.values()))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=1000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--hook-times", action="store_true",
+                        help="instead: one fit of each Lightning run, each hook's CPU time per optimizer step")
     args = parser.parse_args()
     if args.epochs < 2 or args.repeats < 1:
         print(f"error: --epochs={args.epochs} must be >= 2 and --repeats={args.repeats} >= 1", file=sys.stderr)
@@ -123,6 +173,11 @@ def main():
     dm.setup("fit")
     steps_per_epoch = len(dm.train_dataloader())
     floor_plain, floor_lightning = floor_runs(args.epochs, steps_per_epoch, tempfile.gettempdir())
+    if args.hook_times:
+        with tempfile.TemporaryDirectory() as logdir:
+            hook_times({"schema": lambda: lightning_fit(dm, args.epochs, logdir), "floor": floor_lightning},
+                       args.epochs * steps_per_epoch)
+        return
     runs = [("plain", lambda: plain_loop(dm, args.epochs)),
             ("plain_step", lambda: plain_loop(dm, args.epochs, same_step=True)),
             ("lightning", lambda: lightning_fit(dm, args.epochs, logdir)),

@@ -39,10 +39,11 @@ class FinalValidation(Callback):
         # Lightning validates at an epoch's last batch (epoch-counted validation, made due above), at a step-counted
         # interval, or on a requested stop. Where the fit ends otherwise, request the stop (the fit ends here anyway)
         # and Lightning validates: max_steps reached inside an epoch, or the last batch of a step-counted fit
-        if not self.enabled:
-            return
+        step_counted = trainer.max_steps is not None and trainer.max_steps > 0
+        if not self.enabled or not (step_counted or trainer.check_val_every_n_epoch is None):
+            return  # epoch-counted validation and no max_steps: Lightning validates the last epoch (made due above)
         last_batch = trainer.fit_loop.epoch_loop.batch_progress.is_last_batch
-        by_steps = trainer.max_steps is not None and trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps
+        by_steps = step_counted and trainer.global_step >= trainer.max_steps
         by_epochs = last_batch and _is_last_epoch(trainer, steps_left=None)
         if (by_steps and not last_batch) or (trainer.check_val_every_n_epoch is None and (by_steps or by_epochs)):
             trainer.should_stop = True

@@ -227,6 +227,15 @@ class EquilibriumDataModule(L.LightningDataModule):
         progress = (lambda: batches_trained_this_epoch(trainer)) if trainer is not None else None
         return MinibatchLoader(q, x, self.batch_size, sampler, batches_done=progress)
 
+    def transfer_batch_to_device(self, batch, device: torch.device, dataloader_idx: int):
+        """Lightning's hook, called for every batch: a tuple of CPU tensors bound for the CPU (this module's
+        batches in a CPU fit) is already there and is returned as it is, without Lightning's walk of a general
+        collection; every other batch is moved by Lightning."""
+        if device.type == "cpu" and type(batch) is tuple and all(
+                isinstance(t, torch.Tensor) and t.device.type == "cpu" for t in batch):
+            return batch
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
     @property
     def batch_size(self) -> int:
         return int(self.hparams.get("batch_size", 64))

@@ -33,6 +33,46 @@ def logs_this_step(trainer) -> bool:
     return trainer._logger_connector.should_update_logs
 
 
+def publish_train_metrics(trainer, metrics: dict, prog_bar: tuple = (), to_loggers: bool = True) -> None:
+    """What ``self.log(name, value)`` in a training step leaves behind, without Lightning's metric collection
+    (whose every ``self.log`` costs a sizeable share of a small minibatch step): ``metrics`` (name -> 0-dim
+    tensor) in ``trainer.callback_metrics`` and ``trainer.logged_metrics`` (what monitors and callbacks read),
+    those named in ``prog_bar`` as numbers in ``trainer.progress_bar_metrics``, and with ``to_loggers`` written
+    to every logger at the step Lightning writes this training step's values at, beside ``epoch`` as Lightning
+    adds it, then saved (``logger.save()``, as Lightning does after each write)."""
+    scalars = {name: float(value) for name, value in metrics.items()}
+    trainer.callback_metrics.update(metrics)
+    trainer.logged_metrics.update(metrics)
+    trainer.progress_bar_metrics.update({name: scalars[name] for name in prog_bar if name in scalars})
+    if not to_loggers:
+        return
+    step = trainer.fit_loop.epoch_loop._batches_that_stepped
+    for logger in trainer.loggers:
+        logger.log_metrics({**scalars, "epoch": trainer.current_epoch}, step=step)
+        logger.save()
+
+
+def remember_batch_hook_owners(trainer) -> bool:
+    """Make Lightning's choice between the data module's and the LightningModule's batch hooks
+    (``on_before_batch_transfer``, ``transfer_batch_to_device``, ``on_after_batch_transfer``) once per attached
+    data, not at every batch: Lightning 2.x asks ``is_overridden`` of both twice per hook and batch, and the
+    answer is fixed while its data-hook selector (one per ``fit`` / ``validate`` / ...) lives. The selector's
+    ``get_instance`` is memoised on that selector alone. False (nothing changed) where this Lightning keeps no
+    such selector."""
+    selector = getattr(getattr(trainer, "_data_connector", None), "_datahook_selector", None)
+    get_instance = getattr(selector, "get_instance", None)
+    if get_instance is None or "get_instance" in vars(selector):
+        return get_instance is not None
+    owners: dict = {}
+
+    def remembered(hook_name: str):
+        if hook_name not in owners:
+            owners[hook_name] = get_instance(hook_name)
+        return owners[hook_name]
+    selector.get_instance = remembered
+    return True
+
+
 def batches_trained_this_epoch(trainer) -> int:
     """The fit loop's count of this epoch's batches already trained on (what a checkpoint must resume after)."""
     return trainer.fit_loop.epoch_loop.batch_progress.current.processed

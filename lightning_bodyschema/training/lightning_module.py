@@ -19,7 +19,8 @@ from .finite import all_finite, non_finite_flag
 from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_checkpoint_callback_state_unless_fitting,
                        epochs_of_fit, half_precision_refusal, is_fitting, is_last_batch, logs_this_step,
                        mixed_precision_refusal,
-                       monitors_train_metrics, weight_averaging_last)
+                       monitors_train_metrics, publish_train_metrics, remember_batch_hook_owners,
+                       weight_averaging_last)
 
 # renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
 DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
@@ -107,23 +108,29 @@ class SchemaLightningModule(L.LightningModule):
         gradient clipping and accumulation, DDP's gradient averaging and the optimizer step."""
         q_n, x_n = self._normalized_minibatch(batch)
         loss, _ = self.training_loss(q_n, x_n)
-        # a self.log call costs a sizeable share of a minibatch step here: call it only on the steps the logger
-        # writes, and at each epoch's last batch when a monitor (EarlyStopping, ModelCheckpoint,
-        # ReduceLROnPlateau) reads train/*
-        trainer = self.trainer
-        if logs_this_step(trainer) or (self._log_train_at_epoch_end and is_last_batch(trainer)):
-            self.log("train/loss", loss.detach(), prog_bar=True)
-            if trainer.optimizers and trainer.optimizers[0].param_groups:  # none: a least-squares body
-                self.log("train/lr", trainer.optimizers[0].param_groups[0]["lr"])
+        self._log_train(self.trainer, loss)
         return loss
+
+    def _log_train(self, trainer, loss) -> None:
+        """train/loss and train/lr on the steps the loggers write, and at each epoch's last batch when a monitor
+        (EarlyStopping, ModelCheckpoint, ReduceLROnPlateau) reads train/*; published as a training step's
+        ``self.log(..., prog_bar=True)`` leaves them (``fit_loop.publish_train_metrics``)."""
+        writes, monitored = logs_this_step(trainer), self._log_train_at_epoch_end and is_last_batch(trainer)
+        if not (writes or monitored):
+            return
+        metrics = {"train/loss": loss.detach()}
+        if trainer.optimizers and trainer.optimizers[0].param_groups:  # none: a least-squares body
+            metrics["train/lr"] = torch.tensor(trainer.optimizers[0].param_groups[0]["lr"])
+        publish_train_metrics(trainer, metrics, prog_bar=("train/loss",), to_loggers=writes)
 
     def on_before_optimizer_step(self, optimizer):
         """Skip a step whose gradients are not finite (an overflowing loss), in every precision.
 
-        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions a fused
-        Adam / AdamW gets the check's flag as ``found_inf`` and skips inside its step (nothing is read on the host),
-        and any other optimizer gets its gradients dropped: either way the weights and the optimizer's state stay
-        untouched. Under DDP the gradients are already averaged here, so every rank takes the same decision.
+        ``16-mixed``'s GradScaler already skips such steps (and lowers its scale); for the other precisions, on an
+        accelerator, a fused Adam / AdamW gets the check's flag as ``found_inf`` and skips inside its step (nothing
+        is read on the host); on the CPU and for any other optimizer the flag is read and the gradients dropped:
+        either way the weights and the optimizer's state stay untouched. Under DDP the gradients are already
+        averaged here, so every rank takes the same decision.
         """
         scaler = getattr(self.trainer.precision_plugin, "scaler", None)
         if scaler is not None:
@@ -132,8 +139,8 @@ class SchemaLightningModule(L.LightningModule):
         params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
         if not params:
             return
-        # no read on the host with a fused optimizer: the CPU keeps queueing the GPU's kernels
-        found_inf = non_finite_flag([p.grad for p in params]) if _skips_by_flag(optimizer) else None
+        # no read on the host with a fused optimizer on an accelerator: the CPU keeps queueing its kernels
+        found_inf = non_finite_flag([p.grad for p in params]) if _skips_by_flag(optimizer, params[0]) else None
         if found_inf is not None:
             optimizer.found_inf = found_inf  # the fused step leaves weights and moments alone where it is 1
             counted = self.__dict__.get("_skipped_on_device")
@@ -146,10 +153,28 @@ class SchemaLightningModule(L.LightningModule):
                 p.grad = None
             self.__dict__["_skipped_counted"] += 1
 
+    def optimizer_zero_grad(self, epoch, batch_idx, optimizer):
+        """Lightning's hook before each step's backward: the gradients set to None, which is what a torch
+        optimizer's own ``zero_grad()`` does, in one pass over its parameters (without torch's profiler range
+        around it). An optimizer with a ``zero_grad`` of its own runs that."""
+        if type(optimizer).zero_grad is not torch.optim.Optimizer.zero_grad:
+            optimizer.zero_grad()
+            return
+        for group in optimizer.param_groups:
+            for param in group["params"]:
+                param.grad = None
+
+    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None):
+        """Lightning's clipping, called before every optimizer step; with no ``gradient_clip_val`` (here or on the
+        Trainer) there is nothing to clip and it returns at once, without Lightning's checks of the arguments."""
+        if gradient_clip_val or self._fabric is not None or self.trainer.gradient_clip_val:
+            super().configure_gradient_clipping(optimizer, gradient_clip_val, gradient_clip_algorithm)
+
     def on_train_start(self):
         self.skipped_steps = 0
         self._minibatch_affine = self.normalizer.affine()  # the normalizer is set (setup) and on this device
         self._log_train_at_epoch_end = monitors_train_metrics(self.trainer)
+        remember_batch_hook_owners(self.trainer)
         if self.trainer.world_size > 1:
             # seed_everything gives every rank the same seed (identical initial weights); the draws inside the
             # loss (diffusion t and noise, the VAE's sample) must differ between ranks, or every rank would
@@ -232,7 +257,14 @@ class SchemaLightningModule(L.LightningModule):
         drop_checkpoint_callback_state_unless_fitting(self._trainer, checkpoint)
 
 
-def _skips_by_flag(optimizer) -> bool:
-    """Does ``optimizer`` skip its own step where ``optimizer.found_inf`` is 1 (a fused Adam / AdamW, as under a
-    GradScaler)? Other optimizers get their gradients dropped instead."""
-    return type(optimizer) in (torch.optim.Adam, torch.optim.AdamW) and bool(optimizer.defaults.get("fused"))
+# devices where the non-finite flag is read on the host: the CPU's read costs nothing, and there a fused step without
+# a flag is the cheaper one; on an accelerator a read would stall its queue of asynchronous kernels
+HOST_READ_DEVICES = frozenset({"cpu"})
+
+
+def _skips_by_flag(optimizer, param: torch.Tensor) -> bool:
+    """Skip a non-finite step by the flag: ``optimizer`` skips its own step where ``optimizer.found_inf`` is 1 (a
+    fused Adam / AdamW, as under a GradScaler) and ``param`` lies on no device of ``HOST_READ_DEVICES``. Otherwise
+    the flag is read on the host and the gradients dropped."""
+    return (param.device.type not in HOST_READ_DEVICES and type(optimizer) in (torch.optim.Adam, torch.optim.AdamW)
+            and bool(optimizer.defaults.get("fused")))
