@@ -116,31 +116,35 @@ def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
 
 def _exact_step(problem, state: _State, step) -> torch.Tensor:
     """(B,) the maximiser ``t > 0`` of the dual along ``step`` (NaN where it is not positive). Along the ray the dual
-    is a concave piecewise quadratic: its derivative ``step . F(lam + t step)`` is piecewise linear and
-    decreasing, with a kink where a tension ``u_m - v_m t`` (``u = f_ref - G lam``, ``v = G step``) meets a bound;
-    the root lies between the last kink where it is positive and the next one (or past the last kink, where its
-    slope is ``-w |step|^2``)."""
+    is a concave piecewise quadratic: its derivative ``d(t) = step . F(lam + t step)`` is piecewise linear and
+    decreasing. Tension m is ``clamp(u_m - v_m t, lo_m, hi_m)`` (``u = f_ref - G lam``, ``v = G step``): free, adding
+    ``-v_m^2`` to the slope of d, between the two times it meets a bound. Sorting those times gives the slope on
+    each piece (a cumulative sum) and d at each time (another); the root lies on the first piece where d falls to 0
+    (past the last time, the slope is ``-w |step|^2``: no root where ``w = 0``)."""
     G, tau, f_ref, lo, hi, w = problem
     u = torch.baddbmm(f_ref.unsqueeze(-1), G, state.lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)  # (B, M)
     v = (G @ step.unsqueeze(-1)).squeeze(-1)
-    kinks = torch.cat([(u - lo) / v, (u - hi) / v], 1)  # +-inf or NaN where v = 0: dropped below
-    kinks = torch.sort(torch.where(kinks > 0, kinks, torch.inf), 1).values
-    t = torch.cat([torch.zeros_like(kinks[:, :1]), kinks], 1)  # (B, K)
-    finite = torch.isfinite(t)
-    t = torch.where(finite, t, torch.zeros_like(t))
-    f = torch.clamp(u.unsqueeze(1) - v.unsqueeze(1) * t.unsqueeze(2), lo.unsqueeze(1), hi.unsqueeze(1))  # (B, K, M)
-    curvature = w * (step * step).sum(1)  # of the last piece
-    slope0 = (step * tau).sum(1) - w * (step * state.lam).sum(1)
-    derivative = (f * v.unsqueeze(1)).sum(2) + slope0.unsqueeze(1) - curvature.unsqueeze(1) * t
-    falls = finite & (derivative <= 0)
-    k = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first kink where it is <= 0
-    last = finite.sum(1, keepdim=True) - 1
-    k0 = torch.where(falls.any(1, keepdim=True), (k - 1).clamp_min(0), last)
-    t0, d0 = t.gather(1, k0).squeeze(1), derivative.gather(1, k0).squeeze(1)
-    t1, d1 = t.gather(1, k).squeeze(1), derivative.gather(1, k).squeeze(1)
-    inside = t0 + d0 * (t1 - t0) / (d0 - d1)
-    beyond = t0 + d0 / curvature  # past the last kink (inf where w = 0: rejected below)
-    root = torch.where(falls.any(1), torch.where(d0 > d1, inside, t0), beyond)
+    moving = v != 0
+    at_lo, at_hi = (u - lo) / v, (u - hi) / v  # where tension m meets each bound (+-inf at an infinite bound)
+    enter = torch.where(moving, torch.minimum(at_lo, at_hi), -torch.inf)  # free on (enter, leave)
+    leave = torch.where(moving, torch.maximum(at_lo, at_hi), torch.inf)
+    v2 = v * v
+    slope = -(v2 * ((enter <= 0) & (leave > 0))).sum(1, keepdim=True) - (w * (step * step).sum(1)).unsqueeze(1)
+    times = torch.cat([enter, leave], 1)  # (B, 2M) events: entering lowers the slope by v^2, leaving raises it
+    events = (times > 0) & torch.isfinite(times)
+    times, order = torch.sort(torch.where(events, times, torch.inf), 1)
+    change = torch.where(events, torch.cat([-v2, v2], 1), torch.zeros_like(times)).gather(1, order)
+    before = torch.cat([slope, slope + torch.cumsum(change, 1)], 1)  # (B, 2M + 1): the slope on each piece
+    start = torch.cat([torch.zeros_like(slope), times], 1)  # each piece's first time
+    length = torch.where(torch.isfinite(start[:, 1:]), start[:, 1:] - start[:, :-1], torch.zeros_like(times))
+    d0 = (state.f * v).sum(1, keepdim=True) + ((step * tau).sum(1) - w * (step * state.lam).sum(1)).unsqueeze(1)
+    d = torch.cat([d0, d0 + torch.cumsum(before[:, :-1] * length, 1)], 1)  # d at each piece's first time
+    falls = torch.isfinite(start) & (d <= 0)  # the piece ending at the root is the one before the first such time
+    last = torch.isfinite(start).sum(1, keepdim=True) - 1
+    k = torch.where(falls.any(1, keepdim=True), (torch.argmax(falls.to(torch.int32), 1, keepdim=True) - 1).clamp_min(0),
+                    last)
+    t0, d_k, s_k = start.gather(1, k), d.gather(1, k), before.gather(1, k)
+    root = (t0 + d_k / -s_k).squeeze(1)
     return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
 
 
