@@ -15,13 +15,15 @@ Newton steps on (2) with (3) and a line search on the dual value, a concave piec
 of the trial steps ``t = 1``, the exact maximiser along the step, ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)`` that
 meets Armijo's condition (or, for ``t = 1``, keeps the free set and lowers ``max |F|``: there the dual is the
 quadratic the step maximises, and Armijo's test may fail on the rounding of the dual value alone), else a gradient
-step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends.
+step ``F / L`` (``L`` a bound on the dual gradient's Lipschitz constant), which always ascends.
 A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
 cannot hold has no root) is reported as not converged.
 
-``fixed_iterations=True`` runs exactly ``max_iter`` steps with every trial on every case, masked where a case has
-converged: no host synchronisation and no data-dependent shape, so ``torch.export`` can trace it; the answers are
-the eager ones. torch only.
+``fixed_iterations=True`` runs the steps on every case at once, every trial on every case, masked where a case has
+converged, in a ``torch.while_loop`` that ends when every case has converged or after ``max_iter`` steps: no host
+synchronisation and no data-dependent shape, so ``torch.export`` can trace it (and AOTInductor compiles it without
+its proxy executor: the Newton systems are solved by a Cholesky factor made of elementwise operations); the answers
+are the eager ones to rounding. torch only.
 """
 from __future__ import annotations
 
