@@ -131,7 +131,8 @@ def _exact_step(problem, state: _State, step) -> torch.Tensor:
     enter = torch.where(moving, torch.minimum(at_lo, at_hi), -torch.inf)  # free on (enter, leave)
     leave = torch.where(moving, torch.maximum(at_lo, at_hi), torch.inf)
     v2 = v * v
-    slope = -(v2 * ((enter <= 0) & (leave > 0))).sum(1, keepdim=True) - (w * (step * step).sum(1)).unsqueeze(1)
+    curvature = w * (step * step).sum(1)  # of the last piece
+    slope = -(v2 * ((enter <= 0) & (leave > 0))).sum(1, keepdim=True) - curvature.unsqueeze(1)
     times = torch.cat([enter, leave], 1)  # (B, 2M) events: entering lowers the slope by v^2, leaving raises it
     events = (times > 0) & torch.isfinite(times)
     times, order = torch.sort(torch.where(events, times, torch.inf), 1)
@@ -139,14 +140,19 @@ def _exact_step(problem, state: _State, step) -> torch.Tensor:
     before = torch.cat([slope, slope + torch.cumsum(change, 1)], 1)  # (B, 2M + 1): the slope on each piece
     start = torch.cat([torch.zeros_like(slope), times], 1)  # each piece's first time
     length = torch.where(torch.isfinite(start[:, 1:]), start[:, 1:] - start[:, :-1], torch.zeros_like(times))
-    d0 = (state.f * v).sum(1, keepdim=True) + ((step * tau).sum(1) - w * (step * state.lam).sum(1)).unsqueeze(1)
-    d = torch.cat([d0, d0 + torch.cumsum(before[:, :-1] * length, 1)], 1)  # d at each piece's first time
-    falls = torch.isfinite(start) & (d <= 0)  # the piece ending at the root is the one before the first such time
+    slope0 = (step * tau).sum(1) - w * (step * state.lam).sum(1)
+    d = (state.f * v).sum(1, keepdim=True) + slope0.unsqueeze(1)
+    d = torch.cat([d, d + torch.cumsum(before[:, :-1] * length, 1)], 1)  # d at each piece's first time
+    falls = torch.isfinite(start) & (d <= 0)
+    k1 = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first time where d <= 0
     last = torch.isfinite(start).sum(1, keepdim=True) - 1
-    k = torch.where(falls.any(1, keepdim=True), (torch.argmax(falls.to(torch.int32), 1, keepdim=True) - 1).clamp_min(0),
-                    last)
-    t0, d_k, s_k = start.gather(1, k), d.gather(1, k), before.gather(1, k)
-    root = (t0 + d_k / -s_k).squeeze(1)
+    k0 = torch.where(falls.any(1, keepdim=True), (k1 - 1).clamp_min(0), last)
+    t0, t1 = start.gather(1, k0).squeeze(1), start.gather(1, k1).squeeze(1)
+    # d at the bracket's ends summed over the tensions (not the cumulative sums): the root to the last bit
+    d0, d1 = ((torch.clamp(u - v * t.unsqueeze(1), lo, hi) * v).sum(1) + slope0 - curvature * t for t in (t0, t1))
+    inside = t0 + d0 * (t1 - t0) / (d0 - d1)
+    beyond = t0 + d0 / curvature  # past the last time (inf where w = 0: rejected below)
+    root = torch.where(falls.any(1), torch.where(d0 > d1, inside, t0), beyond)
     return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
 
 
