@@ -119,41 +119,47 @@ def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
 def _exact_step(problem, state: _State, step) -> torch.Tensor:
     """(B,) the maximiser ``t > 0`` of the dual along ``step`` (NaN where it is not positive). Along the ray the dual
     is a concave piecewise quadratic: its derivative ``d(t) = step . F(lam + t step)`` is piecewise linear and
-    decreasing. Tension m is ``clamp(u_m - v_m t, lo_m, hi_m)`` (``u = f_ref - G lam``, ``v = G step``): free, adding
-    ``-v_m^2`` to the slope of d, between the two times it meets a bound. Sorting those times gives the slope on
-    each piece (a cumulative sum) and d at each time (another); the root lies on the first piece where d falls to 0
-    (past the last time, the slope is ``-w |step|^2``: no root where ``w = 0``)."""
+    decreasing (``_derivative_at_kinks``); the root lies on the first piece where d falls to 0 (past the last kink,
+    the slope is ``-w |step|^2``: no root where ``w = 0``)."""
     G, tau, f_ref, lo, hi, w = problem
     u = torch.baddbmm(f_ref.unsqueeze(-1), G, state.lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)  # (B, M)
     v = (G @ step.unsqueeze(-1)).squeeze(-1)
-    moving = v != 0
-    at_lo, at_hi = (u - lo) / v, (u - hi) / v  # where tension m meets each bound (+-inf at an infinite bound)
-    enter = torch.where(moving, torch.minimum(at_lo, at_hi), -torch.inf)  # free on (enter, leave)
-    leave = torch.where(moving, torch.maximum(at_lo, at_hi), torch.inf)
-    v2 = v * v
     curvature = w * (step * step).sum(1)  # of the last piece
-    slope = -(v2 * ((enter <= 0) & (leave > 0))).sum(1, keepdim=True) - curvature.unsqueeze(1)
-    times = torch.cat([enter, leave], 1)  # (B, 2M) events: entering lowers the slope by v^2, leaving raises it
-    events = (times > 0) & torch.isfinite(times)
-    times, order = torch.sort(torch.where(events, times, torch.inf), 1)
-    change = torch.where(events, torch.cat([-v2, v2], 1), torch.zeros_like(times)).gather(1, order)
-    before = torch.cat([slope, slope + torch.cumsum(change, 1)], 1)  # (B, 2M + 1): the slope on each piece
-    start = torch.cat([torch.zeros_like(slope), times], 1)  # each piece's first time
-    length = torch.where(torch.isfinite(start[:, 1:]), start[:, 1:] - start[:, :-1], torch.zeros_like(times))
     slope0 = (step * tau).sum(1) - w * (step * state.lam).sum(1)
-    d = (state.f * v).sum(1, keepdim=True) + slope0.unsqueeze(1)
-    d = torch.cat([d, d + torch.cumsum(before[:, :-1] * length, 1)], 1)  # d at each piece's first time
+    start, d = _derivative_at_kinks(u, v, lo, hi, state.f, curvature, slope0)
     falls = torch.isfinite(start) & (d <= 0)
-    k1 = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first time where d <= 0
+    k1 = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first kink where d <= 0
     last = torch.isfinite(start).sum(1, keepdim=True) - 1
     k0 = torch.where(falls.any(1, keepdim=True), (k1 - 1).clamp_min(0), last)
     t0, t1 = start.gather(1, k0).squeeze(1), start.gather(1, k1).squeeze(1)
     # d at the bracket's ends summed over the tensions (not the cumulative sums): the root to the last bit
     d0, d1 = ((torch.clamp(u - v * t.unsqueeze(1), lo, hi) * v).sum(1) + slope0 - curvature * t for t in (t0, t1))
     inside = t0 + d0 * (t1 - t0) / (d0 - d1)
-    beyond = t0 + d0 / curvature  # past the last time (inf where w = 0: rejected below)
+    beyond = t0 + d0 / curvature  # past the last kink (inf where w = 0: rejected below)
     root = torch.where(falls.any(1), torch.where(d0 > d1, inside, t0), beyond)
     return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
+
+
+def _derivative_at_kinks(u, v, lo, hi, f, curvature, slope0):
+    """``(start, d)`` (B, 2M + 1): ``t = 0`` and the kinks along the ray sorted (+inf past the last), and the dual's
+    derivative ``d`` there. Tension m is ``clamp(u_m - v_m t, lo_m, hi_m)`` (``f`` at t = 0): free, adding
+    ``-v_m^2`` to the slope of d, between the two times it meets a bound; sorting those times gives each piece's
+    slope (a cumulative sum of the changes) and d at each kink (a cumulative sum of slope times length)."""
+    moving = v != 0
+    at_lo, at_hi = (u - lo) / v, (u - hi) / v  # where tension m meets each bound (+-inf at an infinite bound)
+    enter = torch.where(moving, torch.minimum(at_lo, at_hi), -torch.inf)  # free on (enter, leave)
+    leave = torch.where(moving, torch.maximum(at_lo, at_hi), torch.inf)
+    v2 = v * v
+    slope = -(v2 * ((enter <= 0) & (leave > 0))).sum(1, keepdim=True) - curvature.unsqueeze(1)
+    times = torch.cat([enter, leave], 1)  # (B, 2M): entering lowers the slope by v^2, leaving raises it
+    events = (times > 0) & torch.isfinite(times)
+    times, order = torch.sort(torch.where(events, times, torch.inf), 1)
+    change = torch.where(events, torch.cat([-v2, v2], 1), torch.zeros_like(times)).gather(1, order)
+    before = torch.cat([slope, slope + torch.cumsum(change, 1)], 1)  # the slope on each piece
+    start = torch.cat([torch.zeros_like(slope), times], 1)  # each piece's first time
+    length = torch.where(torch.isfinite(start[:, 1:]), start[:, 1:] - start[:, :-1], torch.zeros_like(times))
+    d = (f * v).sum(1, keepdim=True) + slope0.unsqueeze(1)
+    return start, torch.cat([d, d + torch.cumsum(before[:, :-1] * length, 1)], 1)
 
 
 def _lipschitz(problem) -> torch.Tensor:
