@@ -4,9 +4,10 @@ signature and outputs), for ``torch.export``.
 Per case, as ``StructuredSchema.solve_si`` and ``faults.qp.fault_command`` do: the learned body at the posture
 (``schema.body``: lengths ``l_geo``, moment arms ``G``, the torque ``tau``), the faults' tension box through the
 spring (``FaultBounds.tension_box``), the tensions closest to ``f_ref`` (half of each muscle's f_max) that balance
-``tau`` inside the box by the batched dual Newton of ``solvers.newton`` with a fixed iteration cap (traceable), then
-``l_motor = l_geo - delta(f)`` and the shared safe command. A case whose box crosses, or whose Newton does not
-settle within the cap (a torque the box cannot balance), is ``infeasible_learned`` with a NaN row, as in Python.
+``tau`` inside the box by the batched dual Newton of ``solvers.newton`` with an iteration cap (``fixed_iterations``:
+traceable; the graph stops once every case has settled), then ``l_motor = l_geo - delta(f)`` and the shared safe
+command. A case whose box crosses, or whose Newton does not settle within the cap (a torque the box cannot
+balance), is ``infeasible_learned`` with a NaN row, as in Python.
 """
 from __future__ import annotations
 
@@ -17,14 +18,14 @@ from ..solvers.newton import NEWTON_TOL_NM, dual_newton
 from ..status import Status
 from .module import PackageModule
 
-# the Newton steps the package runs on every case: the Python adapter stops a case when it settles (a holdable
-# posture takes a handful of steps with the exact line search) and hands the few it has not settled to proxsuite
+# the most Newton steps the package runs: the Python adapter stops a case when it settles (a holdable posture takes
+# a handful of steps with the exact line search) and hands the few it has not settled to proxsuite
 PACKAGE_NEWTON_ITER = 12
 
 
 class StructuredAdapterModule(PackageModule):
-    """The tensor-only adapter of a trained ``StructuredSchema`` (module docstring); ``max_iter``: the Newton steps
-    every case runs. The ``seed`` input must be 0 (the structured schema draws nothing)."""
+    """The tensor-only adapter of a trained ``StructuredSchema`` (module docstring); ``max_iter``: the most Newton
+    steps a call runs. The ``seed`` input must be 0 (the structured schema draws nothing)."""
 
     kind = "structured"
 

@@ -72,10 +72,18 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     (``"not_converged"``: no solver settled the row; ``"bad_input"``: a non-finite body, NaN rows).
     ``max_iter``: proxsuite's iteration limit of an equilibrium QP the dual Newton leaves; ``num_threads``:
     proxsuite's threads (more than 1: its batch API)."""
-    box_lo, box_hi = tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring)
+    return bounds_command(l_geo_m, G, tau_nm, f_ref, _bounds_of(f_lo, f_hi, l_lo, l_hi, spring), spring, reg,
+                          max_iter, num_threads)
+
+
+def bounds_command(l_geo_m, G, tau_nm, f_ref, bounds: FaultBounds, spring: SpringParams, reg: float = LS_REG,
+                   max_iter: int = QP_MAX_ITER, num_threads: int = 1):
+    """``fault_command`` with the bounds as a host ``FaultBounds`` (numpy fields, its spring ``spring``)."""
+    box_lo, box_hi = bounds.tension_box(np.asarray(l_geo_m, float))
     solution = solve_box_qp(BoxQP.build(G, tau_nm, f_ref, box_lo, box_hi), fallback_max_iter=max_iter, ls_reg=reg,
                             num_threads=num_threads)
     f, codes = solution.f_n.cpu().numpy(), solution.status.cpu().numpy()
+    l_lo, l_hi = bounds.l_lo_m, bounds.l_hi_m
     l_motor = l_geo_m - elongation_from_tension(f, spring)
     slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
     l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)
@@ -88,5 +96,5 @@ def balance_residual_nm(G, tau_nm, f) -> np.ndarray:
     return np.abs(-np.einsum("bmn,bm->bn", G, f) - tau_nm).max(1)
 
 
-__all__ = ["fault_command", "tension_box", "least_squares_tensions", "balance_residual_nm",
+__all__ = ["fault_command", "bounds_command", "tension_box", "least_squares_tensions", "balance_residual_nm",
            "OK", "INFEASIBLE_LEARNED", "EQUILIBRIUM_TOL_NM"]

@@ -29,7 +29,7 @@ from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
-from ..faults.qp import OK, fault_command
+from ..faults.qp import OK, bounds_command
 from ..networks.per_muscle import PerMusclePath
 from ..networks.structured import JacobianMLP, check_architecture
 from ..status import Status
@@ -249,9 +249,8 @@ class StructuredSchema(BodySchema):
         f_max = np.broadcast_to(np.asarray(self.spring.f_max_n, float), l_geo.shape)
         if bounds is None:
             bounds = FaultBounds.from_faults(Faults.none(*l_geo.shape), self.spring.f_max_n, self.spring)
-        b = bounds.on_host()
         reg = self.hparams.qp_reg if reg is None else reg
-        return fault_command(l_geo, G, tau, 0.5 * f_max, b.f_lo_n, b.f_hi_n, b.l_lo_m, b.l_hi_m, self.spring, reg)
+        return bounds_command(l_geo, G, tau, 0.5 * f_max, bounds.on_host(), self.spring, reg)
 
     def adapt_si(self, q_rad: torch.Tensor, bounds, variant: str = "default", reg: Optional[float] = None):
         """Adapted commands at ``q_rad (B, N)`` [rad] under ``bounds`` (the faults' ``FaultBounds``):

@@ -2,7 +2,7 @@
 
 torch (float64, any device); numpy only at proxsuite's boundary (``backends``). No Lightning, no schemas, no faults.
 
-* ``newton``: the batched dual semismooth Newton, exportable with a fixed iteration count;
+* ``newton``: the batched dual semismooth Newton, exportable with an iteration cap (a ``torch.while_loop``);
 * ``least_squares``: the box least squares (the answer of a case without a solution);
 * ``torque_reach``: the screen that proves a torque out of a box's reach;
 * ``backends``: proxsuite (the fallback and the reference) and qpsolvers;

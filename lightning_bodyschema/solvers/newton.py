@@ -15,13 +15,15 @@ Newton steps on (2) with (3) and a line search on the dual value, a concave piec
 of the trial steps ``t = 1``, the exact maximiser along the step, ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)`` that
 meets Armijo's condition (or, for ``t = 1``, keeps the free set and lowers ``max |F|``: there the dual is the
 quadratic the step maximises, and Armijo's test may fail on the rounding of the dual value alone), else a gradient
-step ``F / L`` (``L`` the dual gradient's Lipschitz constant), which always ascends.
+step ``F / L`` (``L`` a bound on the dual gradient's Lipschitz constant), which always ascends.
 A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
 cannot hold has no root) is reported as not converged.
 
-``fixed_iterations=True`` runs exactly ``max_iter`` steps with every trial on every case, masked where a case has
-converged: no host synchronisation and no data-dependent shape, so ``torch.export`` can trace it; the answers are
-the eager ones. torch only.
+``fixed_iterations=True`` runs the steps on every case at once, every trial on every case, masked where a case has
+converged, in a ``torch.while_loop`` that ends when every case has converged or after ``max_iter`` steps: no host
+synchronisation and no data-dependent shape, so ``torch.export`` can trace it (and AOTInductor compiles it without
+its proxy executor: the Newton systems are solved by a Cholesky factor made of elementwise operations); the answers
+are the eager ones to rounding. torch only.
 """
 from __future__ import annotations
 
@@ -35,10 +37,10 @@ from .problem import separation_gap_nm
 NEWTON_MAX_ITER = 30
 # the stop [N m] of the equilibrium solves: far below EQUILIBRIUM_TOL_NM, a converged row is an equilibrium
 NEWTON_TOL_NM = 1e-9
-LINE_SEARCH_HALVINGS = 40  # trial steps 1 .. 2^-39: a huge step of a nearly singular system still lands
+# trial steps 1, 1/2, ..., 1/2048 (after the exact maximiser); where none is accepted, the gradient step (ascent)
+LINE_SEARCH_HALVINGS = 12
 _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
-_EAGER_BLOCKS = ((1, 4), (4, LINE_SEARCH_HALVINGS))  # eager: t = 1 alone, then these halvings at once, then the rest
 # the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
 # spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
 _CERTIFY_STEPS, _CERTIFY_STEPS_FEW, _FEW = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
@@ -116,38 +118,55 @@ def _pick(x: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
 
 def _exact_step(problem, state: _State, step) -> torch.Tensor:
     """(B,) the maximiser ``t > 0`` of the dual along ``step`` (NaN where it is not positive). Along the ray the dual
-    is a concave piecewise quadratic: its derivative ``step . F(lam + t step)`` is piecewise linear and
-    decreasing, with a kink where a tension ``u_m - v_m t`` (``u = f_ref - G lam``, ``v = G step``) meets a bound;
-    the root lies between the last kink where it is positive and the next one (or past the last kink, where its
-    slope is ``-w |step|^2``)."""
+    is a concave piecewise quadratic: its derivative ``d(t) = step . F(lam + t step)`` is piecewise linear and
+    decreasing (``_derivative_at_kinks``); the root lies on the first piece where d falls to 0 (past the last kink,
+    the slope is ``-w |step|^2``: no root where ``w = 0``)."""
     G, tau, f_ref, lo, hi, w = problem
     u = torch.baddbmm(f_ref.unsqueeze(-1), G, state.lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)  # (B, M)
     v = (G @ step.unsqueeze(-1)).squeeze(-1)
-    kinks = torch.cat([(u - lo) / v, (u - hi) / v], 1)  # +-inf or NaN where v = 0: dropped below
-    kinks = torch.sort(torch.where(kinks > 0, kinks, torch.inf), 1).values
-    t = torch.cat([torch.zeros_like(kinks[:, :1]), kinks], 1)  # (B, K)
-    finite = torch.isfinite(t)
-    t = torch.where(finite, t, torch.zeros_like(t))
-    f = torch.clamp(u.unsqueeze(1) - v.unsqueeze(1) * t.unsqueeze(2), lo.unsqueeze(1), hi.unsqueeze(1))  # (B, K, M)
     curvature = w * (step * step).sum(1)  # of the last piece
     slope0 = (step * tau).sum(1) - w * (step * state.lam).sum(1)
-    derivative = (f * v.unsqueeze(1)).sum(2) + slope0.unsqueeze(1) - curvature.unsqueeze(1) * t
-    falls = finite & (derivative <= 0)
-    k = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first kink where it is <= 0
-    last = finite.sum(1, keepdim=True) - 1
-    k0 = torch.where(falls.any(1, keepdim=True), (k - 1).clamp_min(0), last)
-    t0, d0 = t.gather(1, k0).squeeze(1), derivative.gather(1, k0).squeeze(1)
-    t1, d1 = t.gather(1, k).squeeze(1), derivative.gather(1, k).squeeze(1)
+    start, d = _derivative_at_kinks(u, v, lo, hi, state.f, curvature, slope0)
+    falls = torch.isfinite(start) & (d <= 0)
+    k1 = torch.argmax(falls.to(torch.int32), 1, keepdim=True)  # the first kink where d <= 0
+    last = torch.isfinite(start).sum(1, keepdim=True) - 1
+    k0 = torch.where(falls.any(1, keepdim=True), (k1 - 1).clamp_min(0), last)
+    t0, t1 = start.gather(1, k0).squeeze(1), start.gather(1, k1).squeeze(1)
+    # d at the bracket's ends summed over the tensions (not the cumulative sums): the root to the last bit
+    d0, d1 = ((torch.clamp(u - v * t.unsqueeze(1), lo, hi) * v).sum(1) + slope0 - curvature * t for t in (t0, t1))
     inside = t0 + d0 * (t1 - t0) / (d0 - d1)
     beyond = t0 + d0 / curvature  # past the last kink (inf where w = 0: rejected below)
     root = torch.where(falls.any(1), torch.where(d0 > d1, inside, t0), beyond)
     return torch.where((root > 0) & torch.isfinite(root), root, torch.full_like(root, torch.nan))
 
 
+def _derivative_at_kinks(u, v, lo, hi, f, curvature, slope0):
+    """``(start, d)`` (B, 2M + 1): ``t = 0`` and the kinks along the ray sorted (+inf past the last), and the dual's
+    derivative ``d`` there. Tension m is ``clamp(u_m - v_m t, lo_m, hi_m)`` (``f`` at t = 0): free, adding
+    ``-v_m^2`` to the slope of d, between the two times it meets a bound; sorting those times gives each piece's
+    slope (a cumulative sum of the changes) and d at each kink (a cumulative sum of slope times length)."""
+    moving = v != 0
+    at_lo, at_hi = (u - lo) / v, (u - hi) / v  # where tension m meets each bound (+-inf at an infinite bound)
+    enter = torch.where(moving, torch.minimum(at_lo, at_hi), -torch.inf)  # free on (enter, leave)
+    leave = torch.where(moving, torch.maximum(at_lo, at_hi), torch.inf)
+    v2 = v * v
+    slope = -(v2 * ((enter <= 0) & (leave > 0))).sum(1, keepdim=True) - curvature.unsqueeze(1)
+    times = torch.cat([enter, leave], 1)  # (B, 2M): entering lowers the slope by v^2, leaving raises it
+    events = (times > 0) & torch.isfinite(times)
+    times, order = torch.sort(torch.where(events, times, torch.inf), 1)
+    change = torch.where(events, torch.cat([-v2, v2], 1), torch.zeros_like(times)).gather(1, order)
+    before = torch.cat([slope, slope + torch.cumsum(change, 1)], 1)  # the slope on each piece
+    start = torch.cat([torch.zeros_like(slope), times], 1)  # each piece's first time
+    length = torch.where(torch.isfinite(start[:, 1:]), start[:, 1:] - start[:, :-1], torch.zeros_like(times))
+    d = (f * v).sum(1, keepdim=True) + slope0.unsqueeze(1)
+    return start, torch.cat([d, d + torch.cumsum(before[:, :-1] * length, 1)], 1)
+
+
 def _lipschitz(problem) -> torch.Tensor:
-    """(B,) the dual gradient's Lipschitz constant: the largest eigenvalue of ``G^T G`` plus ``w``."""
+    """(B,) a bound on the dual gradient's Lipschitz constant, the largest eigenvalue of ``G^T G`` plus ``w``: the
+    Frobenius norm of ``G^T G`` (at least its largest eigenvalue; elementwise, so it traces without a solver call)."""
     G, w = problem[0], problem[5]
-    return torch.linalg.eigvalsh(G.transpose(1, 2) @ G)[:, -1] + w
+    return torch.linalg.matrix_norm(G.transpose(1, 2) @ G) + w
 
 
 def _gradient_step(problem, state: _State, residual, lipschitz=None) -> _State:
@@ -160,45 +179,37 @@ def _gradient_step(problem, state: _State, residual, lipschitz=None) -> _State:
 def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=None) -> _State:
     """Armijo's condition on the dual value along the Newton ``step``: the first accepted of ``t = 1``, the exact
     maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``, every case at once
-    (eager: in the blocks ``_EAGER_BLOCKS``, each on the cases the earlier ones left). Where no trial is accepted
-    (a nearly singular Newton system), a gradient step, which always ascends (the dual is concave with a
-    Lipschitz-continuous gradient)."""
+    (eager: ``t = 1`` first, the others on the cases it fails). Where no trial is accepted (a nearly singular Newton
+    system), a gradient step, which always ascends (the dual is concave with a Lipschitz-continuous gradient)."""
     slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
     if not eager:
-        halvings = _halvings(step)
-        batch = step.shape[0]  # not len(): a symbolic batch size stays symbolic under torch.export
-        t = torch.cat([halvings[:1].expand(batch, 1), _exact_step(problem, state, step).unsqueeze(1),
-                       halvings[1:].expand(batch, -1)], 1)
-        accepted, trial = _trials(problem, state, step, slope, t)
+        accepted, trial = _trials(problem, state, step, slope, _trial_steps(problem, state, step, first=True))
         return _select(accepted, trial, _gradient_step(problem, state, residual, lipschitz))
     out = _evaluate(*problem, state.lam + step)
     rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
-    if rows.numel() == len(step):  # every case: no gather
-        rows = rows[~_settled_step(state, out.free, _residual(out, problem[5]), problem[5])]
-    elif rows.numel():
-        old, new = _State(*(x[rows] for x in state)), _State(*(x[rows] for x in out))
-        rows = rows[~_settled_step(old, new.free, _residual(new, problem[5][rows]), problem[5][rows])]
-    halvings = _halvings(step) if rows.numel() else None
-    for start, stop in _EAGER_BLOCKS:
-        if rows.numel() == 0:
-            return out
-        sub_problem, sub_state, sub_step, sub_slope = _rows((problem, state, step, slope), rows)
-        t = halvings[start:stop].expand(len(rows), -1)
-        if start == 1:  # the exact maximiser first
-            t = torch.cat([_exact_step(sub_problem, sub_state, sub_step).unsqueeze(1), t], 1)
-        accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope, t)
-        out = _State(*(x.index_copy(0, rows[accepted], y[accepted]) for x, y in zip(out, trial)))
-        rows = rows[~accepted]
     if rows.numel() == 0:
         return out
-    sub_problem, sub_state, sub_residual = _rows((problem, state, residual), rows)
-    return _State(*(x.index_copy(0, rows, y) for x, y in zip(out, _gradient_step(sub_problem, sub_state,
-                                                                                     sub_residual))))
+    every = rows.numel() == len(step)  # every case (one, at batch 1): no gather
+    items = (problem, state, step, slope, residual, out)
+    sub_problem, sub_state, sub_step, sub_slope, sub_residual, sub_out = items if every else _rows(items, rows)
+    w = sub_problem[5]
+    settled = _settled_step(sub_state, sub_out.free, _residual(sub_out, w), w)
+    if bool(settled.all()):
+        return out
+    accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope,
+                              _trial_steps(sub_problem, sub_state, sub_step, first=False))
+    trial = _select(settled, sub_out, trial)
+    if not bool((accepted | settled).all()):
+        trial = _select(accepted | settled, trial, _gradient_step(sub_problem, sub_state, sub_residual))
+    return trial if every else _State(*(x.index_copy(0, rows, y) for x, y in zip(out, trial)))
 
 
-def _halvings(step) -> torch.Tensor:
-    """(LINE_SEARCH_HALVINGS,) the trial steps ``1, 1/2, 1/4, ...``."""
-    return 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
+def _trial_steps(problem, state: _State, step, first: bool) -> torch.Tensor:
+    """(B, K) the trial steps in order: ``t = 1`` (if ``first``), the exact maximiser, ``1/2, 1/4, ...``."""
+    halvings = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
+    batch = step.shape[0]  # not len(): a symbolic batch size stays symbolic under torch.export
+    parts = [halvings[:1].expand(batch, 1)] if first else []
+    return torch.cat(parts + [_exact_step(problem, state, step).unsqueeze(1), halvings[1:].expand(batch, -1)], 1)
 
 
 def _rows(items, rows):
@@ -217,11 +228,29 @@ def _newton_step(problem, state: _State, residual, shift, eager: bool, lipschitz
     the (sub)batch ``problem`` (``lipschitz``: the gradient step's constant, made once by a fixed-step run)."""
     G = problem[0]
     hessian = torch.baddbmm(shift, G.transpose(1, 2), state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
-    step = torch.linalg.solve_ex(hessian, residual.unsqueeze(-1))[0].squeeze(-1)
+    step = _solve_spd(hessian, residual, traceable=not eager)
     return _line_search(problem, state, residual, step, eager, lipschitz)
 
 
-def _start(G, tau, f_ref, w):
+def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tensor:
+    """``A^-1 b`` (B, N) for symmetric positive definite ``A (B, N, N)``: an LU solve, or (``traceable``) a Cholesky
+    factor built column by column from elementwise operations (N is static) and ``torch.cholesky_solve``, which
+    AOTInductor compiles without its proxy executor (``linalg`` solvers have no C shim)."""
+    if not traceable:
+        return torch.linalg.solve_ex(A, b.unsqueeze(-1))[0].squeeze(-1)
+    n = A.shape[-1]
+    rows = torch.arange(n, device=A.device)
+    columns = []
+    for j in range(n):
+        v = A[:, :, j]
+        for k in range(j):
+            v = v - columns[k] * columns[k][:, j:j + 1]
+        pivot = torch.sqrt(torch.clamp(v[:, j:j + 1], min=1e-300))
+        columns.append(torch.where(rows >= j, v / pivot, torch.zeros_like(v)))
+    return torch.cholesky_solve(b.unsqueeze(-1), torch.stack(columns, 2)).squeeze(-1)
+
+
+def _start(G, tau, f_ref, w, traceable: bool = False):
     """``(lam_0, shift)``: the unconstrained multiplier and ``w I`` plus a tiny ridge (G may be 0)."""
     n = G.shape[2]
     gram = G.transpose(1, 2) @ G
@@ -229,7 +258,7 @@ def _start(G, tau, f_ref, w):
     trace = torch.diagonal(gram, dim1=1, dim2=2).sum(1)
     ridge = _RIDGE * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
     rhs = (G.transpose(1, 2) @ f_ref.unsqueeze(-1)).squeeze(-1) + tau
-    lam = torch.linalg.solve_ex(gram + ridge, rhs.unsqueeze(-1))[0].squeeze(-1)
+    lam = _solve_spd(gram + ridge, rhs, traceable)
     return lam, ridge + w.view(-1, 1, 1) * eye
 
 
@@ -248,10 +277,11 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
                 fixed_iterations: bool = False, infeasible_tol: float | None = None) -> NewtonResult:
     """The problem of the module docstring for ``G (B, M, N)``, ``tau (B, N)``, ``f_ref, lo, hi (B, M)`` (float64
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
-    ``fixed_iterations``: exactly ``max_iter`` masked steps (traceable by ``torch.export``), the eager answer.
-    ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... (6, 8, ... on at most ``_FEW`` cases) and after the last,
-    an equilibrium case whose multiplier proves that no tension balances ``tau`` to it (``_separated``) stops,
-    ``infeasible`` (None: no such test, ``infeasible`` all False)."""
+    ``fixed_iterations``: masked steps in a ``torch.while_loop`` (traceable by ``torch.export``) until every case
+    settles or ``max_iter``; the eager answer to rounding. ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... (6,
+    8, ... on at most ``_FEW`` cases; with ``fixed_iterations`` not before) and after the last, an equilibrium case
+    whose multiplier proves that no tension balances ``tau`` to it (``_separated``) stops, ``infeasible`` (None: no
+    such test, ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
     batch = G.shape[0]
@@ -260,31 +290,53 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     if batch == 0 and not fixed_iterations:
         return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible)
     problem = (G, tau, f_ref, lo, hi, w)
-    lam, shift = _start(G, tau, f_ref, w)
+    lam, shift = _start(G, tau, f_ref, w, fixed_iterations)
     state = _evaluate(*problem, lam)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
-    lipschitz = _lipschitz(problem) if fixed_iterations else None  # every fixed step may take a gradient step
-    for k in range(max_iter):
+    if fixed_iterations:
+        state, iterations = _masked_steps(problem, state, shift, iterations, tol, max_iter)
+    for k in range(0 if fixed_iterations else max_iter):
         residual = _residual(state, w)
         size = residual.abs().amax(1)
         active = size > tol
         if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > _FEW else _CERTIFY_STEPS_FEW):
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
-        if fixed_iterations:
-            state = _select(active, _newton_step(problem, state, residual, shift, False, lipschitz), state)
+        idx = active.nonzero().squeeze(1)
+        if idx.numel() == 0:
+            return NewtonResult(state.f, size <= tol, iterations, infeasible)
+        if idx.numel() == batch:  # every case still runs: no gather
+            state = _newton_step(problem, state, residual, shift, True)
         else:
-            idx = active.nonzero().squeeze(1)
-            if idx.numel() == 0:
-                return NewtonResult(state.f, size <= tol, iterations, infeasible)
-            if idx.numel() == batch:  # every case still runs: no gather
-                state = _newton_step(problem, state, residual, shift, True)
-            else:
-                sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
-                                   shift[idx], True)
-                state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
+            sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
+                               shift[idx], True)
+            state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
     size = _residual(state, w).abs().amax(1)
     if infeasible_tol is not None:  # what the last step leaves
         infeasible = infeasible | ((size > tol) & _separated(problem, state.lam, infeasible_tol))
     return NewtonResult(state.f, size <= tol, iterations, infeasible)
+
+
+def _masked_steps(problem, state: _State, shift, iterations, tol: float, max_iter: int):
+    """``(state, iterations)`` after Newton steps on every case at once, each case masked from the step after it
+    settles (``max |F| <= tol``), until every case has settled or ``max_iter`` steps: a ``torch.while_loop``, so an
+    exported graph has no host synchronisation, no data-dependent shape, and stops early as eager code does."""
+    w = problem[5]
+    lipschitz = _lipschitz(problem)  # every step may take a gradient step: made once
+
+    def running(state: _State) -> torch.Tensor:
+        return _residual(state, w).abs().amax(1) > tol
+
+    def go_on(k, iterations, *state):
+        return (k < max_iter) & running(_State(*state)).any()
+
+    def step(k, iterations, *state):
+        state = _State(*state)
+        residual, active = _residual(state, w), running(state)
+        new = _select(active, _newton_step(problem, state, residual, shift, False, lipschitz), state)
+        return (k + 1, iterations + active.to(iterations.dtype), *new)
+
+    k = torch.zeros((), dtype=torch.int64, device=iterations.device)
+    out = torch.while_loop(go_on, step, (k, iterations, *state))
+    return _State(*out[2:]), out[1]

@@ -72,10 +72,13 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
     unsettled = status == _NOT_CONVERGED
     least = unsettled & (problem.w_m2 > 0)
     equilibrium = (unsettled | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
-    any_least, any_equilibrium = torch.stack([least.any(), equilibrium.any()]).tolist()  # one host sync
+    any_least, any_equilibrium, every_equilibrium = torch.stack([least.any(), equilibrium.any(),
+                                                                 equilibrium.all()]).tolist()  # one host sync
     if any_least:
         f[least], status[least], iterations[least] = _least_squares_rest(problem.take(least), iterations[least],
                                                                          options)
+    if every_equilibrium:  # no gather (a single case that needs more than the first pass)
+        return Solution(*_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options))
     if any_equilibrium:
         rows = equilibrium
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
@@ -149,19 +152,21 @@ def _proofs(problem: BoxQP, f_first, proven, options: _Options):
     and where no equilibrium exists: crossed, ``proven``, or shown by the least squares."""
     outside = problem.crossed | proven
     if options.least_squares:
-        f_ls, shown = _least_squares_proof(problem, options)
-        return f_ls, outside | shown
+        return _least_squares_proof(problem, options, outside)
     f_ls, need = f_first.clone(), ~outside
     if bool(need.any()):
-        f_ls[need], outside[need] = _least_squares_proof(problem.take(need), options)
+        f_ls[need], outside[need] = _least_squares_proof(problem.take(need), options, outside[need])
     return f_ls, outside
 
 
-def _least_squares_proof(problem: BoxQP, options: _Options):
-    """``(f_ls, shown)``: the least-squares tensions and where they show that no equilibrium exists."""
+def _least_squares_proof(problem: BoxQP, options: _Options, outside):
+    """``(f_ls, outside | shown)``: the least-squares tensions and where no equilibrium exists: ``outside`` (B,)
+    (known already), or shown by the least squares."""
     w_ls = least_squares_weight(problem.G, options.ls_reg)
     f_ls, settled = _least_squares(problem.with_weight(w_ls), options)
-    return f_ls, settled & _least_squares_proves_no_balance(problem, f_ls, w_ls)
+    if bool(outside.all()):  # nothing left to prove
+        return f_ls, outside
+    return f_ls, outside | (settled & _least_squares_proves_no_balance(problem, f_ls, w_ls))
 
 
 def _no_equilibrium_yet(problem: BoxQP, f_first, proven, iterations, options: _Options):

@@ -122,3 +122,50 @@ def test_a_tight_stop_is_met_below_the_rounding_of_the_dual_value():
     result = dual_newton(*problem[:6], tol=1e-12)
     stationarity, _, primal = kkt_residuals(problem, result.f)
     assert result.converged.all() and primal.max() <= 1e-11 and stationarity.max() <= 1e-6  # of 1e5 N
+
+
+def test_the_exact_step_maximises_the_dual_along_the_newton_direction():
+    """The closed-form step (sorted kink times) against a fine grid of the dual value along the same rays, with and
+    without the least-squares weight and with unbounded box sides."""
+    from lightning_bodyschema.solvers import newton
+
+    rng, G, tau, lo, hi = _body(64, seed=7)
+    lo[:8] = -np.inf  # an unbounded side: that tension never meets it
+    f_ref = rng.uniform(-100.0, 300.0, size=lo.shape)
+    grid = torch.logspace(-6, 3, 3001, dtype=torch.float64)
+    for w in (0.0, 1e-4):
+        problem = tuple(torch.as_tensor(x) for x in (G, tau, f_ref, lo, hi)) + (torch.full((64,), w, dtype=torch.float64),)
+        state = newton._evaluate(*problem, torch.as_tensor(rng.normal(scale=1e3, size=(64, 4))))
+        step = torch.as_tensor(rng.normal(scale=1e3, size=(64, 4)))
+        step = torch.where(((newton._residual(state, problem[5]) * step).sum(1) < 0).unsqueeze(1), -step, step)
+        t = newton._exact_step(problem, state, step)
+        along = torch.stack([newton._evaluate(*problem, state.lam + s * step).value for s in grid], 1)
+        found = ~t.isnan()
+        assert found.sum() >= 32 and (t[found] > 0).all()
+        at_t = newton._evaluate(*problem, state.lam + torch.nan_to_num(t).unsqueeze(1) * step).value
+        best = along.max(1).values
+        assert (at_t[found] >= best[found] - 1e-9 * best[found].abs().clamp_min(1.0)).all()
+        assert (at_t[found] > state.value[found]).all()  # an ascent
+
+
+def test_the_traceable_cholesky_solve_is_as_good_as_lu():
+    """Newton systems with every tension free: the same solution as LU; with few free tensions (condition ~1e12, the
+    ridge alone holds some directions): a residual no worse than LU's backward error allows."""
+    from lightning_bodyschema.solvers.newton import _solve_spd
+
+    rng = np.random.default_rng(8)
+    G = rng.normal(scale=0.02, size=(32, 12, 7))
+    b = torch.as_tensor(rng.normal(size=(32, 7)))
+    for free, rtol in ((np.ones((32, 12)), 1e-10), (rng.random((32, 12)) < 0.4, None)):
+        gram = np.einsum("bmi,bm,bmj->bij", G, free, G)
+        ridge = 1e-12 * np.trace(gram, axis1=1, axis2=2)[:, None, None] / 7 + 1e-300
+        A = torch.as_tensor(gram + ridge * np.eye(7))
+        x, x_lu = _solve_spd(A, b, traceable=True), _solve_spd(A, b, traceable=False)
+        assert torch.isfinite(x).all()
+        if rtol is not None:
+            torch.testing.assert_close(x, x_lu, rtol=rtol, atol=0.0)
+        else:
+            residual, residual_lu = ((A @ y.unsqueeze(-1)).squeeze(-1) - b for y in (x, x_lu))
+            allowed = 7e-14 * (A.abs().amax((1, 2)) * x_lu.abs().amax(1))  # n eps |A| |x| (some A = 1e-300 I)
+            assert (residual.abs().amax(1) <= allowed).all()
+            assert (residual_lu.abs().amax(1) <= allowed).all()

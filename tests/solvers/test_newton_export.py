@@ -29,3 +29,13 @@ def test_exported_fixed_iteration_newton_gives_the_eager_answer():
     assert eager.converged[1:].all() and not eager.converged[0]
     assert len(set(eager.iterations.tolist())) > 2  # cases stop at different steps: the masking is exercised
     assert exported.f.dtype == torch.float64
+
+
+def test_the_exported_newton_stops_early_and_calls_no_linalg_solver():
+    """The traced graph is one while_loop (it ends once every case has settled) whose Newton systems are solved by
+    a Cholesky factor of elementwise operations and cholesky_solve: no linalg solver or eigensolver, which
+    AOTInductor would run through its proxy executor."""
+    program = torch.export.export(_Command(), _problem(16))
+    text = program.graph_module.print_readable(print_output=False)
+    assert "while_loop" in text and "cholesky_solve" in text
+    assert not any(name in text for name in ("linalg_solve", "solve_ex", "lu_factor", "eigvalsh", "cholesky_ex"))
