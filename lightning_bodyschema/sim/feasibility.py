@@ -36,6 +36,7 @@ above the upper one (band or jam against f_max') leaves no command at all.
 """
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,7 +46,7 @@ from .. import solvers
 from ..errors import BodySchemaInputError
 from .._numpy import to_numpy
 from ..faults.bounds import FaultBounds
-from ..solvers import EQUILIBRIUM_TOL_NM, MAX_SCREEN_NORMALS  # noqa: F401  (re-exported: evaluation.feasibility)
+from ..solvers import EQUILIBRIUM_TOL_NM, MAX_SCREEN_NORMALS  # EQUILIBRIUM_TOL_NM re-exported: evaluation.feasibility
 from .equilibrium import solve_equilibrium_qp
 from .spring import SpringParams
 
@@ -93,7 +94,11 @@ def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: Spri
     lo, hi, crossed, f_need = tension_bounds(l_geo, faults, spring, jam_model, jammed_tension_in_torque)
     f_ref = np.broadcast_to(np.asarray(spring.f_max_n, float) / 2.0, lo.shape)
     f, ok = np.full(lo.shape, np.nan), np.zeros(len(lo), bool)
-    run = np.flatnonzero(~crossed)  # the solver screens the torques out of reach itself
+    run = np.flatnonzero(~crossed)  # the solver screens the torques out of reach itself (after its first steps)
+    if run.size and math.comb(G.shape[1], G.shape[2] - 1) <= MAX_SCREEN_NORMALS:
+        # where every facet of the torque zonotope is enumerable the screen is exact and cheap: a hopeless case
+        # then costs no Newton steps and no least squares
+        run = run[~outside_torque_reach(G[run], tau_bias[run], lo[run], hi[run])]
     if run.size:
         f[run], ok[run] = solve_equilibrium_qp(G[run], tau_bias[run], f_ref[run], f_lo_n=lo[run], f_hi_n=hi[run],
                                                solver=solver)
