@@ -289,6 +289,7 @@ class StructuredAdapter(Adapter):
                                        f"allowed: {list(self.OPTIONS)}")
         super().__init__(schema, faults, variant, check_physics, options)
 
+    @torch.inference_mode()  # numpy out: no tensor here needs autograd's version counters
     def __call__(self, q_ref):
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
