@@ -81,6 +81,7 @@ class StaticResult:
         return np.array([s is Status.OK for s in self.status], dtype=bool)
 
 
+@torch.inference_mode()  # numpy in and out: no tensor here needs autograd's version counters
 def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str):
     """``argmin ||x - x_ref||^2  s.t.  -G^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,): the
     one QP call. ``"newton"``: ``solvers.solve_box_qp`` (the dual Newton to ``STATIC_TOL_NM``, the torque-reach
