@@ -59,22 +59,25 @@ class JacobianMLP(nn.Module):
             self.norms = None
 
     def _steps(self):
-        """(layer, norm or None, adds its input) for every layer after the input layer."""
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers[1:]):
-            yield layer, None if self.norms is None else self.norms[i], self.residual and i < last - 1
+        """(layer, norm or None, adds its input) for every layer after the input layer (indexed, not sliced: a
+        slice of a ModuleList builds a new one)."""
+        layers, last = list(self.layers), len(self.layers) - 1
+        for i in range(last):
+            yield layers[i + 1], None if self.norms is None else self.norms[i], self.residual and i < last - 1
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        h = self.layers[0](x)
+        first = self.layers[0]
+        h = F.linear(x, first.weight, first.bias)  # F.linear, not the module: no hook dispatch per layer
         for layer, norm, residual in self._steps():
             a = F.silu(h if norm is None else norm(h))
-            h = h + layer(a) if residual else layer(a)
+            out = F.linear(a, layer.weight, layer.bias)
+            h = h + out if residual else out
         return h
 
     def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(y (B, out), dy/dx (B, out, in)): tangents (B, in, width) pushed through every layer with the values."""
         first = self.layers[0]
-        h = first(x)
+        h = F.linear(x, first.weight, first.bias)
         tangent = first.weight.T.unsqueeze(0).expand(len(x), -1, -1)  # d h / d x, rows = input directions
         for layer, norm, residual in self._steps():
             if norm is None:
@@ -83,7 +86,8 @@ class JacobianMLP(nn.Module):
             else:
                 z = norm(h)
                 step = _layer_norm_tangent(h, tangent, norm, _silu_derivative(z)) @ layer.weight.T
-            h = h + layer(F.silu(z)) if residual else layer(F.silu(z))
+            out = F.linear(F.silu(z), layer.weight, layer.bias)
+            h = h + out if residual else out
             tangent = tangent + step if residual else step
         return h, tangent.transpose(1, 2)
 
