@@ -8,9 +8,11 @@
 * optionally a small MLP per muscle (weights batched as ``(M, ...)`` tensors) whose inputs are the joint angles times
   the muscle's crossing mask, trained on what the polynomial leaves.
 
-Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) the polynomial cannot follow: it rings
-around the jump, and the moment arms there are its smooth slope, not MuJoCo's one-sided derivative. A QP on this
-body sees a continuous length and moment arm everywhere (no jump to straddle).
+Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) one polynomial cannot follow: it rings
+around the jump. With ``branches=2`` every muscle whose one-polynomial residual has a heavy tail gets a second
+polynomial (same terms) and a gate, a low-degree polynomial whose sign picks the branch (``networks.branches``):
+the length at a posture is then its branch's polynomial and the moment arm that polynomial's exact derivative, so
+the learned length jumps where the gate changes sign (a QP at one posture sees that posture's branch only).
 
 ``with_jacobian(x)`` gives the lengths and their exact derivative; the derivative on a joint a muscle does not
 cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lightning.

@@ -5,8 +5,9 @@ Trained from (q, l_motor, f) samples and the spring law alone (no MJCF: recorded
 * the geometric muscle lengths ``l_geo(q)``, regressed on ``l_motor + delta(f)`` (eq:muscle-elongation), with the
   moment arms ``G(q) = d l_geo / dq`` their exact derivative: one dense network over all joints
   (``length_model="mlp"``, ``networks.structured.JacobianMLP``), or each muscle's path over only the joints it
-  crosses (``"per_muscle"``, ``networks.per_muscle.PerMusclePath``: a least-squares polynomial per muscle plus a
-  small per-muscle network), its moment arm exactly 0 on every other joint;
+  crosses (``"per_muscle"``, ``networks.per_muscle.PerMusclePath``: a least-squares polynomial per muscle, two and
+  a gate where the path jumps with ``path_branches=2``, plus a small per-muscle network), its moment arm exactly 0
+  on every other joint;
 * the joint torque the muscles must balance ``tau(q)`` (static equilibrium ``-G^T f = tau``), regressed on
   ``-G(q)^T f`` of the samples: the gradient of a learned potential ``V(q)`` (gravity and joint springs are
   conservative; ``torque_model="potential"``), a plain regression (``"direct"``), or a polynomial per joint fitted
