@@ -2,20 +2,21 @@
 
 MuJoCo's wrapping picks a side of each wrap object, and a muscle's length jumps where the side switches: the path
 is piecewise smooth. A smooth polynomial rings around such a jump. ``fit_branches`` gives every muscle whose
-residual after the one-polynomial fit has a heavy tail a second polynomial (same terms) and a gate, a polynomial of
-total degree ``<= gate_degree`` over the same joints whose sign picks the branch, all fitted from the samples alone
-(no branch label needed), batched over muscles:
+residual after the one-polynomial fit has a heavy tail a second polynomial (same terms) and a gate, a polynomial
+over the same joints (the highest total degree ``<= gate_degree`` with at most ``GATE_TERMS`` terms) whose sign
+picks the branch, all fitted from the samples alone (no branch label needed), batched over muscles:
 
-The gate's total degree is the highest ``<= gate_degree`` with at most ``GATE_TERMS`` terms.
+1. labels, two ways: the residual split in two clusters then alternating (each branch refitted by least squares
+   on its samples, each sample to the branch that fits it better); or a first gate fitted to the sign of the
+   largest residuals (next to a jump the residual's sign tells the side), then alternating (branches fitted on the
+   gate's sides, samples their branch misses switched, the gate refitted);
+2. per muscle and labelling, both branches refitted (refined against the samples: on part of the box the basis is
+   ill-conditioned) and the gate a logistic regression of the labels (Newton steps, a ridge keeps it finite);
+3. a muscle keeps the better labelling's branches where the gated model halves the one polynomial's p99 residual
+   on the fitted samples; the others keep their one polynomial.
 
-1. the first labels split each muscle's signed residual into two clusters (Otsu's threshold);
-2. alternating: each branch's polynomial is refitted by least squares on its samples (the majority branch's normal
-   equations are the full ones minus the minority's), and each sample goes to the branch that fits it better;
-3. the gate is a logistic regression of those labels (Newton steps, a ridge keeps it finite on separable data);
-4. a muscle keeps its branches only where the gated model's p99 train residual is at most half the single fit's.
-
-The length at a posture is the active branch's polynomial and the moment arm its exact derivative: local, one-sided
-at the jump. Plain PyTorch, no Lightning.
+The length at a posture is the active branch's polynomial and the moment arm its exact derivative: one-sided at
+the jump, which sits where the gate changes sign. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
