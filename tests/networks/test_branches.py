@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 import torch
+from physics_checks import central_differences
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.branches import otsu_labels
@@ -59,12 +60,7 @@ def test_moment_arms_are_the_active_branch_slope_and_zero_off_the_crossed_joints
     x = torch.rand(500, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 1.8 - 0.9
     x = x[_surface(x).abs() > 0.05]
     y, dy = path.with_jacobian(x)
-    h = 1e-6
-    for j in range(3):
-        step = torch.zeros(3, dtype=torch.float64)
-        step[j] = h
-        fd = (path(x + step) - path(x - step)) / (2 * h)
-        torch.testing.assert_close(dy[:, :, j], fd, atol=1e-7, rtol=1e-7)
+    np.testing.assert_allclose(dy.numpy(), central_differences(path, x), atol=1e-7, rtol=1e-7)
     assert (dy[:, ~torch.as_tensor(CROSSING)] == 0).all()
 
 
