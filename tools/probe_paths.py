@@ -2,7 +2,7 @@
 """How well per-muscle polynomials reach MuJoCo's myoArm muscle paths: least squares on exact lengths, held out.
 
     python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
-                                [--branches 1|2] [--gate-degree 4]
+                                [--branches 1|2] [--gate-degree 8]
 
 Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
 lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
@@ -25,8 +25,8 @@ from lightning_bodyschema.networks.per_muscle import PerMusclePath
 @exits_cleanly
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1), ("branches", 1),
-                          ("gate-degree", 4)):
+    for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1),
+                          ("branches", 1), ("gate-degree", 8)):
         parser.add_argument(f"--{name}", type=int, default=default)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -54,7 +54,8 @@ def main(argv=None):
           f"p99 {pct(arm_mm[:, crossed], 99):.3f}; uncrossed largest {float(dy[:, ~crossed].abs().max()):.3g}; "
           f"{int((per_muscle_p99 <= 0.1).sum())} of {len(per_muscle_p99)} muscles with p99 <= 0.1 mm")
     if args.branches == 2:
-        print("two branches:", ", ".join(body.muscle_names[i] for i in torch.nonzero(path.branched).flatten().tolist()))
+        branched = torch.nonzero(path.branched).flatten().tolist()
+        print("two branches:", ", ".join(body.muscle_names[i] for i in branched))
     for i in torch.argsort(per_muscle_p99, descending=True)[:8].tolist():
         print(f"  {body.muscle_names[i]}: crosses {int(crossed[i].sum())}, median "
               f"{float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm")
