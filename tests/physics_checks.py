@@ -21,6 +21,16 @@ def assert_G_matches_finite_differences(model, q, h=1e-6, atol=1e-6):
         np.testing.assert_allclose(G[:, :, j], (l_plus - l_minus) / (2 * h), atol=atol)
 
 
+def central_differences(fn, x, h=1e-6):
+    """``d fn / d x`` of a torch function ``fn: (B, N) -> (B, M)`` by central differences: ``(B, M, N)``."""
+    columns = []
+    for j in range(x.shape[1]):
+        step = x.new_zeros(x.shape[1])
+        step[j] = h
+        columns.append((fn(x + step) - fn(x - step)) / (2 * h))
+    return np.stack([c.detach().numpy() for c in columns], -1)
+
+
 def assert_drawn_muscles_match_mujoco(model, qs, rel=1e-3):
     """The drawn muscle paths (plots.arm) are as long as MuJoCo's tendons: arcs wrap the way MuJoCo wraps."""
     from lightning_bodyschema.plots.arm import muscle_polylines

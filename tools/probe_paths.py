@@ -2,10 +2,12 @@
 """How well per-muscle polynomials reach MuJoCo's myoArm muscle paths: least squares on exact lengths, held out.
 
     python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
+                                [--branches 1|2] [--gate-degree 8]
 
 Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
 lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
-crosses, the highest total degree ``<= --degree`` with at most ``--terms`` terms) on the first ``--train`` and prints,
+crosses, the highest total degree ``<= --degree`` with at most ``--terms`` terms; ``--branches 2``: two polynomials
+and a gate of degree ``--gate-degree`` where a path jumps) on the first ``--train`` and prints,
 on the rest: length error median and p99 [mm], moment-arm error on crossed pairs median and p99 [mm/rad], the
 largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, and the worst muscles. One torch thread.
 """
@@ -23,7 +25,8 @@ from lightning_bodyschema.networks.per_muscle import PerMusclePath
 @exits_cleanly
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1)):
+    for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1),
+                          ("branches", 1), ("gate-degree", 8)):
         parser.add_argument(f"--{name}", type=int, default=default)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -36,7 +39,7 @@ def main(argv=None):
     lo, hi = (torch.as_tensor(a) for a in body.q_range.T)
     q_n, half = 2 * (torch.as_tensor(q) - lo) / (hi - lo) - 1, (hi - lo) / 2
     mean, std = l_m[:args.train].mean(0), l_m[:args.train].std(0)
-    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms)
+    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree)
     start = time.perf_counter()
     path.fit_polynomial(q_n[:args.train], (l_m[:args.train] - mean) / std)
     seconds = time.perf_counter() - start
@@ -50,6 +53,9 @@ def main(argv=None):
           f"p99 {pct(length_mm, 99):.3f} mm; moment arms (crossed) median {pct(arm_mm[:, crossed], 50):.4f} mm/rad, "
           f"p99 {pct(arm_mm[:, crossed], 99):.3f}; uncrossed largest {float(dy[:, ~crossed].abs().max()):.3g}; "
           f"{int((per_muscle_p99 <= 0.1).sum())} of {len(per_muscle_p99)} muscles with p99 <= 0.1 mm")
+    if args.branches == 2:
+        branched = torch.nonzero(path.branched).flatten().tolist()
+        print("two branches:", ", ".join(body.muscle_names[i] for i in branched))
     for i in torch.argsort(per_muscle_p99, descending=True)[:8].tolist():
         print(f"  {body.muscle_names[i]}: crosses {int(crossed[i].sum())}, median "
               f"{float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm")

@@ -8,9 +8,11 @@
 * optionally a small MLP per muscle (weights batched as ``(M, ...)`` tensors) whose inputs are the joint angles times
   the muscle's crossing mask, trained on what the polynomial leaves.
 
-Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) the polynomial cannot follow: it rings
-around the jump, and the moment arms there are its smooth slope, not MuJoCo's one-sided derivative. A QP on this
-body sees a continuous length and moment arm everywhere (no jump to straddle).
+Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) one polynomial cannot follow: it rings
+around the jump. With ``branches=2`` every muscle whose one-polynomial residual has a heavy tail gets a second
+polynomial (same terms) and a gate, a low-degree polynomial whose sign picks the branch (``networks.branches``):
+the length at a posture is then its branch's polynomial and the moment arm that polynomial's exact derivative, so
+the learned length jumps where the gate changes sign (a QP at one posture sees that posture's branch only).
 
 ``with_jacobian(x)`` gives the lengths and their exact derivative; the derivative on a joint a muscle does not
 cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lightning.
@@ -26,6 +28,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
+from .branches import fit_branches, solve_systems
+from .degrees import muscle_degrees
 
 
 def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -38,13 +42,6 @@ def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
         values.append(((2 * n + 1) * x * values[n] - n * values[n - 1]) / (n + 1))
         slopes.append(slopes[n - 1] + (2 * n + 1) * values[n])
     return torch.stack(values, -1), torch.stack(slopes, -1)
-
-
-def muscle_degrees(crossing: np.ndarray, degree: int, max_terms: int) -> np.ndarray:
-    """``(M,)`` each muscle's total degree: the largest ``d <= degree`` whose polynomial over the ``n`` joints the
-    muscle crosses has at most ``max_terms`` terms (``C(n + d, n)``), at least 1."""
-    n = crossing.sum(1)
-    return np.array([max([1] + [d for d in range(1, degree + 1) if math.comb(k + d, k) <= max_terms]) for k in n])
 
 
 def term_exponents(crossing: np.ndarray, degrees: np.ndarray) -> np.ndarray:
@@ -88,15 +85,19 @@ class PerMusclePath(nn.Module):
         hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
     """
 
-    def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6):
+    def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
+                 branches: int = 1, gate_degree: int = 4):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
-                                 ("max_terms", max_terms, 2)):
+                                 ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1)):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise BodySchemaInputError(f"{name}={value!r} must be an integer >= {low}")
+        if branches not in (1, 2) or isinstance(branches, bool):
+            raise BodySchemaInputError(f"branches={branches!r}; allowed: 1 (one polynomial per muscle) or 2 (two "
+                                       f"and a gate where a muscle's path jumps)")
         crossing = check_crossing(crossing)
         n_muscles, n_joints = crossing.shape
-        self.n_hidden = n_hidden
+        self.n_hidden, self.branches, self.gate_degree = n_hidden, branches, gate_degree
         degrees = muscle_degrees(crossing, degree, max_terms)
         self.degree = int(degrees.max())
         exponents = term_exponents(crossing, degrees)
@@ -104,6 +105,10 @@ class PerMusclePath(nn.Module):
         self.register_buffer("exponents", torch.tensor(exponents))
         self.register_buffer("term_mask", torch.tensor(term_mask(crossing, exponents, degrees)))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
+        if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branches)
+            self.register_buffer("coef_alt", torch.zeros_like(self.coef))
+            self.register_buffer("gate", torch.zeros_like(self.coef))
+            self.register_buffer("branched", torch.zeros(n_muscles, dtype=torch.bool))
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
@@ -145,18 +150,33 @@ class PerMusclePath(nn.Module):
         inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
         coef = self.coef * self.term_mask
         phi, dphi = self.basis(inside, slopes or not torch.equal(inside, x64))
-        y = phi @ coef.T
-        if dphi is None:
+        y, dy = phi @ coef.T, None if dphi is None else torch.einsum("bnp,mp->bmn", dphi, coef)
+        if self.branches == 2 and bool(self.branched.any()):  # the active branch per muscle and sample
+            y, dy = self._active_branch(phi, dphi, y, dy)
+        if dy is None:
             return y.to(x.dtype), None
-        dy = torch.einsum("bnp,mp->bmn", dphi, coef)
         y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
+    def _active_branch(self, phi, dphi, y, dy):
+        """``y``, ``dy`` with each branched muscle's second polynomial where its gate is positive."""
+        muscles = torch.nonzero(self.branched).flatten()
+        alt = self.coef_alt[muscles] * self.term_mask[muscles]
+        active = phi @ self.gate[muscles].T > 0  # (B, M')
+        y = y.clone()
+        y[:, muscles] = torch.where(active, phi @ alt.T, y[:, muscles])
+        if dy is not None:
+            dy = dy.clone()
+            dy[:, muscles] = torch.where(active[:, :, None], torch.einsum("bnp,mp->bmn", dphi, alt), dy[:, muscles])
+        return y, dy
+
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
-        coef = self.coef
+        names = [n for n in ("coef", "coef_alt", "gate") if hasattr(self, n)]
+        kept = [getattr(self, n) for n in names]
         out = super()._apply(fn, *args, **kwargs)
-        self.coef = coef.to(self.coef.device)
+        for name, value in zip(names, kept):
+            setattr(self, name, value.to(getattr(self, name).device))
         return out
 
     @torch.no_grad()
@@ -178,12 +198,12 @@ class PerMusclePath(nn.Module):
         order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :k]  # each muscle's terms first
         valid = mask.gather(1, order)  # (M, K)
         system = gram[order[:, :, None], order[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
-        scale = system.diagonal(dim1=1, dim2=2).mean(1, keepdim=True).clamp_min(1e-300)
-        system = system + torch.diag_embed(torch.where(valid, ridge * scale, torch.ones_like(scale)))
         b = rhs.T.gather(1, order) * valid
-        solution = torch.linalg.solve(system, b.unsqueeze(-1)).squeeze(-1) * valid
-        coef = torch.zeros_like(self.coef, dtype=torch.float64).scatter_(1, order, solution)
-        self.coef.copy_(coef * mask)
+        solution = solve_systems(system, b, valid, ridge)
+        self.coef.copy_(torch.zeros_like(self.coef).scatter_(1, order, solution) * mask)
+        if self.branches == 2:
+            self.branched.zero_()
+            fit_branches(self, x, y, system, b, order, valid, self.gate_degree, chunk)
 
     # ------------------------------------------------------------------ the network
     def _network(self, x: torch.Tensor, slopes: bool):

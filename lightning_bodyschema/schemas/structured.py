@@ -5,8 +5,9 @@ Trained from (q, l_motor, f) samples and the spring law alone (no MJCF: recorded
 * the geometric muscle lengths ``l_geo(q)``, regressed on ``l_motor + delta(f)`` (eq:muscle-elongation), with the
   moment arms ``G(q) = d l_geo / dq`` their exact derivative: one dense network over all joints
   (``length_model="mlp"``, ``networks.structured.JacobianMLP``), or each muscle's path over only the joints it
-  crosses (``"per_muscle"``, ``networks.per_muscle.PerMusclePath``: a least-squares polynomial per muscle plus a
-  small per-muscle network), its moment arm exactly 0 on every other joint;
+  crosses (``"per_muscle"``, ``networks.per_muscle.PerMusclePath``: a least-squares polynomial per muscle, two and
+  a gate where the path jumps with ``path_branches=2``, plus a small per-muscle network), its moment arm exactly 0
+  on every other joint;
 * the joint torque the muscles must balance ``tau(q)`` (static equilibrium ``-G^T f = tau``), regressed on
   ``-G(q)^T f`` of the samples: the gradient of a learned potential ``V(q)`` (gravity and joint springs are
   conservative; ``torque_model="potential"``), a plain regression (``"direct"``), or a polynomial per joint fitted
@@ -61,6 +62,8 @@ class StructuredSchema(BodySchema):
         path_degree, path_terms: each muscle's polynomial has the highest total degree ``<= path_degree`` with at
             most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
         path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
+        path_branches: 1 (one polynomial per muscle) or 2 (where a muscle's path jumps, a wrap switching sides: two
+            polynomials and a gate of total degree <= ``path_gate_degree`` that picks one; ``networks.branches``).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -77,7 +80,8 @@ class StructuredSchema(BodySchema):
                  robot: Optional[dict] = None, lr: float = 1e-3, lr_final: Optional[float] = 1e-5,
                  batch_size: int = 256, block: str = "plain", norm: str = "none", length_model: str = "mlp",
                  path_degree: int = 6, path_terms: int = 500, path_hidden: int = 32, path_layers: int = 0,
-                 muscle_joints: Optional[dict] = None, torque_degree: int = 6):
+                 muscle_joints: Optional[dict] = None, torque_degree: int = 6, path_branches: int = 1,
+                 path_gate_degree: int = 8):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -109,7 +113,8 @@ class StructuredSchema(BodySchema):
         crossing = np.ones((self.n_muscles, self.n_joints), dtype=bool)
         if hp.muscle_joints is not None:
             crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
-        self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms)
+        self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
+                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):

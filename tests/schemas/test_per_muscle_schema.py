@@ -88,21 +88,32 @@ def test_checkpoint_round_trip_answers_the_same(paper_arm, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
-def test_a_dense_schema_checkpoint_without_the_new_options_answers_as_before(tmp_path):
-    """A checkpoint written before length_model existed (its hyperparameters lack the new keys) loads as the dense
-    schema and gives the same body."""
-    schema, trainer = _fit(EquilibriumDataModule(n_samples=200, seed=1, cache_dir=None), hidden=16, n_hidden=2)
-    path = str(tmp_path / "old.ckpt")
+def _assert_answers_the_same_without(schema, trainer, path, keys):
+    """Saved without the hyperparameters ``keys`` (a checkpoint from before they existed), it loads and gives the
+    same body."""
     trainer.save_checkpoint(path, weights_only=False)
     checkpoint = torch.load(path, weights_only=True)
-    for key in ("length_model", "path_degree", "path_terms", "path_hidden", "path_layers", "muscle_joints",
-                "torque_degree"):
+    for key in keys:
         del checkpoint["hyper_parameters"][key]
     torch.save(checkpoint, path)
     loaded = load_schema(path)
     q = torch.tensor([[0.3, 0.8], [-0.2, 1.2]], dtype=torch.float64)
     for a, b in zip(schema.body_si(q), loaded.body_si(q)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_per_muscle_checkpoint_from_before_the_branches_answers_as_before(paper_arm, tmp_path):
+    _assert_answers_the_same_without(*paper_arm, str(tmp_path / "one_branch.ckpt"),
+                                     ("path_branches", "path_gate_degree"))
+
+
+def test_a_dense_schema_checkpoint_without_the_new_options_answers_as_before(tmp_path):
+    """A checkpoint written before length_model existed (its hyperparameters lack the new keys) loads as the dense
+    schema and gives the same body."""
+    schema, trainer = _fit(EquilibriumDataModule(n_samples=200, seed=1, cache_dir=None), hidden=16, n_hidden=2)
+    _assert_answers_the_same_without(schema, trainer, str(tmp_path / "old.ckpt"), (
+        "length_model", "path_degree", "path_terms", "path_hidden", "path_layers", "muscle_joints", "torque_degree",
+        "path_branches", "path_gate_degree"))
 
 
 # ---------------------------------------------------------------------------- recorded data
@@ -153,3 +164,5 @@ def test_bad_length_and_torque_models_are_refused():
         StructuredSchema(robot=robot, length_model="per_muscle",
                          muscle_joints={**PAPER_JOINTS, "elbow_flexor": "wrist"})
     assert check_muscle_joints(PAPER_JOINTS, list(PAPER_JOINTS), ["shoulder", "elbow"]) == PAPER_JOINTS
+    with pytest.raises(BodySchemaInputError, match=r"branches=3; allowed: 1 \(one polynomial per muscle\) or 2"):
+        StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_branches=3)

@@ -1,0 +1,225 @@
+"""Two-branch muscle paths: where a wrap switches sides the length jumps; two polynomials and a gate follow it.
+
+MuJoCo's wrapping picks a side of each wrap object, and a muscle's length jumps where the side switches: the path
+is piecewise smooth. A smooth polynomial rings around such a jump. ``fit_branches`` gives every muscle whose
+residual after the one-polynomial fit has a heavy tail a second polynomial (same terms) and a gate, a polynomial
+over the same joints (the highest total degree ``<= gate_degree`` with at most ``GATE_TERMS`` terms) whose sign
+picks the branch, all fitted from the samples alone (no branch label needed), batched over muscles:
+
+1. labels, two ways: the residual split in two clusters then alternating (each branch refitted by least squares
+   on its samples, each sample to the branch that fits it better); or a first gate fitted to the sign of the
+   largest residuals (next to a jump the residual's sign tells the side), then alternating (branches fitted on the
+   gate's sides, samples their branch misses switched, the gate refitted);
+2. per muscle and labelling, both branches refitted (refined against the samples: on part of the box the basis is
+   ill-conditioned) and the gate a logistic regression of the labels (Newton steps, a ridge keeps it finite);
+3. a muscle keeps the better labelling's branches where the gated model halves the one polynomial's p99 residual
+   on the fitted samples; the others keep their one polynomial.
+
+The length at a posture is the active branch's polynomial and the moment arm its exact derivative: one-sided at
+the jump, which sits where the gate changes sign. Plain PyTorch, no Lightning.
+"""
+from __future__ import annotations
+
+import torch
+
+from .degrees import muscle_degrees
+
+ROUNDS = 3  # alternations of branch fits and reassignment
+REFINE = 4  # refinement steps of each branch's final least squares
+GATE_STEPS = 12  # Newton steps of the gate's logistic regression
+GATE_TERMS = 60  # a gate's degree is the highest <= gate_degree with at most this many terms
+BRANCH_RIDGE = 1e-15  # each branch's ridge, times the whole sample's diagonal (a branch may hold few samples; a
+# larger ridge biases a polynomial fitted on part of the box, where the basis is far from orthogonal)
+CANDIDATE_TAIL = 8.0  # a muscle is a candidate when its p99.9 residual exceeds this many medians
+TAIL_FLOOR = 1e-3  # and this (in the units of y: a normalized length, this fraction of its spread)
+HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_reassign)
+NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a jump: the first gate's samples
+
+
+def solve_systems(system, b, valid, ridge, scale=None):
+    """Each muscle's ridge-regularized normal equations ``(M, K, K) x = (M, K)``, padded terms (``~valid``) 0; the
+    ridge is ``ridge`` times ``scale (M, 1)`` (default: the mean of the system's diagonal)."""
+    if scale is None:
+        scale = system.diagonal(dim1=1, dim2=2).mean(1, keepdim=True).clamp_min(1e-300)
+    system = system + torch.diag_embed(torch.where(valid, ridge * scale, torch.ones_like(scale)))
+    return torch.linalg.solve(system, (b * valid).unsqueeze(-1)).squeeze(-1) * valid
+
+
+def _scatter(order, values, n_terms):
+    """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term."""
+    return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_(1, order, values)
+
+
+def _predict(phi, coefs):
+    """``phi @ coef.T`` for every ``coef (M', P)`` in ``coefs``: a list of ``(S, M')``."""
+    return [phi @ coef.T for coef in coefs]
+
+
+def _subset_systems(phi_all, y, labels, order, valid, chunk):
+    """Normal equations of each muscle's own terms on its labelled samples only: ``labels (S, M')`` bool,
+    ``y (S, M')``; ``((M', K, K), (M', K))``. Each muscle's samples are gathered and padded (weight 0)."""
+    counts = labels.sum(0)
+    n = max(int(counts.max()), 1)
+    idx = torch.argsort((~labels).to(torch.int8), dim=0, stable=True)[:n].T  # (M', n): labelled samples first
+    used = torch.arange(n, device=y.device)[None, :] < counts[:, None]
+    y_sub = torch.gather(y.T, 1, idx) * used
+    m, k = order.shape
+    system = torch.zeros(m, k, k, dtype=torch.float64, device=y.device)
+    rhs = torch.zeros(m, k, dtype=torch.float64, device=y.device)
+    step = max(1, chunk // m)
+    for start in range(0, n, step):
+        phi = phi_all[idx[:, start:start + step]]  # (M', c, P)
+        phi = phi.gather(2, order[:, None, :].expand(-1, phi.shape[1], -1))
+        phi = phi * used[:, start:start + step, None] * valid[:, None, :]
+        system += phi.transpose(1, 2) @ phi
+        rhs += (phi.transpose(1, 2) @ y_sub[:, start:start + step, None])[..., 0]
+    return system, rhs
+
+
+def otsu_labels(r: torch.Tensor) -> torch.Tensor:
+    """``(S, M)`` bool: per column, the samples above the threshold that best splits ``r`` into two clusters
+    (largest between-cluster variance)."""
+    values = torch.sort(r, 0).values
+    s = len(r)
+    n_low = torch.arange(1, s, dtype=r.dtype, device=r.device)[:, None]
+    low = values.cumsum(0)[:-1]
+    mean_low, mean_high = low / n_low, (values.sum(0) - low) / (s - n_low)
+    between = n_low * (s - n_low) * (mean_low - mean_high).pow(2)
+    split = between.argmax(0)
+    threshold = 0.5 * (values.gather(0, split[None]) + values.gather(0, split[None] + 1))
+    return r > threshold
+
+
+def _minority(labels):
+    """Labels flipped per column so that True marks the smaller branch, and the flip ``(M',)``."""
+    flip = labels.sum(0) * 2 > len(labels)
+    return labels ^ flip, flip
+
+
+def fit_gate(phi_all, labels, gate_order, gate_valid, chunk, beta=None, steps=GATE_STEPS, weight=None,
+             ridge=1e-6):
+    """Logistic regression of ``labels (S, M')`` on each muscle's gate terms, each sample weighted by ``weight
+    (S, M')`` (None: 1), ``steps`` Newton steps from ``beta`` (None: zeros): ``(M', Kg)`` coefficients whose
+    ``phi @ beta > 0`` predicts True."""
+    m, k = gate_order.shape
+    beta = torch.zeros(m, k, dtype=torch.float64, device=phi_all.device) if beta is None else beta
+    t = labels.to(torch.float64)
+    weight = torch.ones_like(t) if weight is None else weight
+    for _ in range(steps):
+        hess = torch.zeros(m, k, k, dtype=torch.float64, device=phi_all.device)
+        grad = torch.zeros(m, k, dtype=torch.float64, device=phi_all.device)
+        for start in range(0, len(phi_all), chunk):
+            phi = phi_all[start:start + chunk][:, gate_order] * gate_valid  # (c, M', Kg)
+            p = torch.sigmoid(torch.einsum("smk,mk->sm", phi, beta))
+            w = weight[start:start + chunk]
+            hess += torch.einsum("smk,sm,sml->mkl", phi, w * p * (1 - p), phi)
+            grad += torch.einsum("smk,sm->mk", phi, w * (t[start:start + chunk] - p))
+        n = len(phi_all)
+        hess = hess + ridge * n * torch.eye(k, dtype=torch.float64, device=phi_all.device)
+        beta = beta + torch.linalg.solve(hess, (grad - ridge * n * beta).unsqueeze(-1)).squeeze(-1)
+        beta = beta * gate_valid
+    return beta
+
+
+def _fit_pair(phi, y_m, labels, system, b, order_m, valid_m, ridge, chunk, refine=0):
+    """Least squares of both branches of the muscles ``order_m`` describes: ``(coef_a, coef_b)``, each ``(M', P)``,
+    ``coef_b`` on the samples ``labels (S, M')`` marks, ``coef_a`` on the others (the full normal equations
+    ``system, b`` minus those of the smaller set, which alone are summed). A branch's normal equations square the
+    condition number of its basis on part of the box; ``refine`` steps of refinement with residuals taken from the
+    samples recover the unregularized least-squares answer where the samples determine it (the ridge only keeps each
+    solve finite)."""
+    small, flip = _minority(labels)
+    sys_s, rhs_s = _subset_systems(phi, y_m, small, order_m, valid_m, chunk)
+    sys_b = torch.where(flip[:, None, None], system - sys_s, sys_s)
+    systems = (system - sys_b, sys_b)
+    rhs_b = torch.where(flip[:, None], b - rhs_s, rhs_s)
+    scale = system.diagonal(dim1=1, dim2=2).mean(1, keepdim=True)  # the ridge of the whole sample, both branches
+    n_terms = phi.shape[1]
+    coefs = [_scatter(order_m, solve_systems(a, r, valid_m, ridge, scale), n_terms)
+             for a, r in zip(systems, (b - rhs_b, rhs_b))]
+    for _ in range(refine):
+        grads = _gradients(phi, y_m, labels, coefs)
+        coefs = [c + _scatter(order_m, solve_systems(a, g.gather(1, order_m), valid_m, ridge, scale), n_terms)
+                 for c, a, g in zip(coefs, systems, grads)]
+    return coefs
+
+
+def _gradients(phi, y_m, labels, coefs):
+    """``phi^T (y - phi coef)`` over each branch's samples (``~labels``, then ``labels``): two ``(M', P)``."""
+    return [((y_m - phi @ coef.T) * mask).T @ phi for coef, mask in zip(coefs, (~labels, labels))]
+
+
+def _reassign(y, pred_a, pred_b, side):
+    """New labels ``(S, M')``: the gate's ``side``, switched where its branch misses by more than ``HEAVY_TAIL``
+    times the median miss and the other branch fits better (far from the switch each branch is extrapolated, and
+    there a slight miss says nothing)."""
+    miss_b, miss_a = (y - pred_b).abs(), (y - pred_a).abs()
+    own, other = torch.where(side, miss_b, miss_a), torch.where(side, miss_a, miss_b)
+    return side ^ ((own > HEAVY_TAIL * own.median(0).values) & (other < own))
+
+
+def _gate_terms(path, muscles, order_m, valid_m, gate_degree):
+    """Each muscle's gate terms: ``(order (M', Kg), valid (M', Kg))``, its terms of total degree at most its gate
+    degree (a muscle's terms run by total degree, so they come first)."""
+    degrees = muscle_degrees(path.crossing[muscles].cpu().numpy(), gate_degree, GATE_TERMS)
+    gate_valid = valid_m & (path.exponents.sum(1)[order_m] <= torch.as_tensor(degrees, device=order_m.device)[:, None])
+    k_gate = int(gate_valid.sum(1).max())
+    return order_m[:, :k_gate], gate_valid[:, :k_gate]
+
+
+def _labels_by_residual(phi, y_m, r_m, fit_pair):
+    """Labels from the one polynomial's residual split in two clusters (Otsu), then ``ROUNDS`` times: both branches
+    fitted on their labels, each sample to the branch that fits it better. Good where a branch is a whole region
+    of one joint's range (a wrap switching at one angle)."""
+    labels = _minority(otsu_labels(r_m))[0]
+    for _ in range(ROUNDS):
+        pred_a, pred_b = _predict(phi, fit_pair(labels))
+        labels = _minority((y_m - pred_b).abs() < (y_m - pred_a).abs())[0]
+    return labels
+
+
+def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
+    """Labels from a gate first fitted to the sign of the one polynomial's largest residuals (next to a jump its
+    sign tells the side), then ``ROUNDS`` times: both branches fitted on the gate's sides, samples their branch
+    misses switched (``_reassign``), the gate refitted. Good where the switching surface slants across joints."""
+    near = (r_m.abs() >= torch.quantile(r_m.abs(), 1 - NEAR_FRACTION, dim=0)).to(torch.float64)
+    beta = fit_gate(phi, r_m > 0, *gate_terms, chunk, weight=near / near.mean(0))
+    for _ in range(ROUNDS):
+        side = _predict(phi, [_scatter(gate_terms[0], beta, phi.shape[1])])[0] > 0
+        labels = _reassign(y_m, *_predict(phi, fit_pair(side)), side)
+        beta = fit_gate(phi, labels, *gate_terms, chunk, beta, GATE_STEPS // ROUNDS)
+    return labels
+
+
+def fit_branches(path, x, y, system, b, order, valid, gate_degree, chunk=8192):
+    """Two branches and a gate for every heavy-tailed muscle of a fitted ``PerMusclePath`` (module docstring):
+    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain. ``system, b, order, valid`` are the
+    one-polynomial fit's padded normal equations (``PerMusclePath.fit_polynomial``). Labels come two ways
+    (``_labels_by_residual``, ``_labels_by_gate``); each muscle keeps the one whose gated model fits better."""
+    phi = torch.cat([path.basis(x[i:i + chunk])[0] for i in range(0, len(x), chunk)])  # (S, P), once
+    r = y - phi @ path.coef.T
+    tail = torch.quantile(r.abs(), 0.999, dim=0)
+    tail = (tail > CANDIDATE_TAIL * r.abs().median(0).values) & (tail > TAIL_FLOOR)
+    muscles = torch.nonzero(tail).flatten()
+    if len(muscles) == 0:
+        return
+    order_m, valid_m, y_m, r_m = order[muscles], valid[muscles], y[:, muscles], r[:, muscles]
+    gate_terms = _gate_terms(path, muscles, order_m, valid_m, gate_degree)
+    pair = lambda labels, idx=slice(None), refine=0: _fit_pair(  # noqa: E731
+        phi, y_m[:, idx], labels, system[muscles][idx], b[muscles][idx], order_m[idx], valid_m[idx],
+        BRANCH_RIDGE, chunk, refine)
+    labels = [_labels_by_residual(phi, y_m, r_m, pair), _labels_by_gate(phi, y_m, r_m, pair, gate_terms, chunk)]
+    both = torch.cat([torch.arange(len(muscles))] * 2)  # the two candidates of every muscle, batched
+    labels = torch.cat(labels, 1)
+    coef_a, coef_b = pair(labels, both, REFINE)
+    gate = _scatter(gate_terms[0][both], fit_gate(phi, labels, gate_terms[0][both], gate_terms[1][both], chunk),
+                    phi.shape[1])
+    pred_a, pred_b, g = _predict(phi, [coef_a, coef_b, gate])
+    p99 = torch.quantile((y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs(), 0.99, dim=0).view(2, -1)
+    pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles))
+    keep = p99.min(0).values * 2 <= torch.quantile(r_m.abs(), 0.99, dim=0)  # the branches halve the p99
+    kept, pick = muscles[keep], pick[keep]
+    path.coef[kept] = coef_a[pick]
+    path.coef_alt[kept] = coef_b[pick]
+    path.gate[kept] = gate[pick]
+    path.branched[kept] = True
