@@ -3,7 +3,7 @@ is refused with one line that names the option to set; never a traceback.
 
 A refusal naming ``fixed_base`` is followed once (the legs: their pelvis is then held), so a floating body is
 walked as a user would after reading the message. The default run walks the bodies that load in a few seconds
-(``FAST``); the others (hands, arms, torso with arms, full body, and aliases of walked bodies) are marked slow.
+(``FAST``); the others (hands, arms, legs, torso with arms, full body, and aliases of walked bodies) are marked slow.
 """
 import re
 
@@ -18,8 +18,8 @@ myo_sim = pytest.importorskip("myo_sim")
 
 # a refusal must name something the user sets: a data-module option, or the model-loader argument behind it
 OPTION = re.compile(r"fixed_base|data\.locked_joints|data\.muscles|allow_unloaded|f_max_n")
-FAST = {"elbow", "finger", "myoelbow", "myoelbow_2dof", "myoelbow_exo", "myofinger", "myolegs", "myotorso",
-        "myotorso_abdomen", "osl"}  # myolegs26 and myolegs_abdomen: myolegs' variants, slow
+FAST = {"elbow", "finger", "myoelbow", "myoelbow_2dof", "myoelbow_exo", "myofinger", "myotorso",
+        "myotorso_abdomen", "osl"}  # myolegs (80 muscles) and its variants: slow; osl walks the legs' muscles
 
 
 def _registry_names() -> list[str]:
