@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from ..errors import BodySchemaInputError
 from ..solvers import (EQUILIBRIUM_TOL_NM, FALLBACK_MAX_ITER, BoxQP, check_qp_solver, proxsuite_solve,
@@ -18,6 +19,7 @@ from .model import MusculoskeletalModel
 from .spring import SpringParams, elongation_from_tension
 
 
+@torch.inference_mode()  # arrays in and out: no tensor here needs autograd's version counters
 def solve_equilibrium_qp(G, tau_bias, f_ref, *, f_hi_n, f_lo_n=0.0, solver: str = "newton",
                          max_iter: int = FALLBACK_MAX_ITER, num_threads: int = 1):
     """Tensions closest to ``f_ref`` that hold each posture in static equilibrium: ``solvers.solve_box_qp`` on

@@ -82,6 +82,7 @@ def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str
     return lo, hi, crossed, f_need
 
 
+@torch.inference_mode()  # arrays in and out: no tensor here needs autograd's version counters
 def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: SpringParams = SpringParams(),
                       jam_model: str = "one_sided", jammed_tension_in_torque: bool = True, solver: str = "newton"):
     """(feasible (B,) bool, f_star (B, M) [N]): a perfect command's tensions at ``q_ref``, NaN rows if none exists.

@@ -24,6 +24,9 @@ def _facet_normals(G: torch.Tensor) -> torch.Tensor | None:
         return None
     if n_joints == 1:
         return torch.ones((batch, 1, 1), dtype=G.dtype, device=G.device)
+    if n_joints == 2:  # a planar arm: each muscle's torque vector turned by 90 degrees (what the SVD gives, up to sign)
+        turned = torch.stack([-G[..., 1], G[..., 0]], dim=-1)
+        return turned / torch.linalg.vector_norm(turned, dim=-1, keepdim=True).clamp_min(1e-300)
     subsets = torch.tensor(list(itertools.combinations(range(n_muscles), n_joints - 1)), device=G.device)
     spans = G[:, subsets, :]  # (B, K, N-1, N)
     return torch.linalg.svd(spans)[2][..., -1, :]  # the right singular vector of the zero singular value

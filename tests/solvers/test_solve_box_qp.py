@@ -118,3 +118,28 @@ def test_bad_rows_and_bad_arguments():
         BoxQP.build(G, tau, 75.0, 0.0, 150.0, w_m2=-1.0)
     with pytest.raises(BodySchemaInputError, match="fallback='cvxpy'"):
         solve_box_qp(BoxQP.build(G, tau, 75.0, 0.0, 150.0), fallback="cvxpy")
+
+
+def test_the_planar_screen_is_exact_on_known_zonotopes():
+    """Two joints: every facet normal is a muscle's torque vector turned by 90 degrees. Torques just inside and just
+    outside a box's reach (its zonotope's support along a random direction, plus or minus a margin) are told apart,
+    and a holdable torque (the image of a box point) is never called unreachable."""
+    from lightning_bodyschema.solvers import outside_torque_reach
+    from lightning_bodyschema.solvers.torque_reach import _facet_normals
+
+    rng = np.random.default_rng(4)
+    G = torch.as_tensor(rng.normal(0.0, 0.03, (64, 6, 2)))
+    lo, hi = torch.zeros(64, 6, dtype=torch.float64), torch.as_tensor(rng.uniform(50.0, 300.0, (64, 6)))
+    normals = _facet_normals(G)
+    assert torch.allclose((normals * G).sum(-1), torch.zeros_like(lo), atol=1e-15)  # orthogonal to each torque vector
+    assert torch.allclose(torch.linalg.vector_norm(normals, dim=-1), torch.ones_like(lo))
+    f = lo + (hi - lo) * torch.as_tensor(rng.random((64, 6)))
+    held = -(G.transpose(1, 2) @ f.unsqueeze(-1)).squeeze(-1)
+    assert not outside_torque_reach(G, held, lo, hi, 1e-6).any()
+    # the farthest torque of the box along each case's first facet normal, then 1 N m beyond it
+    u = normals[:, 0, :]
+    c = -(G @ u.unsqueeze(-1)).squeeze(-1)
+    extreme = torch.where(c > 0, hi, lo)
+    edge = -(G.transpose(1, 2) @ extreme.unsqueeze(-1)).squeeze(-1)
+    assert not outside_torque_reach(G, edge, lo, hi, 1e-6).any()
+    assert outside_torque_reach(G, edge + 1.0 * u, lo, hi, 1e-6).all()
