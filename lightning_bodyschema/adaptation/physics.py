@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sim.feasibility import feasible_tensions
+from ..sim.feasibility import feasible_cases
 from ..status import Status
 from .command import AdaptationResult
 
@@ -15,7 +15,7 @@ def flag_infeasible(result: AdaptationResult, robot_model, q: np.ndarray, faults
     """Status ``infeasible`` and NaN rows where no command can hold ``q (B, N)`` under ``faults`` (jammed wires pull:
     ``sim.feasibility``). The schema's best effort (its clipped command where ``safe_command`` kept one) stays in
     ``diagnostics``."""
-    feasible, _ = feasible_tensions(robot_model, q, faults, spring)
+    feasible = feasible_cases(robot_model, q, faults, spring)
     # the physical reason wins: a case no command can hold is infeasible even where the sampler also diverged
     bad = ~feasible & np.isin(result.status, OVERRULED)
     kept = result.diagnostics

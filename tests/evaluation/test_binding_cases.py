@@ -137,3 +137,27 @@ def test_torque_reach_screen_on_many_joints_counts_facets_and_keeps_every_feasib
     outside = outside_torque_reach(G, far, lo, hi)
     _, solved = solve_equilibrium_qp(G, far, np.full(lo.shape, 50.0), f_lo_n=lo, f_hi_n=hi)
     assert outside.all() and not solved.any()
+
+
+@pytest.mark.parametrize("name", ["paper_arm", "arm3_8"])
+def test_the_physics_checks_screen_agrees_with_the_feasibility_qp(name):
+    """Where the torque zonotope's facets are enumerable, the physics check decides feasibility by the exact screen
+    alone (``sim.feasibility.feasible_cases``): the same answer as the QP on random cuts, jams and weakened muscles
+    (about half the cases feasible, so neither answer is trivial)."""
+    from lightning_bodyschema.faults.faults import Faults
+    from lightning_bodyschema.sim.feasibility import feasible_cases, feasible_tensions, screen_decides
+
+    robot = MusculoskeletalModel(name)
+    assert screen_decides(robot.n_muscles, robot.n_joints)
+    rng = np.random.default_rng(7)
+    n, m = 600, robot.n_muscles
+    q = robot.sample_q(rng, n)
+    l_geo = robot.kinematics(q)[0]
+    cut = rng.random((n, m)) < 0.15
+    fix = ~cut & (rng.random((n, m)) < 0.15)
+    l_fixed = np.where(fix, l_geo - rng.uniform(-0.002, 0.006, (n, m)), np.nan)
+    weak = np.where(~cut & ~fix & (rng.random((n, m)) < 0.2), rng.uniform(5.0, 60.0, (n, m)), np.nan)
+    faults = Faults(cut, fix, l_fixed, f_max_n=weak)
+    expected = feasible_tensions(robot, q, faults, SpringParams())[0]
+    assert 0.2 < expected.mean() < 0.8
+    np.testing.assert_array_equal(feasible_cases(robot, q, faults, SpringParams()), expected)
