@@ -2,6 +2,7 @@
 against the model."""
 from __future__ import annotations
 
+import functools
 import sys
 from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
@@ -118,6 +119,8 @@ class Faults:
         with np.errstate(invalid="ignore"):  # NaN where a fault is off
             rules = fault_rules(self.cut, self.fix, self.l_fixed_m, nan if self.f_max_n is None else self.f_max_n,
                                 band[..., 0], band[..., 1], healthy)
+        if not functools.reduce(np.logical_or, (bad for _, bad in rules)).any():  # the usual case: no message
+            return self
         for name, bad in rules:
             what = RULES[name]
             _refuse_cases(bad, what if name != "weak_not_below" else what.format(_shown(f_max_n)))
