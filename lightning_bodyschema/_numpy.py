@@ -16,6 +16,7 @@ def to_numpy(value, dtype=None) -> np.ndarray:
     through ``np.asarray``. ``dtype``: the array's dtype (None: keep the value's; bfloat16, which numpy lacks,
     becomes float32)."""
     if torch.is_tensor(value):
-        value = value.detach().cpu()
-        value = (value.float() if value.dtype == torch.bfloat16 else value).numpy()
+        value = value.detach()
+        value = value.float() if value.dtype == torch.bfloat16 else value
+        value = value.cpu().numpy()
     return np.asarray(value, dtype=dtype)

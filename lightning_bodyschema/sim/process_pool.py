@@ -4,7 +4,7 @@
 without ``if __name__ == "__main__":`` then breaks, and the ``bodyschema`` command would import Lightning and torch
 in each worker), and ``fork`` copies a process holding MuJoCo and torch state. Here each worker is a fresh
 interpreter with the caller's ``sys.path`` and one BLAS/OpenMP thread (the workers fill the cores): it imports
-``module``, calls ``module.<setup>(*setup_args)`` once, then answers tasks ``module.<task>(*args)`` over its stdin
+``module`` (one of ``WORKER_MODULES``, the package's own), calls ``module.<setup>(*setup_args)`` once, then answers tasks ``module.<task>(*args)`` over its stdin
 and stdout (pickles; the worker's own prints go to stderr). One thread per worker feeds it tasks from a shared queue,
 so a free worker takes the next task.
 """
@@ -23,16 +23,29 @@ _CHILD = ("import pickle, sys; sys.path[:0] = pickle.load(sys.stdin.buffer); "
           "from lightning_bodyschema.sim.process_pool import serve; serve()")
 
 
+def _sampling_module():
+    from . import sampling
+
+    return sampling
+
+
+# the modules a worker may run, by name: a fixed table, so nothing a caller passes chooses what a worker imports
+WORKER_MODULES = {"lightning_bodyschema.sim.sampling": _sampling_module}
+
+
+def _check_module(module_name: str) -> None:
+    if module_name not in WORKER_MODULES:
+        raise ValueError(f"worker module {module_name!r}; allowed: {sorted(WORKER_MODULES)}")
+
+
 def serve() -> None:
     """The worker's loop (run by ``_CHILD``): setup once, then one answer per task until stdin closes."""
-    import importlib
-
     answers = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # prints, Python's or a C library's, go to stderr, never into the answers
     requests = sys.stdin.buffer
     module_name, setup, setup_args, task = pickle.load(requests)
-    # module_name comes from the parent process (the package's own code: sim.sampling), never from a user's file
-    module = importlib.import_module(module_name)
+    _check_module(module_name)
+    module = WORKER_MODULES[module_name]()
     getattr(module, setup)(*setup_args)
     while True:
         try:
@@ -71,6 +84,7 @@ class WorkerPool:
     """
 
     def __init__(self, workers: int, module: str, setup: str, setup_args: tuple, task: str):
+        _check_module(module)
         self._threads = []
         self._procs = [subprocess.Popen([sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                         env={**os.environ, **ONE_THREAD}) for _ in range(int(workers))]

@@ -82,12 +82,22 @@ def test_workers_never_rerun_the_callers_script(tmp_path, monkeypatch):
     assert len(lines) == 3 and lines[1] == lines[2]
 
 
-def test_a_worker_that_dies_is_an_error_not_a_hang():
+def test_a_worker_that_dies_is_an_error_not_a_hang(arm):
     from lightning_bodyschema.sim.process_pool import WorkerPool
 
-    with pytest.raises(RuntimeError, match=r"worker process died \(exit code 3"):
-        with WorkerPool(2, "os", "getpid", (), "_exit") as pool:  # the task os._exit(3) ends its worker
-            list(pool.map_unordered([(3,), (3,), (3,)]))
+    with pytest.raises(RuntimeError, match=r"worker process died \(exit code -9"):
+        with WorkerPool(2, "lightning_bodyschema.sim.sampling", "init_worker", (arm.xml, arm.muscle_names),
+                        "worker_chunk") as pool:
+            for proc in pool._procs:
+                proc.kill()  # as the kernel's out-of-memory killer would
+            list(pool.map_unordered([(0,), (1,), (2,)]))
+
+
+def test_a_worker_runs_only_the_packages_own_modules():
+    from lightning_bodyschema.sim.process_pool import WorkerPool
+
+    with pytest.raises(ValueError, match=r"worker module 'os'; allowed: \['lightning_bodyschema.sim.sampling'\]"):
+        WorkerPool(1, "os", "getpid", (), "_exit")
 
 
 def test_exact_answer_from_the_active_set_ignores_the_last_bits(arm, rng):
