@@ -36,7 +36,6 @@ above the upper one (band or jam against f_max') leaves no command at all.
 """
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -82,20 +81,13 @@ def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str
     return lo, hi, crossed, f_need
 
 
-def screen_decides(n_muscles: int, n_joints: int) -> bool:
-    """True where the torque-reach screen is exact for a body of ``n_muscles`` and ``n_joints``: every facet of the
-    torque zonotope enumerable (``solvers.MAX_SCREEN_NORMALS``), so a torque it does not put out of reach is
-    reached."""
-    return math.comb(n_muscles, n_joints - 1) <= MAX_SCREEN_NORMALS
-
-
 @torch.inference_mode()
 def feasible_cases(model: "RobotModel", q_ref, faults: "Faults", spring: SpringParams = SpringParams()) -> np.ndarray:
     """(B,) bool: ``feasible_tensions(...)[0]`` (one-sided jams, jammed tensions in the torque), without solving for
-    the tensions where the screen is exact (``screen_decides``): uncrossed bounds and a torque inside the zonotope
+    the tensions where the screen is exact (``solvers.screen_is_exact``): uncrossed bounds and a torque inside the zonotope
     of the tension box, to ``EQUILIBRIUM_TOL_NM`` (a torque within ``sqrt(N) EQUILIBRIUM_TOL_NM`` of its edge may
     read feasible where the QP's own residual test would just miss). The physics check asks only this."""
-    if not screen_decides(model.n_muscles, model.n_joints):
+    if not solvers.screen_is_exact(model.n_muscles, model.n_joints):
         return feasible_tensions(model, q_ref, faults, spring)[0]
     l_geo, G, tau_bias = model.kinematics(q_ref)
     lo, hi, crossed, _ = tension_bounds(l_geo, faults, spring)
@@ -116,7 +108,7 @@ def feasible_tensions(model: "RobotModel", q_ref, faults: "Faults", spring: Spri
     f_ref = np.broadcast_to(np.asarray(spring.f_max_n, float) / 2.0, lo.shape)
     f, ok = np.full(lo.shape, np.nan), np.zeros(len(lo), bool)
     run = np.flatnonzero(~crossed)  # the solver screens the torques out of reach itself (after its first steps)
-    if run.size and screen_decides(*G.shape[1:]):
+    if run.size and solvers.screen_is_exact(*G.shape[1:]):
         # where every facet of the torque zonotope is enumerable the screen is exact and cheap: a hopeless case
         # then costs no Newton steps and no least squares
         run = run[~outside_torque_reach(G[run], tau_bias[run], lo[run], hi[run])]

@@ -88,11 +88,16 @@ def _weld_free_joints(spec: mujoco.MjSpec):
 
 UNCROSSED_ARM_M = 1e-9  # [m/rad]: a tendon Jacobian entry at most this large is rounding (real arms are mm)
 
-def _thread_count(threads, batch: int) -> int:
-    """The threads worth starting for ``batch`` postures (at least ``MIN_POSTURES_PER_THREAD`` each)."""
+def check_threads(threads) -> int:
+    """``threads`` as an int, or the ``BodySchemaInputError`` naming it (an integer >= 1 is allowed)."""
     if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
         raise BodySchemaInputError(f"threads={threads!r}; give an integer >= 1")
-    return int(max(1, min(threads, batch // MIN_POSTURES_PER_THREAD)))
+    return int(threads)
+
+
+def _thread_count(threads, batch: int) -> int:
+    """The threads worth starting for ``batch`` postures (at least ``MIN_POSTURES_PER_THREAD`` each)."""
+    return max(1, min(check_threads(threads), batch // MIN_POSTURES_PER_THREAD))
 
 
 MIN_POSTURES_PER_THREAD = 32  # below this a thread's start costs more than its share of MuJoCo's work

@@ -4,9 +4,9 @@
 without ``if __name__ == "__main__":`` then breaks, and the ``bodyschema`` command would import Lightning and torch
 in each worker), and ``fork`` copies a process holding MuJoCo and torch state. Here each worker is a fresh
 interpreter with the caller's ``sys.path`` and one BLAS/OpenMP thread (the workers fill the cores): it imports
-``module`` (one of ``WORKER_MODULES``, the package's own), calls ``module.<setup>(*setup_args)`` once, then answers tasks ``module.<task>(*args)`` over its stdin
-and stdout (pickles; the worker's own prints go to stderr). One thread per worker feeds it tasks from a shared queue,
-so a free worker takes the next task.
+``module`` (a row of ``WORKER_MODULES``: the package's own), calls ``module.<setup>(*setup_args)`` once, then
+answers tasks ``module.<task>(*args)`` over its stdin and stdout (pickles; the worker's own prints go to stderr).
+One thread per worker feeds it tasks from a shared queue, so a free worker takes the next task.
 """
 from __future__ import annotations
 
@@ -19,33 +19,33 @@ import threading
 import traceback
 
 ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}  # one per core
+# the modules a worker may run: a fixed table of import statements, so nothing a caller passes chooses what a worker
+# imports (the name only selects a row)
+WORKER_MODULES = {"lightning_bodyschema.sim.sampling": "import lightning_bodyschema.sim.sampling as module"}
 _CHILD = ("import pickle, sys; sys.path[:0] = pickle.load(sys.stdin.buffer); "
-          "from lightning_bodyschema.sim.process_pool import serve; serve()")
+          "from lightning_bodyschema.sim.process_pool import answers_pipe, serve; answers = answers_pipe(); "
+          "{imports}; serve(module, answers)")
 
 
-def _sampling_module():
-    from . import sampling
-
-    return sampling
-
-
-# the modules a worker may run, by name: a fixed table, so nothing a caller passes chooses what a worker imports
-WORKER_MODULES = {"lightning_bodyschema.sim.sampling": _sampling_module}
-
-
-def _check_module(module_name: str) -> None:
+def _child_program(module_name: str) -> str:
     if module_name not in WORKER_MODULES:
         raise ValueError(f"worker module {module_name!r}; allowed: {sorted(WORKER_MODULES)}")
+    return _CHILD.format(imports=WORKER_MODULES[module_name])
 
 
-def serve() -> None:
-    """The worker's loop (run by ``_CHILD``): setup once, then one answer per task until stdin closes."""
+def answers_pipe():
+    """The worker's answer channel (its stdout, duplicated); from here on prints, Python's or a C library's (the
+    module's import included), go to stderr, never into the answers."""
     answers = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)  # prints, Python's or a C library's, go to stderr, never into the answers
+    os.dup2(2, 1)
+    return answers
+
+
+def serve(module, answers) -> None:
+    """The worker's loop (run by ``_CHILD`` with its ``module``): setup once, then one answer per task until stdin
+    closes."""
     requests = sys.stdin.buffer
-    module_name, setup, setup_args, task = pickle.load(requests)
-    _check_module(module_name)
-    module = WORKER_MODULES[module_name]()
+    setup, setup_args, task = pickle.load(requests)
     getattr(module, setup)(*setup_args)
     while True:
         try:
@@ -84,14 +84,15 @@ class WorkerPool:
     """
 
     def __init__(self, workers: int, module: str, setup: str, setup_args: tuple, task: str):
-        _check_module(module)
+        program = _child_program(module)
         self._threads = []
-        self._procs = [subprocess.Popen([sys.executable, "-c", _CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                        env={**os.environ, **ONE_THREAD}) for _ in range(int(workers))]
+        self._procs = [subprocess.Popen([sys.executable, "-c", program], stdin=subprocess.PIPE,
+                                        stdout=subprocess.PIPE, env={**os.environ, **ONE_THREAD})
+                       for _ in range(int(workers))]
         try:
             for proc in self._procs:
                 self._send(proc, list(sys.path))
-                self._send(proc, (module, setup, setup_args, task))
+                self._send(proc, (setup, setup_args, task))
         except BaseException:
             self.close(kill=True)
             raise

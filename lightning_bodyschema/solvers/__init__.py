@@ -13,9 +13,9 @@ from .least_squares import LS_REG, box_least_squares, least_squares_weight
 from .newton import NEWTON_MAX_ITER, NEWTON_TOL_NM, NewtonResult, dual_newton
 from .problem import BoxQP, Solution
 from .solve import EQUILIBRIUM_TOL_NM, FALLBACK_MAX_ITER, solve_box_qp
-from .torque_reach import MAX_SCREEN_NORMALS, outside_torque_reach, residual_direction
+from .torque_reach import MAX_SCREEN_NORMALS, outside_torque_reach, residual_direction, screen_is_exact
 
 __all__ = ["BoxQP", "Solution", "solve_box_qp", "dual_newton", "NewtonResult", "box_least_squares",
            "least_squares_weight", "outside_torque_reach", "residual_direction", "proxsuite_solve", "qpsolvers_solve",
-           "check_qp_solver", "EQUILIBRIUM_TOL_NM", "FALLBACK_MAX_ITER", "LS_REG", "MAX_SCREEN_NORMALS",
+           "check_qp_solver", "EQUILIBRIUM_TOL_NM", "FALLBACK_MAX_ITER", "LS_REG", "MAX_SCREEN_NORMALS", "screen_is_exact",
            "NEWTON_MAX_ITER", "NEWTON_TOL_NM"]

@@ -16,11 +16,18 @@ from .problem import separation_gap_nm
 MAX_SCREEN_NORMALS = 256  # at most this many facet normals (else: the joint axes and a residual direction)
 
 
+def screen_is_exact(n_muscles: int, n_joints: int) -> bool:
+    """True where the screen enumerates every facet normal of the torque zonotope of ``n_muscles`` muscles over
+    ``n_joints`` joints (C(M, N-1) <= ``MAX_SCREEN_NORMALS``): then a torque it does not put out of reach is reached
+    (to its tolerance)."""
+    return math.comb(n_muscles, n_joints - 1) <= MAX_SCREEN_NORMALS
+
+
 def _facet_normals(G: torch.Tensor) -> torch.Tensor | None:
     """(B, K, N) unit normals of the facets of the torque zonotope {-G^T f : f in a box} (K = C(M, N-1)
     subsets of N-1 muscle torque vectors, each normal orthogonal to them), or None when K is too large."""
     batch, n_muscles, n_joints = G.shape
-    if math.comb(n_muscles, n_joints - 1) > MAX_SCREEN_NORMALS:  # count first: C(31, 14) subsets fill no memory
+    if not screen_is_exact(n_muscles, n_joints):  # count first: C(31, 14) subsets fill no memory
         return None
     if n_joints == 1:
         return torch.ones((batch, 1, 1), dtype=G.dtype, device=G.device)

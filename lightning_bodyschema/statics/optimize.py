@@ -35,7 +35,7 @@ from ..errors import BodySchemaInputError
 from ..faults.faults import Faults
 from ..faults.bounds import FaultBounds
 from .._numpy import to_numpy
-from ..sim.model import MusculoskeletalModel, _thread_count
+from ..sim.model import MusculoskeletalModel, check_threads
 from ..sim.spring import elongation_from_tension, spring_for_model
 from ..solvers import EQUILIBRIUM_TOL_NM, BoxQP, outside_torque_reach, proxsuite_solve, solve_box_qp
 from ..status import Status, status_array
@@ -119,8 +119,7 @@ class StaticBody:
                                           fixed_base=fixed_base)
         self.spring = spring_for_model(self.model, k_n, alpha_per_m, f_max_n)
         self.curves: Optional[MuscleCurves] = read_muscle_curves(model, self.model.muscle_names, fixed_base)
-        _thread_count(threads, 0)  # refuse a bad count now, not at the first solve
-        self.threads = threads
+        self.threads = check_threads(threads)  # refused now, not at the first solve
 
     @property
     def default_objective(self) -> str:

@@ -145,10 +145,11 @@ def test_the_physics_checks_screen_agrees_with_the_feasibility_qp(name):
     alone (``sim.feasibility.feasible_cases``): the same answer as the QP on random cuts, jams and weakened muscles
     (about half the cases feasible, so neither answer is trivial)."""
     from lightning_bodyschema.faults.faults import Faults
-    from lightning_bodyschema.sim.feasibility import feasible_cases, feasible_tensions, screen_decides
+    from lightning_bodyschema.sim.feasibility import feasible_cases, feasible_tensions
+    from lightning_bodyschema.solvers import screen_is_exact
 
     robot = MusculoskeletalModel(name)
-    assert screen_decides(robot.n_muscles, robot.n_joints)
+    assert screen_is_exact(robot.n_muscles, robot.n_joints)
     rng = np.random.default_rng(7)
     n, m = 600, robot.n_muscles
     q = robot.sample_q(rng, n)
