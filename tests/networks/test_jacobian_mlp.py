@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.networks.structured import BLOCKS, NORMS, JacobianMLP
+from lightning_bodyschema.networks.structured import BLOCKS, JACOBIAN_CHUNK, NORMS, JacobianMLP
 
 COMBINATIONS = list(itertools.product(BLOCKS, NORMS))
 
@@ -32,6 +32,20 @@ def test_with_jacobian_equals_autograd_jacobian(block, norm, n_hidden):
     torch.testing.assert_close(y, net(x), atol=1e-12, rtol=0)
     assert J.shape == (7, 4, 5) and expected.abs().max() > 1e-2  # a real, non-vanishing derivative
     torch.testing.assert_close(J, expected, atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("block, norm", [("plain", "none"), ("residual", "layer")])
+def test_batches_beyond_one_pass_equal_autograd_across_the_pass_boundaries(block, norm):
+    """More postures than ``JACOBIAN_CHUNK`` run in several passes: every row (those beside each boundary included)
+    is autograd's Jacobian of that posture, and its value the forward pass's."""
+    net = _random_net(block, norm)
+    x = torch.randn(2 * JACOBIAN_CHUNK + 3, 5, dtype=torch.float64)
+    y, J = net.with_jacobian(x)
+    rows = [0, JACOBIAN_CHUNK - 1, JACOBIAN_CHUNK, 2 * JACOBIAN_CHUNK - 1, 2 * JACOBIAN_CHUNK, len(x) - 1]
+    expected = torch.func.vmap(torch.func.jacrev(lambda xi: net(xi[None])[0]))(x[rows])
+    torch.testing.assert_close(y, net(x), atol=1e-12, rtol=0)
+    assert J.shape == (len(x), 4, 5) and expected.abs().max() > 1e-2
+    torch.testing.assert_close(J[rows], expected, atol=1e-10, rtol=0)
 
 
 @pytest.mark.parametrize("block, norm", COMBINATIONS)
