@@ -12,7 +12,8 @@ case, least squares one per case), at batch 1 and ``--batch``, in ms per case (m
 on the first ``--old-cases`` cases, its least squares costing up to a second per case). Prints the share of cases
 whose bounds cross or whose torque the box cannot balance and what each kind costs, and how many cases the
 equilibrium QP would still solve past ``QP_MAX_ITER`` (at 200 iterations). With ``--ckpt`` (a trained
-StructuredSchema, loaded with weights_only) also the prepared adapter ``schema.adapter(faults, check_physics=False)``.
+StructuredSchema, loaded with weights_only) also the prepared adapter ``schema.adapter(faults, check_physics=False)``: at batch 1 on the
+first case and on each of the first ``--singles`` cases through its own adapter, and at ``--batch``.
 One torch thread; timings depend on the machine's load, which is printed with them.
 """
 import argparse
@@ -119,7 +120,9 @@ def compare(cases, spring, args):
         print(f"  {label}: {100 * mask.mean():.1f} % of cases, batched {cost:.3f} ms per case")
 
 
-def adapter_latency(ckpt, faults, q, repeats, device="cpu"):
+def adapter_latency(ckpt, faults, q, repeats, device="cpu", singles=50):
+    """The prepared adapter's time per case at batch 1 (one case, ``repeats`` calls; and each of the first
+    ``singles`` cases through its own adapter, the median over ``repeats`` rounds) and at batch ``len(q)``."""
     from lightning_bodyschema.schemas.loading import load_schema
 
     schema = load_schema(ckpt, map_location=device).eval()
@@ -132,6 +135,18 @@ def adapter_latency(ckpt, faults, q, repeats, device="cpu"):
             adapter(q[:n])
             times.append((time.perf_counter() - start) / n)
         print(f"prepared adapter, batch {n}: {1e3 * statistics.median(times):.3f} ms per case")
+    k = min(singles, len(q))
+    if k:
+        adapters = [schema.adapter(faults.take(np.arange(i, i + 1)), check_physics=False) for i in range(k)]
+        call_each = lambda: [adapter(q[i:i + 1]) for i, adapter in enumerate(adapters)]  # noqa: E731
+        call_each()
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            call_each()
+            times.append((time.perf_counter() - start) / k)
+        print(f"prepared adapter, batch 1 on each of {k} cases (holdable and not): "
+              f"{1e3 * statistics.median(times):.3f} ms per call")
 
 
 @exits_cleanly
@@ -143,6 +158,7 @@ def main(argv=None):
     parser.add_argument("--threads", type=int, default=1, help="proxsuite's threads for the batched solve")
     parser.add_argument("--baseline", default="cd50b84", help="git revision of the per-case loop")
     parser.add_argument("--ckpt", help="a trained StructuredSchema checkpoint on myoArm")
+    parser.add_argument("--singles", type=int, default=50, help="cases timed one by one through their own adapters")
     add_device_argument(parser)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -152,7 +168,7 @@ def main(argv=None):
     compare(cases, spring, args)
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     if args.ckpt:
-        adapter_latency(args.ckpt, faults, q, args.repeats, args.device)
+        adapter_latency(args.ckpt, faults, q, args.repeats, args.device, args.singles)
         print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
