@@ -122,8 +122,9 @@ def compare(cases, spring, args):
 
 
 def adapter_latency(ckpt, faults, q, repeats, device="cpu", singles=50):
-    """The prepared adapter's time per case at batch 1 (one case, ``SINGLE_CALLS_PER_REPEAT`` x ``repeats`` calls; and each of the first
-    ``singles`` cases through its own adapter, the median over ``repeats`` rounds) and at batch ``len(q)``."""
+    """The prepared adapter's time per case: at batch 1 on one case (the median of ``SINGLE_CALLS_PER_REPEAT`` x
+    ``repeats`` calls) and on each of the first ``singles`` cases through its own adapter (the median over ``repeats``
+    rounds), and at batch ``len(q)``."""
     from lightning_bodyschema.schemas.loading import load_schema
 
     schema = load_schema(ckpt, map_location=device).eval()
