@@ -12,8 +12,9 @@ case, least squares one per case), at batch 1 and ``--batch``, in ms per case (m
 on the first ``--old-cases`` cases, its least squares costing up to a second per case). Prints the share of cases
 whose bounds cross or whose torque the box cannot balance and what each kind costs, and how many cases the
 equilibrium QP would still solve past ``QP_MAX_ITER`` (at 200 iterations). With ``--ckpt`` (a trained
-StructuredSchema, loaded with weights_only) also the prepared adapter ``schema.adapter(faults, check_physics=False)``: at batch 1 on the
-first case and on each of the first ``--singles`` cases through its own adapter, and at ``--batch``.
+StructuredSchema, loaded with weights_only) also the prepared adapter ``schema.adapter(faults, check_physics=False)``:
+at batch 1 on the first case and on each of the first ``--singles`` cases through its own adapter, and at
+``--batch``.
 One torch thread; timings depend on the machine's load, which is printed with them.
 """
 import argparse
