@@ -2,7 +2,7 @@
 """The structured schema's command QPs on the true myoArm body: the per-case loop against the batched solve.
 
     python tools/bench_structured_adapter.py [--batch 4000] [--old-cases 200] [--repeats 5] [--threads 1]
-                                             [--baseline cd50b84] [--ckpt CKPT]
+                                             [--baseline cd50b84] [--ckpt CKPT] [--singles 50]
 
 Builds configs/myoarm.yaml's body (its locked joints), draws postures with ``model.sample_q`` and, per case, one cut
 and one jammed muscle (the jam's motor length is the healthy command's at another posture, as the binding protocol
