@@ -73,7 +73,8 @@ def command_status(x_si, bounds: FaultBounds, l_lo_m, l_hi_m, bad=None, diagnost
              xp.where(bounds.weak, pos(f - bounds.f_limit_n), 0.0),
              xp.where(bounds.band, pos(xp.maximum(bounds.band_lo_m - l_motor, l_motor - bounds.band_hi_m)), 0.0),
              outside)
-    return out + ({name: xp.where(finite, xp.amax(value, 1), float("nan")) for name, value in zip(DIAGNOSTICS, worst)},)
+    worst = xp.where(finite[:, None], xp.amax(xp.stack(worst, 1), 2), float("nan"))  # (B, 6): one pass, not six
+    return out + ({name: worst[:, i] for i, name in enumerate(DIAGNOSTICS)},)
 
 
 # what ``command_status`` reports per case with ``diagnostics``

@@ -243,7 +243,7 @@ class StructuredSchema(BodySchema):
         """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]."""
         with torch.no_grad():
             q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
-            return tuple(t.detach().to(torch.float64).cpu().numpy() for t in self.body(q_n))
+            return tuple(t.cpu().numpy().astype(np.float64) for t in self.body(q_n))  # a copy: the caller owns it
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:
@@ -299,7 +299,7 @@ class StructuredAdapter(Adapter):
         schema = self.schema
         q = check_postures(schema, q_ref, len(self.faults))
         l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.bounds, self.options.get("reg"))
-        x_si = torch.as_tensor(np.where((status == OK)[:, None], np.concatenate([l_motor, f], 1), np.nan))
+        x_si = np.where((status == OK)[:, None], np.concatenate([l_motor, f], 1), np.nan)
         result = safe_command(x_si, self.bounds, l_range_m=self.l_range_m)
         result.status[status != OK] = status[status != OK]
         result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)

@@ -68,6 +68,8 @@ class _State(NamedTuple):
 
 
 def _f64(x, device=None) -> torch.Tensor:
+    if isinstance(x, torch.Tensor) and x.dtype == torch.float64 and (device is None or x.device == device):
+        return x  # what as_tensor returns, without a dispatch
     return torch.as_tensor(x, dtype=torch.float64, device=device)
 
 
@@ -227,7 +229,7 @@ def _newton_step(problem, state: _State, residual, shift, eager: bool, lipschitz
     """One Newton step on (2) (``residual``) with (3) (``shift``: ``w I`` and the ridge) and the line search, for
     the (sub)batch ``problem`` (``lipschitz``: the gradient step's constant, made once by a fixed-step run)."""
     G = problem[0]
-    hessian = torch.baddbmm(shift, G.transpose(1, 2), state.free.to(G.dtype).unsqueeze(-1) * G)  # (3)
+    hessian = torch.baddbmm(shift, G.transpose(1, 2), G * state.free.unsqueeze(-1))  # (3); a bool factor is 0 or 1
     step = _solve_spd(hessian, residual, traceable=not eager)
     return _line_search(problem, state, residual, step, eager, lipschitz)
 
@@ -302,12 +304,13 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > _FEW else _CERTIFY_STEPS_FEW):
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
-        idx = active.nonzero().squeeze(1)
-        if idx.numel() == 0:
+        running = int(active.sum())  # one host read; the indices only where some cases have stopped
+        if running == 0:
             return NewtonResult(state.f, size <= tol, iterations, infeasible)
-        if idx.numel() == batch:  # every case still runs: no gather
+        if running == batch:  # every case still runs: no gather
             state = _newton_step(problem, state, residual, shift, True)
         else:
+            idx = active.nonzero().squeeze(1)
             sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
                                shift[idx], True)
             state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))

@@ -9,6 +9,7 @@ Per case (``G (M, N)`` [m/rad], ``tau (N,)`` [N m], tensions ``f (M,)`` [N])::
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -46,10 +47,7 @@ class BoxQP(NamedTuple):
         tau = _shaped("tau_nm", tau_nm, (batch, n), G.device)
         f_ref, lo, hi = (_shaped(name, x, (batch, m), G.device)
                          for name, x in (("f_ref_n", f_ref_n), ("lo_n", lo_n), ("hi_n", hi_n)))
-        w = _shaped("w_m2", w_m2, (batch,), G.device)
-        if not bool(((w >= 0) & torch.isfinite(w)).all()):
-            raise BodySchemaInputError(f"w_m2 has {w[~((w >= 0) & torch.isfinite(w))][0].item()!r}; allowed: "
-                                       "finite numbers >= 0")
+        w = _weight(w_m2, batch, G.device)
         finite = torch.isfinite(torch.cat([G.flatten(1), tau, f_ref], 1)).all(1)
         bad = ~(finite & ((lo < np.inf) & (hi > -np.inf)).all(1))  # NaN bounds compare False
         crossed = (lo > hi).any(1) & ~bad
@@ -92,6 +90,20 @@ def separation_gap_nm(G, tau, lo, hi, normals) -> torch.Tensor:
     support = torch.where(reach > 0, hi.unsqueeze(1) * reach,
                           torch.where(reach < 0, lo.unsqueeze(1) * reach, zero)).sum(-1)
     return (normals @ tau.unsqueeze(-1)).squeeze(-1) - support
+
+
+def _weight(w_m2, batch: int, device) -> torch.Tensor:
+    """``w_m2`` (a number or (B,)) as a (B,) float64 tensor, or the error naming a value that is negative or not
+    finite (a number is checked on the host: no tensor operations for the common scalar)."""
+    if isinstance(w_m2, (int, float)):
+        if not (math.isfinite(w_m2) and w_m2 >= 0):
+            raise BodySchemaInputError(f"w_m2 has {float(w_m2)!r}; allowed: finite numbers >= 0")
+        return torch.full((batch,), float(w_m2), dtype=torch.float64, device=device)
+    w = _shaped("w_m2", w_m2, (batch,), device)
+    if not bool(((w >= 0) & torch.isfinite(w)).all()):
+        raise BodySchemaInputError(f"w_m2 has {w[~((w >= 0) & torch.isfinite(w))][0].item()!r}; allowed: "
+                                   "finite numbers >= 0")
+    return w
 
 
 def _tensor(name: str, x, device) -> torch.Tensor:

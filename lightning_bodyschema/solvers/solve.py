@@ -97,8 +97,8 @@ def _solvable_first_pass(problem: BoxQP, tol: float, max_iter: int):
     f = torch.where(problem.bad_input.unsqueeze(1), torch.nan, f)
     status = torch.where(problem.bad_input, Status.BAD_INPUT.code, _NOT_CONVERGED).to(torch.int32)
     iterations = torch.zeros_like(status)
-    run = (~skip).nonzero().squeeze(1)
-    if run.numel():
+    if not bool(skip.all()):
+        run = (~skip).nonzero().squeeze(1)
         f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
     return f, status, iterations
 
@@ -174,10 +174,11 @@ def _no_equilibrium_yet(problem: BoxQP, f_first, proven, iterations, options: _O
     solution (crossed ones included): steps 2 to 4 of the module docstring, the rest of the Newton's steps on the
     cases nothing rules out first."""
     f_ls, outside = _proofs(problem, f_first, proven, options)
-    if not bool(outside.all()):
-        rows = problem.take(~outside)
-        outside[~outside] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM,
-                                                 residual_direction(rows.G, rows.tau_nm, f_ls[~outside]))
+    if bool(outside.all()):  # every case proven without a solution (crossed ones, one at batch 1): nothing to solve
+        return f_ls, torch.full_like(iterations, _INFEASIBLE), iterations
+    rows = problem.take(~outside)
+    outside[~outside] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM,
+                                             residual_direction(rows.G, rows.tau_nm, f_ls[~outside]))
     status = torch.where(outside, _INFEASIBLE, _NOT_CONVERGED).to(torch.int32)
     f, todo = f_ls.clone(), ~outside
     if bool(todo.any()):
