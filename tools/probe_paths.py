@@ -2,16 +2,18 @@
 """How well per-muscle polynomials reach MuJoCo's myoArm muscle paths: least squares on exact lengths, held out.
 
     python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
-                                [--branches 1|2] [--gate-degree 8]
+                                [--branches 1|2] [--gate-degree 8] [--budget TERMS] [--muscles A,B,...]
 
 Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
 lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
 crosses, the highest total degree ``<= --degree`` with at most ``--terms`` terms; ``--branches 2``: two polynomials
-and a gate of degree ``--gate-degree`` where a path jumps) on the first ``--train`` and prints,
+and a gate of degree ``--gate-degree`` where a path jumps; ``--budget``: the most terms over all muscles, what
+``--terms`` leaves raising the lowest degrees first) on the first ``--train`` and prints,
 on the rest: length error median and p99 [mm], moment-arm error on crossed pairs median and p99 [mm/rad], the
 largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, and the worst muscles. One torch thread.
 """
 import argparse
+import resource
 import time
 
 import numpy as np
@@ -26,8 +28,10 @@ from lightning_bodyschema.networks.per_muscle import PerMusclePath
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1),
-                          ("branches", 1), ("gate-degree", 8)):
+                          ("branches", 1), ("gate-degree", 8), ("budget", None)):
         parser.add_argument(f"--{name}", type=int, default=default)
+    parser.add_argument("--muscles", default="BIClong,TRIlong,SUP,DELT1,SUPSP,LAT1,LAT2,LAT3,TMAJ",
+                        help="muscles to print (name prefixes, comma separated)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     from lightning_bodyschema.sim import MusculoskeletalModel
@@ -39,7 +43,8 @@ def main(argv=None):
     lo, hi = (torch.as_tensor(a) for a in body.q_range.T)
     q_n, half = 2 * (torch.as_tensor(q) - lo) / (hi - lo) - 1, (hi - lo) / 2
     mean, std = l_m[:args.train].mean(0), l_m[:args.train].std(0)
-    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree)
+    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree,
+                         args.budget)
     start = time.perf_counter()
     path.fit_polynomial(q_n[:args.train], (l_m[:args.train] - mean) / std)
     seconds = time.perf_counter() - start
@@ -56,10 +61,17 @@ def main(argv=None):
     if args.branches == 2:
         branched = torch.nonzero(path.branched).flatten().tolist()
         print("two branches:", ", ".join(body.muscle_names[i] for i in branched))
-    for i in torch.argsort(per_muscle_p99, descending=True)[:8].tolist():
-        print(f"  {body.muscle_names[i]}: crosses {int(crossed[i].sum())}, median "
-              f"{float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm")
-
+    names = body.muscle_names
+    worst = torch.argsort(per_muscle_p99, descending=True)[:8].tolist()
+    shown = worst + [i for i, n in enumerate(names) if i not in worst and any(
+        n.startswith(p + "_") or n == p for p in args.muscles.split(","))]
+    degrees = (path.exponents.sum(1)[None, :] * path.term_mask).amax(1)
+    for i in shown:
+        arms = arm_mm[:, i][:, crossed[i]]
+        print(f"  {names[i]}: crosses {int(crossed[i].sum())}, degree {int(degrees[i])} ({int(path.term_mask[i].sum())} "
+              f"terms), length median {float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm; "
+              f"arms median {pct(arms, 50):.4f}, p99 {pct(arms, 99):.3f} mm/rad")
+    print(f"peak memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20:.1f} GB")
 
 if __name__ == "__main__":
     main()

@@ -46,8 +46,9 @@ def solve_systems(system, b, valid, ridge, scale=None):
 
 
 def _scatter(order, values, n_terms):
-    """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term."""
-    return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_(1, order, values)
+    """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term (padded entries hold 0 and
+    may repeat a column: they are added)."""
+    return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_add_(1, order, values)
 
 
 def _predict(phi, coefs):
@@ -191,22 +192,31 @@ def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
     return labels
 
 
-def fit_branches(path, x, y, system, b, order, valid, gate_degree, chunk=8192):
+def fit_branches(path, x, y, gram, rhs, order, gate_degree, chunk=8192):
     """Two branches and a gate for every heavy-tailed muscle of a fitted ``PerMusclePath`` (module docstring):
-    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain. ``system, b, order, valid`` are the
-    one-polynomial fit's padded normal equations (``PerMusclePath.fit_polynomial``). Labels come two ways
-    (``_labels_by_residual``, ``_labels_by_gate``); each muscle keeps the one whose gated model fits better."""
-    phi = torch.cat([path.basis(x[i:i + chunk])[0] for i in range(0, len(x), chunk)])  # (S, P), once
-    r = y - phi @ path.coef.T
+    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain. ``gram (P, P)``, ``rhs (P, M)`` are
+    the normal equations of every term and ``order (M, P)`` each muscle's terms first (``PerMusclePath.
+    fit_polynomial``). Labels come two ways (``_labels_by_residual``, ``_labels_by_gate``); each muscle keeps the
+    one whose gated model fits better."""
+    r = torch.cat([y[i:i + chunk] - path.basis(x[i:i + chunk])[0] @ path.coef.T for i in range(0, len(x), chunk)])
     tail = torch.quantile(r.abs(), 0.999, dim=0)
     tail = (tail > CANDIDATE_TAIL * r.abs().median(0).values) & (tail > TAIL_FLOOR)
     muscles = torch.nonzero(tail).flatten()
     if len(muscles) == 0:
         return
-    order_m, valid_m, y_m, r_m = order[muscles], valid[muscles], y[:, muscles], r[:, muscles]
-    gate_terms = _gate_terms(path, muscles, order_m, valid_m, gate_degree)
+    mask = path.term_mask[muscles]
+    order_g = order[muscles, :int(mask.sum(1).max())]  # the candidates' own normal equations, padded
+    valid_m, y_m, r_m = mask.gather(1, order_g), y[:, muscles], r[:, muscles]
+    system = gram[order_g[:, :, None], order_g[:, None, :]] * (valid_m[:, :, None] & valid_m[:, None, :])
+    b = rhs.T[muscles].gather(1, order_g) * valid_m
+    cols = torch.nonzero(mask.any(0)).flatten()  # the candidates' terms: the basis is kept for these only
+    local = torch.zeros(len(mask.T), dtype=torch.long, device=cols.device).index_copy_(
+        0, cols, torch.arange(len(cols), device=cols.device))  # term -> column of phi (padding: 0, masked)
+    phi = torch.cat([path.basis(x[i:i + chunk])[0][:, cols] for i in range(0, len(x), chunk)])  # (S, C), once
+    gate_order, gate_valid = _gate_terms(path, muscles, order_g, valid_m, gate_degree)
+    order_m, gate_terms = local[order_g], (local[gate_order], gate_valid)
     pair = lambda labels, idx=slice(None), refine=0: _fit_pair(  # noqa: E731
-        phi, y_m[:, idx], labels, system[muscles][idx], b[muscles][idx], order_m[idx], valid_m[idx],
+        phi, y_m[:, idx], labels, system[idx], b[idx], order_m[idx], valid_m[idx],
         BRANCH_RIDGE, chunk, refine)
     labels = [_labels_by_residual(phi, y_m, r_m, pair), _labels_by_gate(phi, y_m, r_m, pair, gate_terms, chunk)]
     both = torch.cat([torch.arange(len(muscles))] * 2)  # the two candidates of every muscle, batched
@@ -219,7 +229,6 @@ def fit_branches(path, x, y, system, b, order, valid, gate_degree, chunk=8192):
     pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles))
     keep = p99.min(0).values * 2 <= torch.quantile(r_m.abs(), 0.99, dim=0)  # the branches halve the p99
     kept, pick = muscles[keep], pick[keep]
-    path.coef[kept] = coef_a[pick]
-    path.coef_alt[kept] = coef_b[pick]
-    path.gate[kept] = gate[pick]
+    for name, value in (("coef", coef_a), ("coef_alt", coef_b), ("gate", gate)):  # columns back to terms
+        getattr(path, name)[kept] = torch.zeros_like(path.coef[kept]).index_copy_(1, cols, value[pick])
     path.branched[kept] = True

@@ -61,6 +61,9 @@ class StructuredSchema(BodySchema):
             (each muscle's path over the joints it crosses; ``path_degree``, ``path_hidden``, ``path_layers``).
         path_degree, path_terms: each muscle's polynomial has the highest total degree ``<= path_degree`` with at
             most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
+        path_term_budget: None, or the most polynomial terms over all muscles together: what ``path_terms`` leaves
+            raises the lowest degrees first, one degree at a time up to ``path_degree`` (the muscles that cross many
+            joints, which ``path_terms`` holds low; ``networks.degrees.muscle_degrees``).
         path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
         path_branches: 1 (one polynomial per muscle) or 2 (where a muscle's path jumps, a wrap switching sides: two
             polynomials and a gate of total degree <= ``path_gate_degree`` that picks one; ``networks.branches``).
@@ -81,7 +84,7 @@ class StructuredSchema(BodySchema):
                  batch_size: int = 256, block: str = "plain", norm: str = "none", length_model: str = "mlp",
                  path_degree: int = 6, path_terms: int = 500, path_hidden: int = 32, path_layers: int = 0,
                  muscle_joints: Optional[dict] = None, torque_degree: int = 6, path_branches: int = 1,
-                 path_gate_degree: int = 8):
+                 path_gate_degree: int = 8, path_term_budget: Optional[int] = None):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -114,7 +117,8 @@ class StructuredSchema(BodySchema):
         if hp.muscle_joints is not None:
             crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
         self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
-                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8))
+                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
+                                        hp.get("path_term_budget"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
