@@ -201,9 +201,14 @@ def fit_branches(path, x, y, gram, rhs, order, gate_degree, chunk=8192):
     r = torch.cat([y[i:i + chunk] - path.basis(x[i:i + chunk])[0] @ path.coef.T for i in range(0, len(x), chunk)])
     tail = torch.quantile(r.abs(), 0.999, dim=0)
     tail = (tail > CANDIDATE_TAIL * r.abs().median(0).values) & (tail > TAIL_FLOOR)
-    muscles = torch.nonzero(tail).flatten()
-    if len(muscles) == 0:
-        return
+    counts = path.term_mask.sum(1)
+    for k in torch.unique(counts[tail]).tolist():  # a loop over groups of candidates with equal term counts
+        _fit_group(path, x, y, r, gram, rhs, order, torch.nonzero(tail & (counts == k)).flatten(), gate_degree, chunk)
+
+
+def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
+    """``fit_branches`` for the candidate ``muscles``, whose polynomials have equal term counts (their systems are
+    then not padded: one candidate with many terms does not make every other's solves as large)."""
     mask = path.term_mask[muscles]
     order_g = order[muscles, :int(mask.sum(1).max())]  # the candidates' own normal equations, padded
     valid_m, y_m, r_m = mask.gather(1, order_g), y[:, muscles], r[:, muscles]
