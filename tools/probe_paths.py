@@ -2,13 +2,15 @@
 """How well per-muscle polynomials reach MuJoCo's myoArm muscle paths: least squares on exact lengths, held out.
 
     python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
-                                [--branches 1|2] [--gate-degree 8] [--budget TERMS] [--muscles A,B,...]
+                                [--branches 1|2] [--gate-degree 8] [--budget TERMS [--tolerance-mm MM]]
+                                [--muscles A,B,...]
 
 Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
 lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
 crosses, the highest total degree ``<= --degree`` with at most ``--terms`` terms; ``--branches 2``: two polynomials
 and a gate of degree ``--gate-degree`` where a path jumps; ``--budget``: the most terms over all muscles, what
-``--terms`` leaves raising the lowest degrees first) on the first ``--train`` and prints,
+``--terms`` leaves raising the lowest degrees first; with ``--tolerance-mm`` only in the muscles whose p99 after a
+first fit at ``--terms`` exceeds it) on the first ``--train`` and prints,
 on the rest: length error median and p99 [mm], moment-arm error on crossed pairs median and p99 [mm/rad], the
 largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, and the worst muscles. One torch thread.
 """
@@ -21,7 +23,7 @@ import torch
 import yaml
 
 from lightning_bodyschema.apps.common import exits_cleanly
-from lightning_bodyschema.networks.per_muscle import PerMusclePath
+from lightning_bodyschema.networks.per_muscle import PerMusclePath, degrees_within_tolerance
 
 
 @exits_cleanly
@@ -30,9 +32,12 @@ def main(argv=None):
     for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1),
                           ("branches", 1), ("gate-degree", 8), ("budget", None)):
         parser.add_argument(f"--{name}", type=int, default=default)
+    parser.add_argument("--tolerance-mm", type=float, default=None)
     parser.add_argument("--muscles", default="BIClong,TRIlong,SUP,DELT1,SUPSP,LAT1,LAT2,LAT3,TMAJ",
                         help="muscles to print (name prefixes, comma separated)")
     args = parser.parse_args(argv)
+    if args.tolerance_mm is not None and args.budget is None:
+        parser.error("--tolerance-mm needs --budget")
     torch.set_num_threads(1)
     from lightning_bodyschema.sim import MusculoskeletalModel
 
@@ -43,10 +48,13 @@ def main(argv=None):
     lo, hi = (torch.as_tensor(a) for a in body.q_range.T)
     q_n, half = 2 * (torch.as_tensor(q) - lo) / (hi - lo) - 1, (hi - lo) / 2
     mean, std = l_m[:args.train].mean(0), l_m[:args.train].std(0)
-    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree,
-                         args.budget)
     start = time.perf_counter()
-    path.fit_polynomial(q_n[:args.train], (l_m[:args.train] - mean) / std)
+    x_train, y_train = q_n[:args.train], (l_m[:args.train] - mean) / std
+    degrees = None if args.tolerance_mm is None else degrees_within_tolerance(
+        body.crossing(), x_train, y_train, 1e3 * std, args.degree, args.terms, args.budget, args.tolerance_mm)
+    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree,
+                         args.budget, degrees)
+    path.fit_polynomial(x_train, y_train)
     seconds = time.perf_counter() - start
     y, dy = path.with_jacobian(q_n[args.train:])
     length_mm = 1e3 * ((y * std + mean) - l_m[args.train:]).abs()

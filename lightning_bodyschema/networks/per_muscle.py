@@ -78,6 +78,27 @@ def check_crossing(crossing) -> np.ndarray:
     return crossing
 
 
+def check_degrees(degrees, n_muscles: int) -> np.ndarray:
+    """``degrees`` as an ``(M,)`` int array; one ``BodySchemaInputError`` unless M integers >= 1."""
+    values = np.asarray(degrees)
+    if values.shape != (n_muscles,) or values.dtype.kind not in "iu" or (values < 1).any():
+        raise BodySchemaInputError(f"degrees={degrees!r} must be {n_muscles} integers >= 1, one per muscle")
+    return values.astype(np.int64)
+
+
+@torch.no_grad()
+def degrees_within_tolerance(crossing, x: torch.Tensor, y: torch.Tensor, scale: torch.Tensor, degree: int,
+                             max_terms: int, budget: int, tolerance: float) -> np.ndarray:
+    """Each muscle's degree when a term budget goes only where it is needed: a first one-polynomial fit with at most
+    ``max_terms`` terms per muscle on ``x (S, N)``, ``y (S, M)``; the muscles whose p99 residual times ``scale (M,)``
+    exceeds ``tolerance`` (same units) then share ``budget`` (``muscle_degrees`` with ``eligible``)."""
+    crossing = check_crossing(crossing)
+    first = PerMusclePath(crossing, degree, 1, 0, max_terms).to(x.device)
+    first.fit_polynomial(x, y)
+    p99 = torch.quantile((first(x.to(torch.float64)) - y.to(torch.float64)).abs() * scale.to(x.device), 0.99, dim=0)
+    return muscle_degrees(crossing, degree, max_terms, budget, (p99 > tolerance).cpu().numpy())
+
+
 class PerMusclePath(nn.Module):
     """Lengths ``y (B, M)`` of M muscles at normalized postures ``x (B, N)`` (module docstring).
 
@@ -87,11 +108,13 @@ class PerMusclePath(nn.Module):
             ``max_terms`` terms over the joints it crosses (``muscle_degrees``).
         term_budget: None, or the most terms over all muscles together: what ``max_terms`` leaves is spent raising
             the lowest degrees first (the muscles that cross many joints; ``muscle_degrees``), up to ``degree``.
+        degrees: None, or each muscle's total degree ``(M,)`` (then ``degree``, ``max_terms`` and ``term_budget``
+            are not used; ``degrees_within_tolerance`` chooses them from data).
         hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
-                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None):
+                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
                                  ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1)):
@@ -103,7 +126,8 @@ class PerMusclePath(nn.Module):
         crossing = check_crossing(crossing)
         n_muscles, n_joints = crossing.shape
         self.n_hidden, self.branches, self.gate_degree = n_hidden, branches, gate_degree
-        degrees = muscle_degrees(crossing, degree, max_terms, term_budget)
+        degrees = muscle_degrees(crossing, degree, max_terms, term_budget) if degrees is None else \
+            check_degrees(degrees, len(crossing))
         self.degree = int(degrees.max())
         exponents = term_exponents(crossing, degrees)
         self.register_buffer("crossing", torch.tensor(crossing))

@@ -93,3 +93,53 @@ def test_a_large_batch_evaluated_in_blocks_gives_the_same_body(monkeypatch):
     monkeypatch.setattr(per_muscle, "BASIS_ELEMENTS", 7 * path.coef.shape[1])  # blocks of 7 rows
     for a, b in zip(whole, path.with_jacobian(x)):
         torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
+
+
+def test_with_a_tolerance_only_the_muscle_that_misses_it_gets_the_budget():
+    from lightning_bodyschema.networks.per_muscle import degrees_within_tolerance
+
+    truth_path = PerMusclePath(CROSSING, degree=14, n_hidden=0, degrees=[14, 4, 4, 5]).double()
+    truth = torch.zeros_like(truth_path.coef).normal_(generator=torch.Generator().manual_seed(8)) * truth_path.term_mask
+    x = torch.rand(4000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(9)) * 2 - 1
+    y = truth_path.basis(x)[0] @ truth.T  # muscles 0-2 within the limit's degrees [14, 4, 4]; muscle 3 of degree 5
+    scale = torch.ones(4, dtype=torch.float64)
+    # muscle 3 alone: 3 -> 4 (+15: 80), 4 -> 5 (+21: 101); 5 -> 6 would need +28 (129 > 113). Without the tolerance
+    # the same budget goes to the 2-joint muscles first and muscle 3 ends at degree 5 only with 113 (test above).
+    degrees = degrees_within_tolerance(CROSSING, x, y, scale, 14, 20, 113, 1e-6)
+    assert degrees.tolist() == [14, 4, 4, 5]
+    path = PerMusclePath(CROSSING, n_hidden=0, degrees=degrees).double()
+    path.fit_polynomial(x, y)
+    torch.testing.assert_close(path.coef, truth, atol=1e-9, rtol=0)
+    assert degrees_within_tolerance(CROSSING, x, y, scale, 14, 20, 113, 1e3).tolist() == [14, 4, 4, 3]
+
+
+@pytest.mark.parametrize("degrees", [[14, 4, 4], [14, 4, 4, 0], [14, 4.5, 4, 3]])
+def test_bad_explicit_degrees_are_refused(degrees):
+    with pytest.raises(BodySchemaInputError, match="4 integers >= 1, one per muscle"):
+        PerMusclePath(CROSSING, degrees=degrees)
+
+
+@pytest.mark.parametrize("tolerance_mm, degrees", [(1e3, [10, 10, 10, 10, 4, 4]),  # every muscle within 1 m
+                                                    (1e-9, [10, 10, 10, 10, 10, 10])])  # none within 1 pm
+def test_the_degrees_a_tolerance_chose_are_stored_and_the_checkpoint_answers_the_same(tmp_path, tolerance_mm,
+                                                                                       degrees):
+    schema, trainer = _fit(EquilibriumDataModule(n_samples=600, seed=0, cache_dir=None), length_model="per_muscle",
+                           path_degree=10, path_terms=20, path_term_budget=176, path_tolerance_mm=tolerance_mm,
+                           torque_model="polynomial", torque_degree=6)
+    assert schema.hparams.path_degrees == degrees
+    path = str(tmp_path / "tolerance.ckpt")
+    trainer.save_checkpoint(path, weights_only=False)
+    loaded = load_schema(path)
+    assert _muscle_degree(loaded.length_net) == degrees
+    q = torch.tensor([[0.3, 0.8], [-0.2, 1.2]], dtype=torch.float64)
+    for a, b in zip(schema.body_si(q), loaded.body_si(q)):
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("options", [{"path_tolerance_mm": 0.1},
+                                     {"path_tolerance_mm": -1.0, "path_term_budget": 10 ** 4}])
+def test_a_tolerance_without_a_budget_or_not_positive_is_refused(options):
+    from lightning_bodyschema.schemas import StructuredSchema
+
+    with pytest.raises(BodySchemaInputError, match="path_tolerance_mm"):
+        StructuredSchema(length_model="per_muscle", robot=EquilibriumDataModule(cache_dir=None).robot, **options)
