@@ -119,10 +119,10 @@ def test_bad_explicit_degrees_are_refused(degrees):
         PerMusclePath(CROSSING, degrees=degrees)
 
 
-@pytest.mark.parametrize("tolerance_mm, degrees", [(1e3, [10, 10, 10, 10, 4, 4]),  # every muscle within 1 m
-                                                    (1e-9, [10, 10, 10, 10, 10, 10])])  # none within 1 pm
-def test_the_degrees_a_tolerance_chose_are_stored_and_the_checkpoint_answers_the_same(tmp_path, tolerance_mm,
-                                                                                       degrees):
+def test_the_degrees_a_tolerance_chose_are_stored_and_the_checkpoint_answers_the_same(tmp_path):
+    # every muscle within 1 m after the first fit: nobody rises (the paper arm's paths are within reach of the limit's
+    # degrees, so the rise itself is tested on a known polynomial above)
+    tolerance_mm, degrees = 1e3, [10, 10, 10, 10, 4, 4]
     schema, trainer = _fit(EquilibriumDataModule(n_samples=600, seed=0, cache_dir=None), length_model="per_muscle",
                            path_degree=10, path_terms=20, path_term_budget=176, path_tolerance_mm=tolerance_mm,
                            torque_model="polynomial", torque_degree=6)
