@@ -3,7 +3,7 @@
 
     python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
                                 [--branches 1|2] [--gate-degree 8] [--budget TERMS [--tolerance-mm MM]]
-                                [--muscles A,B,...]
+                                [--muscles A,B,...] [--torque]
 
 Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
 lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
@@ -33,18 +33,25 @@ def main(argv=None):
                           ("branches", 1), ("gate-degree", 8), ("budget", None)):
         parser.add_argument(f"--{name}", type=int, default=default)
     parser.add_argument("--tolerance-mm", type=float, default=None)
+    parser.add_argument("--torque", action="store_true")
     parser.add_argument("--muscles", default="BIClong,TRIlong,SUP,DELT1,SUPSP,LAT1,LAT2,LAT3,TMAJ",
                         help="muscles to print (name prefixes, comma separated)")
     args = parser.parse_args(argv)
     if args.tolerance_mm is not None and args.budget is None:
         parser.error("--tolerance-mm needs --budget")
     torch.set_num_threads(1)
+    from lightning_bodyschema.data.dataset import load_or_build_dataset
     from lightning_bodyschema.sim import MusculoskeletalModel
+    from lightning_bodyschema.sim.spring import spring_for_model
 
     locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]
     body = MusculoskeletalModel("myo:myoarm", locked_joints=locks)
-    q = body.sample_q(np.random.default_rng(args.seed), args.train + args.test)
-    l_m, G, _ = (torch.as_tensor(a) for a in body.kinematics(q))
+    if args.torque:
+        data = load_or_build_dataset(body, args.train + args.test, args.seed, spring_for_model(body), progress=False)
+        q, f = data["q"], torch.as_tensor(data["f"])
+    else:
+        q = body.sample_q(np.random.default_rng(args.seed), args.train + args.test)
+    l_m, G, tau_bias = (torch.as_tensor(a) for a in body.kinematics(q))
     lo, hi = (torch.as_tensor(a) for a in body.q_range.T)
     q_n, half = 2 * (torch.as_tensor(q) - lo) / (hi - lo) - 1, (hi - lo) / 2
     mean, std = l_m[:args.train].mean(0), l_m[:args.train].std(0)
@@ -79,7 +86,25 @@ def main(argv=None):
         print(f"  {names[i]}: crosses {int(crossed[i].sum())}, degree {int(degrees[i])} ({int(path.term_mask[i].sum())} "
               f"terms), length median {float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm; "
               f"arms median {pct(arms, 50):.4f}, p99 {pct(arms, 99):.3f} mm/rad")
+    if args.torque:
+        dy_all = path.with_jacobian(q_n)[1]
+        torque_report(q_n, f, dy_all * (std[:, None] / half[None, :]), G, tau_bias, args.train, names)
     print(f"peak memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20:.1f} GB")
+
+def torque_report(q_n, f, G_hat, G, tau_bias, n_train, names, degree=7):
+    """Prints the polynomial torque's error against ``tau_bias`` on the postures after ``n_train``, fitted to
+    ``-G_hat^T f`` and to ``-G^T f``, and the muscles whose ``(G_hat - G)^T f`` is the largest (median [N m])."""
+    ref = tau_bias[n_train:].norm(dim=1).median()
+    for name, arms in (("learned", G_hat), ("MuJoCo's", G)):
+        torque = PerMusclePath(np.ones((q_n.shape[1],) * 2, bool), degree, 1, 0)
+        torque.fit_polynomial(q_n[:n_train], -torch.einsum("bmn,bm->bn", arms[:n_train], f[:n_train]))
+        error = (torque(q_n[n_train:]) - tau_bias[n_train:]).norm(dim=1)
+        print(f"torque fitted to -G^T f with {name} moment arms: median {100 * float(error.median() / ref):.2f} %, "
+              f"p99 {100 * float(torch.quantile(error, 0.99) / ref):.1f} % of the median |tau_bias| ({float(ref):.2f} N m)")
+    share = torch.einsum("bmn,bm->bmn", (G_hat - G)[n_train:], f[n_train:]).norm(dim=2).median(0).values
+    print("moment-arm errors times tension, median [N m]: " + ", ".join(
+        f"{names[i]} {float(share[i]):.3f}" for i in torch.argsort(share, descending=True)[:8].tolist()))
+
 
 if __name__ == "__main__":
     main()
