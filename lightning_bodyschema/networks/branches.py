@@ -13,7 +13,11 @@ picks the branch, all fitted from the samples alone (no branch label needed), ba
 2. per muscle and labelling, both branches refitted (refined against the samples: on part of the box the basis is
    ill-conditioned) and the gate a logistic regression of the labels (Newton steps, a ridge keeps it finite);
 3. a muscle keeps the better labelling's branches where the gated model halves the one polynomial's p99 residual
-   on the fitted samples; the others keep their one polynomial.
+   on the fitted samples and its largest residual there is at most ``SWING`` times the one polynomial's (a gate
+   slightly off the switch misses by about the jump, some twice the one polynomial's largest ring; a branch the gate
+   turns on away from the samples it was fitted on can swing much further: lengths off by metres, moment arms by
+   km/rad), and each branch holds at least ``SAMPLES_PER_TERM`` samples per term;
+   the others keep their one polynomial.
 
 The length at a posture is the active branch's polynomial and the moment arm its exact derivative: one-sided at
 the jump, which sits where the gate changes sign. Plain PyTorch, no Lightning.
@@ -33,6 +37,8 @@ BRANCH_RIDGE = 1e-15  # each branch's ridge, times the whole sample's diagonal (
 CANDIDATE_TAIL = 8.0  # a muscle is a candidate when its p99.9 residual exceeds this many medians
 TAIL_FLOOR = 1e-3  # and this (in the units of y: a normalized length, this fraction of its spread)
 HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_reassign)
+SWING = 4.0  # a kept gated model's largest residual is at most this many times the one polynomial's
+SAMPLES_PER_TERM = 3  # a kept branch's samples per term of its polynomial (fewer: it interpolates, and swings)
 NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a jump: the first gate's samples
 
 
@@ -230,9 +236,13 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     gate = _scatter(gate_terms[0][both], fit_gate(phi, labels, gate_terms[0][both], gate_terms[1][both], chunk),
                     phi.shape[1])
     pred_a, pred_b, g = _predict(phi, [coef_a, coef_b, gate])
-    p99 = torch.quantile((y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs(), 0.99, dim=0).view(2, -1)
+    miss = (y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs()
+    p99, worst = torch.quantile(miss, 0.99, dim=0).view(2, -1), miss.amax(0).view(2, -1)
     pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles))
     keep = p99.min(0).values * 2 <= torch.quantile(r_m.abs(), 0.99, dim=0)  # the branches halve the p99
+    keep &= worst.gather(0, p99.argmin(0)[None])[0] <= SWING * r_m.abs().amax(0)  # and no branch swings away
+    small = torch.minimum(labels.sum(0), len(labels) - labels.sum(0))[pick]  # and both are well determined
+    keep &= small >= SAMPLES_PER_TERM * valid_m.sum(1)
     kept, pick = muscles[keep], pick[keep]
     for name, value in (("coef", coef_a), ("coef_alt", coef_b), ("gate", gate)):  # columns back to terms
         getattr(path, name)[kept] = torch.zeros_like(path.coef[kept]).index_copy_(1, cols, value[pick])
