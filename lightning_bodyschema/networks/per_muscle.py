@@ -240,6 +240,22 @@ class PerMusclePath(nn.Module):
             self.branched.zero_()
             fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
 
+    @torch.no_grad()
+    def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3) -> torch.Tensor:
+        """``fit_polynomial``, then up to ``rounds`` refits without the samples whose residual norm over the muscles
+        exceeds ``factor`` times the median (a few wild targets otherwise pull the whole least squares); the kept
+        samples' mask ``(S,)``."""
+        keep = torch.ones(len(x), dtype=torch.bool, device=x.device)
+        self.fit_polynomial(x, y)
+        for _ in range(rounds):
+            miss = (self(x.to(torch.float64)) - y.to(torch.float64)).norm(dim=1)
+            new = miss <= factor * miss[keep].median()
+            if torch.equal(new, keep):
+                break
+            keep = new
+            self.fit_polynomial(x[keep], y[keep])
+        return keep
+
     def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` summed over chunks of samples (the chunks bound the memory)."""
         n_terms = self.coef.shape[1]

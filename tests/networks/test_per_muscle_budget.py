@@ -143,3 +143,17 @@ def test_a_tolerance_without_a_budget_or_not_positive_is_refused(options):
 
     with pytest.raises(BodySchemaInputError, match="path_tolerance_mm"):
         StructuredSchema(length_model="per_muscle", robot=EquilibriumDataModule(cache_dir=None).robot, **options)
+
+
+def test_a_trimmed_fit_recovers_a_polynomial_despite_wild_samples():
+    path = PerMusclePath(CROSSING, degree=4, n_hidden=0).double()
+    truth = torch.zeros_like(path.coef).normal_(generator=torch.Generator().manual_seed(10)) * path.term_mask
+    x = torch.rand(3000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(11)) * 2 - 1
+    y = path.basis(x)[0] @ truth.T
+    wild = y.clone()
+    wild[:5] += 1e4  # five samples a thousand times off, as a moment arm that swings between samples makes
+    keep = path.fit_trimmed(x, wild)
+    assert keep[5:].all() and not keep[:5].any()
+    torch.testing.assert_close(path.coef, truth, atol=1e-9, rtol=0)
+    path.fit_polynomial(x, wild)  # the plain least squares follows them
+    assert float((path.coef - truth).abs().max()) > 1.0
