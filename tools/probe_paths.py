@@ -12,7 +12,12 @@ and a gate of degree ``--gate-degree`` where a path jumps; ``--budget``: the mos
 ``--terms`` leaves raising the lowest degrees first; with ``--tolerance-mm`` only in the muscles whose p99 after a
 first fit at ``--terms`` exceeds it) on the first ``--train`` and prints,
 on the rest: length error median and p99 [mm], moment-arm error on crossed pairs median and p99 [mm/rad], the
-largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, and the worst muscles. One torch thread.
+largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, the worst muscles and those ``--muscles``
+names (each with its degree, length median / p99 and moment-arm median / p99), the peak memory. ``--torque``: the
+postures are those of an equilibrium dataset (configs/myoarm.yaml's spring; each posture's muscle tensions f), and a
+degree-7 polynomial torque per joint is fitted (trimmed, as the fit does) on the first ``--train`` to ``-G^T f`` twice,
+with the learned and with MuJoCo's moment arms, and scored against MuJoCo's tau_bias (median, % of the median
+|tau_bias|), with the muscles whose moment-arm errors carry the most torque at the data's tensions. One torch thread.
 """
 import argparse
 import resource
@@ -97,7 +102,7 @@ def torque_report(q_n, f, G_hat, G, tau_bias, n_train, names, degree=7):
     ref = tau_bias[n_train:].norm(dim=1).median()
     for name, arms in (("learned", G_hat), ("MuJoCo's", G)):
         torque = PerMusclePath(np.ones((q_n.shape[1],) * 2, bool), degree, 1, 0)
-        torque.fit_polynomial(q_n[:n_train], -torch.einsum("bmn,bm->bn", arms[:n_train], f[:n_train]))
+        torque.fit_trimmed(q_n[:n_train], -torch.einsum("bmn,bm->bn", arms[:n_train], f[:n_train]))  # as the fit
         error = (torque(q_n[n_train:]) - tau_bias[n_train:]).norm(dim=1)
         print(f"torque fitted to -G^T f with {name} moment arms: median {100 * float(error.median() / ref):.2f} %, "
               f"p99 {100 * float(torch.quantile(error, 0.99) / ref):.1f} % of the median |tau_bias| ({float(ref):.2f} N m)")
