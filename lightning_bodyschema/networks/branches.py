@@ -13,7 +13,11 @@ picks the branch, all fitted from the samples alone (no branch label needed), ba
 2. per muscle and labelling, both branches refitted (refined against the samples: on part of the box the basis is
    ill-conditioned) and the gate a logistic regression of the labels (Newton steps, a ridge keeps it finite);
 3. a muscle keeps the better labelling's branches where the gated model halves the one polynomial's p99 residual
-   on the fitted samples; the others keep their one polynomial.
+   on the fitted samples and its largest residual there is at most ``SWING`` times the one polynomial's (a gate
+   slightly off the switch misses by about the jump, some twice the one polynomial's largest ring; a branch the gate
+   turns on away from the samples it was fitted on can swing much further: lengths off by metres, moment arms by
+   km/rad), and each branch holds at least ``SAMPLES_PER_TERM`` samples per term;
+   the others keep their one polynomial.
 
 The length at a posture is the active branch's polynomial and the moment arm its exact derivative: one-sided at
 the jump, which sits where the gate changes sign. Plain PyTorch, no Lightning.
@@ -33,6 +37,8 @@ BRANCH_RIDGE = 1e-15  # each branch's ridge, times the whole sample's diagonal (
 CANDIDATE_TAIL = 8.0  # a muscle is a candidate when its p99.9 residual exceeds this many medians
 TAIL_FLOOR = 1e-3  # and this (in the units of y: a normalized length, this fraction of its spread)
 HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_reassign)
+SWING = 4.0  # a kept gated model's largest residual is at most this many times the one polynomial's
+SAMPLES_PER_TERM = 3  # a kept branch's samples per term of its polynomial (fewer: it interpolates, and swings)
 NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a jump: the first gate's samples
 
 
@@ -46,8 +52,9 @@ def solve_systems(system, b, valid, ridge, scale=None):
 
 
 def _scatter(order, values, n_terms):
-    """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term."""
-    return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_(1, order, values)
+    """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term (padded entries hold 0 and
+    may repeat a column: they are added)."""
+    return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_add_(1, order, values)
 
 
 def _predict(phi, coefs):
@@ -191,22 +198,36 @@ def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
     return labels
 
 
-def fit_branches(path, x, y, system, b, order, valid, gate_degree, chunk=8192):
+def fit_branches(path, x, y, gram, rhs, order, gate_degree, chunk=8192):
     """Two branches and a gate for every heavy-tailed muscle of a fitted ``PerMusclePath`` (module docstring):
-    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain. ``system, b, order, valid`` are the
-    one-polynomial fit's padded normal equations (``PerMusclePath.fit_polynomial``). Labels come two ways
-    (``_labels_by_residual``, ``_labels_by_gate``); each muscle keeps the one whose gated model fits better."""
-    phi = torch.cat([path.basis(x[i:i + chunk])[0] for i in range(0, len(x), chunk)])  # (S, P), once
-    r = y - phi @ path.coef.T
+    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain. ``gram (P, P)``, ``rhs (P, M)`` are
+    the normal equations of every term and ``order (M, P)`` each muscle's terms first (``PerMusclePath.
+    fit_polynomial``). Labels come two ways (``_labels_by_residual``, ``_labels_by_gate``); each muscle keeps the
+    one whose gated model fits better."""
+    r = torch.cat([y[i:i + chunk] - path.basis(x[i:i + chunk])[0] @ path.coef.T for i in range(0, len(x), chunk)])
     tail = torch.quantile(r.abs(), 0.999, dim=0)
     tail = (tail > CANDIDATE_TAIL * r.abs().median(0).values) & (tail > TAIL_FLOOR)
-    muscles = torch.nonzero(tail).flatten()
-    if len(muscles) == 0:
-        return
-    order_m, valid_m, y_m, r_m = order[muscles], valid[muscles], y[:, muscles], r[:, muscles]
-    gate_terms = _gate_terms(path, muscles, order_m, valid_m, gate_degree)
+    counts = path.term_mask.sum(1)
+    for k in torch.unique(counts[tail]).tolist():  # a loop over groups of candidates with equal term counts
+        _fit_group(path, x, y, r, gram, rhs, order, torch.nonzero(tail & (counts == k)).flatten(), gate_degree, chunk)
+
+
+def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
+    """``fit_branches`` for the candidate ``muscles``, whose polynomials have equal term counts (their systems are
+    then not padded: one candidate with many terms does not make every other's solves as large)."""
+    mask = path.term_mask[muscles]
+    order_g = order[muscles, :int(mask.sum(1).max())]  # the candidates' own normal equations, padded
+    valid_m, y_m, r_m = mask.gather(1, order_g), y[:, muscles], r[:, muscles]
+    system = gram[order_g[:, :, None], order_g[:, None, :]] * (valid_m[:, :, None] & valid_m[:, None, :])
+    b = rhs.T[muscles].gather(1, order_g) * valid_m
+    cols = torch.nonzero(mask.any(0)).flatten()  # the candidates' terms: the basis is kept for these only
+    local = torch.zeros(len(mask.T), dtype=torch.long, device=cols.device).index_copy_(
+        0, cols, torch.arange(len(cols), device=cols.device))  # term -> column of phi (padding: 0, masked)
+    phi = torch.cat([path.basis(x[i:i + chunk])[0][:, cols] for i in range(0, len(x), chunk)])  # (S, C), once
+    gate_order, gate_valid = _gate_terms(path, muscles, order_g, valid_m, gate_degree)
+    order_m, gate_terms = local[order_g], (local[gate_order], gate_valid)
     pair = lambda labels, idx=slice(None), refine=0: _fit_pair(  # noqa: E731
-        phi, y_m[:, idx], labels, system[muscles][idx], b[muscles][idx], order_m[idx], valid_m[idx],
+        phi, y_m[:, idx], labels, system[idx], b[idx], order_m[idx], valid_m[idx],
         BRANCH_RIDGE, chunk, refine)
     labels = [_labels_by_residual(phi, y_m, r_m, pair), _labels_by_gate(phi, y_m, r_m, pair, gate_terms, chunk)]
     both = torch.cat([torch.arange(len(muscles))] * 2)  # the two candidates of every muscle, batched
@@ -215,11 +236,14 @@ def fit_branches(path, x, y, system, b, order, valid, gate_degree, chunk=8192):
     gate = _scatter(gate_terms[0][both], fit_gate(phi, labels, gate_terms[0][both], gate_terms[1][both], chunk),
                     phi.shape[1])
     pred_a, pred_b, g = _predict(phi, [coef_a, coef_b, gate])
-    p99 = torch.quantile((y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs(), 0.99, dim=0).view(2, -1)
+    miss = (y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs()
+    p99, worst = torch.quantile(miss, 0.99, dim=0).view(2, -1), miss.amax(0).view(2, -1)
     pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles))
     keep = p99.min(0).values * 2 <= torch.quantile(r_m.abs(), 0.99, dim=0)  # the branches halve the p99
+    keep &= worst.gather(0, p99.argmin(0)[None])[0] <= SWING * r_m.abs().amax(0)  # and no branch swings away
+    small = torch.minimum(labels.sum(0), len(labels) - labels.sum(0))[pick]  # and both are well determined
+    keep &= small >= SAMPLES_PER_TERM * valid_m.sum(1)
     kept, pick = muscles[keep], pick[keep]
-    path.coef[kept] = coef_a[pick]
-    path.coef_alt[kept] = coef_b[pick]
-    path.gate[kept] = gate[pick]
+    for name, value in (("coef", coef_a), ("coef_alt", coef_b), ("gate", gate)):  # columns back to terms
+        getattr(path, name)[kept] = torch.zeros_like(path.coef[kept]).index_copy_(1, cols, value[pick])
     path.branched[kept] = True

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from typing import Optional
 
 import numpy as np
 import torch
@@ -30,6 +31,8 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .branches import fit_branches, solve_systems
 from .degrees import muscle_degrees
+
+BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
 
 
 def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,6 +78,27 @@ def check_crossing(crossing) -> np.ndarray:
     return crossing
 
 
+def check_degrees(degrees, n_muscles: int) -> np.ndarray:
+    """``degrees`` as an ``(M,)`` int array; one ``BodySchemaInputError`` unless M integers >= 1."""
+    values = np.asarray(degrees)
+    if values.shape != (n_muscles,) or values.dtype.kind not in "iu" or (values < 1).any():
+        raise BodySchemaInputError(f"degrees={degrees!r} must be {n_muscles} integers >= 1, one per muscle")
+    return values.astype(np.int64)
+
+
+@torch.no_grad()
+def degrees_within_tolerance(crossing, x: torch.Tensor, y: torch.Tensor, scale: torch.Tensor, degree: int,
+                             max_terms: int, budget: int, tolerance: float) -> np.ndarray:
+    """Each muscle's degree when a term budget goes only where it is needed: a first one-polynomial fit with at most
+    ``max_terms`` terms per muscle on ``x (S, N)``, ``y (S, M)``; the muscles whose p99 residual times ``scale (M,)``
+    exceeds ``tolerance`` (same units) then share ``budget`` (``muscle_degrees`` with ``eligible``)."""
+    crossing = check_crossing(crossing)
+    first = PerMusclePath(crossing, degree, 1, 0, max_terms).to(x.device)
+    first.fit_polynomial(x, y)
+    p99 = torch.quantile((first(x.to(torch.float64)) - y.to(torch.float64)).abs() * scale.to(x.device), 0.99, dim=0)
+    return muscle_degrees(crossing, degree, max_terms, budget, (p99 > tolerance).cpu().numpy())
+
+
 class PerMusclePath(nn.Module):
     """Lengths ``y (B, M)`` of M muscles at normalized postures ``x (B, N)`` (module docstring).
 
@@ -82,11 +106,15 @@ class PerMusclePath(nn.Module):
         crossing: ``(M, N)`` bool array (numpy or nested lists), which joints each muscle crosses.
         degree, max_terms: each muscle's polynomial has the highest total degree ``<= degree`` with at most
             ``max_terms`` terms over the joints it crosses (``muscle_degrees``).
+        term_budget: None, or the most terms over all muscles together: what ``max_terms`` leaves is spent raising
+            the lowest degrees first (the muscles that cross many joints; ``muscle_degrees``), up to ``degree``.
+        degrees: None, or each muscle's total degree ``(M,)`` (then ``degree``, ``max_terms`` and ``term_budget``
+            are not used; ``degrees_within_tolerance`` chooses them from data).
         hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
-                 branches: int = 1, gate_degree: int = 4):
+                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
                                  ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1)):
@@ -98,7 +126,8 @@ class PerMusclePath(nn.Module):
         crossing = check_crossing(crossing)
         n_muscles, n_joints = crossing.shape
         self.n_hidden, self.branches, self.gate_degree = n_hidden, branches, gate_degree
-        degrees = muscle_degrees(crossing, degree, max_terms)
+        degrees = muscle_degrees(crossing, degree, max_terms, term_budget) if degrees is None else \
+            check_degrees(degrees, len(crossing))
         self.degree = int(degrees.max())
         exponents = term_exponents(crossing, degrees)
         self.register_buffer("crossing", torch.tensor(crossing))
@@ -145,7 +174,16 @@ class PerMusclePath(nn.Module):
 
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
-        high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``)."""
+        high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
+        Large batches are evaluated in blocks of rows (the basis holds ~2N + 3 ``(rows, P)`` tensors)."""
+        rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
+        if len(x) <= rows:
+            return self._polynomial(x, slopes)
+        parts = [self._polynomial(x[start:start + rows], slopes) for start in range(0, len(x), rows)]
+        return torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if slopes else None
+
+    def _polynomial(self, x: torch.Tensor, slopes: bool):
+        """``polynomial`` on one block of rows."""
         x64 = x.to(torch.float64)
         inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
         coef = self.coef * self.term_mask
@@ -181,29 +219,53 @@ class PerMusclePath(nn.Module):
 
     @torch.no_grad()
     def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-12, chunk: int = 8192) -> None:
-        """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64, all muscles in one
-        batched solve (each muscle's own terms gathered into a padded ``(M, K, K)`` system)."""
+        """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64: the normal equations
+        of every term summed once over the samples, then each group of muscles with the same number of terms solved
+        in one batched solve of their own terms (no padding: memory grows with each group, not with the largest)."""
         x, y = x.to(torch.float64), y.to(torch.float64)
         self.x_lo.copy_(x.amin(0))
         self.x_hi.copy_(x.amax(0))
+        gram, rhs = self._normal_equations(x, y, chunk)
+        mask = self.term_mask
+        order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)  # each muscle's terms first
+        counts, coef = mask.sum(1), torch.zeros_like(self.coef)
+        for k in torch.unique(counts).tolist():  # a loop over groups of equal size; the maths in a group is batched
+            muscles = torch.nonzero(counts == k).flatten()
+            terms = order[muscles, :k]
+            system, b = gram[terms[:, :, None], terms[:, None, :]], rhs.T[muscles].gather(1, terms)
+            coef[muscles] = coef[muscles].scatter(1, terms, solve_systems(system, b, torch.ones_like(b, dtype=torch.bool),
+                                                                          ridge))
+        self.coef.copy_(coef * mask)
+        if self.branches == 2:
+            self.branched.zero_()
+            fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
+
+    @torch.no_grad()
+    def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3) -> torch.Tensor:
+        """``fit_polynomial``, then up to ``rounds`` refits without the samples whose residual norm over the muscles
+        exceeds ``factor`` times the median (a few wild targets otherwise pull the whole least squares); the kept
+        samples' mask ``(S,)``."""
+        keep = torch.ones(len(x), dtype=torch.bool, device=x.device)
+        self.fit_polynomial(x, y)
+        for _ in range(rounds):
+            miss = (self(x.to(torch.float64)) - y.to(torch.float64)).norm(dim=1)
+            new = miss <= factor * miss[keep].median()
+            if torch.equal(new, keep):
+                break
+            keep = new
+            self.fit_polynomial(x[keep], y[keep])
+        return keep
+
+    def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` summed over chunks of samples (the chunks bound the memory)."""
         n_terms = self.coef.shape[1]
         gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
         rhs = torch.zeros(n_terms, y.shape[1], dtype=torch.float64, device=x.device)
-        for start in range(0, len(x), chunk):  # chunks of samples bound the memory; the maths is batched
+        for start in range(0, len(x), chunk):
             phi = self.basis(x[start:start + chunk])[0]
             gram += phi.T @ phi
             rhs += phi.T @ y[start:start + chunk]
-        mask = self.term_mask
-        k = int(mask.sum(1).max())
-        order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)[:, :k]  # each muscle's terms first
-        valid = mask.gather(1, order)  # (M, K)
-        system = gram[order[:, :, None], order[:, None, :]] * (valid[:, :, None] & valid[:, None, :])
-        b = rhs.T.gather(1, order) * valid
-        solution = solve_systems(system, b, valid, ridge)
-        self.coef.copy_(torch.zeros_like(self.coef).scatter_(1, order, solution) * mask)
-        if self.branches == 2:
-            self.branched.zero_()
-            fit_branches(self, x, y, system, b, order, valid, self.gate_degree, chunk)
+        return gram, rhs
 
     # ------------------------------------------------------------------ the network
     def _network(self, x: torch.Tensor, slopes: bool):

@@ -31,7 +31,7 @@ from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import OK, bounds_command
-from ..networks.per_muscle import PerMusclePath
+from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
 from ..status import Status
 from .base import BodySchema
@@ -61,6 +61,14 @@ class StructuredSchema(BodySchema):
             (each muscle's path over the joints it crosses; ``path_degree``, ``path_hidden``, ``path_layers``).
         path_degree, path_terms: each muscle's polynomial has the highest total degree ``<= path_degree`` with at
             most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
+        path_term_budget: None, or the most polynomial terms over all muscles together: what ``path_terms`` leaves
+            raises the lowest degrees first, one degree at a time up to ``path_degree`` (the muscles that cross many
+            joints, which ``path_terms`` holds low; ``networks.degrees.muscle_degrees``).
+        path_tolerance_mm: None, or with ``path_term_budget`` a length error [mm]: the budget goes only to the
+            muscles whose p99 training residual after a first fit at ``path_terms`` exceeds it
+            (``networks.per_muscle.degrees_within_tolerance``).
+        path_degrees: each muscle's degree, set by the fit when ``path_tolerance_mm`` is given (a checkpoint then
+            rebuilds the same polynomials); given, it replaces the rule above.
         path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
         path_branches: 1 (one polynomial per muscle) or 2 (where a muscle's path jumps, a wrap switching sides: two
             polynomials and a gate of total degree <= ``path_gate_degree`` that picks one; ``networks.branches``).
@@ -81,7 +89,8 @@ class StructuredSchema(BodySchema):
                  batch_size: int = 256, block: str = "plain", norm: str = "none", length_model: str = "mlp",
                  path_degree: int = 6, path_terms: int = 500, path_hidden: int = 32, path_layers: int = 0,
                  muscle_joints: Optional[dict] = None, torque_degree: int = 6, path_branches: int = 1,
-                 path_gate_degree: int = 8):
+                 path_gate_degree: int = 8, path_term_budget: Optional[int] = None,
+                 path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -93,6 +102,10 @@ class StructuredSchema(BodySchema):
         if torque_model == "polynomial" and length_model != "per_muscle":
             raise BodySchemaInputError("torque_model='polynomial' needs length_model='per_muscle'")
         check_architecture(block, norm)
+        if path_tolerance_mm is not None and (path_term_budget is None or isinstance(path_tolerance_mm, bool) or
+                                              not 0.0 < float(path_tolerance_mm) < float("inf")):
+            raise BodySchemaInputError(f"path_tolerance_mm={path_tolerance_mm!r} must be a finite number > 0 [mm], "
+                                       f"with a path_term_budget to share")
         self.save_hyperparameters()
         if length_model == "per_muscle":
             self.hparams.muscle_joints = resolve_crossing(self.robot_model, robot, muscle_joints)
@@ -114,7 +127,8 @@ class StructuredSchema(BodySchema):
         if hp.muscle_joints is not None:
             crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
         self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
-                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8))
+                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
+                                        hp.get("path_term_budget"), hp.get("path_degrees"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -134,19 +148,31 @@ class StructuredSchema(BodySchema):
                                                             self.hparams.muscle_joints)
             self._build_paths()
             self.length_net.to(self.device)
+        if self.hparams.get("path_tolerance_mm") is not None and self.hparams.get("path_degrees") is None:
+            self._choose_degrees(q_n.to(self.device), target_n.to(self.device))
         self.length_net.fit_polynomial(q_n.to(self.device), target_n.to(self.device))
         if self.hparams.torque_model == "polynomial":
             self._fit_torque(q_n.to(self.device), x[:, self.n_muscles:].to(self.device, torch.float64))
 
+    def _choose_degrees(self, q_n: torch.Tensor, target_n: torch.Tensor) -> None:
+        """``hparams.path_degrees`` from a first fit (``path_tolerance_mm``), and the path model rebuilt with them."""
+        hp, l_std_mm = self.hparams, 1e3 * self.normalizer.x_std[:self.n_muscles]
+        degrees = degrees_within_tolerance(self.length_net.crossing.cpu().numpy(), q_n, target_n, l_std_mm,
+                                           hp.path_degree, hp.path_terms, hp.path_term_budget, hp.path_tolerance_mm)
+        hp.path_degrees = degrees.tolist()
+        self._build_paths()
+        self.length_net.to(self.device)
+
     @torch.no_grad()
     def _fit_torque(self, q_n: torch.Tensor, f: torch.Tensor, chunk: int = 4096) -> None:
         """Least squares of the polynomial torque on ``-G(q)^T f`` of the learned moment arms, at most
-        ``TORQUE_FIT_POSTURES`` postures (float64)."""
+        ``TORQUE_FIT_POSTURES`` postures (float64), trimmed of the postures it misses by far (``PerMusclePath.
+        fit_trimmed``: where a learned moment arm swings between samples its torque is no smooth function's)."""
         q_n, f = q_n[:TORQUE_FIT_POSTURES].to(torch.float64), f[:TORQUE_FIT_POSTURES].to(torch.float64)
         arm_scale = self._arm_scale().to(q_n)
         target = torch.cat([-torch.einsum("bmn,bm->bn", self.length_net.with_jacobian(q_n[i:i + chunk].to(
             self.dtype))[1].to(torch.float64) * arm_scale, f[i:i + chunk]) for i in range(0, len(q_n), chunk)])
-        self.torque_net.fit_polynomial(q_n, target / self.tau_scale_nm.to(q_n))
+        self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n))
 
     def refresh_from_train_split(self, q_n, x_n) -> None:
         """The polynomial torque refitted to the current moment arms (when the lengths have trained weights)."""

@@ -94,3 +94,18 @@ def test_state_dict_round_trip_keeps_the_branches(fitted):
     x = torch.rand(100, 3, dtype=torch.float64) * 1.98 - 0.99
     assert torch.equal(copy(x), path(x))
     assert copy.float().coef_alt.dtype == torch.float64  # dtype casts leave the coefficients in float64
+
+
+@pytest.mark.parametrize("samples_per_term, branched", [(3, False), (0, True)])
+def test_a_branch_with_too_few_samples_per_term_is_not_kept(monkeypatch, samples_per_term, branched):
+    from lightning_bodyschema.networks import branches
+
+    monkeypatch.setattr(branches, "SAMPLES_PER_TERM", samples_per_term)
+    path = PerMusclePath(CROSSING, degree=8, n_hidden=0, branches=2, gate_degree=2).double()
+    first, second = _truth(path)
+    x = torch.rand(300, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4)) * 2 - 1
+    path.fit_polynomial(x, _lengths(path, first, second, x))
+    # muscle 0's smaller branch holds ~100 of the 300 samples, fewer than 3 per term of its 45 (degree 8, 2 joints):
+    # it would interpolate them, and swing between them
+    assert 45 < int((_surface(x) > 0).sum()) < 3 * 45
+    assert path.branched.tolist() == [branched, False, False]
