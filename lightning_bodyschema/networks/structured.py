@@ -13,7 +13,7 @@ from ..errors import BodySchemaInputError
 BLOCKS = ("plain", "residual")
 # postures per pass of ``with_jacobian``: the tangents of 256 postures (256 x in_dim x width floats) stay in the
 # core's cache between a layer's elementwise product and its matmul, and no pass allocates tens of megabytes (the
-# allocator maps those fresh from the kernel each call); 1.6x faster on myoArm at batch 4000 than one pass
+# allocator maps those fresh from the kernel each call; BENCHMARKS.md, "Figures behind code choices")
 JACOBIAN_CHUNK = 256
 NORMS = ("none", "layer")
 
@@ -92,7 +92,7 @@ class JacobianMLP(nn.Module):
         first = self.layers[0]
         h = F.linear(x, first.weight, first.bias)
         # d h / d x (1, in, width), rows = input directions, broadcast over B; contiguous: the products below then are
-        # too, and a matmul of the transposed layout is many times slower (12x at one posture)
+        # too (a matmul of the transposed layout is many times slower; BENCHMARKS.md, "Figures behind code choices")
         tangent = first.weight.T.contiguous().unsqueeze(0)
         for layer, norm, residual in self._steps():
             z = h if norm is None else norm(h)
