@@ -114,7 +114,8 @@ def compare(cases, spring, args):
               f"batched ({args.threads} thread) {t_new:.3f} ms per case; ratio {t_old / t_new:.1f}x")
     crossed, unbalanced = kinds(cases, spring)
     long = qp.fault_command(*(cases[k] for k in ARGS), spring, max_iter=200)[2] != "ok"
-    print(f"  cases ok at max_iter 200 but not at QP_MAX_ITER={qp.QP_MAX_ITER}: {(~long & (crossed | unbalanced)).sum()}")
+    late = (~long & (crossed | unbalanced)).sum()
+    print(f"  cases ok at max_iter 200 but not at QP_MAX_ITER={qp.QP_MAX_ITER}: {late}")
     holdable = ~crossed & ~unbalanced
     for label, mask in (("holdable", holdable), ("crossed bounds", crossed), ("box cannot balance", unbalanced)):
         idx = np.flatnonzero(mask)

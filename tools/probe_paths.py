@@ -88,8 +88,9 @@ def main(argv=None):
     degrees = (path.exponents.sum(1)[None, :] * path.term_mask).amax(1)
     for i in shown:
         arms = arm_mm[:, i][:, crossed[i]]
-        print(f"  {names[i]}: crosses {int(crossed[i].sum())}, degree {int(degrees[i])} ({int(path.term_mask[i].sum())} "
-              f"terms), length median {float(length_mm[:, i].median()):.4f} mm, p99 {float(per_muscle_p99[i]):.3f} mm; "
+        print(f"  {names[i]}: crosses {int(crossed[i].sum())}, degree {int(degrees[i])} "
+              f"({int(path.term_mask[i].sum())} terms), length median {float(length_mm[:, i].median()):.4f} mm, "
+              f"p99 {float(per_muscle_p99[i]):.3f} mm; "
               f"arms median {pct(arms, 50):.4f}, p99 {pct(arms, 99):.3f} mm/rad")
     if args.torque:
         dy_all = path.with_jacobian(q_n)[1]
@@ -105,7 +106,8 @@ def torque_report(q_n, f, G_hat, G, tau_bias, n_train, names, degree=7):
         torque.fit_trimmed(q_n[:n_train], -torch.einsum("bmn,bm->bn", arms[:n_train], f[:n_train]))  # as the fit
         error = (torque(q_n[n_train:]) - tau_bias[n_train:]).norm(dim=1)
         print(f"torque fitted to -G^T f with {name} moment arms: median {100 * float(error.median() / ref):.2f} %, "
-              f"p99 {100 * float(torch.quantile(error, 0.99) / ref):.1f} % of the median |tau_bias| ({float(ref):.2f} N m)")
+              f"p99 {100 * float(torch.quantile(error, 0.99) / ref):.1f} % of the median |tau_bias| "
+              f"({float(ref):.2f} N m)")
     share = torch.einsum("bmn,bm->bmn", (G_hat - G)[n_train:], f[n_train:]).norm(dim=2).median(0).values
     print("moment-arm errors times tension, median [N m]: " + ", ".join(
         f"{names[i]} {float(share[i]):.3f}" for i in torch.argsort(share, descending=True)[:8].tolist()))

@@ -51,6 +51,15 @@ def solve_systems(system, b, valid, ridge, scale=None):
     return torch.linalg.solve(system, (b * valid).unsqueeze(-1)).squeeze(-1) * valid
 
 
+def group_system(gram, rhs, muscles, terms, valid=None):
+    """The normal equations of ``muscles`` over their own ``terms (G, K)`` (indices into every term's ``gram (P, P)``
+    and ``rhs (P, M)``): ``(G, K, K)`` and ``(G, K)``, padded entries (``~valid (G, K)``) 0."""
+    system, b = gram[terms[:, :, None], terms[:, None, :]], rhs.T[muscles].gather(1, terms)
+    if valid is None:
+        return system, b
+    return system * (valid[:, :, None] & valid[:, None, :]), b * valid
+
+
 def _scatter(order, values, n_terms):
     """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term (padded entries hold 0 and
     may repeat a column: they are added)."""
@@ -218,8 +227,7 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     mask = path.term_mask[muscles]
     order_g = order[muscles, :int(mask.sum(1).max())]  # the candidates' own normal equations, padded
     valid_m, y_m, r_m = mask.gather(1, order_g), y[:, muscles], r[:, muscles]
-    system = gram[order_g[:, :, None], order_g[:, None, :]] * (valid_m[:, :, None] & valid_m[:, None, :])
-    b = rhs.T[muscles].gather(1, order_g) * valid_m
+    system, b = group_system(gram, rhs, muscles, order_g, valid_m)
     cols = torch.nonzero(mask.any(0)).flatten()  # the candidates' terms: the basis is kept for these only
     local = torch.zeros(len(mask.T), dtype=torch.long, device=cols.device).index_copy_(
         0, cols, torch.arange(len(cols), device=cols.device))  # term -> column of phi (padding: 0, masked)

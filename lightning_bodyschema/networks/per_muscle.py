@@ -29,7 +29,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .branches import fit_branches, solve_systems
+from .branches import fit_branches, group_system, solve_systems
 from .degrees import muscle_degrees
 
 BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
@@ -232,9 +232,9 @@ class PerMusclePath(nn.Module):
         for k in torch.unique(counts).tolist():  # a loop over groups of equal size; the maths in a group is batched
             muscles = torch.nonzero(counts == k).flatten()
             terms = order[muscles, :k]
-            system, b = gram[terms[:, :, None], terms[:, None, :]], rhs.T[muscles].gather(1, terms)
-            coef[muscles] = coef[muscles].scatter(1, terms, solve_systems(system, b, torch.ones_like(b, dtype=torch.bool),
-                                                                          ridge))
+            system, b = group_system(gram, rhs, muscles, terms)
+            solution = solve_systems(system, b, torch.ones_like(b, dtype=torch.bool), ridge)
+            coef[muscles] = coef[muscles].scatter(1, terms, solution)
         self.coef.copy_(coef * mask)
         if self.branches == 2:
             self.branched.zero_()

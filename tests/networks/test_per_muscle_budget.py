@@ -16,7 +16,8 @@ CROSSING = np.array([[1, 0, 0], [1, 1, 0], [0, 1, 1], [1, 1, 1]], dtype=bool)  #
 
 
 @pytest.mark.parametrize("budget, degrees", [(None, [14, 4, 4, 3]), (65, [14, 4, 4, 3]), (80, [14, 4, 4, 4]),
-                                             (91, [14, 5, 4, 4]), (92, [14, 5, 5, 4]), (127, [14, 6, 6, 5]), (200, [14, 7, 7, 6])])
+                                             (91, [14, 5, 4, 4]), (92, [14, 5, 5, 4]), (127, [14, 6, 6, 5]),
+                                             (200, [14, 7, 7, 6])])
 def test_the_budget_raises_the_lowest_degree_first(budget, degrees):
     # terms: C(1 + d, 1), C(2 + d, 2), C(3 + d, 3); with at most 20 each: 15 + 15 + 15 + 20 = 65. Then the 3-joint
     # muscle 3 -> 4 (+15: 80); at degree 4 the cheapest first: the 2-joint ones (+6 each: 86, 92), then the
@@ -69,7 +70,8 @@ def test_a_schema_checkpoint_from_before_the_budget_answers_as_before(tmp_path):
     schema, trainer = _fit(EquilibriumDataModule(n_samples=600, seed=0, cache_dir=None), length_model="per_muscle",
                            path_degree=10, path_terms=20, path_term_budget=176, torque_model="polynomial",
                            torque_degree=6)
-    assert _muscle_degree(schema.length_net) == [10, 10, 10, 10, 10, 10]  # 4 x C(11, 1) + 2 x C(12, 2) = 176: the 2-joint muscles lifted from 4 to 10
+    # 4 x C(11, 1) + 2 x C(12, 2) = 176: the 2-joint muscles lifted from 4 to 10
+    assert _muscle_degree(schema.length_net) == [10, 10, 10, 10, 10, 10]
     path = str(tmp_path / "before_budget.ckpt")
     trainer.save_checkpoint(path, weights_only=False)
     checkpoint = torch.load(path, weights_only=True)
