@@ -3,14 +3,15 @@
 
     python tools/probe_paths.py [--degree 14] [--terms 500] [--train 40000] [--test 20000] [--seed 1]
                                 [--branches 1|2] [--gate-degree 8] [--budget TERMS [--tolerance-mm MM]]
-                                [--muscles A,B,...] [--torque]
+                                [--cells PIECES] [--muscles A,B,...] [--torque]
 
 Draws ``--train + --test`` uniform postures of configs/myoarm.yaml's body (its locked joints), takes MuJoCo's exact
 lengths and moment arms, fits ``networks.per_muscle.PerMusclePath`` (each muscle's polynomial over the joints it
 crosses, the highest total degree ``<= --degree`` with at most ``--terms`` terms; ``--branches 2``: two polynomials
 and a gate of degree ``--gate-degree`` where a path jumps; ``--budget``: the most terms over all muscles, what
 ``--terms`` leaves raising the lowest degrees first; with ``--tolerance-mm`` only in the muscles whose p99 after a
-first fit at ``--terms`` exceeds it) on the first ``--train`` and prints,
+first fit at ``--terms`` exceeds it; ``--cells 2``: the muscles a smooth polynomial fits worst get a polynomial per
+cell of their joints' box cut in two per joint, ``networks.cells``) on the first ``--train`` and prints,
 on the rest: length error median and p99 [mm], moment-arm error on crossed pairs median and p99 [mm/rad], the
 largest moment arm on uncrossed pairs, the muscles with p99 <= 0.1 mm, the worst muscles and those ``--muscles``
 names (each with its degree, length median / p99 and moment-arm median / p99), the peak memory. ``--torque``: the
@@ -35,7 +36,7 @@ from lightning_bodyschema.networks.per_muscle import PerMusclePath, degrees_with
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     for name, default in (("degree", 14), ("terms", 500), ("train", 40000), ("test", 20000), ("seed", 1),
-                          ("branches", 1), ("gate-degree", 8), ("budget", None)):
+                          ("branches", 1), ("gate-degree", 8), ("budget", None), ("cells", 1)):
         parser.add_argument(f"--{name}", type=int, default=default)
     parser.add_argument("--tolerance-mm", type=float, default=None)
     parser.add_argument("--torque", action="store_true")
@@ -65,7 +66,7 @@ def main(argv=None):
     degrees = None if args.tolerance_mm is None else degrees_within_tolerance(
         body.crossing(), x_train, y_train, 1e3 * std, args.degree, args.terms, args.budget, args.tolerance_mm)
     path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree,
-                         args.budget, degrees)
+                         args.budget, degrees, args.cells)
     path.fit_polynomial(x_train, y_train)
     seconds = time.perf_counter() - start
     y, dy = path.with_jacobian(q_n[args.train:])
@@ -78,10 +79,14 @@ def main(argv=None):
           f"p99 {pct(length_mm, 99):.3f} mm; moment arms (crossed) median {pct(arm_mm[:, crossed], 50):.4f} mm/rad, "
           f"p99 {pct(arm_mm[:, crossed], 99):.3f}; uncrossed largest {float(dy[:, ~crossed].abs().max()):.3g}; "
           f"{int((per_muscle_p99 <= 0.1).sum())} of {len(per_muscle_p99)} muscles with p99 <= 0.1 mm")
+    names = body.muscle_names
     if args.branches == 2:
         branched = torch.nonzero(path.branched).flatten().tolist()
         print("two branches:", ", ".join(body.muscle_names[i] for i in branched))
-    names = body.muscle_names
+    if args.cells > 1:
+        print("cells (degree, fitted/all):", ", ".join(
+            f"{names[i]} ({int(path.cell_degrees[i])}, {int(done.sum())}/{args.cells ** int(crossed[i].sum())})"
+            for i, done in zip(path.cell_muscles.tolist(), path.cell_fitted)))
     worst = torch.argsort(per_muscle_p99, descending=True)[:8].tolist()
     shown = worst + [i for i, n in enumerate(names) if i not in worst and any(
         n.startswith(p + "_") or n == p for p in args.muscles.split(","))]
@@ -96,6 +101,7 @@ def main(argv=None):
         dy_all = path.with_jacobian(q_n)[1]
         torque_report(q_n, f, dy_all * (std[:, None] / half[None, :]), G, tau_bias, args.train, names)
     print(f"peak memory {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20:.1f} GB")
+
 
 def torque_report(q_n, f, G_hat, G, tau_bias, n_train, names, degree=7):
     """Prints the polynomial torque's error against ``tau_bias`` on the postures after ``n_train``, fitted to

@@ -13,6 +13,9 @@ around the jump. With ``branches=2`` every muscle whose one-polynomial residual 
 polynomial (same terms) and a gate, a low-degree polynomial whose sign picks the branch (``networks.branches``):
 the length at a posture is then its branch's polynomial and the moment arm that polynomial's exact derivative, so
 the learned length jumps where the gate changes sign (a QP at one posture sees that posture's branch only).
+With ``cells=2`` the muscles a smooth polynomial fits worst get one polynomial per cell of their joints' box cut in
+halves (``networks.cells``): a wrapping path is smooth in pieces, and a polynomial over a smaller box fits it far
+better.
 
 ``with_jacobian(x)`` gives the lengths and their exact derivative; the derivative on a joint a muscle does not
 cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lightning.
@@ -29,22 +32,12 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
+from .basis import legendre, product_basis  # noqa: F401 (legendre: part of this module's interface)
 from .branches import fit_branches, group_system, solve_systems
+from .cells import cell_layout, evaluate_cells, fit_cells
 from .degrees import muscle_degrees
 
 BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
-
-
-def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Legendre polynomials ``P_0..P_degree`` of ``x (B, N)`` and their derivatives: two ``(B, N, degree + 1)``."""
-    values, slopes = [torch.ones_like(x)], [torch.zeros_like(x)]
-    if degree >= 1:
-        values.append(x)
-        slopes.append(torch.ones_like(x))
-    for n in range(1, degree):  # (n+1) P_{n+1} = (2n+1) x P_n - n P_{n-1};  P'_{n+1} = P'_{n-1} + (2n+1) P_n
-        values.append(((2 * n + 1) * x * values[n] - n * values[n - 1]) / (n + 1))
-        slopes.append(slopes[n - 1] + (2 * n + 1) * values[n])
-    return torch.stack(values, -1), torch.stack(slopes, -1)
 
 
 def term_exponents(crossing: np.ndarray, degrees: np.ndarray) -> np.ndarray:
@@ -111,13 +104,17 @@ class PerMusclePath(nn.Module):
         degrees: None, or each muscle's total degree ``(M,)`` (then ``degree``, ``max_terms`` and ``term_budget``
             are not used; ``degrees_within_tolerance`` chooses them from data).
         hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
+        branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` where a path jumps.
+        cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst get ``cells ** n`` cells
+            over their ``n`` joints, one polynomial each (``networks.cells``).
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
-                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None):
+                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
+                 cells: int = 1, cell_degrees=None):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
-                                 ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1)):
+                                 ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise BodySchemaInputError(f"{name}={value!r} must be an integer >= {low}")
         if branches not in (1, 2) or isinstance(branches, bool):
@@ -125,19 +122,23 @@ class PerMusclePath(nn.Module):
                                        f"and a gate where a muscle's path jumps)")
         crossing = check_crossing(crossing)
         n_muscles, n_joints = crossing.shape
-        self.n_hidden, self.branches, self.gate_degree = n_hidden, branches, gate_degree
+        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
         degrees = muscle_degrees(crossing, degree, max_terms, term_budget) if degrees is None else \
             check_degrees(degrees, len(crossing))
         self.degree = int(degrees.max())
         exponents = term_exponents(crossing, degrees)
         self.register_buffer("crossing", torch.tensor(crossing))
         self.register_buffer("exponents", torch.tensor(exponents))
-        self.register_buffer("term_mask", torch.tensor(term_mask(crossing, exponents, degrees)))  # (M, P)
+        mask = term_mask(crossing, exponents, degrees)
+        self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
         if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branches)
             self.register_buffer("coef_alt", torch.zeros_like(self.coef))
             self.register_buffer("gate", torch.zeros_like(self.coef))
             self.register_buffer("branched", torch.zeros(n_muscles, dtype=torch.bool))
+        if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
+            self._cell_sources = (crossing, exponents, mask)
+            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if cell_degrees is None else cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
@@ -153,21 +154,8 @@ class PerMusclePath(nn.Module):
 
     # ------------------------------------------------------------------ the polynomial
     def basis(self, x: torch.Tensor, slopes: bool = False):
-        """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)``: products over the joints of each joint's
-        Legendre polynomial of the term's exponent (a loop over the N joints, batched over samples and terms)."""
-        values, derivs = legendre(x, self.degree)
-        factors = [values[:, j].index_select(1, self.exponents[:, j]) for j in range(x.shape[1])]  # N x (B, P)
-        before = [torch.ones_like(factors[0])]  # prod_{i<j} factor_i
-        for factor in factors[:-1]:
-            before.append(before[-1] * factor)
-        phi = before[-1] * factors[-1]
-        if not slopes:
-            return phi, None
-        dphi, after = [], torch.ones_like(phi)  # after: prod_{i>j} factor_i
-        for j in reversed(range(x.shape[1])):
-            dphi.append(derivs[:, j].index_select(1, self.exponents[:, j]) * before[j] * after)
-            after = after * factors[j]
-        return phi, torch.stack(dphi[::-1], 1)
+        """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)`` of every term (``product_basis``)."""
+        return product_basis(x, self.exponents, self.degree, slopes)
 
     def polynomial(self, x: torch.Tensor, slopes: bool = False):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype.
@@ -191,6 +179,8 @@ class PerMusclePath(nn.Module):
         y, dy = phi @ coef.T, None if dphi is None else torch.einsum("bnp,mp->bmn", dphi, coef)
         if self.branches == 2 and bool(self.branched.any()):  # the active branch per muscle and sample
             y, dy = self._active_branch(phi, dphi, y, dy)
+        if self.pieces > 1 and len(self.cell_muscles):
+            y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
         y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
@@ -210,7 +200,7 @@ class PerMusclePath(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
-        names = [n for n in ("coef", "coef_alt", "gate") if hasattr(self, n)]
+        names = [n for n in ("coef", "coef_alt", "gate", "cell_coef") if hasattr(self, n)]
         kept = [getattr(self, n) for n in names]
         out = super()._apply(fn, *args, **kwargs)
         for name, value in zip(names, kept):
@@ -239,6 +229,24 @@ class PerMusclePath(nn.Module):
         if self.branches == 2:
             self.branched.zero_()
             fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
+        if self.pieces > 1:
+            fit_cells(self, x, y, chunk)
+
+    def set_cell_degrees(self, degrees) -> None:
+        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout (``networks.cells.cell_layout``) and zero
+        cell coefficients, none fitted. A checkpoint's skeleton is built from the same degrees."""
+        values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
+        if values.shape != (len(self.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
+            raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
+                                       f"muscle (0: no cells)")
+        *layout, valid, n_cells = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces)
+        for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
+                                "cell_valid"), (values.astype(np.int64), *layout, valid)):  # from the degrees alone
+            self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)
+        self.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
+                                                      device=self.coef.device))
+        self.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
+                                                        device=self.coef.device))
 
     @torch.no_grad()
     def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3) -> torch.Tensor:

@@ -72,6 +72,11 @@ class StructuredSchema(BodySchema):
         path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
         path_branches: 1 (one polynomial per muscle) or 2 (where a muscle's path jumps, a wrap switching sides: two
             polynomials and a gate of total degree <= ``path_gate_degree`` that picks one; ``networks.branches``).
+        path_cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst (a median residual ten
+            times the median muscle's) get one polynomial per cell of their joints' box cut that many times per
+            joint, kept where it halves their median residual (``networks.cells``).
+        path_cell_degrees: each muscle's cell degree (0: no cells), set by the fit when ``path_cells > 1`` (a
+            checkpoint then rebuilds the same cells).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -90,7 +95,8 @@ class StructuredSchema(BodySchema):
                  path_degree: int = 6, path_terms: int = 500, path_hidden: int = 32, path_layers: int = 0,
                  muscle_joints: Optional[dict] = None, torque_degree: int = 6, path_branches: int = 1,
                  path_gate_degree: int = 8, path_term_budget: Optional[int] = None,
-                 path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None):
+                 path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None,
+                 path_cells: int = 1, path_cell_degrees: Optional[list] = None):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -102,6 +108,9 @@ class StructuredSchema(BodySchema):
         if torque_model == "polynomial" and length_model != "per_muscle":
             raise BodySchemaInputError("torque_model='polynomial' needs length_model='per_muscle'")
         check_architecture(block, norm)
+        if isinstance(path_cells, bool) or not isinstance(path_cells, int) or path_cells < 1:
+            raise BodySchemaInputError(f"path_cells={path_cells!r} must be an integer >= 1 (pieces per joint; 1: no "
+                                       f"cells)")
         if path_tolerance_mm is not None and (path_term_budget is None or isinstance(path_tolerance_mm, bool) or
                                               not 0.0 < float(path_tolerance_mm) < float("inf")):
             raise BodySchemaInputError(f"path_tolerance_mm={path_tolerance_mm!r} must be a finite number > 0 [mm], "
@@ -128,7 +137,8 @@ class StructuredSchema(BodySchema):
             crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
         self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
                                         hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
-                                        hp.get("path_term_budget"), hp.get("path_degrees"))
+                                        hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
+                                        hp.get("path_cell_degrees"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -151,6 +161,8 @@ class StructuredSchema(BodySchema):
         if self.hparams.get("path_tolerance_mm") is not None and self.hparams.get("path_degrees") is None:
             self._choose_degrees(q_n.to(self.device), target_n.to(self.device))
         self.length_net.fit_polynomial(q_n.to(self.device), target_n.to(self.device))
+        if self.hparams.get("path_cells", 1) > 1:
+            self.hparams.path_cell_degrees = self.length_net.cell_degrees.tolist()
         if self.hparams.torque_model == "polynomial":
             self._fit_torque(q_n.to(self.device), x[:, self.n_muscles:].to(self.device, torch.float64))
 

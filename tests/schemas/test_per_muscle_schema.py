@@ -12,6 +12,7 @@ from physics_checks import fit_structured as _fit
 from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.data import EquilibriumDataModule, RecordedDataModule
 from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.networks import cells
 from lightning_bodyschema.schemas import StructuredSchema, load_schema
 from lightning_bodyschema.sim import MusculoskeletalModel
 from lightning_bodyschema.sim.robot import check_muscle_joints
@@ -102,6 +103,21 @@ def _assert_answers_the_same_without(schema, trainer, path, keys):
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_checkpoint_with_cells_answers_the_same_and_still_matches_mujoco(tmp_path, monkeypatch):
+    monkeypatch.setattr(cells, "CELL_MEDIANS", 1.0)  # the paper arm's paths are smooth: cells for the worse half
+    monkeypatch.setattr(cells, "CELL_FLOOR", 0.0)
+    schema, trainer = _fit(EquilibriumDataModule(n_samples=1000, seed=0, cache_dir=None), path_cells=2, **PER_MUSCLE)
+    assert len(schema.length_net.cell_muscles) > 0
+    path = str(tmp_path / "cells.ckpt")
+    trainer.save_checkpoint(path, weights_only=False)
+    q = schema.robot_model.sample_q(np.random.default_rng(8), 300)
+    for a, b in zip(schema.body_si(torch.as_tensor(q)), load_schema(path).body_si(torch.as_tensor(q))):
+        np.testing.assert_array_equal(a, b)
+    l_true, G_true, _ = schema.robot_model.kinematics(q)
+    l_geo, G, _ = schema.body_si(torch.as_tensor(q))
+    assert np.median(np.abs(l_geo - l_true)) < 1e-6 and np.median(np.abs(G - G_true)) < 1e-5
+
+
 def test_a_per_muscle_checkpoint_from_before_the_branches_answers_as_before(paper_arm, tmp_path):
     _assert_answers_the_same_without(*paper_arm, str(tmp_path / "one_branch.ckpt"),
                                      ("path_branches", "path_gate_degree"))
@@ -166,3 +182,5 @@ def test_bad_length_and_torque_models_are_refused():
     assert check_muscle_joints(PAPER_JOINTS, list(PAPER_JOINTS), ["shoulder", "elbow"]) == PAPER_JOINTS
     with pytest.raises(BodySchemaInputError, match=r"branches=3; allowed: 1 \(one polynomial per muscle\) or 2"):
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_branches=3)
+    with pytest.raises(BodySchemaInputError, match=r"path_cells=0 must be an integer >= 1 \(pieces per joint"):
+        StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_cells=0)

@@ -1,0 +1,138 @@
+"""Piecewise muscle paths: a muscle's box of joints cut into cells, one polynomial per cell.
+
+A MuJoCo path wraps on and off spheres and cylinders: its length is smooth in pieces, and a polynomial over the
+whole box pays for every piece's seam everywhere (it rings). Over a smaller box the same degree fits far better:
+on myoArm, least squares on 80 000 uniform postures, scored on 20 000 others, cutting each crossed joint's range in
+two takes DELT1's and TMAJ's median length error from 0.10 to 0.0001 mm and TRIlong's from 0.39 to 0.019 mm
+(RESULTS.md "Per-muscle paths on myoArm"). ``fit_cells`` gives the muscles a smooth polynomial fits worst
+(candidates: a median residual above ``CELL_MEDIANS`` times the median muscle's) ``pieces ** n`` cells over the
+``n`` joints they cross, each its own polynomial in the cell's local coordinates (the joint range of the cell
+mapped to [-1, 1], where the Legendre basis is well conditioned), of the highest total degree (at most the muscle's
+own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread; batched over muscles, a loop over cells.
+A cell with fewer samples than that keeps the muscle's whole-box model; a muscle keeps its cells only where they
+at least halve its median residual on the fitted samples without a larger p99.
+
+The length at a posture is its cell's polynomial and the moment arm that polynomial's exact derivative: the learned
+length steps by about the fit's error where a posture crosses into the next cell, and a QP at one posture sees
+that posture's cell only. Joints a muscle does not cross do not cut its box (exactly zero moment arm there).
+Plain PyTorch, no Lightning.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .basis import product_basis
+from .branches import SAMPLES_PER_TERM, _subset_systems, solve_systems
+
+CELL_MEDIANS = 10.0  # a candidate's median residual exceeds this many times the median muscle's
+CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
+CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
+CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
+
+
+def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each joint's piece ``k (B, N)`` (long, 0..pieces-1, of [-1, 1] cut evenly) and the local coordinate
+    ``x_local (B, N)`` in [-1, 1] within it; ``d x_local / d x = pieces``."""
+    scaled = pieces * (x + 1)
+    k = torch.clamp(torch.floor(scaled / 2), 0, pieces - 1)
+    return k.to(torch.long), scaled - 2 * k - 1
+
+
+def cell_degree(n_joints: int, degree: int, pieces: int, samples: int) -> int:
+    """The highest total degree ``<= degree`` whose polynomial over ``n_joints`` has ``SAMPLES_PER_TERM`` samples
+    per term in each of the ``pieces ** n_joints`` cells when ``samples`` spread evenly (at least 1)."""
+    room = samples / (SAMPLES_PER_TERM * pieces ** n_joints)
+    return max([1] + [d for d in range(1, degree + 1) if math.comb(n_joints + d, n_joints) <= room])
+
+
+def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarray, degrees: np.ndarray,
+                pieces: int) -> tuple:
+    """Which muscles have cells and how they are laid out, from each muscle's cell degree ``degrees (M,)`` (0: no
+    cells), in numpy (a checkpoint's skeleton is built on the meta device): ``muscles (Mc,)``, ``strides (Mc, N)``
+    (``pieces ** rank`` on the joints each crosses, rank among them; 0 elsewhere), the cell terms' ``exponents
+    (C, N)`` (each celled muscle's own terms of total degree at most its cell degree), each muscle's term columns
+    ``order (Mc, K)`` (its own first, padding on column 0) and ``valid (Mc, K)``, and the number of cells of the
+    muscle with the most."""
+    muscles = np.flatnonzero(degrees > 0)
+    mask = term_mask[muscles] & (exponents.sum(1)[None, :] <= degrees[muscles, None])
+    cols = np.flatnonzero(mask.any(0))
+    local = mask[:, cols]
+    width, most = (int(local.sum(1).max()), int(crossing[muscles].sum(1).max())) if len(muscles) else (1, 0)
+    order = np.argsort(~local, axis=1, kind="stable")[:, :width]
+    valid = np.take_along_axis(local, order, 1)
+    rank = np.cumsum(crossing[muscles], 1) - 1
+    strides = np.where(crossing[muscles], pieces ** np.maximum(rank, 0), 0)
+    cell_exponents = exponents[cols] if len(cols) else np.zeros_like(exponents[:1])
+    return muscles, strides, cell_exponents, order * valid, valid, pieces ** most
+
+
+def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
+    """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
+    fitted; ``x`` is inside the box, float64."""
+    k, x_local = cell_coordinates(x, path.pieces)
+    cell = k @ path.cell_stride.T  # (B, Mc)
+    muscles = path.cell_muscles
+    degree = int(path.cell_exponents.max())
+    phi, dphi = product_basis(x_local, path.cell_exponents, degree, dy is not None)
+    rows = torch.arange(len(muscles), device=x.device)[None, :]
+    coef = path.cell_coef[rows, cell]  # (B, Mc, K)
+    fitted = path.cell_fitted[rows, cell]
+    y, dy = y.clone(), None if dy is None else dy.clone()
+    y[:, muscles] = torch.where(fitted, (phi[:, path.cell_order] * coef).sum(-1), y[:, muscles])
+    if dy is not None:
+        slope = torch.einsum("bnmk,bmk->bmn", dphi[:, :, path.cell_order], coef) * path.pieces
+        dy[:, muscles] = torch.where(fitted[:, :, None], slope, dy[:, muscles])
+    return y, dy
+
+
+@torch.no_grad()
+def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None:
+    """Cells for the muscles of a fitted ``PerMusclePath`` that a smooth polynomial fits worst (module docstring):
+    sets the path's cell layout (``PerMusclePath.set_cell_degrees``) and coefficients, and clears ``branched`` where
+    cells replace the branches. ``x (S, N)``, ``y (S, M)`` float64, normalized."""
+    path.set_cell_degrees(torch.zeros_like(path.cell_degrees))
+    r = torch.cat([y[i:i + chunk] - path(x[i:i + chunk]) for i in range(0, len(x), chunk)]).abs()
+    median = r.median(0).values
+    candidates = (median > CELL_MEDIANS * median.median()) & (median > CELL_FLOOR)
+    if not bool(candidates.any()):
+        return
+    total, n = path.exponents.sum(1), path.crossing.sum(1)
+    own_degree = (total[None, :] * path.term_mask).amax(1)
+    path.set_cell_degrees(torch.tensor([cell_degree(int(a), int(d), path.pieces, len(x)) if c else 0
+                                        for a, d, c in zip(n, own_degree, candidates)], device=median.device))
+    _fit_each_cell(path, x, y[:, path.cell_muscles], chunk)
+    muscles = path.cell_muscles
+    miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])
+    miss, own = miss.abs(), r[:, muscles]
+    keep = (miss.median(0).values * CELL_GAIN <= own.median(0).values) & \
+        (torch.quantile(miss, 0.99, dim=0) <= torch.quantile(own, 0.99, dim=0))
+    coef, fitted = path.cell_coef[keep], path.cell_fitted[keep]
+    degrees = path.cell_degrees.clone()
+    degrees[muscles[~keep]] = 0
+    path.set_cell_degrees(degrees)  # the kept muscles' own terms come first in either layout: same columns
+    path.cell_coef.copy_(coef[:, :path.cell_coef.shape[1], :path.cell_coef.shape[2]])
+    path.cell_fitted.copy_(fitted[:, :path.cell_fitted.shape[1]])
+    if hasattr(path, "branched"):
+        path.branched[path.cell_muscles] = False
+
+
+def _fit_each_cell(path, x, y_m, chunk):
+    """Least squares of every celled muscle's cells into ``path.cell_coef (Mc, C, K)`` (0 on padded terms) and
+    ``path.cell_fitted (Mc, C)`` (the cells with ``SAMPLES_PER_TERM`` samples per term); a loop over cells, batched
+    over the muscles."""
+    order, valid = path.cell_order, path.cell_valid
+    k, x_local = cell_coordinates(x, path.pieces)
+    cell = k @ path.cell_stride.T  # (S, Mc)
+    phi = torch.cat([product_basis(x_local[i:i + chunk], path.cell_exponents, int(path.cell_exponents.max()))[0]
+                     for i in range(0, len(x), chunk)])
+    eye = torch.eye(order.shape[1], dtype=torch.float64, device=x.device)
+    for c in range(path.cell_coef.shape[1]):  # a loop over cells; each cell's least squares is batched over muscles
+        labels = cell == c
+        fitted = labels.sum(0) >= SAMPLES_PER_TERM * valid.sum(1)
+        system, rhs = _subset_systems(phi, y_m, labels, order, valid, chunk)
+        system = torch.where(fitted[:, None, None], system, eye)  # a thin cell is not solved
+        path.cell_coef[:, c] = solve_systems(system, rhs * fitted[:, None], valid, CELL_RIDGE)
+        path.cell_fitted[:, c] = fitted
