@@ -25,9 +25,9 @@ import numpy as np
 import torch
 
 from .basis import product_basis
-from .branches import SAMPLES_PER_TERM, _subset_systems, solve_systems
+from .branches import SAMPLES_PER_TERM
 
-CELL_MEDIANS = 10.0  # a candidate's median residual exceeds this many times the median muscle's
+CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
 CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
 CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
 CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
@@ -121,18 +121,27 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
 
 def _fit_each_cell(path, x, y_m, chunk):
     """Least squares of every celled muscle's cells into ``path.cell_coef (Mc, C, K)`` (0 on padded terms) and
-    ``path.cell_fitted (Mc, C)`` (the cells with ``SAMPLES_PER_TERM`` samples per term); a loop over cells, batched
-    over the muscles."""
-    order, valid = path.cell_order, path.cell_valid
+    ``path.cell_fitted (Mc, C)`` (the cells with ``SAMPLES_PER_TERM`` samples per term). Muscles over the same
+    joints with the same cell terms share their cells' normal equations (the shoulder's muscles: one system per cell
+    for all of them, one right-hand side each): a loop over such groups and their cells."""
     k, x_local = cell_coordinates(x, path.pieces)
-    cell = k @ path.cell_stride.T  # (S, Mc)
-    phi = torch.cat([product_basis(x_local[i:i + chunk], path.cell_exponents, int(path.cell_exponents.max()))[0]
-                     for i in range(0, len(x), chunk)])
-    eye = torch.eye(order.shape[1], dtype=torch.float64, device=x.device)
-    for c in range(path.cell_coef.shape[1]):  # a loop over cells; each cell's least squares is batched over muscles
-        labels = cell == c
-        fitted = labels.sum(0) >= SAMPLES_PER_TERM * valid.sum(1)
-        system, rhs = _subset_systems(phi, y_m, labels, order, valid, chunk)
-        system = torch.where(fitted[:, None, None], system, eye)  # a thin cell is not solved
-        path.cell_coef[:, c] = solve_systems(system, rhs * fitted[:, None], valid, CELL_RIDGE)
-        path.cell_fitted[:, c] = fitted
+    key = torch.cat([path.cell_stride, path.cell_order], 1)
+    inverse = torch.unique(key, dim=0, return_inverse=True)[1]
+    for g in range(int(inverse.max()) + 1):  # a loop over groups of muscles that share joints and terms
+        members = torch.nonzero(inverse == g).flatten()
+        first = int(members[0])
+        width = int(path.cell_valid[first].sum())
+        exponents = path.cell_exponents[path.cell_order[first, :width]]
+        phi = torch.cat([product_basis(x_local[i:i + chunk], exponents, int(exponents.max()))[0]
+                         for i in range(0, len(x), chunk)])
+        cell = k @ path.cell_stride[first]
+        eye = torch.eye(width, dtype=torch.float64, device=x.device)
+        for c in range(path.pieces ** int((path.cell_stride[first] > 0).sum())):  # a loop over the group's cells
+            rows = torch.nonzero(cell == c).flatten()
+            if len(rows) < SAMPLES_PER_TERM * width:  # a thin cell keeps the whole-box polynomial
+                continue
+            phi_c = phi[rows]
+            gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_m[rows][:, members]
+            solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
+            path.cell_coef[members, c, :width] = solution.T
+            path.cell_fitted[members, c] = True

@@ -72,7 +72,7 @@ class StructuredSchema(BodySchema):
         path_hidden, path_layers: width and hidden layers of each muscle's residual network (0 layers: none).
         path_branches: 1 (one polynomial per muscle) or 2 (where a muscle's path jumps, a wrap switching sides: two
             polynomials and a gate of total degree <= ``path_gate_degree`` that picks one; ``networks.branches``).
-        path_cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst (a median residual ten
+        path_cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst (a median residual four
             times the median muscle's) get one polynomial per cell of their joints' box cut that many times per
             joint, kept where it halves their median residual (``networks.cells``).
         path_cell_degrees: each muscle's cell degree (0: no cells), set by the fit when ``path_cells > 1`` (a

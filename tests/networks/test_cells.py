@@ -10,15 +10,17 @@ from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.cells import cell_coordinates, cell_degree
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 
-CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=bool)
+CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
 
 
 def _lengths(x):
-    """Muscle 0 is one cubic for x0 < 0 and another for x0 > 0 (a path that wraps on at x0 = 0: the slope jumps);
-    the others are low-degree polynomials a whole-box fit represents exactly."""
+    """Muscle 0 is one cubic for x0 < 0 and another for x0 > 0 (a path that wraps on at x0 = 0: the slope jumps),
+    muscles 1 and 3 (the same two joints) change polynomial at x2 = 0; the others are low-degree polynomials a
+    whole-box fit represents exactly."""
     a, b, c = x[:, 0], x[:, 1], x[:, 2]
     wrapped = torch.where(a > 0, 1 + a ** 2 - 0.5 * b + a * b ** 2, 0.3 * a ** 3 + b - 0.2 * b ** 3)
-    return torch.stack([wrapped, a * c + c ** 2, b ** 2, a - c, b * c], 1)
+    one, three = torch.where(c > 0, a * c + c ** 2, a * c - c ** 3), torch.where(c > 0, a - c, a + 2 * c ** 2)
+    return torch.stack([wrapped, one, b ** 2, three, b * c, a * b * c, a ** 3], 1)
 
 
 @pytest.fixture(scope="module")
@@ -36,12 +38,12 @@ def _inside(n, seed, margin=1e-3):
 
 
 def test_a_path_smooth_in_pieces_is_recovered_cell_by_cell(fitted):
-    assert fitted.cell_muscles.tolist() == [0]  # only the muscle a smooth polynomial cannot fit gets cells
+    assert fitted.cell_muscles.tolist() == [0, 1, 3]  # only the muscles a smooth polynomial cannot fit get cells
     x = _inside(2000, 1)
     np.testing.assert_allclose(fitted(x), _lengths(x), atol=1e-9)
     whole = PerMusclePath(CROSSING, 4, 1, 0)  # one polynomial over the box: the kink costs ~1e-2 (test can fail)
     whole.fit_polynomial(_inside(6000, 0, 0.0), _lengths(_inside(6000, 0, 0.0)))
-    assert (whole(x) - _lengths(x))[:, 0].abs().max() > 1e-3
+    assert ((whole(x) - _lengths(x))[:, [0, 1, 3]].abs().amax(0) > 1e-3).all()
 
 
 def test_cell_moment_arms_are_the_learned_lengths_derivative_and_zero_off_the_crossed_joints(fitted):
@@ -54,7 +56,7 @@ def test_cell_moment_arms_are_the_learned_lengths_derivative_and_zero_off_the_cr
         step[j] = h
         fd = (fitted(x + step) - fitted(x - step)) / (2 * h)
         np.testing.assert_allclose(dy[:, :, j], fd, atol=1e-7)
-    assert (dy[:, ~torch.as_tensor(CROSSING)] == 0).all()
+    assert (dy[:, ~torch.as_tensor(CROSSING)] == 0).all()  # every uncrossed pair, celled muscles too
     true_slope = torch.where(x[:, 0] > 0, 2 * x[:, 0] + x[:, 1] ** 2, 0.9 * x[:, 0] ** 2)
     np.testing.assert_allclose(dy[:, 0, 0], true_slope, atol=1e-8)
 
@@ -64,7 +66,7 @@ def test_a_thin_cell_keeps_the_whole_box_polynomial():
     x = x[(x[:, 0] < 0) | (x[:, 1] < 0) | (x[:, 1] > 0.95)]  # the cell x0 > 0, x1 > 0: ~40 samples, 15 terms
     path = PerMusclePath(CROSSING, 4, 1, 0, cells=2)
     path.fit_polynomial(x, _lengths(x))
-    assert path.cell_muscles.tolist() == [0] and path.cell_fitted[0].tolist() == [True, True, True, False]
+    assert path.cell_muscles[0] == 0 and path.cell_fitted[0].tolist() == [True, True, True, False]
     whole = PerMusclePath(CROSSING, 4, 1, 0)
     whole.fit_polynomial(x, _lengths(x))
     thin = torch.tensor([[0.5, 0.95, 0.0], [0.2, 0.5, -0.3]], dtype=torch.float64)
@@ -81,10 +83,10 @@ def test_cells_survive_a_state_dict_round_trip(fitted):
 def test_cell_numbering_and_degrees(fitted):
     k, x_local = cell_coordinates(torch.tensor([[-1.0, -0.25, 0.0, 1.0]], dtype=torch.float64), 2)
     assert k.tolist() == [[0, 0, 1, 1]] and x_local.tolist() == [[-1.0, 0.5, -1.0, 1.0]]
-    assert fitted.cell_stride.tolist() == [[1, 2, 0]]  # muscle 0 crosses joints 0 and 1: cells 0..3
+    assert fitted.cell_stride.tolist() == [[1, 2, 0], [1, 0, 2], [1, 0, 2]]  # each muscle's 2 joints: cells 0..3
     assert cell_degree(5, 9, 2, 80000) == 7  # C(12, 5) = 792 terms x 3 samples x 32 cells <= 80 000
     assert cell_degree(3, 16, 2, 80000) == 16
     with pytest.raises(BodySchemaInputError, match="cells=0 must be an integer >= 1"):
         PerMusclePath(CROSSING, 4, 1, 0, cells=0)
-    with pytest.raises(BodySchemaInputError, match=r"cell_degrees=\[1, 2\] must be 5 integers >= 0"):
+    with pytest.raises(BodySchemaInputError, match=r"cell_degrees=\[1, 2\] must be 7 integers >= 0"):
         PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_degrees=[1, 2])
