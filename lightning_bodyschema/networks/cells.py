@@ -8,9 +8,10 @@ two takes DELT1's and TMAJ's median length error from 0.10 to 0.0001 mm and TRIl
 (candidates: a median residual above ``CELL_MEDIANS`` times the median muscle's) ``pieces ** n`` cells over the
 ``n`` joints they cross, each its own polynomial in the cell's local coordinates (the joint range of the cell
 mapped to [-1, 1], where the Legendre basis is well conditioned), of the highest total degree (at most the muscle's
-own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread; batched over muscles, a loop over cells.
-A cell with fewer samples than that keeps the muscle's whole-box model; a muscle keeps its cells only where they
-at least halve its median residual on the fitted samples without a larger p99.
+own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread. A cell with fewer samples keeps the
+muscle's whole-box model; a muscle keeps its cells only where they at least halve its median residual on the
+fitted samples without a larger p99. Muscles over the same joints share each cell's normal equations (one solve,
+a right-hand side per muscle): a loop over such groups and their cells, none over muscles.
 
 The length at a posture is its cell's polynomial and the moment arm that polynomial's exact derivative: the learned
 length steps by about the fit's error where a posture crosses into the next cell, and a QP at one posture sees

@@ -216,6 +216,15 @@ class PerMusclePath(nn.Module):
         self.x_lo.copy_(x.amin(0))
         self.x_hi.copy_(x.amax(0))
         gram, rhs = self._normal_equations(x, y, chunk)
+        order = self._solve_normal_equations(gram, rhs, ridge)
+        if self.branches == 2:
+            self.branched.zero_()
+            fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
+        if self.pieces > 1:
+            fit_cells(self, x, y, chunk)
+
+    def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
+        """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
         mask = self.term_mask
         order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)  # each muscle's terms first
         counts, coef = mask.sum(1), torch.zeros_like(self.coef)
@@ -226,11 +235,7 @@ class PerMusclePath(nn.Module):
             solution = solve_systems(system, b, torch.ones_like(b, dtype=torch.bool), ridge)
             coef[muscles] = coef[muscles].scatter(1, terms, solution)
         self.coef.copy_(coef * mask)
-        if self.branches == 2:
-            self.branched.zero_()
-            fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
-        if self.pieces > 1:
-            fit_cells(self, x, y, chunk)
+        return order
 
     def set_cell_degrees(self, degrees) -> None:
         """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout (``networks.cells.cell_layout``) and zero
@@ -249,19 +254,32 @@ class PerMusclePath(nn.Module):
                                                         device=self.coef.device))
 
     @torch.no_grad()
-    def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3) -> torch.Tensor:
-        """``fit_polynomial``, then up to ``rounds`` refits without the samples whose residual norm over the muscles
-        exceeds ``factor`` times the median (a few wild targets otherwise pull the whole least squares); the kept
-        samples' mask ``(S,)``."""
+    def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3,
+                    ridge: float = 1e-12, chunk: int = 8192) -> torch.Tensor:
+        """The polynomial alone (no branches or cells) by least squares on ``x (S, N)``, ``y (S, M)``, then up to
+        ``rounds`` refits without the samples whose residual norm over the muscles exceeds ``factor`` times the
+        median (a few wild targets otherwise pull the whole least squares); the kept samples' mask ``(S,)``. The box
+        is every sample's; each refit updates the normal equations by the samples that changed side only."""
+        x, y = x.to(torch.float64), y.to(torch.float64)
+        self.x_lo.copy_(x.amin(0))
+        self.x_hi.copy_(x.amax(0))
+        gram, rhs = self._normal_equations(x, y, chunk)
+        self._solve_normal_equations(gram, rhs, ridge)
         keep = torch.ones(len(x), dtype=torch.bool, device=x.device)
-        self.fit_polynomial(x, y)
         for _ in range(rounds):
-            miss = (self(x.to(torch.float64)) - y.to(torch.float64)).norm(dim=1)
+            miss = torch.cat([(self(x[i:i + chunk]) - y[i:i + chunk]).norm(dim=1) for i in range(0, len(x), chunk)])
             new = miss <= factor * miss[keep].median()
-            if torch.equal(new, keep):
+            changed = torch.nonzero(new ^ keep).flatten()
+            if len(changed) == 0:
                 break
+            sign = torch.where(new[changed], 1.0, -1.0).to(torch.float64)  # back in: added; dropped: taken out
+            for start in range(0, len(changed), chunk):
+                rows = changed[start:start + chunk]
+                phi = self.basis(x[rows])[0]
+                gram += phi.T @ (phi * sign[start:start + chunk, None])
+                rhs += phi.T @ (y[rows] * sign[start:start + chunk, None])
             keep = new
-            self.fit_polynomial(x[keep], y[keep])
+            self._solve_normal_equations(gram, rhs, ridge)
         return keep
 
     def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -39,6 +39,8 @@ from .crossing import crossing_from_data, resolve_crossing
 
 TORQUE_MODELS = ("potential", "direct", "polynomial")
 TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
+TORQUE_TRIM = 3.0  # its refits drop postures missed by more than this many medians (RESULTS.md "Per-muscle paths")
+TORQUE_TRIM_ROUNDS = 8
 LENGTH_MODELS = ("mlp", "per_muscle")
 
 
@@ -179,12 +181,13 @@ class StructuredSchema(BodySchema):
     def _fit_torque(self, q_n: torch.Tensor, f: torch.Tensor, chunk: int = 4096) -> None:
         """Least squares of the polynomial torque on ``-G(q)^T f`` of the learned moment arms, at most
         ``TORQUE_FIT_POSTURES`` postures (float64), trimmed of the postures it misses by far (``PerMusclePath.
-        fit_trimmed``: where a learned moment arm swings between samples its torque is no smooth function's)."""
+        fit_trimmed``: where a learned moment arm swings, at a jump or a cell's edge, its torque is no smooth
+        function's, and the least squares would spread that over every posture)."""
         q_n, f = q_n[:TORQUE_FIT_POSTURES].to(torch.float64), f[:TORQUE_FIT_POSTURES].to(torch.float64)
         arm_scale = self._arm_scale().to(q_n)
         target = torch.cat([-torch.einsum("bmn,bm->bn", self.length_net.with_jacobian(q_n[i:i + chunk].to(
             self.dtype))[1].to(torch.float64) * arm_scale, f[i:i + chunk]) for i in range(0, len(q_n), chunk)])
-        self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n))
+        self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n), TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
 
     def refresh_from_train_split(self, q_n, x_n) -> None:
         """The polynomial torque refitted to the current moment arms (when the lengths have trained weights)."""
