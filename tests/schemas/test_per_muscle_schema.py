@@ -123,6 +123,10 @@ def test_a_per_muscle_checkpoint_from_before_the_branches_answers_as_before(pape
                                      ("path_branches", "path_gate_degree"))
 
 
+def test_a_per_muscle_checkpoint_from_before_the_cells_answers_as_before(paper_arm, tmp_path):
+    _assert_answers_the_same_without(*paper_arm, str(tmp_path / "no_cells.ckpt"), ("path_cells", "path_cell_degrees"))
+
+
 def test_a_dense_schema_checkpoint_without_the_new_options_answers_as_before(tmp_path):
     """A checkpoint written before length_model existed (its hyperparameters lack the new keys) loads as the dense
     schema and gives the same body."""
