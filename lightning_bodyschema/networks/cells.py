@@ -31,6 +31,7 @@ from .branches import SAMPLES_PER_TERM
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
 CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
 CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
+GATHER_ROWS = 256  # up to this many postures ``evaluate_cells`` gathers every muscle's columns at once (BENCHMARKS.md)
 CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
 
 
@@ -70,23 +71,50 @@ def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarr
     return muscles, strides, cell_exponents, order * valid, valid, pieces ** most
 
 
+def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, list]:
+    """The celled muscles grouped by equal joints and cell terms: ``perm (Mc,)`` (group by group, each in muscle
+    order) and each group's ``(start, end, width)`` in that order (its rows of ``perm``, its number of terms)."""
+    inverse = np.unique(np.concatenate([strides, order], 1), axis=0, return_inverse=True)[1].reshape(-1)
+    perm = np.argsort(inverse, kind="stable")
+    ends = np.cumsum(np.bincount(inverse)).astype(np.int64)
+    starts = ends - np.bincount(inverse)
+    return perm, [(int(a), int(b), int(valid[perm[a]].sum())) for a, b in zip(starts, ends)]
+
+
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
     fitted; ``x`` is inside the box, float64."""
     k, x_local = cell_coordinates(x, path.pieces)
-    cell = k @ path.cell_stride.T  # (B, Mc)
-    muscles = path.cell_muscles
-    degree = int(path.cell_exponents.max())
-    phi, dphi = product_basis(x_local, path.cell_exponents, degree, dy is not None)
-    rows = torch.arange(len(muscles), device=x.device)[None, :]
-    coef = path.cell_coef[rows, cell]  # (B, Mc, K)
-    fitted = path.cell_fitted[rows, cell]
+    perm = path.cell_perm
+    muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
+    phi, dphi = product_basis(x_local, path.cell_exponents, int(path.cell_exponents.max()), dy is not None)
+    fitted, coef = path.cell_fitted[perm[None, :], cell], path.cell_coef[perm[None, :], cell]  # coef (B, Mc, K)
+    if len(x) <= GATHER_ROWS:  # few postures: every muscle's columns gathered at once (fewest operations)
+        order = path.cell_order[perm]
+        y_cell = (phi[:, order] * coef).sum(-1)
+        dy_cell = None if dy is None else torch.einsum("bnmk,bmk->bmn", dphi[:, :, order], coef) * path.pieces
+    else:  # many: each group's basis columns taken once, not once per muscle (far less memory traffic)
+        y_cell, dy_cell = _grouped(path, phi, dphi, coef, perm)
     y, dy = y.clone(), None if dy is None else dy.clone()
-    y[:, muscles] = torch.where(fitted, (phi[:, path.cell_order] * coef).sum(-1), y[:, muscles])
+    y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
     if dy is not None:
-        slope = torch.einsum("bnmk,bmk->bmn", dphi[:, :, path.cell_order], coef) * path.pieces
-        dy[:, muscles] = torch.where(fitted[:, :, None], slope, dy[:, muscles])
+        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell, dy[:, muscles])
     return y, dy
+
+
+def _grouped(path, phi, dphi, coef, perm):
+    """The celled muscles' lengths ``(B, Mc)`` and slopes ``(B, Mc, N)`` (or None), in ``perm``'s order, a group of
+    muscles that share joints and cell terms at a time: a loop over groups."""
+    order = path.cell_order[perm]
+    y_cell = torch.empty(coef.shape[:2], dtype=phi.dtype, device=phi.device)
+    dy_cell = None if dphi is None else torch.empty(*coef.shape[:2], dphi.shape[1], dtype=phi.dtype,
+                                                    device=phi.device)
+    for start, end, width in path.cell_group_bounds:
+        cols, coef_g = order[start, :width], coef[:, start:end, :width]
+        y_cell[:, start:end] = torch.einsum("bk,bmk->bm", phi[:, cols], coef_g)
+        if dphi is not None:
+            dy_cell[:, start:end] = torch.einsum("bnk,bmk->bmn", dphi[:, :, cols], coef_g) * path.pieces
+    return y_cell, dy_cell
 
 
 @torch.no_grad()
@@ -126,12 +154,9 @@ def _fit_each_cell(path, x, y_m, chunk):
     joints with the same cell terms share their cells' normal equations (the shoulder's muscles: one system per cell
     for all of them, one right-hand side each): a loop over such groups and their cells."""
     k, x_local = cell_coordinates(x, path.pieces)
-    key = torch.cat([path.cell_stride, path.cell_order], 1)
-    inverse = torch.unique(key, dim=0, return_inverse=True)[1]
-    for g in range(int(inverse.max()) + 1):  # a loop over groups of muscles that share joints and terms
-        members = torch.nonzero(inverse == g).flatten()
+    for start, end, width in path.cell_group_bounds:  # a loop over groups of muscles that share joints and terms
+        members = path.cell_perm[start:end]
         first = int(members[0])
-        width = int(path.cell_valid[first].sum())
         exponents = path.cell_exponents[path.cell_order[first, :width]]
         phi = torch.cat([product_basis(x_local[i:i + chunk], exponents, int(exponents.max()))[0]
                          for i in range(0, len(x), chunk)])

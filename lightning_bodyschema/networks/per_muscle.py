@@ -34,7 +34,7 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .basis import legendre, product_basis  # noqa: F401 (legendre: part of this module's interface)
 from .branches import fit_branches, group_system, solve_systems
-from .cells import cell_layout, evaluate_cells, fit_cells
+from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import muscle_degrees
 
 BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
@@ -245,9 +245,10 @@ class PerMusclePath(nn.Module):
             raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
                                        f"muscle (0: no cells)")
         *layout, valid, n_cells = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces)
+        perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
         for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
-                                "cell_valid"), (values.astype(np.int64), *layout, valid)):  # from the degrees alone
-            self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)
+                                "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
+            self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
         self.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
                                                       device=self.coef.device))
         self.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,

@@ -90,3 +90,11 @@ def test_cell_numbering_and_degrees(fitted):
         PerMusclePath(CROSSING, 4, 1, 0, cells=0)
     with pytest.raises(BodySchemaInputError, match=r"cell_degrees=\[1, 2\] must be 7 integers >= 0"):
         PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_degrees=[1, 2])
+
+
+def test_many_postures_grouped_equal_few_postures_gathered(fitted):
+    x = _inside(600, 5)  # above GATHER_ROWS: a group of muscles at a time; in pieces of 100: every muscle at once
+    y, dy = fitted.with_jacobian(x)
+    parts = [fitted.with_jacobian(x[i:i + 100]) for i in range(0, 600, 100)]
+    torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=1e-13)
+    torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
