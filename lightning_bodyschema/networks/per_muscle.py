@@ -270,15 +270,12 @@ class PerMusclePath(nn.Module):
         for _ in range(rounds):
             miss = torch.cat([(self(x[i:i + chunk]) - y[i:i + chunk]).norm(dim=1) for i in range(0, len(x), chunk)])
             new = miss <= factor * miss[keep].median()
-            changed = torch.nonzero(new ^ keep).flatten()
-            if len(changed) == 0:
+            if torch.equal(new, keep):
                 break
-            sign = torch.where(new[changed], 1.0, -1.0).to(torch.float64)  # back in: added; dropped: taken out
-            for start in range(0, len(changed), chunk):
-                rows = changed[start:start + chunk]
-                phi = self.basis(x[rows])[0]
-                gram += phi.T @ (phi * sign[start:start + chunk, None])
-                rhs += phi.T @ (y[rows] * sign[start:start + chunk, None])
+            for rows, sign in ((new & ~keep, 1.0), (keep & ~new, -1.0)):  # back in: added; dropped: taken out
+                gram_rows, rhs_rows = self._normal_equations(x[rows], y[rows], chunk)
+                gram += sign * gram_rows
+                rhs += sign * rhs_rows
             keep = new
             self._solve_normal_equations(gram, rhs, ridge)
         return keep
