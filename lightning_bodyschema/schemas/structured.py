@@ -155,6 +155,9 @@ class StructuredSchema(BodySchema):
         """Detect the crossings from the data when nothing gave them (said in the log), then fit every muscle's
         polynomial by least squares on the train split's exact lengths ``l_motor + delta(f)``."""
         q_n, target_n = self.normalizer.encode_q(q.to(torch.float64)), self._length_target_n(x.to(torch.float64))
+        # Lightning calls setup before it moves the module (``self.device`` already names the fit's device)
+        self.length_net.to(self.device)
+        self.torque_net.to(self.device)
         if self.hparams.muscle_joints is None or not self.robot_model.has_physics:  # the MJCF needs no check
             self.hparams.muscle_joints = crossing_from_data(q_n, target_n, self._arm_scale(), self.robot_model,
                                                             self.hparams.muscle_joints)

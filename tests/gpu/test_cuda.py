@@ -48,6 +48,11 @@ def _fit(tmp, kind, precision, *extra):
     return cli, common, ckpts[-1]
 
 
+def _ran_on_cuda(cli) -> bool:
+    """Lightning trains on the strategy's root device and hands the module back on the CPU when a fit ends."""
+    return cli.trainer.strategy.root_device.type == "cuda"
+
+
 def _logged_tags(logdir) -> set:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -59,14 +64,14 @@ def _logged_tags(logdir) -> set:
 @pytest.mark.parametrize("kind,precision", [(k, p) for p, kinds in PRECISIONS.items() for k in kinds])
 def test_fit_validate_and_test_on_cuda(tmp_path, kind, precision):
     cli, common, ckpt = _fit(tmp_path / "run", kind, precision)
-    assert next(cli.model.parameters()).device.type == "cuda"
+    assert _ran_on_cuda(cli)
     metrics = cli.trainer.callback_metrics
     assert np.isfinite(float(metrics["val/eq_residual_N_m"])), metrics
     # the fault benchmark ran at the end of the fit, on the CUDA schema
     assert "fault/adapt_ok_fraction" in _logged_tags(cli.trainer.logger.log_dir)
     for command, stage in (("validate", "val"), ("test", "test")):
         run = _cli(command, *common, f"--ckpt_path={ckpt}")
-        assert next(run.model.parameters()).device.type == "cuda"
+        assert _ran_on_cuda(run)
         assert np.isfinite(float(run.trainer.callback_metrics[f"{stage}/eq_residual_N_m"]))
 
 
@@ -74,8 +79,9 @@ def test_structured_refuses_mixed_precision(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         _fit(tmp_path / "run", "structured", "bf16-mixed")
     assert exit_.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "bf16-mixed" in err[0] and "32-true" in err[0], err
+    err = capsys.readouterr().err
+    refusals = [line for line in err.splitlines() if "bf16-mixed" in line]
+    assert "Traceback" not in err and len(refusals) == 1 and "32-true" in refusals[0], err
 
 
 @pytest.fixture(scope="module", params=["diff", "structured"])
@@ -100,9 +106,13 @@ def _agree(cuda, cpu):
     assert isinstance(cuda.l_motor_m, np.ndarray) and isinstance(cuda.f_n, np.ndarray)
     assert (cuda.status != cpu.status).mean() <= STATUS_MISMATCH, (cuda.status, cpu.status)
     both = (cuda.status == "ok") & (cpu.status == "ok")
-    assert both.any()
     np.testing.assert_allclose(cuda.l_motor_m[both], cpu.l_motor_m[both], rtol=0, atol=L_ATOL_M)
     np.testing.assert_allclose(cuda.f_n[both], cpu.f_n[both], rtol=0, atol=F_ATOL_N)
+    # a briefly trained schema may hold no case: then the tensions each case would have had must agree
+    shared = [k for k in ("clipped_f_n", "best_effort_f_n") if k in cuda.diagnostics and k in cpu.diagnostics]
+    assert both.any() or shared, (cuda.status, sorted(cuda.diagnostics))
+    for key in shared:
+        np.testing.assert_allclose(cuda.diagnostics[key], cpu.diagnostics[key], rtol=0, atol=F_ATOL_N)
 
 
 @pytest.mark.parametrize("batch", [1, 4000])
@@ -134,14 +144,19 @@ def test_a_schema_moved_with_to_cuda_adapts(trained):
     assert np.isfinite(result.l_motor_m[result.ok]).all() and np.isnan(result.l_motor_m[~result.ok]).all()
 
 
-@pytest.mark.parametrize("config", ["myoarm.yaml", "myoarm-diff.yaml"])
-def test_myo_configs_fit_on_cuda(tmp_path, config):
+# the per-muscle body's least squares (in the setup hook, before Lightning moves the module) at a small size
+PER_MUSCLE_SMALL = ["--model.path_degree=6", "--model.path_terms=200", "--model.path_term_budget=null"]
+
+
+@pytest.mark.parametrize("config,extra", [("myoarm.yaml", []), ("myoarm-diff.yaml", []),
+                                          ("myoarm-per-muscle.yaml", PER_MUSCLE_SMALL)])
+def test_myo_configs_fit_on_cuda(tmp_path, config, extra):
     pytest.importorskip("myo_sim")
     from lightning_bodyschema.cli import main as cli_main
 
     cli = cli_main(["fit", "--config", os.path.join(ROOT, "configs", config), "--data.n_samples=2000",
                     "--trainer.max_epochs=2", "--trainer.check_val_every_n_epoch=2", "--trainer.accelerator=gpu",
                     "--trainer.devices=1", "--faults.every_n_epochs=0", f"--trainer.default_root_dir={tmp_path}",
-                    f"--data.cache_dir={tmp_path}/cache"])
-    assert next(cli.model.parameters()).device.type == "cuda"
+                    f"--data.cache_dir={tmp_path}/cache", *extra])
+    assert _ran_on_cuda(cli)
     assert np.isfinite(float(cli.trainer.callback_metrics["val/eq_residual_N_m"]))
