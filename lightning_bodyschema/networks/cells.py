@@ -20,13 +20,13 @@ Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import torch
 
 from .basis import product_basis
 from .branches import SAMPLES_PER_TERM
+from .degrees import term_count
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
 CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
@@ -43,11 +43,13 @@ def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.
     return k.to(torch.long), scaled - 2 * k - 1
 
 
-def cell_degree(n_joints: int, degree: int, pieces: int, samples: int) -> int:
-    """The highest total degree ``<= degree`` whose polynomial over ``n_joints`` has ``SAMPLES_PER_TERM`` samples
-    per term in each of the ``pieces ** n_joints`` cells when ``samples`` spread evenly (at least 1)."""
-    room = samples / (SAMPLES_PER_TERM * pieces ** n_joints)
-    return max([1] + [d for d in range(1, degree + 1) if math.comb(n_joints + d, n_joints) <= room])
+def cell_degree(joints, degree: int, pieces: int, samples: int) -> int:
+    """The highest total degree ``<= degree`` whose polynomial over ``joints`` (a number, or the sizes of the groups
+    whose effects add up: ``degrees.term_count``) has ``SAMPLES_PER_TERM`` samples per term in each of the
+    ``pieces ** n`` cells of its ``n`` joints when ``samples`` spread evenly (at least 1)."""
+    sizes = (joints,) if isinstance(joints, (int, np.integer)) else tuple(joints)
+    room = samples / (SAMPLES_PER_TERM * pieces ** sum(sizes))
+    return max([1] + [d for d in range(1, degree + 1) if term_count(sizes, d) <= room])
 
 
 def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarray, degrees: np.ndarray,
@@ -128,10 +130,11 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     candidates = (median > CELL_MEDIANS * median.median()) & (median > CELL_FLOOR)
     if not bool(candidates.any()):
         return
-    total, n = path.exponents.sum(1), path.crossing.sum(1)
+    total = path.exponents.sum(1)
     own_degree = (total[None, :] * path.term_mask).amax(1)
-    path.set_cell_degrees(torch.tensor([cell_degree(int(a), int(d), path.pieces, len(x)) if c else 0
-                                        for a, d, c in zip(n, own_degree, candidates)], device=median.device))
+    path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x)) if c else 0
+                                        for a, d, c in zip(path.block_sizes, own_degree, candidates)],
+                                       device=median.device))
     _fit_each_cell(path, x, y[:, path.cell_muscles], chunk)
     muscles = path.cell_muscles
     miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])

@@ -35,31 +35,54 @@ from ..errors import BodySchemaInputError
 from .basis import legendre, product_basis  # noqa: F401 (legendre: part of this module's interface)
 from .branches import fit_branches, group_system, solve_systems
 from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
-from .degrees import muscle_degrees
+from .degrees import block_sizes, muscle_degrees
 
 BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
 
 
-def term_exponents(crossing: np.ndarray, degrees: np.ndarray) -> np.ndarray:
+def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[np.ndarray] = None) -> np.ndarray:
     """``(P, N)`` exponents of every product term some muscle uses (nonzero exponents only on the joints it
-    crosses, total degree at most its own), ordered by total degree then lexicographically, the constant first."""
+    crosses, all within one of its ``blocks`` when given, total degree at most its own), ordered by total degree
+    then lexicographically, the constant first."""
+    blocks = check_blocks(crossing, blocks)
     terms = set()
-    for pattern, degree in {(tuple(c), int(d)) for c, d in zip(crossing.tolist(), degrees)}:  # per pattern, once
-        joints = np.flatnonzero(pattern)
-        for e in itertools.product(range(degree + 1), repeat=len(joints)):
-            if sum(e) <= degree:
-                full = [0] * len(pattern)
-                for j, k in zip(joints, e):
-                    full[j] = k
-                terms.add(tuple(full))
+    for pattern, degree in {(tuple(b), int(d)) for b, d in zip(blocks.tolist(), degrees)}:  # per pattern, once
+        for group in sorted(set(pattern) - {-1}):
+            joints = [j for j, b in enumerate(pattern) if b == group]
+            for e in itertools.product(range(degree + 1), repeat=len(joints)):
+                if sum(e) <= degree:
+                    full = [0] * len(pattern)
+                    for j, k in zip(joints, e):
+                        full[j] = k
+                    terms.add(tuple(full))
     return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, crossing.shape[1])
 
 
-def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray) -> np.ndarray:
-    """``(M, P)`` bool: the terms each muscle uses (nonzero exponents only on the joints it crosses, total degree
-    at most its own)."""
-    inside = ((exponents[None, :, :] > 0) <= crossing[:, None, :]).all(-1)
+def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray,
+              blocks: Optional[np.ndarray] = None) -> np.ndarray:
+    """``(M, P)`` bool: the terms each muscle uses (nonzero exponents only on the joints it crosses, all within one
+    of its ``blocks`` when given, total degree at most its own)."""
+    blocks = check_blocks(crossing, blocks).astype(np.int16)
+    support = exponents > 0
+    lowest = np.where(support[None], blocks[:, None, :], np.iinfo(np.int16).max).min(-1)  # (M, P)
+    highest = np.where(support[None], blocks[:, None, :], -1).max(-1)
+    inside = ((lowest == highest) & (lowest >= 0)) | ~support.any(1)[None, :]
     return inside & (exponents.sum(1)[None, :] <= degrees[:, None])
+
+
+def check_blocks(crossing: np.ndarray, blocks) -> np.ndarray:
+    """``blocks (M, N)`` int: a group id per crossed joint (-1 on the others), the joints whose effects on a muscle's
+    length do not add up sharing one (``MusculoskeletalModel.separable_blocks``); None: one group of every crossed
+    joint. One ``BodySchemaInputError`` unless it marks exactly the crossed joints."""
+    crossing = np.asarray(crossing, dtype=bool)
+    if blocks is None:
+        return np.where(crossing, 0, -1)
+    values = np.asarray(blocks)
+    if values.shape != crossing.shape or values.dtype.kind not in "iu" or not np.array_equal(values >= 0, crossing) \
+            or (values < -1).any():
+        raise BodySchemaInputError(f"path blocks {blocks!r} must be {crossing.shape[0]} rows of {crossing.shape[1]} "
+                                   f"integers: a group id >= 0 on each joint the muscle crosses, -1 on the others")
+    return values.astype(np.int64)
 
 
 def check_crossing(crossing) -> np.ndarray:
@@ -81,15 +104,15 @@ def check_degrees(degrees, n_muscles: int) -> np.ndarray:
 
 @torch.no_grad()
 def degrees_within_tolerance(crossing, x: torch.Tensor, y: torch.Tensor, scale: torch.Tensor, degree: int,
-                             max_terms: int, budget: int, tolerance: float) -> np.ndarray:
+                             max_terms: int, budget: int, tolerance: float, blocks=None) -> np.ndarray:
     """Each muscle's degree when a term budget goes only where it is needed: a first one-polynomial fit with at most
     ``max_terms`` terms per muscle on ``x (S, N)``, ``y (S, M)``; the muscles whose p99 residual times ``scale (M,)``
     exceeds ``tolerance`` (same units) then share ``budget`` (``muscle_degrees`` with ``eligible``)."""
     crossing = check_crossing(crossing)
-    first = PerMusclePath(crossing, degree, 1, 0, max_terms).to(x.device)
+    first = PerMusclePath(crossing, degree, 1, 0, max_terms, blocks=blocks).to(x.device)
     first.fit_polynomial(x, y)
     p99 = torch.quantile((first(x.to(torch.float64)) - y.to(torch.float64)).abs() * scale.to(x.device), 0.99, dim=0)
-    return muscle_degrees(crossing, degree, max_terms, budget, (p99 > tolerance).cpu().numpy())
+    return muscle_degrees(crossing, degree, max_terms, budget, (p99 > tolerance).cpu().numpy(), blocks)
 
 
 class PerMusclePath(nn.Module):
@@ -107,11 +130,14 @@ class PerMusclePath(nn.Module):
         branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` where a path jumps.
         cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst get ``cells ** n`` cells
             over their ``n`` joints, one polynomial each (``networks.cells``).
+        blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
+            (``check_blocks``; ``MusculoskeletalModel.separable_blocks`` finds them in an MJCF): no term mixes two
+            groups, so the same number of terms reaches a higher degree.
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
                  branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
-                 cells: int = 1, cell_degrees=None):
+                 cells: int = 1, cell_degrees=None, blocks=None):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
                                  ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
@@ -121,15 +147,17 @@ class PerMusclePath(nn.Module):
             raise BodySchemaInputError(f"branches={branches!r}; allowed: 1 (one polynomial per muscle) or 2 (two "
                                        f"and a gate where a muscle's path jumps)")
         crossing = check_crossing(crossing)
+        blocks = check_blocks(crossing, blocks)
         n_muscles, n_joints = crossing.shape
         self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
-        degrees = muscle_degrees(crossing, degree, max_terms, term_budget) if degrees is None else \
+        self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
+        degrees = muscle_degrees(crossing, degree, max_terms, term_budget, blocks=blocks) if degrees is None else \
             check_degrees(degrees, len(crossing))
         self.degree = int(degrees.max())
-        exponents = term_exponents(crossing, degrees)
+        exponents = term_exponents(crossing, degrees, blocks)
         self.register_buffer("crossing", torch.tensor(crossing))
         self.register_buffer("exponents", torch.tensor(exponents))
-        mask = term_mask(crossing, exponents, degrees)
+        mask = term_mask(crossing, exponents, degrees, blocks)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
         if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branches)

@@ -79,6 +79,12 @@ class StructuredSchema(BodySchema):
             joint, kept where it halves their median residual (``networks.cells``).
         path_cell_degrees: each muscle's cell degree (0: no cells), set by the fit when ``path_cells > 1`` (a
             checkpoint then rebuilds the same cells).
+        path_separable: False, or True: each muscle's length a sum of one polynomial per group of its joints whose
+            effects add up (a path's segments between bodies), the groups from the MJCF
+            (``MusculoskeletalModel.separable_blocks``); no term mixes two groups, so the same terms reach a higher
+            degree. Needs the robot's MJCF.
+        path_blocks: each muscle's group per joint (``(M, N)`` ints, -1 uncrossed), set when ``path_separable``
+            (a checkpoint then rebuilds the same polynomials); given, it is used as is.
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -98,7 +104,8 @@ class StructuredSchema(BodySchema):
                  muscle_joints: Optional[dict] = None, torque_degree: int = 6, path_branches: int = 1,
                  path_gate_degree: int = 8, path_term_budget: Optional[int] = None,
                  path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None,
-                 path_cells: int = 1, path_cell_degrees: Optional[list] = None):
+                 path_cells: int = 1, path_cell_degrees: Optional[list] = None, path_separable: bool = False,
+                 path_blocks: Optional[list] = None):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -109,6 +116,8 @@ class StructuredSchema(BodySchema):
             raise BodySchemaInputError(f"length_model={length_model!r}; allowed: {list(LENGTH_MODELS)}")
         if torque_model == "polynomial" and length_model != "per_muscle":
             raise BodySchemaInputError("torque_model='polynomial' needs length_model='per_muscle'")
+        if path_separable and length_model != "per_muscle":
+            raise BodySchemaInputError("path_separable=True needs length_model='per_muscle'")
         check_architecture(block, norm)
         if isinstance(path_cells, bool) or not isinstance(path_cells, int) or path_cells < 1:
             raise BodySchemaInputError(f"path_cells={path_cells!r} must be an integer >= 1 (pieces per joint; 1: no "
@@ -120,6 +129,8 @@ class StructuredSchema(BodySchema):
         self.save_hyperparameters()
         if length_model == "per_muscle":
             self.hparams.muscle_joints = resolve_crossing(self.robot_model, robot, muscle_joints)
+            if path_separable and path_blocks is None:
+                self.hparams.path_blocks = self._separable_blocks()
             self._build_paths()
         else:
             self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
@@ -131,6 +142,17 @@ class StructuredSchema(BodySchema):
         # typical muscle torque per joint [N m]: the unit of the torque networks (set from the data when a fit starts)
         self.register_buffer("tau_scale_nm", torch.ones(self.n_joints, dtype=torch.float64))
 
+    def _separable_blocks(self) -> list:
+        """``hparams.path_blocks`` from the MJCF, for the crossings ``hparams.muscle_joints`` names."""
+        if not self.robot_model.has_physics or self.hparams.muscle_joints is None:
+            raise BodySchemaInputError("path_separable=True needs the robot's MJCF (MuJoCo's moment arms show which "
+                                       "joints' effects on a length add up); recorded logs have none: use "
+                                       "path_separable=False")
+        joints = self.robot_model.joint_names
+        crossing = np.array([[j in self.hparams.muscle_joints[m] for j in joints]
+                             for m in self.robot_model.muscle_names])
+        return self.robot_model.separable_blocks(crossing).tolist()
+
     def _build_paths(self) -> None:
         """The per-muscle path model for ``hparams.muscle_joints`` (None: every joint until the fit detects them)."""
         joints, hp = self.robot_model.joint_names, self.hparams
@@ -140,7 +162,7 @@ class StructuredSchema(BodySchema):
         self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
                                         hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
                                         hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
-                                        hp.get("path_cell_degrees"))
+                                        hp.get("path_cell_degrees"), hp.get("path_blocks"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -175,7 +197,8 @@ class StructuredSchema(BodySchema):
         """``hparams.path_degrees`` from a first fit (``path_tolerance_mm``), and the path model rebuilt with them."""
         hp, l_std_mm = self.hparams, 1e3 * self.normalizer.x_std[:self.n_muscles]
         degrees = degrees_within_tolerance(self.length_net.crossing.cpu().numpy(), q_n, target_n, l_std_mm,
-                                           hp.path_degree, hp.path_terms, hp.path_term_budget, hp.path_tolerance_mm)
+                                           hp.path_degree, hp.path_terms, hp.path_term_budget, hp.path_tolerance_mm,
+                                           hp.get("path_blocks"))
         hp.path_degrees = degrees.tolist()
         self._build_paths()
         self.length_net.to(self.device)

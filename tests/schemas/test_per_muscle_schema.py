@@ -118,6 +118,21 @@ def test_a_checkpoint_with_cells_answers_the_same_and_still_matches_mujoco(tmp_p
     assert np.median(np.abs(l_geo - l_true)) < 1e-6 and np.median(np.abs(G - G_true)) < 1e-5
 
 
+def test_separable_paths_take_their_groups_from_the_mjcf_and_a_checkpoint_keeps_them(tmp_path):
+    schema, trainer = _fit(EquilibriumDataModule(n_samples=1000, seed=0, cache_dir=None), path_separable=True,
+                           **PER_MUSCLE)
+    assert schema.hparams.path_blocks == [[0, -1], [0, -1], [-1, 0], [-1, 0], [0, 1], [0, 1]]
+    path = str(tmp_path / "separable.ckpt")
+    trainer.save_checkpoint(path, weights_only=False)
+    q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(9), 300))
+    for a, b in zip(schema.body_si(q), load_schema(path).body_si(q)):
+        np.testing.assert_array_equal(a, b)
+    l_true, G_true, _ = schema.robot_model.kinematics(q.numpy())
+    l_geo, G, _ = schema.body_si(q)
+    assert np.median(np.abs(l_geo - l_true)) < 1e-6 and np.median(np.abs(G - G_true)) < 1e-5
+    assert (G[:, 4:, :] != 0).all()  # the biarticular muscles keep both moment arms
+
+
 def test_a_per_muscle_checkpoint_from_before_the_branches_answers_as_before(paper_arm, tmp_path):
     _assert_answers_the_same_without(*paper_arm, str(tmp_path / "one_branch.ckpt"),
                                      ("path_branches", "path_gate_degree"))
@@ -151,6 +166,11 @@ def test_recorded_data_detects_the_crossings_and_says_so(recorded_csv, capsys):
     q = MusculoskeletalModel("paper_arm").sample_q(np.random.default_rng(7), 50)
     G = schema.body_si(torch.as_tensor(q))[1]
     assert (G[:, 0, 1] == 0).all() and (G[:, 2, 0] == 0).all()
+
+
+def test_separable_paths_on_recorded_data_are_refused_in_one_line(recorded_csv):
+    with pytest.raises(BodySchemaInputError, match="path_separable=True needs the robot's MJCF.*path_separable=False"):
+        _fit(RecordedDataModule(recorded_csv, seed=3), path_separable=True, **PER_MUSCLE)
 
 
 def test_a_recorded_mapping_that_misses_a_crossed_joint_warns_with_the_figure(recorded_csv):
@@ -188,3 +208,5 @@ def test_bad_length_and_torque_models_are_refused():
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_branches=3)
     with pytest.raises(BodySchemaInputError, match=r"path_cells=0 must be an integer >= 1 \(pieces per joint"):
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_cells=0)
+    with pytest.raises(BodySchemaInputError, match="path_separable=True needs length_model='per_muscle'"):
+        StructuredSchema(robot=robot, path_separable=True)
