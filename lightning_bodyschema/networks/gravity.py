@@ -15,6 +15,7 @@ Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -26,10 +27,12 @@ RCOND = 1e-10  # singular values of the column-scaled features below this times 
 # rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
 
 
-def _cross_matrix(axis: torch.Tensor) -> torch.Tensor:
-    """(3, 3) ``K`` with ``K v = axis x v``."""
-    x, y, z = axis.tolist()
-    return torch.tensor([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]], dtype=torch.float64)
+def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
+    """(J, 3, 3) ``K`` with ``K v = axis x v`` per axis (numpy: a schema's skeleton is built on the meta device)."""
+    x, y, z = np.asarray(axes, float).reshape(-1, 3).T
+    zero = np.zeros_like(x)
+    return torch.tensor(np.stack([[zero, -z, y], [z, zero, -x], [-y, x, zero]]).transpose(2, 0, 1).copy(),
+                        dtype=torch.float64)
 
 
 class GravityTorque(nn.Module):
@@ -49,14 +52,21 @@ class GravityTorque(nn.Module):
             raise BodySchemaInputError("gravity torque: no body moves with a free joint")
         self.n_free, self.n_frames, self.frame_names = n_free, n_frames, list(tree.frame_names)
         f64 = dict(dtype=torch.float64)
+        chain = [j for joints in tree.body_joints for j in joints]  # the joints of the bodies the FK visits
+        self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
+        cross, chain_pos = _cross_matrices(tree.jnt_axis[chain]), torch.tensor(tree.jnt_pos[chain], **f64)
         buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=torch.tensor(tree.qpos0, **f64),
                        free_select=torch.tensor(tree.free_select, **f64),
                        full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
                        dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
                        body_pos=torch.tensor(tree.body_pos, **f64), body_rot=torch.tensor(tree.body_rot, **f64),
-                       jnt_pos=torch.tensor(tree.jnt_pos, **f64), jnt_axis=torch.tensor(tree.jnt_axis, **f64),
-                       axis_cross=torch.stack([_cross_matrix(torch.tensor(a)) for a in tree.jnt_axis]).reshape(
-                           -1, 3, 3).to(**f64),
+                       chain_cross=cross, chain_cross2=cross @ cross, chain_eye=torch.eye(3, **f64).expand_as(cross).clone(),
+                       chain_cross_pos=(cross @ chain_pos[..., None])[..., 0],
+                       chain_cross2_pos=(cross @ cross @ chain_pos[..., None])[..., 0],
+                       chain_axis=torch.tensor(tree.jnt_axis[chain], **f64),
+                       chain_hinge=torch.tensor(tree.jnt_type[chain] == _HINGE, **f64),
+                       moving_pos=torch.tensor(tree.jnt_pos[tree.moving_joint], **f64),
+                       moving_axis=torch.tensor(tree.jnt_axis[tree.moving_joint], **f64),
                        moves_frame=torch.tensor(tree.moves_frame, **f64),
                        hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
                        free_scatter=self._one_hot(tree.free_column, n_free),
@@ -106,31 +116,40 @@ class GravityTorque(nn.Module):
     def kinematics(self, q: torch.Tensor):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
         ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics)."""
-        full = self.full_q(q.to(torch.float64))
-        angle = full - self.qpos0
-        eye = torch.eye(3, dtype=torch.float64, device=q.device)
-        zero = 0.0 * angle[:, :1]  # (B, 1): gives a pose on the world's bodies the batch's shape
-        poses, anchors, axes = [], {}, {}
+        rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)))
+        zero = 0.0 * q[:, :1].to(torch.float64)  # (B, 1): gives a pose on the world's bodies the batch's shape
+        poses, before = [], {}
         for i, parent in enumerate(self.body_parent):
             if parent < 0:
                 p, R = self.body_pos[i] + zero, self.body_rot[i] + zero[..., None]
             else:
                 p_parent, R_parent = poses[parent]
-                p, R = p_parent + (R_parent @ self.body_pos[i, :, None])[..., 0], R_parent @ self.body_rot[i]
+                p, R = p_parent + R_parent @ self.body_pos[i], R_parent @ self.body_rot[i]
             for j in self.body_joints[i]:
-                anchors[j] = p + (R @ self.jnt_pos[j, :, None])[..., 0]
-                axes[j] = (R @ self.jnt_axis[j, :, None])[..., 0]
-                if self.jnt_type[j] == _SLIDE:
-                    p = p + axes[j] * angle[:, j, None]
-                else:  # Rodrigues about the body-frame axis, then the anchor stays put
-                    s, c = angle[:, j, None, None].sin(), angle[:, j, None, None].cos()
-                    K = self.axis_cross[j]
-                    R = R @ (eye + s * K + (1.0 - c) * (K @ K))
-                    p = anchors[j] - (R @ self.jnt_pos[j, :, None])[..., 0]
+                before[j] = p, R
+                k = self.chain_index[j]
+                p = p + (R @ shift[:, k, :, None])[..., 0]
+                R = R if self.jnt_type[j] == _SLIDE else R @ rot[:, k]
             poses.append((p, R))
-        frames = [poses[i] for i in self.frame_body]
-        return (torch.stack([p for p, _ in frames], 1), torch.stack([R for _, R in frames], 1),
-                torch.stack([anchors[j] for j in self.moving_joint], 1), torch.stack([axes[j] for j in self.moving_joint], 1))
+        p_joint = torch.stack([before[j][0] for j in self.moving_joint], 1)
+        R_joint = torch.stack([before[j][1] for j in self.moving_joint], 1)
+        anchors = p_joint + (R_joint @ self.moving_pos[..., None])[..., 0]
+        return (torch.stack([poses[i][0] for i in self.frame_body], 1),
+                torch.stack([poses[i][1] for i in self.frame_body], 1),
+                anchors, (R_joint @ self.moving_axis[..., None])[..., 0])
+
+    def _joint_motions(self, full: torch.Tensor):
+        """Every chain joint's motion in its body's frame at once: rotation ``(B, C, 3, 3)`` (Rodrigues about the
+        axis; the identity for a slide) and shift of the body origin ``(B, C, 3)`` (a hinge keeps its anchor fixed:
+        ``pos - rot pos``; a slide moves along its axis)."""
+        angle = (full - self.qpos0)[:, self.chain_joint, None, None]  # (B, C, 1, 1)
+        sin, versine = angle.sin(), 1.0 - angle.cos()
+        rot = self.chain_eye + sin * self.chain_cross + versine * self.chain_cross2
+        # pos - rot pos = -(sin K pos + versine K^2 pos), K pos and K^2 pos constant
+        hinge = self.chain_hinge[:, None]
+        shift = -hinge * (sin[..., 0] * self.chain_cross_pos + versine[..., 0] * self.chain_cross2_pos) \
+            + (1.0 - hinge) * self.chain_axis * angle[..., 0]
+        return rot, shift
 
     def _slopes(self, q: torch.Tensor) -> torch.Tensor:
         """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""

@@ -61,7 +61,8 @@ def gravity_tree(model) -> GravityTree:
     moving_set = set(moving)
     frame_of = _frames(m, moving_set)
     frame_ids = sorted(set(frame_of.values()))
-    needed = _ancestors(m, frame_ids)
+    fixed_pos, fixed_rot = _fixed_poses(model, frame_of)
+    needed = [b for b in _ancestors(m, frame_ids) if b in frame_of]  # the world's bodies: folded into offsets
     index = {b: i for i, b in enumerate(needed)}
     nq = m.njnt
     free_select = np.zeros((len(jmap.free), nq))
@@ -84,7 +85,8 @@ def gravity_tree(model) -> GravityTree:
         dep_follows=np.array([k for _, (k, _) in deps], dtype=np.int64),
         dep_coef=np.array([c for _, (_, c) in deps], float).reshape(-1, 5),
         body_parent=np.array([index.get(int(m.body_parentid[b]), -1) for b in needed], dtype=np.int64),
-        body_pos=m.body_pos[needed].copy(), body_rot=np.stack([_quat_to_mat(m.body_quat[b]) for b in needed]),
+        body_pos=np.stack([fixed_pos[int(m.body_parentid[b])] @ np.append(m.body_pos[b], 1.0) for b in needed]),
+        body_rot=np.stack([fixed_rot[int(m.body_parentid[b])] @ _quat_to_mat(m.body_quat[b]) for b in needed]),
         body_joints=[list(range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b])) for b in needed],
         jnt_type=m.jnt_type.astype(np.int64), jnt_pos=m.jnt_pos.copy(),
         jnt_axis=m.jnt_axis / np.linalg.norm(m.jnt_axis, axis=1, keepdims=True),
@@ -108,6 +110,19 @@ def _frames(m: mujoco.MjModel, moving: set) -> dict:
         elif int(m.body_parentid[b]) in frame_of:
             frame_of[b] = frame_of[int(m.body_parentid[b])]
     return frame_of
+
+
+def _fixed_poses(model, frame_of: dict) -> tuple[dict, dict]:
+    """``{body: (3, 4) [R | p]}`` and ``{body: R}`` in the world of the bodies nothing moves (MuJoCo's, at any
+    posture), and for every other body the identity: a moving body's child keeps its offset in its parent's frame,
+    a fixed body's child gets its offset in the world (fewer bodies for the forward kinematics to visit)."""
+    m, data = model.mj_model, mujoco.MjData(model.mj_model)
+    data.qpos[:] = model.joint_map.full_q(model.q_range.mean(axis=1)[None])[0]
+    mujoco.mj_kinematics(m, data)
+    identity = np.hstack([np.eye(3), np.zeros((3, 1))])
+    pose = {b: (identity if b in frame_of else np.hstack([data.xmat[b].reshape(3, 3), data.xpos[b][:, None]]))
+            for b in range(m.nbody)}
+    return pose, {b: value[:, :3] for b, value in pose.items()}
 
 
 def _ancestors(m: mujoco.MjModel, bodies: list) -> list:
