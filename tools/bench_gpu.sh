@@ -8,6 +8,7 @@
 #   fit_pm    the same with configs/myoarm-per-muscle.yaml
 #   adapter   the prepared structured adapter on CUDA and on this machine's CPU (one thread), batch 1 and 4000
 #   tests     python -m pytest -m gpu -q
+# STEPS="dataset fit_pm tests" (an environment variable) runs only the steps it names (default: every step).
 # Each step's output is OUT_DIR/<step>.log; OUT_DIR/summary.txt holds the machine and each step's exit status and
 # wall seconds; the two fits' checkpoints are copied to OUT_DIR/dense.ckpt and OUT_DIR/per_muscle.ckpt (their runs
 # live under RUNS_DIR, default /tmp/bench_gpu).
@@ -22,6 +23,7 @@ left() { echo $(( budget - ($(date +%s) - start) )); }
 step() {  # step NAME NEEDS_S CAP_S COMMAND...: run COMMAND, killed after CAP_S or at the budget's end; log status, wall
   local name=$1 need=$2 cap=$3 t0 rc
   shift 3
+  [[ " ${STEPS:-$name} " == *" $name "* ]] || return 0
   if (( $(left) < need )); then
     echo "$name skipped: $(left) s left, needs about $need" | tee -a "$out/summary.txt"
     return

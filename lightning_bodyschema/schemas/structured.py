@@ -12,7 +12,8 @@ Trained from (q, l_motor, f) samples and the spring law alone (no MJCF: recorded
   ``-G(q)^T f`` of the samples: the gradient of a learned potential ``V(q)`` (gravity and joint springs are
   conservative; ``torque_model="potential"``), a plain regression (``"direct"``), or a polynomial per joint fitted
   by least squares (``"polynomial"``, with the per-muscle lengths: refitted to the learned moment arms before every
-  validation and checkpoint).
+  validation and checkpoint), or the gravity torque of the MJCF's kinematic tree, linear in each moving body's mass
+  and first mass moment, fitted the same way (``"gravity"``, ``networks.gravity.GravityTorque``; needs the MJCF).
 
 Every command is a small QP on that body per posture (``faults.qp``): tensions closest to ``f_ref`` (half of each
 muscle's f_max) that balance ``tau`` within their box, each fault an exact constraint (cut f = 0; jammed or banded
@@ -31,13 +32,15 @@ from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import OK, bounds_command
+from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
 from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
 
-TORQUE_MODELS = ("potential", "direct", "polynomial")
+TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
+FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned moment arms, not the optimizer
 TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
 TORQUE_TRIM = 3.0  # its refits drop postures missed by more than this many medians (RESULTS.md "Per-muscle paths")
 TORQUE_TRIM_ROUNDS = 8
@@ -53,7 +56,9 @@ class StructuredSchema(BodySchema):
             (``networks.structured.JacobianMLP``); the moment arms stay the exact derivative of the lengths.
         norm: ``"none"`` (the default) or ``"layer"`` (LayerNorm before every activation), both networks.
         torque_model: ``"potential"`` (tau = dV/dq of a learned scalar V), ``"direct"`` (tau regressed per joint) or
-            ``"polynomial"`` (per joint, total degree ``torque_degree``, least squares; needs ``"per_muscle"``).
+            ``"polynomial"`` (per joint, total degree ``torque_degree``, least squares; needs ``"per_muscle"``) or
+            ``"gravity"`` (the MJCF tree's gravity torque with fitted masses and first moments, plus a linear spring
+            per joint, least squares; needs ``"per_muscle"`` and a robot with physics).
         torque_degree: total degree of the polynomial torque.
         stiffness_weighted: weigh each muscle's length error by its spring stiffness at the sample's tension,
             ``alpha (f + k)`` [N/m] (a length error then counts as the tension error it causes); False: unit weights.
@@ -114,8 +119,11 @@ class StructuredSchema(BodySchema):
                 raise BodySchemaInputError(f"{name}={value!r} must be a finite number >= 0")
         if length_model not in LENGTH_MODELS:
             raise BodySchemaInputError(f"length_model={length_model!r}; allowed: {list(LENGTH_MODELS)}")
-        if torque_model == "polynomial" and length_model != "per_muscle":
-            raise BodySchemaInputError("torque_model='polynomial' needs length_model='per_muscle'")
+        if torque_model == "gravity" and not self.robot_model.has_physics:
+            raise BodySchemaInputError("torque_model='gravity' needs the robot's MJCF (recorded data has none); "
+                                       "use 'polynomial', 'direct' or 'potential'")
+        if torque_model in FITTED_TORQUES and length_model != "per_muscle":
+            raise BodySchemaInputError(f"torque_model={torque_model!r} needs length_model='per_muscle'")
         if path_separable and length_model != "per_muscle":
             raise BodySchemaInputError("path_separable=True needs length_model='per_muscle'")
         check_architecture(block, norm)
@@ -136,6 +144,8 @@ class StructuredSchema(BodySchema):
             self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
         if torque_model == "polynomial":  # the joints as the "muscles" of a polynomial over every joint
             self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), torque_degree, 1, 0)
+        elif torque_model == "gravity":  # rebuilt from the robot's XML: a checkpoint carries only the coefficients
+            self.torque_net = GravityTorque.from_model(self.robot_model)
         else:
             self.torque_net = JacobianMLP(self.n_joints, 1 if torque_model == "potential" else self.n_joints,
                                           hidden, n_hidden, block, norm)
@@ -178,8 +188,8 @@ class StructuredSchema(BodySchema):
         polynomial by least squares on the train split's exact lengths ``l_motor + delta(f)``."""
         q_n, target_n = self.normalizer.encode_q(q.to(torch.float64)), self._length_target_n(x.to(torch.float64))
         # Lightning calls setup before it moves the module (``self.device`` already names the fit's device)
-        self.length_net.to(self.device)
-        self.torque_net.to(self.device)
+        for part in (self.normalizer, self.length_net, self.torque_net):
+            part.to(self.device)
         if self.hparams.muscle_joints is None or not self.robot_model.has_physics:  # the MJCF needs no check
             self.hparams.muscle_joints = crossing_from_data(q_n, target_n, self._arm_scale(), self.robot_model,
                                                             self.hparams.muscle_joints)
@@ -190,7 +200,7 @@ class StructuredSchema(BodySchema):
         self.length_net.fit_polynomial(q_n.to(self.device), target_n.to(self.device))
         if self.hparams.get("path_cells", 1) > 1:
             self.hparams.path_cell_degrees = self.length_net.cell_degrees.tolist()
-        if self.hparams.torque_model == "polynomial":
+        if self.hparams.torque_model in FITTED_TORQUES:
             self._fit_torque(q_n.to(self.device), x[:, self.n_muscles:].to(self.device, torch.float64))
 
     def _choose_degrees(self, q_n: torch.Tensor, target_n: torch.Tensor) -> None:
@@ -213,11 +223,14 @@ class StructuredSchema(BodySchema):
         arm_scale = self._arm_scale().to(q_n)
         target = torch.cat([-torch.einsum("bmn,bm->bn", self.length_net.with_jacobian(q_n[i:i + chunk].to(
             self.dtype))[1].to(torch.float64) * arm_scale, f[i:i + chunk]) for i in range(0, len(q_n), chunk)])
+        if self.hparams.torque_model == "gravity":  # in SI: radians and N m, as the tree's kinematics
+            self.torque_net.fit_trimmed(self.normalizer.decode_q(q_n), target, TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
+            return
         self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n), TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
 
     def refresh_from_train_split(self, q_n, x_n) -> None:
-        """The polynomial torque refitted to the current moment arms (when the lengths have trained weights)."""
-        if self.hparams.get("torque_model") == "polynomial" and any(True for _ in self.length_net.parameters()):
+        """The fitted torque refitted to the current moment arms (when the lengths have trained weights)."""
+        if self.hparams.get("torque_model") in FITTED_TORQUES and any(True for _ in self.length_net.parameters()):
             self._fit_torque(q_n, self.normalizer.decode_x(x_n.double())[:, self.n_muscles:])
 
     def torque_scale(self) -> torch.Tensor:
@@ -244,6 +257,8 @@ class StructuredSchema(BodySchema):
 
     def torque(self, q_n: torch.Tensor) -> torch.Tensor:
         """The learned torque the muscles must balance, ``tau (B, N)`` [N m] (``-G^T f = tau`` in equilibrium)."""
+        if self.hparams.torque_model == "gravity":  # the tree's kinematics in radians, float64
+            return self.torque_net(self.normalizer.decode_q(q_n.to(torch.float64))).to(q_n.dtype)
         scale = self.tau_scale_nm.to(q_n.dtype)
         if self.hparams.torque_model in ("direct", "polynomial"):
             return scale * self.torque_net(q_n)
@@ -275,7 +290,7 @@ class StructuredSchema(BodySchema):
         f = x[:, m:]
         l_mean, l_std = self.normalizer.x_mean[:m], self.normalizer.x_std[:m]
         target_n = self._length_target_n(x).to(x_n.dtype)
-        if self.hparams.torque_model == "polynomial":  # least squares (refresh_from_train_split): lengths only
+        if self.hparams.torque_model in FITTED_TORQUES:  # least squares (refresh_from_train_split): lengths only
             error_n, torque_loss = self.length_net(q_n) - target_n, torch.zeros((), dtype=x_n.dtype)
         else:
             l_geo, G, tau = self.body(q_n)

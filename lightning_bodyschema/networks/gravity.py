@@ -1,0 +1,241 @@
+"""``GravityTorque``: the gravity torque of a known kinematic tree with unknown masses, linear in its parameters.
+
+With ``V(q) = sum_f -g . (m_f p_f(q) + R_f(q) s_f)`` over the moving frames f (``sim.gravity_tree``), the torque
+``tau = dV/dq`` is ``Y(q) pi`` with ``pi = (m_f, s_f)`` per frame. For a hinge joint j (world axis ``a_j``, anchor
+``o_j``) that moves frame f: ``dp_f/dq_j = a_j x (p_f - o_j)`` and ``dR_f/dq_j = a_j x R_f``, so by the triple
+product the mass column is ``-(g x a_j) . (p_f - o_j)`` and moment column k is ``-(g x a_j) . R_f[:, k]``; a slide
+joint's mass column is ``-g . a_j`` (its moment columns 0). Coupled joints add their columns times their slope
+``d q_j / d q_free`` (``tau_free = E^T tau_full``). Per free joint an offset and a linear spring
+(``tau_j += c0_j + c1_j q_j``) represent joint springs.
+
+Forward kinematics is MuJoCo's, in closed form in torch float64: each body at its parent's pose times its offset,
+then each joint (a hinge rotates by ``q - qpos0`` about its axis through its anchor; a slide translates). A Python
+loop over the tree's bodies, none over postures; no autograd; broadcasting only (``torch.export``, ``torch.vmap``).
+Plain PyTorch, no Lightning.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..errors import BodySchemaInputError
+
+_HINGE, _SLIDE = 3, 2  # mujoco.mjtJoint codes (the tree holds no other kind: sim.model refuses them)
+ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
+RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's
+# rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
+
+
+def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
+    """(J, 3, 3) ``K`` with ``K v = axis x v`` per axis (numpy: a schema's skeleton is built on the meta device)."""
+    x, y, z = np.asarray(axes, float).reshape(-1, 3).T
+    zero = np.zeros_like(x)
+    return torch.tensor(np.stack([[zero, -z, y], [z, zero, -x], [-y, x, zero]]).transpose(2, 0, 1).copy(),
+                        dtype=torch.float64)
+
+
+class GravityTorque(nn.Module):
+    """``tau (B, N)`` [N m] at free-joint postures ``q (B, N)`` [rad or m] of a ``sim.gravity_tree.GravityTree``.
+
+    ``features(q) (B, N, P)``; ``forward(q) = features(q) @ coef`` (computed without the features: the frames'
+    world first mass moments summed below each joint); ``fit_trimmed`` sets ``coef`` by least squares. ``coef``
+    (P,) is the only state-dict entry (float64): per frame ``(m [kg], s [kg m] x3)``, then N offsets [N m] and N
+    spring rates [N m per rad or m]. The tree's arrays are non-persistent buffers (``.to(device)`` moves them; the
+    schema rebuilds them from the robot), kept float64 by dtype casts.
+    """
+
+    def __init__(self, tree):
+        super().__init__()
+        n_free, n_frames = tree.free_select.shape[0], tree.n_frames
+        if n_frames == 0:
+            raise BodySchemaInputError("gravity torque: no body moves with a free joint")
+        self.n_free, self.n_frames, self.frame_names = n_free, n_frames, list(tree.frame_names)
+        f64 = dict(dtype=torch.float64)
+        chain = [j for joints in tree.body_joints for j in joints]  # the joints of the bodies the FK visits
+        self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
+        cross, chain_pos = _cross_matrices(tree.jnt_axis[chain]), torch.tensor(tree.jnt_pos[chain], **f64)
+        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=torch.tensor(tree.qpos0, **f64),
+                       free_select=torch.tensor(tree.free_select, **f64),
+                       full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
+                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
+                       body_pos=torch.tensor(tree.body_pos, **f64), body_rot=torch.tensor(tree.body_rot, **f64),
+                       chain_cross=cross, chain_cross2=cross @ cross, chain_eye=torch.eye(3, **f64).expand_as(cross).clone(),
+                       chain_cross_pos=(cross @ chain_pos[..., None])[..., 0],
+                       chain_cross2_pos=(cross @ cross @ chain_pos[..., None])[..., 0],
+                       chain_axis=torch.tensor(tree.jnt_axis[chain], **f64),
+                       chain_hinge=torch.tensor(tree.jnt_type[chain] == _HINGE, **f64),
+                       moving_pos=torch.tensor(tree.jnt_pos[tree.moving_joint], **f64),
+                       moving_axis=torch.tensor(tree.jnt_axis[tree.moving_joint], **f64),
+                       moves_frame=torch.tensor(tree.moves_frame, **f64),
+                       hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
+                       free_scatter=self._one_hot(tree.free_column, n_free),
+                       slope_coef=torch.tensor(tree.slope_coef, **f64))
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
+        self.dep_joint, self.dep_follows = tree.dep_joint.tolist(), tree.dep_follows.tolist()
+        self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
+        self.jnt_type, self.frame_body = tree.jnt_type.tolist(), tree.frame_body.tolist()
+        self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
+        self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
+
+    @staticmethod
+    def _one_hot(rows, width: int) -> torch.Tensor:
+        """(len(rows), width) float64 with a 1 at each row's entry."""
+        out = torch.zeros(len(rows), width, dtype=torch.float64)
+        out[torch.arange(len(rows)), torch.as_tensor(rows, dtype=torch.long)] = 1.0
+        return out
+
+    @classmethod
+    def from_model(cls, model) -> "GravityTorque":
+        """From a ``sim.MusculoskeletalModel`` (its compiled MJCF and joint map)."""
+        from ..sim.gravity_tree import gravity_tree  # sim needs MuJoCo; this module alone does not
+
+        return cls(gravity_tree(model))
+
+    def _apply(self, fn, *args, **kwargs):
+        """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
+        kept = {name: value for name, value in self._buffers.items() if value is not None}
+        out = super()._apply(fn, *args, **kwargs)
+        for name, value in kept.items():
+            self._buffers[name] = value.to(self._buffers[name].device)
+        return out
+
+    # ------------------------------------------------------------------ kinematics
+    def full_q(self, q: torch.Tensor) -> torch.Tensor:
+        """Every joint (B, nq) from the free joints (B, N): locks, then couplings (``sim.joints.JointMap.full_q``)."""
+        full = q @ self.free_select + self.full_base
+        if not self.dep_joint:
+            return full
+        x = full[:, self.dep_follows] - self.qpos0[self.dep_follows]
+        value = self.dep_coef[:, 4]
+        for k in (3, 2, 1, 0):  # Horner, as numpy's polyval (the same operations)
+            value = value * x + self.dep_coef[:, k]
+        return full + (value + self.qpos0[self.dep_joint] - full[:, self.dep_joint]) @ self.dep_scatter
+
+    def kinematics(self, q: torch.Tensor):
+        """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
+        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics)."""
+        rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)))
+        zero = 0.0 * q[:, :1].to(torch.float64)  # (B, 1): gives a pose on the world's bodies the batch's shape
+        poses, before = [], {}
+        for i, parent in enumerate(self.body_parent):
+            if parent < 0:
+                p, R = self.body_pos[i] + zero, self.body_rot[i] + zero[..., None]
+            else:
+                p_parent, R_parent = poses[parent]
+                p, R = p_parent + R_parent @ self.body_pos[i], R_parent @ self.body_rot[i]
+            for j in self.body_joints[i]:
+                before[j] = p, R
+                k = self.chain_index[j]
+                p = p + (R @ shift[:, k, :, None])[..., 0]
+                R = R if self.jnt_type[j] == _SLIDE else R @ rot[:, k]
+            poses.append((p, R))
+        p_joint = torch.stack([before[j][0] for j in self.moving_joint], 1)
+        R_joint = torch.stack([before[j][1] for j in self.moving_joint], 1)
+        anchors = p_joint + (R_joint @ self.moving_pos[..., None])[..., 0]
+        return (torch.stack([poses[i][0] for i in self.frame_body], 1),
+                torch.stack([poses[i][1] for i in self.frame_body], 1),
+                anchors, (R_joint @ self.moving_axis[..., None])[..., 0])
+
+    def _joint_motions(self, full: torch.Tensor):
+        """Every chain joint's motion in its body's frame at once: rotation ``(B, C, 3, 3)`` (Rodrigues about the
+        axis; the identity for a slide) and shift of the body origin ``(B, C, 3)`` (a hinge keeps its anchor fixed:
+        ``pos - rot pos``; a slide moves along its axis)."""
+        angle = (full - self.qpos0)[:, self.chain_joint, None, None]  # (B, C, 1, 1)
+        sin, versine = angle.sin(), 1.0 - angle.cos()
+        rot = self.chain_eye + sin * self.chain_cross + versine * self.chain_cross2
+        # pos - rot pos = -(sin K pos + versine K^2 pos), K pos and K^2 pos constant
+        hinge = self.chain_hinge[:, None]
+        shift = -hinge * (sin[..., 0] * self.chain_cross_pos + versine[..., 0] * self.chain_cross2_pos) \
+            + (1.0 - hinge) * self.chain_axis * angle[..., 0]
+        return rot, shift
+
+    def _slopes(self, q: torch.Tensor) -> torch.Tensor:
+        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""
+        full = self.full_q(q.to(torch.float64))
+        x = full[:, self.slope_of] - self.qpos0[self.slope_of]
+        value = self.slope_coef[:, 3]
+        for k in (2, 1, 0):
+            value = value * x + self.slope_coef[:, k]
+        return value
+
+    # ------------------------------------------------------------------ the regressor
+    def features(self, q: torch.Tensor) -> torch.Tensor:
+        """``Y (B, N, P)`` with ``tau = Y @ coef`` (module docstring for the columns)."""
+        q = q.to(torch.float64)
+        p, R, o, a = self.kinematics(q)
+        ga = torch.linalg.cross(self.gravity.expand_as(a), a)  # (B, J, 3)
+        hinge = self.hinge[:, None]
+        mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
+            - (a @ self.gravity)[..., None] * (1.0 - hinge)
+        moment = -torch.einsum("bjc,bfck->bjfk", ga, R) * hinge[..., None]
+        per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
+        weighted = per_joint.flatten(2) * self._slopes(q)[..., None]
+        tree = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
+        ones = torch.ones_like(q)
+        return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features)."""
+        q = q.to(torch.float64)
+        p, R, o, a = self.kinematics(q)
+        per_frame = self.coef[:4 * self.n_frames].reshape(self.n_frames, 4)
+        mass, moment = per_frame[:, 0], per_frame[:, 1:]
+        w = mass[:, None] * p + (R @ moment[..., None])[..., 0]  # (B, F, 3)
+        w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w)
+        mass_joint = self.moves_frame @ mass  # (J,)
+        ga = torch.linalg.cross(self.gravity.expand_as(a), a)
+        tau_hinge = -(ga * (w_joint - mass_joint[:, None] * o)).sum(-1)
+        tau_slide = -(a @ self.gravity) * mass_joint
+        tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(q)
+        spring = self.coef[4 * self.n_frames:]
+        return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
+
+    # ------------------------------------------------------------------ the fit
+    @torch.no_grad()
+    def fit_trimmed(self, q: torch.Tensor, tau: torch.Tensor, factor: float = 3.0, rounds: int = 8,
+                    chunk: int = 4096) -> torch.Tensor:
+        """Least squares of ``coef`` on postures ``q (S, N)`` and torques ``tau (S, N)`` [N m], then up to ``rounds``
+        refits without the postures whose residual norm exceeds ``factor`` times the kept ones' median (where a
+        learned moment arm swings, its torque is no gravity's, and would pull the whole fit); the kept mask ``(S,)``.
+        Each fit is a QR of the features, not the normal equations: the tree's parameters include directions the
+        postures determine only weakly (relative singular values down to 1e-10 on myoArm), which the normal
+        equations' squared condition number would lose to rounding."""
+        q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
+        self.coef.copy_(_solve_triangular(self._triangular(q, tau, chunk)))
+        keep = torch.ones(len(q), dtype=torch.bool, device=q.device)
+        for _ in range(rounds):
+            miss = torch.cat([(self(q[i:i + chunk]) - tau[i:i + chunk]).norm(dim=1) for i in range(0, len(q), chunk)])
+            new = miss <= factor * miss[keep].median()
+            if torch.equal(new, keep):
+                break
+            keep = new
+            self.coef.copy_(_solve_triangular(self._triangular(q[keep], tau[keep], chunk)))
+        return keep
+
+    def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
+        """``R`` of the QR of ``[Y | tau]`` (every posture and joint a row), one chunk of postures at a time: the QR
+        of the previous ``R`` stacked on the chunk's rows (the same ``R`` up to row signs)."""
+        R = torch.zeros(0, len(self.coef) + 1, dtype=torch.float64, device=q.device)
+        for start in range(0, len(q), chunk):
+            rows = torch.cat([self.features(q[start:start + chunk]), tau[start:start + chunk, :, None]], -1)
+            R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
+        return R
+
+
+def _solve_triangular(R: torch.Tensor) -> torch.Tensor:
+    """The minimum-norm least-squares ``coef`` from ``R`` of ``[Y | tau]``, columns scaled to unit norm first (masses
+    [kg] and moments [kg m] differ in size). Columns at rounding level (``ZERO_COLUMN`` of the largest: a frame whose
+    origin sits on the axis of every joint moving it) get 0, and directions the data does not determine (a moment
+    along a joint axis) are dropped below ``RCOND``: scaled up, either would fit rounding with huge coefficients."""
+    A, b = R[:, :-1], R[:, -1]
+    norm = A.norm(dim=0)  # the features' column norms (Q is orthonormal)
+    used = torch.nonzero(norm > ZERO_COLUMN * norm.max()).flatten()
+    U, S, Vh = torch.linalg.svd(A[:, used] / norm[used], full_matrices=False)
+    kept = S > RCOND * S[0]
+    inverse = torch.where(kept, 1.0 / torch.where(kept, S, torch.ones_like(S)), torch.zeros_like(S))
+    coef = torch.zeros(A.shape[1], dtype=torch.float64, device=R.device)
+    coef[used] = (Vh.T @ (inverse * (U.T @ b))) / norm[used]
+    return coef

@@ -1,0 +1,111 @@
+"""GravityTorque: the MJCF tree's gravity torque with fitted masses and first moments, against MuJoCo (float64)."""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from lightning_bodyschema.networks.gravity import GravityTorque
+from lightning_bodyschema.sim import MusculoskeletalModel
+from lightning_bodyschema.sim.gravity_tree import gravity_tree
+
+
+@pytest.fixture(scope="module", params=["paper_arm", "myoarm"])
+def robot(request):
+    if request.param == "paper_arm":
+        return MusculoskeletalModel("paper_arm")
+    pytest.importorskip("myo_sim")
+    locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]  # the hand locked, couplings kept
+    return MusculoskeletalModel("myo:myoarm", locked_joints=locks)
+
+
+def _postures(robot, n, seed):
+    q = robot.sample_q(np.random.default_rng(seed), n)
+    return torch.as_tensor(q), torch.as_tensor(robot.kinematics(q)[2])
+
+
+def _relative(a, b) -> float:
+    return float((a - b).abs().max() / b.abs().max())
+
+
+def test_fit_on_mujoco_tau_bias_matches_held_out_postures(robot):
+    gravity = GravityTorque.from_model(robot)
+    q, tau = _postures(robot, 300, 0)
+    gravity.fit_trimmed(q, tau)
+    q_new, tau_new = _postures(robot, 100, 1)
+    assert _relative(gravity(q_new), tau_new) < 1e-9  # gravity is linear in the masses: exact if the FK is right
+    assert _relative(gravity.features(q_new) @ gravity.coef, tau_new) < 1e-9
+
+
+def test_kinematics_and_features_match_mujoco(robot):
+    """Frame poses, joint anchors and axes as mj_kinematics; each frame's columns the gradients of its potential
+    features ``-g . p`` and ``-g . R[:, k]`` by MuJoCo's body Jacobians, through the couplings' tangent ``E``."""
+    m, data, tree = robot.mj_model, mujoco.MjData(robot.mj_model), gravity_tree(robot)
+    gravity = GravityTorque(tree)
+    q = robot.sample_q(np.random.default_rng(2), 4)
+    full, tangent = robot.joint_map.full_q(q), robot.joint_map.tangent(q)
+    p, R, o, a = (t.numpy() for t in gravity.kinematics(torch.as_tensor(q)))
+    Y = gravity.features(torch.as_tensor(q)).numpy()
+    bodies = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name) for name in tree.frame_names]
+    jp, jr, g = np.zeros((3, m.nv)), np.zeros((3, m.nv)), m.opt.gravity
+    for i in range(len(q)):
+        data.qpos[:] = full[i]
+        mujoco.mj_kinematics(m, data)
+        mujoco.mj_comPos(m, data)
+        np.testing.assert_allclose(p[i], data.xpos[bodies], atol=1e-12)
+        np.testing.assert_allclose(R[i], data.xmat[bodies].reshape(-1, 3, 3), atol=1e-12)
+        np.testing.assert_allclose(o[i], data.xanchor[tree.moving_joint], atol=1e-12)
+        np.testing.assert_allclose(a[i], data.xaxis[tree.moving_joint], atol=1e-12)
+        for f, body in enumerate(bodies):
+            mujoco.mj_jacBody(m, data, jp, jr, body)
+            # d(-g . p)/dq = -J_p^T g and d(-g . R[:, k])/dq = -g . (w x R[:, k]) = J_r^T (g x R[:, k])
+            columns = [-jp.T @ g] + [jr.T @ np.cross(g, data.xmat[body].reshape(3, 3)[:, k]) for k in range(3)]
+            np.testing.assert_allclose(Y[i, :, 4 * f:4 * f + 4], tangent[i].T @ np.stack(columns, 1), atol=1e-12)
+    n = robot.n_joints  # then an offset and a spring rate per free joint
+    np.testing.assert_array_equal(Y[:, :, -2 * n:-n], np.broadcast_to(np.eye(n), (len(q), n, n)))
+    np.testing.assert_array_equal(Y[:, :, -n:], np.einsum("bn,nk->bnk", q, np.eye(n)))
+
+
+def test_trimmed_fit_recovers_the_exact_coefficients_despite_wild_samples():
+    robot = MusculoskeletalModel("paper_arm")
+    q, tau = _postures(robot, 300, 3)
+    clean = GravityTorque.from_model(robot)
+    clean.fit_trimmed(q, tau, rounds=0)
+    wild = tau.clone()
+    wild[:6] += 50.0 * torch.randn(6, robot.n_joints, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    trimmed = GravityTorque.from_model(robot)
+    keep = trimmed.fit_trimmed(q, wild, factor=3.0, rounds=8)
+    assert not keep[:6].any() and keep[6:].float().mean() > 0.5
+    np.testing.assert_allclose(trimmed.coef, clean.coef, rtol=1e-9, atol=1e-12 * clean.coef.abs().max().item())
+    untrimmed = GravityTorque.from_model(robot)
+    untrimmed.fit_trimmed(q, wild, rounds=0)
+    assert _relative(untrimmed.coef, clean.coef) > 1e-3  # without the trim the wild samples pull the fit
+
+
+def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_exports():
+    robot = MusculoskeletalModel("paper_arm")
+    gravity = GravityTorque.from_model(robot)
+    q, tau = _postures(robot, 50, 4)
+    gravity.fit_trimmed(q, tau)
+    assert list(gravity.state_dict()) == ["coef"]
+    other = GravityTorque.from_model(robot)
+    other.load_state_dict(gravity.state_dict())
+    other.float()
+    assert all(b.dtype == torch.float64 for b in other.buffers())
+    torch.testing.assert_close(other(q), gravity(q), rtol=0, atol=0)
+    exported = torch.export.export(gravity, (q[:7],), dynamic_shapes=({0: torch.export.Dim("batch")},))
+    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)
+    with torch.device("meta"):  # a checkpoint's skeleton
+        assert GravityTorque.from_model(robot).coef.shape == gravity.coef.shape
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_runs_on_cuda():
+    robot = MusculoskeletalModel("paper_arm")
+    gravity = GravityTorque.from_model(robot)
+    q, tau = _postures(robot, 100, 5)
+    gravity.fit_trimmed(q, tau)
+    on_gpu = gravity.to("cuda")
+    torch.testing.assert_close(on_gpu(q.cuda()).cpu(), tau, rtol=0, atol=1e-9)
