@@ -8,7 +8,8 @@
 #   fit_pm    the same with configs/myoarm-per-muscle.yaml
 #   adapter   the prepared structured adapter on CUDA and on this machine's CPU (one thread), batch 1 and 4000
 #   tests     python -m pytest -m gpu -q
-# STEPS="dataset fit_pm tests" (an environment variable) runs only the steps it names (default: every step).
+# STEPS="dataset fit_pm tests" (an environment variable) runs only the steps it names (default: every step);
+# TESTS_FIRST=1 runs the tests before the fits (TESTS_CAP: their most seconds).
 # Each step's output is OUT_DIR/<step>.log; OUT_DIR/summary.txt holds the machine and each step's exit status and
 # wall seconds; the two fits' checkpoints are copied to OUT_DIR/dense.ckpt and OUT_DIR/per_muscle.ckpt (their runs
 # live under RUNS_DIR, default /tmp/bench_gpu).
@@ -41,6 +42,7 @@ step() {  # step NAME NEEDS_S CAP_S COMMAND...: run COMMAND, killed after CAP_S 
 cat "$out/summary.txt"
 dataset='import yaml; from lightning_bodyschema.data.datamodule import EquilibriumDataModule as D
 D(**yaml.safe_load(open("configs/myoarm.yaml"))["data"]).prepare_data()'
+[[ "${TESTS_FIRST:-0}" == 1 ]] && step tests 60 "${TESTS_CAP:-600}" python3 -m pytest -m gpu -q -p no:cacheprovider
 step dataset 60 120 python3 -c "$dataset"
 step fit_dense 120 330 bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu \
   --trainer.default_root_dir "$runs/dense"
@@ -56,5 +58,5 @@ _, _, faults, q = myoarm_cases(4000)
 for device in ("cuda", "cpu"):
     print(device); adapter_latency(sys.argv[1], faults, q, 5, device, 50)'
 [ -n "$ckpt" ] && step adapter 30 90 python3 -c "$adapter" "$ckpt"
-step tests 60 600 python3 -m pytest -m gpu -q -p no:cacheprovider
+[[ "${TESTS_FIRST:-0}" == 1 ]] || step tests 60 600 python3 -m pytest -m gpu -q -p no:cacheprovider
 cat "$out/summary.txt"
