@@ -238,7 +238,7 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
         phi, y_m[:, idx], labels, system[idx], b[idx], order_m[idx], valid_m[idx],
         BRANCH_RIDGE, chunk, refine)
     labels = [_labels_by_residual(phi, y_m, r_m, pair), _labels_by_gate(phi, y_m, r_m, pair, gate_terms, chunk)]
-    both = torch.cat([torch.arange(len(muscles))] * 2)  # the two candidates of every muscle, batched
+    both = torch.cat([torch.arange(len(muscles), device=x.device)] * 2)  # the two candidates of every muscle, batched
     labels = torch.cat(labels, 1)
     coef_a, coef_b = pair(labels, both, REFINE)
     gate = _scatter(gate_terms[0][both], fit_gate(phi, labels, gate_terms[0][both], gate_terms[1][both], chunk),
@@ -246,7 +246,7 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     pred_a, pred_b, g = _predict(phi, [coef_a, coef_b, gate])
     miss = (y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs()
     p99, worst = torch.quantile(miss, 0.99, dim=0).view(2, -1), miss.amax(0).view(2, -1)
-    pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles))
+    pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles), device=p99.device)
     keep = p99.min(0).values * 2 <= torch.quantile(r_m.abs(), 0.99, dim=0)  # the branches halve the p99
     keep &= worst.gather(0, p99.argmin(0)[None])[0] <= SWING * r_m.abs().amax(0)  # and no branch swings away
     small = torch.minimum(labels.sum(0), len(labels) - labels.sum(0))[pick]  # and both are well determined

@@ -86,13 +86,6 @@ class GravityTorque(nn.Module):
         out[torch.arange(len(rows)), torch.as_tensor(rows, dtype=torch.long)] = 1.0
         return out
 
-    @classmethod
-    def from_model(cls, model) -> "GravityTorque":
-        """From a ``sim.MusculoskeletalModel`` (its compiled MJCF and joint map)."""
-        from ..sim.gravity_tree import gravity_tree  # sim needs MuJoCo; this module alone does not
-
-        return cls(gravity_tree(model))
-
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
         kept = {name: value for name, value in self._buffers.items() if value is not None}

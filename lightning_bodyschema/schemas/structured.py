@@ -35,6 +35,7 @@ from ..faults.qp import OK, bounds_command
 from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
+from ..sim.gravity_tree import gravity_tree
 from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
@@ -145,7 +146,7 @@ class StructuredSchema(BodySchema):
         if torque_model == "polynomial":  # the joints as the "muscles" of a polynomial over every joint
             self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), torque_degree, 1, 0)
         elif torque_model == "gravity":  # rebuilt from the robot's XML: a checkpoint carries only the coefficients
-            self.torque_net = GravityTorque.from_model(self.robot_model)
+            self.torque_net = GravityTorque(gravity_tree(self.robot_model))
         else:
             self.torque_net = JacobianMLP(self.n_joints, 1 if torque_model == "potential" else self.n_joints,
                                           hidden, n_hidden, block, norm)

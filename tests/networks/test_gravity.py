@@ -31,7 +31,7 @@ def _relative(a, b) -> float:
 
 
 def test_fit_on_mujoco_tau_bias_matches_held_out_postures(robot):
-    gravity = GravityTorque.from_model(robot)
+    gravity = GravityTorque(gravity_tree(robot))
     q, tau = _postures(robot, 300, 0)
     gravity.fit_trimmed(q, tau)
     q_new, tau_new = _postures(robot, 100, 1)
@@ -71,26 +71,26 @@ def test_kinematics_and_features_match_mujoco(robot):
 def test_trimmed_fit_recovers_the_exact_coefficients_despite_wild_samples():
     robot = MusculoskeletalModel("paper_arm")
     q, tau = _postures(robot, 300, 3)
-    clean = GravityTorque.from_model(robot)
+    clean = GravityTorque(gravity_tree(robot))
     clean.fit_trimmed(q, tau, rounds=0)
     wild = tau.clone()
     wild[:6] += 50.0 * torch.randn(6, robot.n_joints, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    trimmed = GravityTorque.from_model(robot)
+    trimmed = GravityTorque(gravity_tree(robot))
     keep = trimmed.fit_trimmed(q, wild, factor=3.0, rounds=8)
     assert not keep[:6].any() and keep[6:].float().mean() > 0.5
     np.testing.assert_allclose(trimmed.coef, clean.coef, rtol=1e-9, atol=1e-12 * clean.coef.abs().max().item())
-    untrimmed = GravityTorque.from_model(robot)
+    untrimmed = GravityTorque(gravity_tree(robot))
     untrimmed.fit_trimmed(q, wild, rounds=0)
     assert _relative(untrimmed.coef, clean.coef) > 1e-3  # without the trim the wild samples pull the fit
 
 
 def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_exports():
     robot = MusculoskeletalModel("paper_arm")
-    gravity = GravityTorque.from_model(robot)
+    gravity = GravityTorque(gravity_tree(robot))
     q, tau = _postures(robot, 50, 4)
     gravity.fit_trimmed(q, tau)
     assert list(gravity.state_dict()) == ["coef"]
-    other = GravityTorque.from_model(robot)
+    other = GravityTorque(gravity_tree(robot))
     other.load_state_dict(gravity.state_dict())
     other.float()
     assert all(b.dtype == torch.float64 for b in other.buffers())
@@ -98,13 +98,13 @@ def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_
     exported = torch.export.export(gravity, (q[:7],), dynamic_shapes=({0: torch.export.Dim("batch")},))
     torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)
     with torch.device("meta"):  # a checkpoint's skeleton
-        assert GravityTorque.from_model(robot).coef.shape == gravity.coef.shape
+        assert GravityTorque(gravity_tree(robot)).coef.shape == gravity.coef.shape
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_runs_on_cuda():
     robot = MusculoskeletalModel("paper_arm")
-    gravity = GravityTorque.from_model(robot)
+    gravity = GravityTorque(gravity_tree(robot))
     q, tau = _postures(robot, 100, 5)
     gravity.fit_trimmed(q, tau)
     on_gpu = gravity.to("cuda")
