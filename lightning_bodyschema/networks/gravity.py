@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from ..errors import BodySchemaInputError
+from .trim import trimmed_refits
 
 _HINGE, _SLIDE = 3, 2  # mujoco.mjtJoint codes (the tree holds no other kind: sim.model refuses them)
 ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
@@ -198,15 +199,8 @@ class GravityTorque(nn.Module):
         equations' squared condition number would lose to rounding."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
         self.coef.copy_(_solve_triangular(self._triangular(q, tau, chunk)))
-        keep = torch.ones(len(q), dtype=torch.bool, device=q.device)
-        for _ in range(rounds):
-            miss = torch.cat([(self(q[i:i + chunk]) - tau[i:i + chunk]).norm(dim=1) for i in range(0, len(q), chunk)])
-            new = miss <= factor * miss[keep].median()
-            if torch.equal(new, keep):
-                break
-            keep = new
-            self.coef.copy_(_solve_triangular(self._triangular(q[keep], tau[keep], chunk)))
-        return keep
+        refit = lambda keep, new: self.coef.copy_(_solve_triangular(self._triangular(q[new], tau[new], chunk)))  # noqa: E731
+        return trimmed_refits(self, q, tau, refit, factor, rounds, chunk)
 
     def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
         """``R`` of the QR of ``[Y | tau]`` (every posture and joint a row), one chunk of postures at a time: the QR

@@ -36,6 +36,7 @@ from .basis import legendre, product_basis  # noqa: F401 (legendre: part of this
 from .branches import fit_branches, group_system, solve_systems
 from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
+from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
 
@@ -294,19 +295,14 @@ class PerMusclePath(nn.Module):
         self.x_hi.copy_(x.amax(0))
         gram, rhs = self._normal_equations(x, y, chunk)
         self._solve_normal_equations(gram, rhs, ridge)
-        keep = torch.ones(len(x), dtype=torch.bool, device=x.device)
-        for _ in range(rounds):
-            miss = torch.cat([(self(x[i:i + chunk]) - y[i:i + chunk]).norm(dim=1) for i in range(0, len(x), chunk)])
-            new = miss <= factor * miss[keep].median()
-            if torch.equal(new, keep):
-                break
+
+        def refit(keep, new):
             for rows, sign in ((new & ~keep, 1.0), (keep & ~new, -1.0)):  # back in: added; dropped: taken out
                 gram_rows, rhs_rows = self._normal_equations(x[rows], y[rows], chunk)
-                gram += sign * gram_rows
-                rhs += sign * rhs_rows
-            keep = new
+                gram.add_(sign * gram_rows)
+                rhs.add_(sign * rhs_rows)
             self._solve_normal_equations(gram, rhs, ridge)
-        return keep
+        return trimmed_refits(self, x, y, refit, factor, rounds, chunk)
 
     def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
         """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` summed over chunks of samples (the chunks bound the memory)."""
