@@ -61,7 +61,8 @@ class GravityTorque(nn.Module):
                        full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
                        dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
                        body_pos=torch.tensor(tree.body_pos, **f64), body_rot=torch.tensor(tree.body_rot, **f64),
-                       chain_cross=cross, chain_cross2=cross @ cross, chain_eye=torch.eye(3, **f64).expand_as(cross).clone(),
+                       chain_cross=cross, chain_cross2=cross @ cross,
+                       chain_eye=torch.eye(3, **f64).expand_as(cross).clone(),
                        chain_cross_pos=(cross @ chain_pos[..., None])[..., 0],
                        chain_cross2_pos=(cross @ cross @ chain_pos[..., None])[..., 0],
                        chain_axis=torch.tensor(tree.jnt_axis[chain], **f64),
@@ -199,7 +200,8 @@ class GravityTorque(nn.Module):
         equations' squared condition number would lose to rounding."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
         self.coef.copy_(_solve_triangular(self._triangular(q, tau, chunk)))
-        refit = lambda keep, new: self.coef.copy_(_solve_triangular(self._triangular(q[new], tau[new], chunk)))  # noqa: E731
+        def refit(keep, new):
+            self.coef.copy_(_solve_triangular(self._triangular(q[new], tau[new], chunk)))
         return trimmed_refits(self, q, tau, refit, factor, rounds, chunk)
 
     def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
