@@ -21,7 +21,7 @@ def product_basis(x: torch.Tensor, exponents: torch.Tensor, degree: int, slopes:
     joints of each joint's Legendre polynomial of that exponent (a loop over the N joints, batched over samples and
     terms); ``degree``: the largest exponent."""
     values, derivs = legendre(x, degree)
-    factors = [values[:, j].index_select(1, exponents[:, j]) for j in range(x.shape[1])]  # N x (B, P)
+    factors = [values[:, j][:, exponents[:, j]] for j in range(x.shape[1])]  # N x (B, P)
     before = [torch.ones_like(factors[0])]  # prod_{i<j} factor_i
     for factor in factors[:-1]:
         before.append(before[-1] * factor)
@@ -30,6 +30,6 @@ def product_basis(x: torch.Tensor, exponents: torch.Tensor, degree: int, slopes:
         return phi, None
     dphi, after = [], torch.ones_like(phi)  # after: prod_{i>j} factor_i
     for j in reversed(range(x.shape[1])):
-        dphi.append(derivs[:, j].index_select(1, exponents[:, j]) * before[j] * after)
+        dphi.append(derivs[:, j][:, exponents[:, j]] * before[j] * after)
         after = after * factors[j]
     return phi, torch.stack(dphi[::-1], 1)

@@ -89,9 +89,10 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     k, x_local = cell_coordinates(x, path.pieces)
     perm = path.cell_perm
     muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
-    phi, dphi = product_basis(x_local, path.cell_exponents, int(path.cell_exponents.max()), dy is not None)
+    phi, dphi = product_basis(x_local, path.cell_exponents, path.cell_max_exponent, dy is not None)
     fitted, coef = path.cell_fitted[perm[None, :], cell], path.cell_coef[perm[None, :], cell]  # coef (B, Mc, K)
-    if len(x) <= GATHER_ROWS:  # few postures: every muscle's columns gathered at once (fewest operations)
+    if torch.compiler.is_exporting() or len(x) <= GATHER_ROWS:  # few postures (or an exported program's one path):
+        # every muscle's columns gathered at once (fewest operations)
         order = path.cell_order[perm]
         y_cell = (phi[:, order] * coef).sum(-1)
         dy_cell = None if dy is None else torch.einsum("bnmk,bmk->bmn", dphi[:, :, order], coef) * path.pieces

@@ -57,6 +57,7 @@ class GravityTorque(nn.Module):
         self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
         cross, chain_pos = _cross_matrices(tree.jnt_axis[chain]), torch.tensor(tree.jnt_pos[chain], **f64)
         buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=torch.tensor(tree.qpos0, **f64),
+                       gravity_cross=_cross_matrices(tree.gravity)[0],  # g x v as a product (vmap, export)
                        free_select=torch.tensor(tree.free_select, **f64),
                        full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
                        dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
@@ -160,7 +161,7 @@ class GravityTorque(nn.Module):
         """``Y (B, N, P)`` with ``tau = Y @ coef`` (module docstring for the columns)."""
         q = q.to(torch.float64)
         p, R, o, a = self.kinematics(q)
-        ga = torch.linalg.cross(self.gravity.expand_as(a), a)  # (B, J, 3)
+        ga = a @ self.gravity_cross.T  # (B, J, 3)
         hinge = self.hinge[:, None]
         mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
@@ -181,7 +182,7 @@ class GravityTorque(nn.Module):
         w = mass[:, None] * p + (R @ moment[..., None])[..., 0]  # (B, F, 3)
         w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w)
         mass_joint = self.moves_frame @ mass  # (J,)
-        ga = torch.linalg.cross(self.gravity.expand_as(a), a)
+        ga = a @ self.gravity_cross.T
         tau_hinge = -(ga * (w_joint - mass_joint[:, None] * o)).sum(-1)
         tau_slide = -(a @ self.gravity) * mass_joint
         tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(q)

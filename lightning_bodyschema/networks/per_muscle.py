@@ -165,6 +165,10 @@ class PerMusclePath(nn.Module):
             self.register_buffer("coef_alt", torch.zeros_like(self.coef))
             self.register_buffer("gate", torch.zeros_like(self.coef))
             self.register_buffer("branched", torch.zeros(n_muscles, dtype=torch.bool))
+            # the branched muscles' indices, a buffer whose shape is known before a call (torch.export): kept in
+            # step with ``branched`` by the fit and by every state-dict load
+            self.register_buffer("branched_index", torch.zeros(0, dtype=torch.long), persistent=False)
+            self.register_load_state_dict_post_hook(lambda module, _: module._refresh_branched())
         if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)
             self.set_cell_degrees(np.zeros(n_muscles, np.int64) if cell_degrees is None else cell_degrees)
@@ -194,7 +198,7 @@ class PerMusclePath(nn.Module):
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
         Large batches are evaluated in blocks of rows (the basis holds ~2N + 3 ``(rows, P)`` tensors)."""
         rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
-        if len(x) <= rows:
+        if torch.compiler.is_exporting() or len(x) <= rows:  # an exported program has one path for every batch
             return self._polynomial(x, slopes)
         parts = [self._polynomial(x[start:start + rows], slopes) for start in range(0, len(x), rows)]
         return torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if slopes else None
@@ -206,7 +210,7 @@ class PerMusclePath(nn.Module):
         coef = self.coef * self.term_mask
         phi, dphi = self.basis(inside, slopes or not torch.equal(inside, x64))
         y, dy = phi @ coef.T, None if dphi is None else torch.einsum("bnp,mp->bmn", dphi, coef)
-        if self.branches == 2 and bool(self.branched.any()):  # the active branch per muscle and sample
+        if self.branches == 2 and len(self.branched_index):  # the active branch per muscle and sample
             y, dy = self._active_branch(phi, dphi, y, dy)
         if self.pieces > 1 and len(self.cell_muscles):
             y, dy = evaluate_cells(self, inside, y, dy)
@@ -217,7 +221,7 @@ class PerMusclePath(nn.Module):
 
     def _active_branch(self, phi, dphi, y, dy):
         """``y``, ``dy`` with each branched muscle's second polynomial where its gate is positive."""
-        muscles = torch.nonzero(self.branched).flatten()
+        muscles = self.branched_index
         alt = self.coef_alt[muscles] * self.term_mask[muscles]
         active = phi @ self.gate[muscles].T > 0  # (B, M')
         y = y.clone()
@@ -251,6 +255,13 @@ class PerMusclePath(nn.Module):
             fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
         if self.pieces > 1:
             fit_cells(self, x, y, chunk)
+        if self.branches == 2:
+            self._refresh_branched()
+
+    def _refresh_branched(self) -> None:
+        """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
+        if not self.branched.is_meta:
+            self.branched_index = torch.nonzero(self.branched).flatten()
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
@@ -275,6 +286,7 @@ class PerMusclePath(nn.Module):
                                        f"muscle (0: no cells)")
         *layout, valid, n_cells = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces)
         perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
+        self.cell_max_exponent = int(layout[2].max())  # a number known before a call (torch.export)
         for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
                                 "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
             self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived

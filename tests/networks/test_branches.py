@@ -91,6 +91,7 @@ def test_state_dict_round_trip_keeps_the_branches(fitted):
     path = fitted[0]
     copy = PerMusclePath(CROSSING, degree=8, n_hidden=0, branches=2, gate_degree=2).double()
     copy.load_state_dict(path.state_dict())
+    assert copy.branched_index.tolist() == [0]  # rebuilt from the loaded ``branched`` (not in the state dict)
     x = torch.rand(100, 3, dtype=torch.float64) * 1.98 - 0.99
     assert torch.equal(copy(x), path(x))
     assert copy.float().coef_alt.dtype == torch.float64  # dtype casts leave the coefficients in float64
@@ -109,3 +110,34 @@ def test_a_branch_with_too_few_samples_per_term_is_not_kept(monkeypatch, samples
     # it would interpolate them, and swing between them
     assert 45 < int((_surface(x) > 0).sum()) < 3 * 45
     assert path.branched.tolist() == [branched, False, False]
+
+
+def _rows(path):
+    """The path one posture at a time under ``torch.vmap``, as ``deploy.structured`` exports a schema's body."""
+    class Rows(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.path = path
+
+        def forward(self, x):
+            return torch.vmap(lambda row: tuple(t[0] for t in self.path.with_jacobian(row[None])))(x)
+    return Rows()
+
+
+def exports_with_a_dynamic_batch(path, n_joints=3):
+    """``torch.export`` of ``_rows(path)`` with a dynamic batch answers as the eager module at two batch sizes (a
+    data-dependent branch, a size taken from the batch or a buffer read as a Python number would break it)."""
+    from torch.export import Dim, export
+
+    x = torch.rand(9, n_joints, dtype=torch.float64, generator=torch.Generator().manual_seed(11)) * 1.8 - 0.9
+    with torch.no_grad():
+        program = export(_rows(path), (x[:2],), dynamic_shapes=({0: Dim("batch", min=1, max=4096)},), strict=False)
+        for rows in (x[:1], x):
+            for exported, eager in zip(program.module()(rows), _rows(path)(rows)):
+                torch.testing.assert_close(exported, eager, atol=1e-12, rtol=0)
+
+
+def test_a_branched_path_exports_with_a_dynamic_batch(fitted):
+    path = fitted[0]
+    assert path.branched_index.tolist() == [0]  # kept in step with ``branched`` by the fit
+    exports_with_a_dynamic_batch(path)

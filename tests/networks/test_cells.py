@@ -98,3 +98,9 @@ def test_many_postures_grouped_equal_few_postures_gathered(fitted):
     parts = [fitted.with_jacobian(x[i:i + 100]) for i in range(0, 600, 100)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=1e-13)
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
+
+
+def test_a_celled_path_exports_with_a_dynamic_batch(fitted):
+    from test_branches import exports_with_a_dynamic_batch
+
+    exports_with_a_dynamic_batch(fitted)

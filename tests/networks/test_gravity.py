@@ -84,6 +84,15 @@ def test_trimmed_fit_recovers_the_exact_coefficients_despite_wild_samples():
     assert _relative(untrimmed.coef, clean.coef) > 1e-3  # without the trim the wild samples pull the fit
 
 
+class _Rows(torch.nn.Module):
+    def __init__(self, gravity):
+        super().__init__()
+        self.gravity = gravity
+
+    def forward(self, q):
+        return torch.vmap(lambda row: self.gravity(row[None])[0])(q)
+
+
 def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_exports():
     robot = MusculoskeletalModel("paper_arm")
     gravity = GravityTorque(gravity_tree(robot))
@@ -96,6 +105,10 @@ def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_
     assert all(b.dtype == torch.float64 for b in other.buffers())
     torch.testing.assert_close(other(q), gravity(q), rtol=0, atol=0)
     exported = torch.export.export(gravity, (q[:7],), dynamic_shapes=({0: torch.export.Dim("batch")},))
+    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)
+    rows = _Rows(gravity)  # one posture at a time under vmap, as deploy.structured exports a schema's body
+    exported = torch.export.export(rows, (q[:2],), dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=4096)},),
+                                   strict=False)
     torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)
     with torch.device("meta"):  # a checkpoint's skeleton
         assert GravityTorque(gravity_tree(robot)).coef.shape == gravity.coef.shape
