@@ -20,7 +20,6 @@ Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 
