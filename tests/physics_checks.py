@@ -5,6 +5,7 @@ import warnings
 import mujoco
 import numpy as np
 import pytest
+import torch
 
 from lightning_bodyschema.evaluation import make_fault_cases
 from lightning_bodyschema.faults import Faults
@@ -116,3 +117,29 @@ def fit_structured(datamodule, epochs=1, **hparams):
                         enable_model_summary=False, check_val_every_n_epoch=10 ** 6, num_sanity_val_steps=0)
     trainer.fit(schema, datamodule)
     return schema.eval(), trainer
+
+
+def _rows(path):
+    """The path one posture at a time under ``torch.vmap``, as ``deploy.structured`` exports a schema's body."""
+    class Rows(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.path = path
+
+        def forward(self, x):
+            return torch.vmap(lambda row: tuple(t[0] for t in self.path.with_jacobian(row[None])))(x)
+    return Rows()
+
+
+def assert_exports_with_a_dynamic_batch(path, n_joints=3):
+    """``torch.export`` of ``_rows(path)`` with a dynamic batch answers as the eager module at two batch sizes (a
+    data-dependent branch, a size taken from the batch or a buffer read as a Python number would break it)."""
+    from torch.export import Dim, export
+
+    x = torch.rand(9, n_joints, dtype=torch.float64, generator=torch.Generator().manual_seed(11)) * 1.8 - 0.9
+    with torch.no_grad():
+        program = export(_rows(path), (x[:2],), dynamic_shapes=({0: Dim("batch", min=1, max=4096)},), strict=False)
+        for rows in (x[:1], x):
+            for exported, eager in zip(program.module()(rows), _rows(path)(rows)):
+                torch.testing.assert_close(exported, eager, atol=1e-12, rtol=0)
+

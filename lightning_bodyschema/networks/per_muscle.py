@@ -73,7 +73,7 @@ def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray,
 
 def check_blocks(crossing: np.ndarray, blocks) -> np.ndarray:
     """``blocks (M, N)`` int: a group id per crossed joint (-1 on the others), the joints whose effects on a muscle's
-    length do not add up sharing one (``MusculoskeletalModel.separable_blocks``); None: one group of every crossed
+    length do not add up sharing one (``sim.separable.separable_blocks``); None: one group of every crossed
     joint. One ``BodySchemaInputError`` unless it marks exactly the crossed joints."""
     crossing = np.asarray(crossing, dtype=bool)
     if blocks is None:
@@ -132,7 +132,7 @@ class PerMusclePath(nn.Module):
         cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst get ``cells ** n`` cells
             over their ``n`` joints, one polynomial each (``networks.cells``).
         blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
-            (``check_blocks``; ``MusculoskeletalModel.separable_blocks`` finds them in an MJCF): no term mixes two
+            (``check_blocks``; ``sim.separable.separable_blocks`` finds them in an MJCF): no term mixes two
             groups, so the same number of terms reaches a higher degree.
     """
 

@@ -36,6 +36,7 @@ from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
 from ..sim.gravity_tree import gravity_tree
+from ..sim.separable import separable_blocks
 from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
@@ -87,7 +88,7 @@ class StructuredSchema(BodySchema):
             checkpoint then rebuilds the same cells).
         path_separable: False, or True: each muscle's length a sum of one polynomial per group of its joints whose
             effects add up (a path's segments between bodies), the groups from the MJCF
-            (``MusculoskeletalModel.separable_blocks``); no term mixes two groups, so the same terms reach a higher
+            (``sim.separable.separable_blocks``); no term mixes two groups, so the same terms reach a higher
             degree. Needs the robot's MJCF.
         path_blocks: each muscle's group per joint (``(M, N)`` ints, -1 uncrossed), set when ``path_separable``
             (a checkpoint then rebuilds the same polynomials); given, it is used as is.
@@ -159,18 +160,19 @@ class StructuredSchema(BodySchema):
             raise BodySchemaInputError("path_separable=True needs the robot's MJCF (MuJoCo's moment arms show which "
                                        "joints' effects on a length add up); recorded logs have none: use "
                                        "path_separable=False")
-        joints = self.robot_model.joint_names
-        crossing = np.array([[j in self.hparams.muscle_joints[m] for j in joints]
-                             for m in self.robot_model.muscle_names])
-        return self.robot_model.separable_blocks(crossing).tolist()
+        return separable_blocks(self.robot_model, self._crossing()).tolist()
+
+    def _crossing(self) -> np.ndarray:
+        """``(M, N)`` bool from ``hparams.muscle_joints`` (None: every joint, until the fit detects them)."""
+        if self.hparams.muscle_joints is None:
+            return np.ones((self.n_muscles, self.n_joints), dtype=bool)
+        return np.array([[j in self.hparams.muscle_joints[m] for j in self.robot_model.joint_names]
+                         for m in self.robot_model.muscle_names])
 
     def _build_paths(self) -> None:
         """The per-muscle path model for ``hparams.muscle_joints`` (None: every joint until the fit detects them)."""
-        joints, hp = self.robot_model.joint_names, self.hparams
-        crossing = np.ones((self.n_muscles, self.n_joints), dtype=bool)
-        if hp.muscle_joints is not None:
-            crossing = np.array([[j in hp.muscle_joints[m] for j in joints] for m in self.robot_model.muscle_names])
-        self.length_net = PerMusclePath(crossing, hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
+        hp = self.hparams
+        self.length_net = PerMusclePath(self._crossing(), hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
                                         hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
                                         hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
                                         hp.get("path_cell_degrees"), hp.get("path_blocks"))

@@ -87,31 +87,6 @@ def _weld_free_joints(spec: mujoco.MjSpec):
 
 
 UNCROSSED_ARM_M = 1e-9  # [m/rad]: a tendon Jacobian entry at most this large is rounding (real arms are mm)
-# [m/rad^2]: a mixed second derivative of a length at most this large is rounding. On myoArm the pairs of joints
-# that do not interact measure below 1e-10 and those that do above 1e-3 (central differences of MuJoCo's Jacobian).
-SEPARABLE_TOL_M = 1e-6
-_SEPARABLE_STEP = 1e-5  # [rad or m] central-difference step of the moment arms
-
-
-def joint_groups(crossing: np.ndarray, linked: np.ndarray) -> np.ndarray:
-    """``(M, N)`` int: the connected groups of each muscle's crossed joints under ``linked (M, N, N)`` bool, numbered
-    0, 1, ... in joint order; -1 on uncrossed joints."""
-    n = crossing.shape[1]
-    label = np.where(crossing, np.arange(n), n)
-    linked = linked & crossing[:, None, :] & crossing[:, :, None]
-    for _ in range(n):  # the smallest joint index spreads along the links: n rounds reach every joint of a group
-        label = np.minimum(label, np.where(linked, label[:, None, :], n).min(-1))
-    return _dense_rank(label, crossing)
-
-
-def _dense_rank(label: np.ndarray, crossing: np.ndarray) -> np.ndarray:
-    """Each row's labels renumbered 0, 1, ... in order of value (crossed joints only)."""
-    out = np.full(label.shape, -1)
-    for m, row in enumerate(label):  # muscles, once per model (numpy, no training maths)
-        values = np.unique(row[crossing[m]])
-        out[m, crossing[m]] = np.searchsorted(values, row[crossing[m]])
-    return out
-
 
 def check_threads(threads) -> int:
     """``threads`` as an int, or the ``BodySchemaInputError`` naming it (an integer >= 1 is allowed)."""
@@ -427,22 +402,6 @@ class MusculoskeletalModel:
         ``UNCROSSED_ARM_M`` (a joint moving both ends of a path alike leaves rounding there, not an arm)."""
         q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(seed), n_postures)])
         return np.abs(self.kinematics(q)[1]).max(axis=0) > UNCROSSED_ARM_M
-
-    def separable_blocks(self, crossing, n_postures: int = 64, seed: int = 0) -> np.ndarray:
-        """``(M, N)`` int: each muscle's crossed joints in groups whose effects on its length add up (a path's
-        segments between bodies: BIClong's length is a function of the shoulder's joints plus one of the elbow's),
-        -1 on uncrossed joints. Two crossed joints share a group when the length's mixed second derivative in them
-        exceeds ``SEPARABLE_TOL_M`` at the range midpoint or ``n_postures`` seeded postures (central differences of
-        MuJoCo's moment arms), and transitively."""
-        crossing = np.asarray(crossing, dtype=bool)
-        q = np.vstack([self.q_range.mean(axis=1), self.sample_q(np.random.default_rng(seed), n_postures)])
-        mixed = np.zeros(crossing.shape + (self.n_joints,))
-        for j in range(self.n_joints):  # a loop over joints: d G / d q_j, every muscle and posture at once
-            step = np.zeros(self.n_joints)
-            step[j] = _SEPARABLE_STEP
-            slope = (self.kinematics(q + step)[1] - self.kinematics(q - step)[1]) / (2 * _SEPARABLE_STEP)
-            mixed[:, :, j] = np.abs(slope).max(axis=0)
-        return joint_groups(crossing, np.maximum(mixed, mixed.transpose(0, 2, 1)) > SEPARABLE_TOL_M)
 
     def site_position(self, q, site: str) -> np.ndarray:
         """World position (B, 3) [m] of a named site, e.g. the hand."""

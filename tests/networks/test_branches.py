@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 import torch
-from physics_checks import central_differences
+from physics_checks import central_differences, assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.branches import otsu_labels
@@ -112,32 +112,7 @@ def test_a_branch_with_too_few_samples_per_term_is_not_kept(monkeypatch, samples
     assert path.branched.tolist() == [branched, False, False]
 
 
-def _rows(path):
-    """The path one posture at a time under ``torch.vmap``, as ``deploy.structured`` exports a schema's body."""
-    class Rows(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.path = path
-
-        def forward(self, x):
-            return torch.vmap(lambda row: tuple(t[0] for t in self.path.with_jacobian(row[None])))(x)
-    return Rows()
-
-
-def exports_with_a_dynamic_batch(path, n_joints=3):
-    """``torch.export`` of ``_rows(path)`` with a dynamic batch answers as the eager module at two batch sizes (a
-    data-dependent branch, a size taken from the batch or a buffer read as a Python number would break it)."""
-    from torch.export import Dim, export
-
-    x = torch.rand(9, n_joints, dtype=torch.float64, generator=torch.Generator().manual_seed(11)) * 1.8 - 0.9
-    with torch.no_grad():
-        program = export(_rows(path), (x[:2],), dynamic_shapes=({0: Dim("batch", min=1, max=4096)},), strict=False)
-        for rows in (x[:1], x):
-            for exported, eager in zip(program.module()(rows), _rows(path)(rows)):
-                torch.testing.assert_close(exported, eager, atol=1e-12, rtol=0)
-
-
-def test_a_branched_path_exports_with_a_dynamic_batch(fitted):
+def test_a_branched_path_assert_exports_with_a_dynamic_batch(fitted):
     path = fitted[0]
     assert path.branched_index.tolist() == [0]  # kept in step with ``branched`` by the fit
-    exports_with_a_dynamic_batch(path)
+    assert_exports_with_a_dynamic_batch(path)

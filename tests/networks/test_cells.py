@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from physics_checks import assert_exports_with_a_dynamic_batch
+
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.cells import cell_coordinates, cell_degree
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
@@ -100,7 +102,5 @@ def test_many_postures_grouped_equal_few_postures_gathered(fitted):
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
 
 
-def test_a_celled_path_exports_with_a_dynamic_batch(fitted):
-    from test_branches import exports_with_a_dynamic_batch
-
-    exports_with_a_dynamic_batch(fitted)
+def test_a_celled_path_assert_exports_with_a_dynamic_batch(fitted):
+    assert_exports_with_a_dynamic_batch(fitted)

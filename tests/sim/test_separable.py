@@ -1,4 +1,4 @@
-"""``MusculoskeletalModel.separable_blocks``: the groups of a muscle's joints whose effects on its length add up,
+"""``sim.separable.separable_blocks``: the groups of a muscle's joints whose effects on its length add up,
 checked on MuJoCo's own lengths (a mixed second difference that vanishes across groups and not within one)."""
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from lightning_bodyschema.sim import MusculoskeletalModel
+from lightning_bodyschema.sim.separable import separable_blocks
 
 
 def _mixed_difference(model, q, i, j, step=0.3):
@@ -19,7 +20,7 @@ def _mixed_difference(model, q, i, j, step=0.3):
 
 def test_the_paper_arms_biarticular_muscles_add_a_shoulder_part_and_an_elbow_part():
     model = MusculoskeletalModel("paper_arm")
-    blocks = model.separable_blocks(model.crossing())
+    blocks = separable_blocks(model, model.crossing())
     assert blocks.tolist() == [[0, -1], [0, -1], [-1, 0], [-1, 0], [0, 1], [0, 1]]
     q = model.sample_q(np.random.default_rng(0), 50) * 0.8  # room for the steps inside the ranges
     assert np.abs(_mixed_difference(model, q, 0, 1)[:, 4:]).max() < 1e-12
@@ -31,7 +32,7 @@ def test_myoarm_splits_biclong_and_keeps_the_shoulders_joints_together():
 
     locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]
     model = MusculoskeletalModel("myo:myoarm", locked_joints=locks)
-    blocks = dict(zip(model.muscle_names, model.separable_blocks(model.crossing()).tolist()))
+    blocks = dict(zip(model.muscle_names, separable_blocks(model, model.crossing()).tolist()))
     assert blocks["BIClong_tendon"] == [0, 0, 0, 1, 1, -1, -1] and blocks["DELT1_tendon"] == [0, 0, 0, -1, -1, -1, -1]
     q = model.sample_q(np.random.default_rng(1), 50)
     q = np.clip(q, model.q_range[:, 0] + 0.1, model.q_range[:, 1] - 0.4)
