@@ -1,7 +1,14 @@
 """The Legendre product basis of the per-muscle polynomials (paths, gates, cells, the polynomial torque)."""
 from __future__ import annotations
 
+from typing import NamedTuple, Optional, Union
+
+import numpy as np
 import torch
+from torch import nn
+from torch.nn import functional as F
+
+DENSE_ROWS = 32  # up to this many postures ``ProductTerms`` gathers every factor at once (BENCHMARKS.md)
 
 
 def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -33,3 +40,189 @@ def product_basis(x: torch.Tensor, exponents: torch.Tensor, degree: int, slopes:
         dphi.append(derivs[:, j][:, exponents[:, j]] * before[j] * after)
         after = after * factors[j]
     return phi, torch.stack(dphi[::-1], 1)
+
+
+def power_matrices(degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(degree + 1, degree + 1)`` float64 ``A``, ``D`` with ``P_n(x) = sum_k A[k, n] x^k`` and
+    ``P'_n(x) = sum_k D[k, n] x^k``."""
+    values, slopes = np.zeros((degree + 1, degree + 1)), np.zeros((degree + 1, degree + 1))
+    for n in range(degree + 1):
+        coef = np.polynomial.legendre.leg2poly(np.eye(degree + 1)[n])
+        values[:len(coef), n] = coef
+        slope = np.polynomial.polynomial.polyder(coef)
+        slopes[:len(slope), n] = slope
+    return values, slopes
+
+
+def dense_for(x: torch.Tensor) -> bool:
+    """Whether ``ProductTerms`` gathers every factor at once at postures ``x``: up to ``DENSE_ROWS`` of them, and
+    always in an exported program (one path for every batch)."""
+    return torch.compiler.is_exporting() or len(x) <= DENSE_ROWS
+
+
+class ProductTerms(nn.Module):
+    """The product terms of ``exponents (P, N)``, evaluated with few operations at few postures and with little
+    memory traffic at many.
+
+    ``product_basis`` writes every term's N factors and N derivative columns. Here the Legendre values come from
+    the powers of x times a fixed matrix (three operations, not a recurrence of ``3 * degree``; they differ from the
+    recurrence by about 1e-11 at degree 16 on [-1, 1], 1e-10 for the slopes, far below any length the paths
+    resolve). Up to ``DENSE_ROWS`` postures (and in an exported program) every term's factors are gathered at once
+    (``dense``: about 15 operations in all); above, the terms are grouped by the joints they use (their support)
+    and only those factors multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors
+    instead of 8911).
+
+    ``forward(x, slopes)`` returns a ``Basis``; ``contract`` and ``contract_each`` apply coefficients in the terms'
+    original order. Buffers only, none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
+    """
+
+    def __init__(self, exponents):
+        super().__init__()
+        exponents = np.asarray(exponents, dtype=np.int64)
+        self.n_joints, self.degree = exponents.shape[1], max(int(exponents.max(initial=0)), 1)
+        supports = [tuple(np.flatnonzero(row).tolist()) for row in exponents]
+        self.supports = sorted(set(supports), key=lambda s: (len(s), s))
+        members = [np.array([p for p, s in enumerate(supports) if s == key], dtype=np.int64)
+                   for key in self.supports]
+        perm = np.concatenate(members) if members else np.zeros(0, np.int64)
+        values, slopes = power_matrices(self.degree)
+        long = dict(dtype=torch.long)
+        flat = (np.arange(self.n_joints)[None, :] * (self.degree + 1) + exponents).reshape(-1)
+        for name, value in dict(perm=torch.tensor(perm, **long), flat_index=torch.tensor(flat, **long),
+                                to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
+            self.register_buffer(name, value, persistent=False)
+        for g, (key, cols) in enumerate(zip(self.supports, members)):
+            self.register_buffer(f"exp{g}", torch.tensor(exponents[cols][:, list(key)].T.copy(), **long),
+                                 persistent=False)  # (|support|, P_g)
+        for j in range(self.n_joints):  # the terms that use joint j, in the grouped order
+            self.register_buffer(f"joint_terms{j}", torch.tensor(
+                np.concatenate([cols for key, cols in zip(self.supports, members) if j in key] or
+                               [np.zeros(0, np.int64)]), **long), persistent=False)
+        # where each support's terms sit: its rows of phi, and per joint it uses its rows of that joint's derivatives
+        ends = np.cumsum([len(cols) for cols in members]).tolist()
+        self.group_rows = [(end - len(cols), end) for end, cols in zip(ends, members)]
+        self.joint_counts, self.joint_rows = [0] * self.n_joints, []
+        for key, cols in zip(self.supports, members):
+            self.joint_rows.append([(self.joint_counts[j], self.joint_counts[j] + len(cols)) for j in key])
+            for j in key:
+                self.joint_counts[j] += len(cols)
+
+    def _apply(self, fn, *args, **kwargs):
+        """Dtype casts leave the float64 tables alone (device moves apply)."""
+        kept = {n: getattr(self, n) for n in ("to_values", "to_slopes")}
+        out = super()._apply(fn, *args, **kwargs)
+        for name, value in kept.items():
+            self._buffers[name] = value.to(self._buffers[name].device)
+        return out
+
+    def legendre(self, x: torch.Tensor, slopes: bool):
+        """``P_0..P_degree`` of ``x (B, N)`` and (or None) their slopes: ``(B, N, degree + 1)``."""
+        # x^k as repeated products (as the grouped path's; pow is slower and rounds differently)
+        powers = F.pad(x[..., None].expand(*x.shape, self.degree).cumprod(-1), (1, 0), value=1.0)
+        return powers @ self.to_values, (powers @ self.to_slopes) if slopes else None
+
+    def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
+        """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: by the number
+        of postures (``dense_for``)."""
+        if dense_for(x) if dense is None else dense:
+            return self._dense(*self.legendre(x, slopes))
+        powers = F.pad(x.T[:, None, :].expand(-1, self.degree, -1).cumprod(1), (0, 0, 1, 0), value=1.0)
+        # (N, degree + 1, B): each joint's rows contiguous
+        return self._grouped(self.to_values.T @ powers, (self.to_slopes.T @ powers) if slopes else None)
+
+    def _dense(self, values, derivs) -> "Basis":
+        """``phi (B, P)`` and ``dphi (B, P, N)`` in the original order, every factor gathered at once."""
+        shape = (len(values), -1, self.n_joints)
+        factors = self._gather(values).view(shape)  # (B, P, N)
+        phi = factors.prod(-1)
+        if derivs is None:
+            return Basis(phi, None, False)
+        # padding, not concatenation (which specializes the batch under vmap in torch.export)
+        before = F.pad(factors[..., :-1].cumprod(-1), (1, 0), value=1.0)  # prod_{i<j} factor_i
+        after = F.pad(factors[..., 1:].flip(-1).cumprod(-1).flip(-1), (0, 1), value=1.0)  # prod_{i>j} factor_i
+        slopes = self._gather(derivs).view(shape)
+        return Basis(phi, slopes * before * after, False)
+
+    def _gather(self, table: torch.Tensor) -> torch.Tensor:
+        """Every term's factor per joint ``(B, P * N)`` from ``table (B, N, degree + 1)``: ``gather`` (the fastest at
+        one posture), or in an exported program indexing (which keeps the batch generic under vmap)."""
+        if torch.compiler.is_exporting():
+            return table.flatten(1)[:, self.flat_index]
+        return table.flatten(1).gather(1, self.flat_index.expand(len(table), -1))
+
+    def _grouped(self, values, derivs) -> "Basis":
+        """``phi (P, B)`` (transposed) in ``perm``'s order and per joint ``j`` the derivative rows ``(P_j, B)`` of the
+        terms ``joint_terms{j}``, from ``values``, ``derivs`` ``(N, degree + 1, B)``: a loop over the supports, every
+        gather one of whole contiguous rows, every product written into its rows of the result (no concatenation)."""
+        phi = values.new_empty(len(self.perm), values.shape[-1])
+        dphi = None if derivs is None else [values.new_empty(n, values.shape[-1]) for n in self.joint_counts]
+        for g, key in enumerate(self.supports):
+            (start, end), exps = self.group_rows[g], getattr(self, f"exp{g}")
+            if not key:  # the constant
+                phi[start:end] = 1.0
+                continue
+            factors = [values[j].index_select(0, exps[k]) for k, j in enumerate(key)]
+            before = [factors[0]]  # prod_{i<=k} factor_i
+            for factor in factors[1:-1]:
+                before.append(before[-1] * factor)
+            before.append(_product_into(phi[start:end], before[-1:] + factors[-1:] if len(key) > 1 else factors))
+            after = None  # prod_{i>k} factor_i
+            for k in reversed(range(len(key)) if derivs is not None else ()):
+                j, (row, row_end) = key[k], self.joint_rows[g][k]
+                parts = [derivs[j].index_select(0, exps[k])] + ([before[k - 1]] if k else []) + \
+                    ([after] if after is not None else [])
+                _product_into(dphi[j][row:row_end], parts)
+                after = factors[k] if after is None else after * factors[k]
+        return Basis(phi, dphi, True)
+
+    def weights(self, coef: torch.Tensor) -> "Weights":
+        """``coef (M, P)`` (the terms in their original order) laid out for ``contract`` (worth caching: a gather of
+        every coefficient per joint)."""
+        coef_t = coef.T.contiguous()
+        return Weights(coef_t, coef_t.index_select(0, self.perm),
+                       [coef_t.index_select(0, getattr(self, f"joint_terms{j}")) for j in range(self.n_joints)])
+
+    def contract(self, basis: "Basis", weights: "Weights", slopes: bool = True):
+        """``y (B, M)`` of the coefficients ``weights`` (``self.weights``) and, when the basis has slopes and
+        ``slopes``, ``dy (B, M, N)`` (else None)."""
+        if not basis.grouped:
+            y = basis.phi @ weights.coef_t
+            if basis.dphi is None or not slopes:
+                return y, None
+            return y, torch.einsum("bpn,pm->bmn", basis.dphi, weights.coef_t)
+        y = basis.phi.T @ weights.by_term
+        if basis.dphi is None or not slopes:
+            return y, None
+        return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, weights.by_joint)], -1)
+
+    @staticmethod
+    def contract_each(basis: "Basis", coef: torch.Tensor):
+        """``contract`` with coefficients per posture ``coef (B, M, P)`` on a dense basis."""
+        y = torch.einsum("bp,bmp->bm", basis.phi, coef)
+        return y, None if basis.dphi is None else torch.einsum("bpn,bmp->bmn", basis.dphi, coef)
+
+
+def _product_into(out: torch.Tensor, factors: list) -> torch.Tensor:
+    """``out`` (written in place) = the product of ``factors`` (one or more tensors of its shape)."""
+    if len(factors) == 1:
+        return out.copy_(factors[0])
+    torch.mul(factors[0], factors[1], out=out)
+    for factor in factors[2:]:
+        out.mul_(factor)
+    return out
+
+
+class Weights(NamedTuple):
+    """Coefficients ``(M, P)`` laid out for ``ProductTerms.contract``: ``coef_t (P, M)`` (a dense basis), the rows in
+    the grouped order ``by_term (P, M)`` and per joint the rows of the terms that use it ``(P_j, M)``."""
+    coef_t: torch.Tensor
+    by_term: torch.Tensor
+    by_joint: list
+
+
+class Basis(NamedTuple):
+    """A ``ProductTerms`` evaluation: dense, ``phi (B, P)`` and ``dphi`` None or ``(B, P, N)``; grouped (the terms
+    in the grouped order, transposed), ``phi (P, B)`` and ``dphi`` None or N ``(P_j, B)``."""
+    phi: torch.Tensor
+    dphi: Optional[Union[torch.Tensor, list]]
+    grouped: bool

@@ -23,14 +23,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .basis import product_basis
+from .basis import DENSE_ROWS, dense_for, product_basis  # noqa: F401 (DENSE_ROWS: the docstrings')
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
 CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
 CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
-GATHER_ROWS = 256  # up to this many postures ``evaluate_cells`` gathers every muscle's columns at once (BENCHMARKS.md)
 CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
 
 
@@ -84,39 +83,76 @@ def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tu
 
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
-    fitted; ``x`` is inside the box, float64."""
+    fitted; ``x`` is inside the box, float64. Up to ``DENSE_ROWS`` postures (and in an exported program) one basis
+    of every cell term and every muscle's columns and coefficients gathered at once (fewest operations); above, a
+    loop over the groups of muscles that share joints and cell terms (a posture's cell and basis are the group's),
+    the postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
     k, x_local = cell_coordinates(x, path.pieces)
-    perm = path.cell_perm
-    muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
-    phi, dphi = product_basis(x_local, path.cell_exponents, path.cell_max_exponent, dy is not None)
-    fitted, coef = path.cell_fitted[perm[None, :], cell], path.cell_coef[perm[None, :], cell]  # coef (B, Mc, K)
-    if torch.compiler.is_exporting() or len(x) <= GATHER_ROWS:  # few postures (or an exported program's one path):
-        # every muscle's columns gathered at once (fewest operations)
-        order = path.cell_order[perm]
-        y_cell = (phi[:, order] * coef).sum(-1)
-        dy_cell = None if dy is None else torch.einsum("bnmk,bmk->bmn", dphi[:, :, order], coef) * path.pieces
-    else:  # many: each group's basis columns taken once, not once per muscle (far less memory traffic)
-        y_cell, dy_cell = _grouped(path, phi, dphi, coef, perm)
-    y, dy = y.clone(), None if dy is None else dy.clone()
-    y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
-    if dy is not None:
-        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell, dy[:, muscles])
+    if dense_for(x):
+        perm = path.cell_perm
+        muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
+        table = path.cached("cell_table", _cell_table, path)  # (Mc, C, every cell term), group by group
+        coef = table[torch.arange(len(perm), device=x.device)[None, :], cell]  # (B, Mc, every cell term)
+        basis = path.cell_terms_all(x_local, dy is not None, dense=True)
+        y_cell, dy_cell = path.cell_terms_all.contract_each(basis, coef)
+        fitted = path.cell_fitted[perm[None, :], cell]
+        return _replace(path, y, dy, muscles, fitted, y_cell, dy_cell)
+    y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
+    for g, ((start, end, width), terms) in enumerate(zip(path.cell_group_bounds, path.cell_terms)):
+        members = path.cell_perm[start:end]
+        cell = k @ path.cell_stride[members[0]]  # (B,): shared by the group
+        weights = path.cached(f"cell_weights{g}", _cell_weights, path, terms, members, width)
+        y_cell, dy_cell = _by_cell(terms, weights, x_local, cell, dy is not None)
+        y, dy = _replace(path, y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
+                         dy_cell, copy=False)
     return y, dy
 
 
-def _grouped(path, phi, dphi, coef, perm):
-    """The celled muscles' lengths ``(B, Mc)`` and slopes ``(B, Mc, N)`` (or None), in ``perm``'s order, a group of
-    muscles that share joints and cell terms at a time: a loop over groups."""
-    order = path.cell_order[perm]
-    y_cell = torch.empty(coef.shape[:2], dtype=phi.dtype, device=phi.device)
-    dy_cell = None if dphi is None else torch.empty(*coef.shape[:2], dphi.shape[1], dtype=phi.dtype,
-                                                    device=phi.device)
-    for start, end, width in path.cell_group_bounds:
-        cols, coef_g = order[start, :width], coef[:, start:end, :width]
-        y_cell[:, start:end] = torch.einsum("bk,bmk->bm", phi[:, cols], coef_g)
-        if dphi is not None:
-            dy_cell[:, start:end] = torch.einsum("bnk,bmk->bmn", dphi[:, :, cols], coef_g) * path.pieces
-    return y_cell, dy_cell
+def _cell_weights(path, terms, members, width) -> list:
+    """Each cell's coefficients of the group ``members`` (their first ``width`` cell terms) laid out for
+    ``terms.contract``: a list over the group's cells."""
+    n_cells = path.pieces ** int((path.cell_stride[members[0]] > 0).sum())
+    return [terms.weights(path.cell_coef[members, c, :width]) for c in range(n_cells)]
+
+
+def _by_cell(terms, weights, x_local, cell, slopes):
+    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N)`` (d/dx_local; or None): the postures sorted by ``cell
+    (B,)``, then per cell its postures' basis and one ``terms.contract`` (a loop over the cells; each cell's basis
+    is a block of rows, never the whole batch's)."""
+    order = torch.argsort(cell)
+    x_sorted, n_muscles = x_local[order], weights[0].coef_t.shape[1]
+    y = x_local.new_empty(len(x_local), n_muscles)
+    dy = x_local.new_empty(len(x_local), n_muscles, x_local.shape[1]) if slopes else None
+    start = 0
+    for c, count in enumerate(torch.bincount(cell, minlength=len(weights)).tolist()):
+        if count:
+            rows = slice(start, start + count)
+            y[rows], dy_c = terms.contract(terms(x_sorted[rows], slopes), weights[c])
+            if slopes:
+                dy[rows] = dy_c
+            start += count
+    inverse = torch.argsort(order)
+    return y[inverse], None if dy is None else dy[inverse]
+
+
+def _cell_table(path) -> torch.Tensor:
+    """Every celled muscle's cell coefficients over every cell term ``(Mc, C, P_cells)`` (0 on the terms it does not
+    use), in ``cell_perm``'s order: a posture's coefficients are then one gather, its basis not gathered at all."""
+    perm = path.cell_perm
+    coef, order = path.cell_coef[perm], path.cell_order[perm]  # padded columns hold 0 (added to column 0)
+    table = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents))
+    return table.scatter_add_(2, order[:, None, :].expand_as(coef), coef)
+
+
+def _replace(path, y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):
+    """``y``, ``dy`` with the cells' ``y_cell (B, Mc)``, ``dy_cell (B, Mc, N)`` (d/dx_local) of ``muscles`` where
+    their cell was ``fitted (B, Mc)`` (copies, or with ``copy=False`` written in place)."""
+    y = y.clone() if copy else y
+    y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
+    if dy is not None:
+        dy = dy.clone() if copy else dy
+        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell * path.pieces, dy[:, muscles])
+    return y, dy
 
 
 @torch.no_grad()

@@ -15,13 +15,17 @@ Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 from .trim import trimmed_refits
 
+JUMP_ROWS = 64  # up to this many postures the FK jumps pointers (fewest operations); above, a product per node
 _HINGE, _SLIDE = 3, 2  # mujoco.mjtJoint codes (the tree holds no other kind: sim.model refuses them)
 ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
 RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's
@@ -80,6 +84,7 @@ class GravityTorque(nn.Module):
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
         self.jnt_type, self.frame_body = tree.jnt_type.tolist(), tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
+        self._register_nodes(tree)
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
 
     @staticmethod
@@ -109,30 +114,81 @@ class GravityTorque(nn.Module):
             value = value * x + self.dep_coef[:, k]
         return full + (value + self.qpos0[self.dep_joint] - full[:, self.dep_joint]) @ self.dep_scatter
 
-    def kinematics(self, q: torch.Tensor):
+    def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
-        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics)."""
-        rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)))
-        zero = 0.0 * q[:, :1].to(torch.float64)  # (B, 1): gives a pose on the world's bodies the batch's shape
-        poses, before = [], {}
-        for i, parent in enumerate(self.body_parent):
-            if parent < 0:
-                p, R = self.body_pos[i] + zero, self.body_rot[i] + zero[..., None]
-            else:
-                p_parent, R_parent = poses[parent]
-                p, R = p_parent + R_parent @ self.body_pos[i], R_parent @ self.body_rot[i]
+        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics); ``full``:
+        ``full_q(q)`` when the caller has it.
+
+        Every body offset and joint motion is a node of the tree with its 4x4 transform; each node's world pose is
+        the product along its ancestors, by pointer jumping (each round a node takes its pointer's product and
+        pointer, ``log2(depth)`` rounds of two batched products; in an exported program every gather a one-hot product,
+        which torch.export keeps batch-generic under vmap): a handful of operations for any tree, not a few per body.
+        Above ``JUMP_ROWS`` postures one product per node instead (fewer tiny 4x4 products in all)."""
+        rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)) if full is None else full)
+        # (B, nodes, 4, 4) by padding and a one-hot product, not concatenation or gathers (which specialize the
+        # batch under vmap in torch.export)
+        motion = F.pad(rot, (0, 1, 0, 1)) + F.pad(shift[..., None], (3, 0, 0, 1)) + self.node_corner  # (B, C, 4, 4)
+        if torch.compiler.is_exporting() or len(q) <= JUMP_ROWS:
+            world = self.node_const + _pick(self.node_motion, motion)
+            for k in range(self.n_rounds):
+                world = _pick(getattr(self, f"node_pointer{k}"), world, getattr(self, f"node_pointer_index{k}")) @ world
+        else:  # many postures: one product per node (parents first; a body offset's a single matrix product)
+            nodes = []
+            for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
+                T = self.node_const[i] if chain < 0 else motion[:, chain]
+                nodes.append(T.expand(len(q), 4, 4) if parent < 0 else nodes[parent] @ T)
+            world = torch.stack(nodes, 1)
+        frames, before = _pick(self.frame_node, world, self.frame_index), _pick(self.before_node, world,
+                                                                                self.before_index)
+        anchors = before[..., :3, 3] + (before[..., :3, :3] @ self.moving_pos[..., None])[..., 0]
+        return (frames[..., :3, 3], frames[..., :3, :3], anchors,
+                (before[..., :3, :3] @ self.moving_axis[..., None])[..., 0])
+
+    def _register_nodes(self, tree) -> None:
+        """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation
+        about its anchor or a slide's shift; the identity for a slide's rotation), each node's parent the node before
+        it (a body's offset: its parent body's last node); an identity node last, every root's parent. Buffers: the
+        offsets ``(Bo, 4, 4)``, the order of [offsets, joint motions] by node, each round's pointers, the frames' last
+        nodes and the node before each moving joint's."""
+        offsets, parent, last, joint_node, order = [], [], {}, {}, []
+        n_offsets = len(self.body_parent) + 1  # every body's, then the identity
+        for i, p in enumerate(self.body_parent):
+            order.append(i)
+            parent.append(last[p] if p >= 0 else -1)
             for j in self.body_joints[i]:
-                before[j] = p, R
-                k = self.chain_index[j]
-                p = p + (R @ shift[:, k, :, None])[..., 0]
-                R = R if self.jnt_type[j] == _SLIDE else R @ rot[:, k]
-            poses.append((p, R))
-        p_joint = torch.stack([before[j][0] for j in self.moving_joint], 1)
-        R_joint = torch.stack([before[j][1] for j in self.moving_joint], 1)
-        anchors = p_joint + (R_joint @ self.moving_pos[..., None])[..., 0]
-        return (torch.stack([poses[i][0] for i in self.frame_body], 1),
-                torch.stack([poses[i][1] for i in self.frame_body], 1),
-                anchors, (R_joint @ self.moving_axis[..., None])[..., 0])
+                order.append(n_offsets + self.chain_index[j])
+                parent.append(len(order) - 2)
+                joint_node[j] = len(order) - 1
+            last[i] = len(order) - 1
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = tree.body_rot[i], tree.body_pos[i]
+            offsets.append(T)
+        offsets.append(np.eye(4))
+        n = len(order)
+        self.node_parent = parent
+        self.node_chain = [i - n_offsets if i >= n_offsets else -1 for i in order]  # a joint node's motion, or -1
+        pointer, pointers = np.array([q if q >= 0 else n for q in parent] + [n]), []
+        while (pointer[:n] < n).any():  # log2(depth) rounds
+            pointers.append(pointer)
+            pointer = pointer[pointer]
+        const = np.stack(offsets)[[i if i < n_offsets else n_offsets - 1 for i in order + [n_offsets - 1]]]
+        const[[k for k, i in enumerate(order) if i >= n_offsets]] = 0.0  # a joint's node: its motion alone
+        motion = np.zeros((n + 1, len(self.chain_joint)))
+        for k, i in enumerate(order):
+            if i >= n_offsets:
+                motion[k, i - n_offsets] = 1.0
+        corner = np.zeros((4, 4))
+        corner[3, 3] = 1.0
+        for name, value in dict(node_const=const, node_motion=motion, node_corner=corner).items():
+            self.register_buffer(name, torch.tensor(value, dtype=torch.float64), persistent=False)
+        self.n_rounds = len(pointers)
+        frame, before = [last[i] for i in self.frame_body], [joint_node[j] - 1 for j in self.moving_joint]
+        picks = {f"node_pointer{k}": p for k, p in enumerate(pointers)} | dict(frame_node=frame, before_node=before)
+        for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
+            self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
+            self.register_buffer(name.replace("node", "index") if "pointer" not in name else
+                                 name.replace("pointer", "pointer_index"), torch.as_tensor(rows, dtype=torch.long),
+                                 persistent=False)
 
     def _joint_motions(self, full: torch.Tensor):
         """Every chain joint's motion in its body's frame at once: rotation ``(B, C, 3, 3)`` (Rodrigues about the
@@ -147,9 +203,8 @@ class GravityTorque(nn.Module):
             + (1.0 - hinge) * self.chain_axis * angle[..., 0]
         return rot, shift
 
-    def _slopes(self, q: torch.Tensor) -> torch.Tensor:
+    def _slopes(self, full: torch.Tensor) -> torch.Tensor:
         """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""
-        full = self.full_q(q.to(torch.float64))
         x = full[:, self.slope_of] - self.qpos0[self.slope_of]
         value = self.slope_coef[:, 3]
         for k in (2, 1, 0):
@@ -160,14 +215,15 @@ class GravityTorque(nn.Module):
     def features(self, q: torch.Tensor) -> torch.Tensor:
         """``Y (B, N, P)`` with ``tau = Y @ coef`` (module docstring for the columns)."""
         q = q.to(torch.float64)
-        p, R, o, a = self.kinematics(q)
+        full = self.full_q(q)
+        p, R, o, a = self.kinematics(q, full)
         ga = a @ self.gravity_cross.T  # (B, J, 3)
         hinge = self.hinge[:, None]
         mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
         moment = -torch.einsum("bjc,bfck->bjfk", ga, R) * hinge[..., None]
         per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
-        weighted = per_joint.flatten(2) * self._slopes(q)[..., None]
+        weighted = per_joint.flatten(2) * self._slopes(full)[..., None]
         tree = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
         ones = torch.ones_like(q)
         return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
@@ -176,7 +232,8 @@ class GravityTorque(nn.Module):
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
         moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features)."""
         q = q.to(torch.float64)
-        p, R, o, a = self.kinematics(q)
+        full = self.full_q(q)
+        p, R, o, a = self.kinematics(q, full)
         per_frame = self.coef[:4 * self.n_frames].reshape(self.n_frames, 4)
         mass, moment = per_frame[:, 0], per_frame[:, 1:]
         w = mass[:, None] * p + (R @ moment[..., None])[..., 0]  # (B, F, 3)
@@ -185,7 +242,7 @@ class GravityTorque(nn.Module):
         ga = a @ self.gravity_cross.T
         tau_hinge = -(ga * (w_joint - mass_joint[:, None] * o)).sum(-1)
         tau_slide = -(a @ self.gravity) * mass_joint
-        tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(q)
+        tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(full)
         spring = self.coef[4 * self.n_frames:]
         return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
 
@@ -213,6 +270,15 @@ class GravityTorque(nn.Module):
             rows = torch.cat([self.features(q[start:start + chunk]), tau[start:start + chunk, :, None]], -1)
             R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
         return R
+
+
+def _pick(one_hot: torch.Tensor, poses: torch.Tensor, index: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` chosen (or summed) by ``one_hot (K, L)``: one matrix product,
+    or where ``index (K,)`` gives the same rows and no program is being exported, a gather (many times faster at
+    large batches)."""
+    if index is None or torch.compiler.is_exporting():
+        return (one_hot @ poses.flatten(2)).unflatten(2, (4, 4))
+    return poses.index_select(1, index)
 
 
 def _solve_triangular(R: torch.Tensor) -> torch.Tensor:

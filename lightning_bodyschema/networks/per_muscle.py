@@ -32,13 +32,13 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .basis import legendre, product_basis  # noqa: F401 (legendre: part of this module's interface)
+from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: part of this module's interface)
 from .branches import fit_branches, group_system, solve_systems
 from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
 
-BASIS_ELEMENTS = 2 ** 22  # rows x terms of one block of ``PerMusclePath.polynomial`` (each (rows, P) tensor 32 MB)
+BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
 
 
 def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[np.ndarray] = None) -> np.ndarray:
@@ -158,6 +158,8 @@ class PerMusclePath(nn.Module):
         exponents = term_exponents(crossing, degrees, blocks)
         self.register_buffer("crossing", torch.tensor(crossing))
         self.register_buffer("exponents", torch.tensor(exponents))
+        self.terms = ProductTerms(exponents)  # the evaluation's basis, a support at a time (no state-dict entry)
+        self._tables = {}  # ``cached``
         mask = term_mask(crossing, exponents, degrees, blocks)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
@@ -196,22 +198,17 @@ class PerMusclePath(nn.Module):
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        Large batches are evaluated in blocks of rows (the basis holds ~2N + 3 ``(rows, P)`` tensors)."""
-        rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
-        if torch.compiler.is_exporting() or len(x) <= rows:  # an exported program has one path for every batch
-            return self._polynomial(x, slopes)
-        parts = [self._polynomial(x[start:start + rows], slopes) for start in range(0, len(x), rows)]
-        return torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if slopes else None
-
-    def _polynomial(self, x: torch.Tensor, slopes: bool):
-        """``polynomial`` on one block of rows."""
+        The whole-box polynomials of large batches are evaluated in blocks of rows (their basis holds ~2N + 3
+        ``(rows, P)`` tensors; blocks that stay in cache are faster too), the cells a cell at a time."""
         x64 = x.to(torch.float64)
         inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
-        coef = self.coef * self.term_mask
-        phi, dphi = self.basis(inside, slopes or not torch.equal(inside, x64))
-        y, dy = phi @ coef.T, None if dphi is None else torch.einsum("bnp,mp->bmn", dphi, coef)
-        if self.branches == 2 and len(self.branched_index):  # the active branch per muscle and sample
-            y, dy = self._active_branch(phi, dphi, y, dy)
+        derive = slopes or not torch.equal(inside, x64)
+        rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
+        if torch.compiler.is_exporting() or len(x) <= rows:  # an exported program has one path for every batch
+            y, dy = self._smooth(inside, derive)
+        else:
+            parts = [self._smooth(inside[start:start + rows], derive) for start in range(0, len(x), rows)]
+            y, dy = torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if derive else None
         if self.pieces > 1 and len(self.cell_muscles):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
@@ -219,17 +216,43 @@ class PerMusclePath(nn.Module):
         y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
-    def _active_branch(self, phi, dphi, y, dy):
-        """``y``, ``dy`` with each branched muscle's second polynomial where its gate is positive."""
+    def _smooth(self, inside: torch.Tensor, slopes: bool):
+        """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64: ``(B, M)``, ``(B, M, N)``
+        or None."""
+        basis = self.terms(inside, slopes)
+        y, dy = self.terms.contract(basis, self.cached("weights", lambda: self.terms.weights(self.coef *
+                                                                                           self.term_mask)))
+        if self.branches == 2 and len(self.branched_index):  # the active branch per muscle and sample
+            y, dy = self._active_branch(basis, y, dy)
+        return y, dy
+
+    def _active_branch(self, basis, y, dy):
+        """``y``, ``dy`` with each branched muscle's second polynomial where its gate is positive (``basis``:
+        ``self.terms``')."""
         muscles = self.branched_index
-        alt = self.coef_alt[muscles] * self.term_mask[muscles]
-        active = phi @ self.gate[muscles].T > 0  # (B, M')
+        gate, alt = self.cached("branch_weights", lambda: (self.terms.weights(self.gate[muscles]), self.terms.weights(
+            self.coef_alt[muscles] * self.term_mask[muscles])))
+        active = self.terms.contract(basis, gate, slopes=False)[0] > 0  # (B, M')
+        y_alt, dy_alt = self.terms.contract(basis, alt)
         y = y.clone()
-        y[:, muscles] = torch.where(active, phi @ alt.T, y[:, muscles])
+        y[:, muscles] = torch.where(active, y_alt, y[:, muscles])
         if dy is not None:
             dy = dy.clone()
-            dy[:, muscles] = torch.where(active[:, :, None], torch.einsum("bnp,mp->bmn", dphi, alt), dy[:, muscles])
+            dy[:, muscles] = torch.where(active[:, :, None], dy_alt, dy[:, muscles])
         return y, dy
+
+    def cached(self, name: str, compute, *args):
+        """``compute(*args)``, kept until a coefficient changes (an in-place write bumps a tensor's version; a move or
+        a load replaces it): tables derived from the coefficients, not rebuilt on every call. In an exported program
+        (and while coefficients require grad) computed every time."""
+        sources = [getattr(self, n) for n in ("coef", "coef_alt", "gate", "cell_coef", "term_mask") if hasattr(self, n)]
+        if torch.compiler.is_exporting() or torch.is_grad_enabled() and any(t.requires_grad for t in sources):
+            return compute(*args)
+        stamp = tuple((t.data_ptr(), t._version, t.device) for t in sources)
+        hit = self._tables.get(name)
+        if hit is None or hit[0] != stamp:
+            hit = self._tables[name] = (stamp, compute(*args))
+        return hit[1]
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
@@ -286,7 +309,9 @@ class PerMusclePath(nn.Module):
                                        f"muscle (0: no cells)")
         *layout, valid, n_cells = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces)
         perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
-        self.cell_max_exponent = int(layout[2].max())  # a number known before a call (torch.export)
+        self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
+                                        for start, _, width in self.cell_group_bounds)  # each group's cell basis
+        self.cell_terms_all = ProductTerms(layout[2])  # every cell term (few postures: all muscles at once)
         for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
                                 "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
             self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived

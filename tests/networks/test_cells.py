@@ -94,10 +94,12 @@ def test_cell_numbering_and_degrees(fitted):
         PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_degrees=[1, 2])
 
 
-def test_many_postures_grouped_equal_few_postures_gathered(fitted):
-    x = _inside(600, 5)  # above GATHER_ROWS: a group of muscles at a time; in pieces of 100: every muscle at once
-    y, dy = fitted.with_jacobian(x)
-    parts = [fitted.with_jacobian(x[i:i + 100]) for i in range(0, 600, 100)]
+def test_many_postures_by_cell_equal_few_postures_gathered(fitted):
+    from lightning_bodyschema.networks.basis import DENSE_ROWS
+
+    x = _inside(600, 5)  # above DENSE_ROWS: a group of muscles and a cell at a time; in pieces of DENSE_ROWS: every
+    y, dy = fitted.with_jacobian(x)  # muscle's coefficients gathered at once, on a dense basis
+    parts = [fitted.with_jacobian(x[i:i + DENSE_ROWS]) for i in range(0, 600, DENSE_ROWS)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=1e-13)
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
 

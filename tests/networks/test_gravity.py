@@ -39,9 +39,14 @@ def test_fit_on_mujoco_tau_bias_matches_held_out_postures(robot):
     assert _relative(gravity.features(q_new) @ gravity.coef, tau_new) < 1e-9
 
 
-def test_kinematics_and_features_match_mujoco(robot):
-    """Frame poses, joint anchors and axes as mj_kinematics; each frame's columns the gradients of its potential
-    features ``-g . p`` and ``-g . R[:, k]`` by MuJoCo's body Jacobians, through the couplings' tangent ``E``."""
+@pytest.mark.parametrize("jump", [True, False], ids=["pointer-jumping", "node-by-node"])
+def test_kinematics_and_features_match_mujoco(robot, jump, monkeypatch):
+    """Frame poses, joint anchors and axes as mj_kinematics (both ways of composing the tree: a few postures jump
+    pointers, many go node by node); each frame's columns the gradients of its potential features ``-g . p`` and
+    ``-g . R[:, k]`` by MuJoCo's body Jacobians, through the couplings' tangent ``E``."""
+    from lightning_bodyschema.networks import gravity as gravity_module
+
+    monkeypatch.setattr(gravity_module, "JUMP_ROWS", 64 if jump else 0)
     m, data, tree = robot.mj_model, mujoco.MjData(robot.mj_model), gravity_tree(robot)
     gravity = GravityTorque(tree)
     q = robot.sample_q(np.random.default_rng(2), 4)
@@ -102,7 +107,7 @@ def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_
     other = GravityTorque(gravity_tree(robot))
     other.load_state_dict(gravity.state_dict())
     other.float()
-    assert all(b.dtype == torch.float64 for b in other.buffers())
+    assert all(b.dtype == torch.float64 for b in other.buffers() if b.is_floating_point())  # (and index buffers)
     torch.testing.assert_close(other(q), gravity(q), rtol=0, atol=0)
     exported = torch.export.export(gravity, (q[:7],), dynamic_shapes=({0: torch.export.Dim("batch")},))
     torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)

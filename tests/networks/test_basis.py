@@ -1,0 +1,74 @@
+"""ProductTerms: the per-muscle polynomials' basis, dense (few postures) and grouped by support (many), against
+the Legendre recurrence's product basis and against autograd, in float64."""
+import numpy as np
+import pytest
+import torch
+
+from lightning_bodyschema.networks import basis as basis_module
+from lightning_bodyschema.networks.basis import ProductTerms, product_basis
+from lightning_bodyschema.networks.per_muscle import term_exponents
+
+CROSSING = np.array([[1, 1, 1, 0, 0], [0, 0, 0, 1, 1], [1, 0, 0, 1, 0], [0, 1, 0, 0, 0]], dtype=bool)
+BLOCKS = np.array([[0, 0, 0, -1, -1], [-1, -1, -1, 0, 0], [0, -1, -1, 1, -1], [-1, 0, -1, -1, -1]])
+
+
+@pytest.fixture(scope="module")
+def terms():
+    exponents = term_exponents(CROSSING, np.array([16, 12, 16, 16]), BLOCKS)  # supports of 0 to 3 joints
+    return exponents, ProductTerms(exponents)
+
+
+def _x(n, seed=0):
+    return torch.rand(n, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_every_term_and_slope_equals_the_recurrence_product_basis(terms, dense):
+    exponents, product = terms
+    x = _x(64)
+    phi, dphi = product_basis(x, torch.as_tensor(exponents), 16, slopes=True)  # (B, P), (B, N, P)
+    got = product(x, slopes=True, dense=dense)
+    assert got.grouped is not dense
+    if dense:
+        got_phi, got_dphi = got.phi, got.dphi.transpose(1, 2)
+    else:  # (P, B) in the grouped order; per joint the rows of the terms that use it
+        got_phi = torch.empty_like(phi).index_copy_(1, product.perm, got.phi.T)
+        got_dphi = torch.zeros_like(dphi)
+        for j, rows in enumerate(got.dphi):
+            got_dphi[:, j].index_copy_(1, getattr(product, f"joint_terms{j}"), rows.T)
+    # the power form rounds differently from the recurrence: ~1e-11 on values of order 1 at degree 16 (the slopes'
+    # up to 256, so relative to them)
+    torch.testing.assert_close(got_phi, phi, atol=1e-10, rtol=0)
+    torch.testing.assert_close(got_dphi, dphi, atol=1e-10 * dphi.abs().max().item(), rtol=0)
+    assert (got_dphi[:, torch.as_tensor(exponents).T == 0] == 0).all()  # a term's slope on a joint it lacks: exactly 0
+
+
+def test_contracted_slopes_are_the_autograd_jacobian_and_both_paths_agree(terms):
+    exponents, product = terms
+    coef = torch.randn(3, len(exponents), dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    weights = product.weights(coef)
+    x = _x(40, seed=2).requires_grad_()
+    jacobian = torch.autograd.functional.jacobian(lambda z: product.contract(product(z, dense=True), weights)[0], x)
+    jacobian = torch.einsum("bmcn->bmn", jacobian * torch.eye(40, dtype=torch.float64)[:, None, :, None])
+    with torch.no_grad():
+        y_dense, dy_dense = product.contract(product(x, True, dense=True), weights)
+        y_grouped, dy_grouped = product.contract(product(x, True, dense=False), weights)
+    torch.testing.assert_close(dy_dense, jacobian, atol=1e-9, rtol=0)
+    torch.testing.assert_close(y_grouped, y_dense, atol=1e-11, rtol=0)
+    torch.testing.assert_close(dy_grouped, dy_dense, atol=1e-9, rtol=0)
+
+
+def test_the_number_of_postures_picks_the_path(terms, monkeypatch):
+    _, product = terms
+    assert not product(_x(basis_module.DENSE_ROWS)).grouped
+    assert product(_x(basis_module.DENSE_ROWS + 1)).grouped
+    monkeypatch.setattr(basis_module, "DENSE_ROWS", 0)
+    assert product(_x(1)).grouped
+
+
+def test_a_constant_only_basis_and_a_joint_no_term_uses():
+    product = ProductTerms(np.zeros((1, 3), dtype=np.int64))
+    got = product(_x(40)[:, :3], slopes=True, dense=False)
+    assert got.phi.tolist() == [[1.0] * 40] and all(d.shape == (0, 40) for d in got.dphi)
+    y, dy = product.contract(got, product.weights(torch.tensor([[2.5]], dtype=torch.float64)))
+    assert (y == 2.5).all() and (dy == 0).all() and dy.shape == (40, 1, 3)
