@@ -38,6 +38,7 @@ from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
 
+CACHE_SOURCES = ("coef", "coef_alt", "gate", "term_mask", "branched_index", "cell_coef", "cell_perm", "cell_fitted")
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
 
 
@@ -242,20 +243,26 @@ class PerMusclePath(nn.Module):
         return y, dy
 
     def cached(self, name: str, compute, *args):
-        """``compute(*args)``, kept until a coefficient changes (an in-place write bumps a tensor's version; a move or
-        a load replaces it): tables derived from the coefficients, not rebuilt on every call. In an exported program
-        (and while coefficients require grad) computed every time."""
-        sources = [getattr(self, n) for n in ("coef", "coef_alt", "gate", "cell_coef", "term_mask") if hasattr(self, n)]
+        """``compute(*args)``, kept until what it derives from changes: tables laid out from the coefficients, not
+        rebuilt on every call. Every method that replaces a coefficient or layout tensor clears them (``_forget``);
+        an in-place write from outside bumps the tensor's version, which the stamp holds. In an exported program (and
+        while coefficients require grad) computed every time."""
+        sources = [getattr(self, n) for n in CACHE_SOURCES if hasattr(self, n)]
         if torch.compiler.is_exporting() or torch.is_grad_enabled() and any(t.requires_grad for t in sources):
             return compute(*args)
-        stamp = tuple((t.data_ptr(), t._version, t.device) for t in sources)
+        stamp = tuple((id(t), t.data_ptr(), t._version, t.device, t.shape) for t in sources)
         hit = self._tables.get(name)
         if hit is None or hit[0] != stamp:
             hit = self._tables[name] = (stamp, compute(*args))
         return hit[1]
 
+    def _forget(self) -> None:
+        """Clear ``cached``'s tables (a coefficient or layout tensor was replaced)."""
+        self._tables = {}
+
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
+        self._forget()
         names = [n for n in ("coef", "coef_alt", "gate", "cell_coef") if hasattr(self, n)]
         kept = [getattr(self, n) for n in names]
         out = super()._apply(fn, *args, **kwargs)
@@ -276,6 +283,7 @@ class PerMusclePath(nn.Module):
         if self.branches == 2:
             self.branched.zero_()
             fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
+            self._refresh_branched()  # before the cells: their candidates are the muscles the branches leave worst
         if self.pieces > 1:
             fit_cells(self, x, y, chunk)
         if self.branches == 2:
@@ -285,6 +293,7 @@ class PerMusclePath(nn.Module):
         """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
         if not self.branched.is_meta:
             self.branched_index = torch.nonzero(self.branched).flatten()
+        self._forget()
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
@@ -303,6 +312,7 @@ class PerMusclePath(nn.Module):
     def set_cell_degrees(self, degrees) -> None:
         """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout (``networks.cells.cell_layout``) and zero
         cell coefficients, none fitted. A checkpoint's skeleton is built from the same degrees."""
+        self._forget()
         values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
         if values.shape != (len(self.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
             raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "

@@ -116,3 +116,28 @@ def test_a_branched_path_assert_exports_with_a_dynamic_batch(fitted):
     path = fitted[0]
     assert path.branched_index.tolist() == [0]  # kept in step with ``branched`` by the fit
     assert_exports_with_a_dynamic_batch(path)
+
+
+def test_the_cells_rank_muscles_with_their_branches_active(monkeypatch):
+    """The cells' candidates are the muscles the polynomial and its branches fit worst: when the cells are fitted
+    the branched muscles' indices (what ``forward`` evaluates) are already in step with the branch fit (they once
+    lagged, and cells replaced branches that followed their jumps: myoArm's PECM3 and LAT1-3)."""
+    from lightning_bodyschema.networks import per_muscle
+
+    seen, fit_cells = [], per_muscle.fit_cells
+
+    def spy(path, x, y, chunk=8192):
+        seen.append((path.branched_index.tolist(), torch.nonzero(path.branched).flatten().tolist()))
+        residual = (y - path(x)).abs().median(0).values
+        fit_cells(path, x, y, chunk)
+        seen.append(residual)
+
+    monkeypatch.setattr(per_muscle, "fit_cells", spy)
+    path = PerMusclePath(CROSSING, degree=8, n_hidden=0, branches=2, gate_degree=2, cells=2).double()
+    first, second = _truth(path)
+    x = torch.rand(20000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4)) * 2 - 1
+    path.fit_polynomial(x, _lengths(path, first, second, x))
+    (index, branched), residual = seen
+    assert index == branched == [0]
+    assert residual[0] < 1e-9  # muscle 0's jump is followed: no candidate for cells
+    assert path.branched.tolist() == [True, False, False] and 0 not in path.cell_muscles.tolist()
