@@ -25,7 +25,7 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .trim import trimmed_refits
 
-JUMP_ROWS = 64  # up to this many postures the FK jumps pointers (fewest operations); above, a product per node
+JUMP_ROWS = 4  # up to this many postures the FK jumps pointers (fewest operations); above, a product per node
 _HINGE, _SLIDE = 3, 2  # mujoco.mjtJoint codes (the tree holds no other kind: sim.model refuses them)
 ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
 RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's

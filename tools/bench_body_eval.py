@@ -1,0 +1,95 @@
+#!/usr/bin/env python
+"""The learned body's evaluation time: ``StructuredSchema.body_si`` and its two parts, per batch size.
+
+    python tools/bench_body_eval.py --ckpt CKPT [--batches 1 4000] [--repeats 5] [--paths]
+
+At ``--batches`` seeded uniform postures of the checkpoint's robot: ``body_si`` (lengths, moment arms and torque as
+float64 arrays), the length model's ``with_jacobian`` and the torque, in ms per call (medians of ``--repeats``
+rounds; at batch 1 each round times 100 calls). Only public calls: run it from another worktree (its
+``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths`` (a per-muscle checkpoint) also
+the length model with every basis dense and every basis grouped by support (``networks.basis.DENSE_ROWS`` forced),
+and a gravity torque's forward kinematics by pointer jumping and node by node (``networks.gravity.JUMP_ROWS``
+forced): the figures behind the two thresholds. One torch thread; the load average is printed with the figures.
+"""
+import argparse
+import os
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
+
+CALLS_AT_BATCH_1 = 100  # a call is ~1 ms at batch 1: one timing of a handful is noise
+
+
+def ms_per_call(fn, batch: int, repeats: int) -> float:
+    """Median over ``repeats`` rounds of the time per call [ms] of ``fn()`` (many calls per round at batch 1)."""
+    calls = CALLS_AT_BATCH_1 if batch == 1 else 1
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(calls):
+            fn()
+        times.append((time.perf_counter() - start) / calls)
+    return 1e3 * statistics.median(times)
+
+
+def rows(schema, batch: int, repeats: int, paths: bool):
+    """``(label, ms)`` pairs at ``batch`` postures."""
+    q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(0), batch))
+    q_n = schema.normalizer.encode_q(q.to(torch.float64)).to(schema.dtype)
+    out = [("body_si", ms_per_call(lambda: schema.body_si(q), batch, repeats)),
+           ("lengths and moment arms", ms_per_call(lambda: schema.length_net.with_jacobian(q_n), batch, repeats)),
+           ("torque", ms_per_call(lambda: schema.torque(q_n), batch, repeats))]
+    if paths:
+        from lightning_bodyschema.networks import basis
+
+        kept = basis.DENSE_ROWS
+        for label, rows_dense in (("every basis dense", 10 ** 9), ("every basis grouped", 0)):
+            basis.DENSE_ROWS = rows_dense
+            out.append((f"lengths, {label}", ms_per_call(lambda: schema.length_net.with_jacobian(q_n), batch,
+                                                         repeats)))
+        basis.DENSE_ROWS = kept
+        if schema.hparams.get("torque_model") == "gravity":
+            from lightning_bodyschema.networks import gravity
+
+            kept = gravity.JUMP_ROWS
+            for label, rows_jump in (("pointer jumping", 10 ** 9), ("node by node", 0)):
+                gravity.JUMP_ROWS = rows_jump
+                out.append((f"torque, {label}", ms_per_call(lambda: schema.torque(q_n), batch, repeats)))
+            gravity.JUMP_ROWS = kept
+    return out
+
+
+@exits_cleanly
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ckpt", required=True, help="a trained StructuredSchema checkpoint with its model")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 4000])
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--paths", action="store_true", help="also the dense and grouped bases (per-muscle only)")
+    args = parser.parse_args(argv)
+    if min(args.batches) < 1 or args.repeats < 1:
+        raise BodySchemaInputError(f"--batches {args.batches} and --repeats {args.repeats}: expected integers >= 1")
+    torch.set_num_threads(1)
+    torch.set_flush_denormal(True)
+    from lightning_bodyschema.schemas.loading import load_schema
+
+    schema = load_schema(args.ckpt).eval()
+    if not hasattr(schema, "body_si") or getattr(schema, "robot_model", None) is None:
+        raise BodySchemaInputError(f"{args.ckpt}: not a StructuredSchema with a model (body_si needs both)")
+    if args.paths and schema.hparams.get("length_model") != "per_muscle":
+        raise BodySchemaInputError("--paths: the checkpoint's length model is not per_muscle")
+    with torch.no_grad():
+        for batch in args.batches:
+            for label, ms in rows(schema, batch, args.repeats, args.paths):
+                print(f"batch {batch:>6}  {label:<32} {ms:9.3f} ms per call  {ms / batch:8.4f} ms per posture")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+
+
+if __name__ == "__main__":
+    main()
