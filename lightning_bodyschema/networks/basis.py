@@ -55,8 +55,8 @@ def power_matrices(degree: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def dense_for(x: torch.Tensor) -> bool:
-    """Whether ``ProductTerms`` gathers every factor at once at postures ``x``: up to ``DENSE_ROWS`` of them, and
-    always in an exported program (one path for every batch)."""
+    """Whether a basis at postures ``x`` is dense: up to ``DENSE_ROWS`` of them, and always in an exported program
+    (one path for every batch)."""
     return torch.compiler.is_exporting() or len(x) <= DENSE_ROWS
 
 
@@ -67,10 +67,10 @@ class ProductTerms(nn.Module):
     ``product_basis`` writes every term's N factors and N derivative columns. Here the Legendre values come from
     the powers of x times a fixed matrix (three operations, not a recurrence of ``3 * degree``; they differ from the
     recurrence by about 1e-11 at degree 16 on [-1, 1], 1e-10 for the slopes, far below any length the paths
-    resolve). Up to ``DENSE_ROWS`` postures (and in an exported program) every term's factors are gathered at once
-    (``dense``: about 15 operations in all); above, the terms are grouped by the joints they use (their support)
-    and only those factors multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors
-    instead of 8911).
+    resolve). Up to ``DENSE_ROWS`` postures every term's factors are gathered at once (``dense``: about 15
+    operations in all); above, the terms are grouped by the joints they use (their support) and only those factors
+    multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors instead of 8911). An
+    exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
     ``forward(x, slopes)`` returns a ``Basis``; ``contract`` and ``contract_each`` apply coefficients in the terms'
     original order. Buffers only, none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
@@ -89,6 +89,7 @@ class ProductTerms(nn.Module):
         long = dict(dtype=torch.long)
         flat = (np.arange(self.n_joints)[None, :] * (self.degree + 1) + exponents).reshape(-1)
         for name, value in dict(perm=torch.tensor(perm, **long), flat_index=torch.tensor(flat, **long),
+                                exponents=torch.tensor(exponents, **long),
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):
@@ -124,6 +125,10 @@ class ProductTerms(nn.Module):
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
         """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: by the number
         of postures (``dense_for``)."""
+        if torch.compiler.is_exporting():  # the recurrence and a product per joint: elementwise work that
+            # AOTInductor fuses into a few loops (the cumulative products below compile to slower code)
+            phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
+            return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
         if dense_for(x) if dense is None else dense:
             return self._dense(*self.legendre(x, slopes))
         powers = F.pad(x.T[:, None, :].expand(-1, self.degree, -1).cumprod(1), (0, 0, 1, 0), value=1.0)

@@ -91,10 +91,15 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     if dense_for(x):
         perm = path.cell_perm
         muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
-        table = path.cached("cell_table", _cell_table, path)  # (Mc, C, every cell term), group by group
-        coef = table[torch.arange(len(perm), device=x.device)[None, :], cell]  # (B, Mc, every cell term)
         basis = path.cell_terms_all(x_local, dy is not None, dense=True)
-        y_cell, dy_cell = path.cell_terms_all.contract_each(basis, coef)
+        if torch.compiler.is_exporting():  # no table (built on every call there): each muscle's own columns
+            coef, order = path.cell_coef[perm[None, :], cell], path.cell_order[perm]  # coef (B, Mc, K)
+            y_cell = (basis.phi[:, order] * coef).sum(-1)
+            dy_cell = None if dy is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
+        else:
+            table = path.cached("cell_table", _cell_table, path)  # (Mc, C, every cell term), group by group
+            coef = table[torch.arange(len(perm), device=x.device)[None, :], cell]  # (B, Mc, every cell term)
+            y_cell, dy_cell = path.cell_terms_all.contract_each(basis, coef)
         fitted = path.cell_fitted[perm[None, :], cell]
         return _replace(path, y, dy, muscles, fitted, y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
