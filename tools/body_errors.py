@@ -1,13 +1,14 @@
 #!/usr/bin/env python
 """A checkpoint's learned body against MuJoCo's: muscle lengths, moment arms, torque (median and p99).
 
-    python tools/body_errors.py --ckpt runs/myoarm/.../last.ckpt [--postures 2000] [--seed 1]
+    python tools/body_errors.py --ckpt runs/myoarm/.../last.ckpt [--postures 2000] [--seed 1] [--worst 5]
 
 At ``--postures`` seeded uniform postures of the checkpoint's robot (its MJCF; a checkpoint without a model stops
 with one line): |l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
 (MuJoCo's tendon Jacobian is nonzero), and the largest |G| on the pairs it does not cross (truly 0); the torque
-error ||tau - tau_bias|| [N m] and its ratio to the median ||tau_bias||. Any schema with ``body_si``
-(``StructuredSchema``). One torch thread.
+error ||tau - tau_bias|| [N m] and its ratio to the median ||tau_bias||; then the ``--worst`` muscles by length
+p99 (their share of postures off by more than 0.1 mm and their largest error: where a pooled p99 comes from). Any
+schema with ``body_si`` (``StructuredSchema``). One torch thread.
 """
 import argparse
 
@@ -30,7 +31,19 @@ def body_errors(schema, q: np.ndarray) -> dict:
             "arm_mm_per_rad": (pct(arm_mm, 50), pct(arm_mm, 99)),
             "uncrossed_max_mm_per_rad": 1e3 * float(np.abs(G_hat[:, ~crossed]).max(initial=0.0)),
             "pairs": (int(crossed.sum()), int((~crossed).sum())), "torque_nm": (pct(tau_nm, 50), pct(tau_nm, 99)),
-            "torque_ratio": pct(tau_nm, 50) / tau_ref, "tau_bias_median_nm": tau_ref}
+            "torque_ratio": pct(tau_nm, 50) / tau_ref, "tau_bias_median_nm": tau_ref,
+            "per_muscle_length_mm": length_mm}
+
+
+def worst_muscles(errors: dict, names, k: int) -> str:
+    """The ``k`` muscles with the largest length p99 (``errors["per_muscle_length_mm"] (B, M)``), a table."""
+    length_mm = errors["per_muscle_length_mm"]
+    p99 = np.percentile(length_mm, 99, axis=0)
+    lines = ["| muscle | length p99 [mm] | postures off by > 0.1 mm | largest [mm] |", "|---|---|---|---|"]
+    for i in np.argsort(-p99)[:k]:
+        lines.append(f"| {names[i]} | {p99[i]:.4g} | {100 * float((length_mm[:, i] > 0.1).mean()):.3g} % | "
+                     f"{float(length_mm[:, i].max()):.4g} |")
+    return "\n".join(lines)
 
 
 def report(errors: dict) -> str:
@@ -53,9 +66,10 @@ def main(argv=None):
     parser.add_argument("--ckpt", required=True)
     parser.add_argument("--postures", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--worst", type=int, default=5, help="muscles listed by length p99 (0: none)")
     args = parser.parse_args(argv)
-    if args.postures < 1:
-        raise BodySchemaInputError(f"--postures {args.postures}: expected an integer >= 1")
+    if args.postures < 1 or args.worst < 0:
+        raise BodySchemaInputError(f"--postures {args.postures} / --worst {args.worst}: expected integers >= 1 / >= 0")
     torch.set_num_threads(1)
     from lightning_bodyschema.schemas.loading import load_schema
 
@@ -67,7 +81,11 @@ def main(argv=None):
         raise BodySchemaInputError(f"{args.ckpt}: its robot has no model (recorded data): there is no MuJoCo body "
                                    "to compare with")
     q = schema.robot_model.sample_q(np.random.default_rng(args.seed), args.postures)
-    print(report(body_errors(schema, q)))
+    errors = body_errors(schema, q)
+    print(report(errors))
+    if args.worst:
+        print()
+        print(worst_muscles(errors, schema.robot_model.muscle_names, args.worst))
 
 
 if __name__ == "__main__":
