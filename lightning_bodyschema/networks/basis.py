@@ -208,9 +208,15 @@ class ProductTerms(nn.Module):
 
 
 def _product_into(out: torch.Tensor, factors: list) -> torch.Tensor:
-    """``out`` (written in place) = the product of ``factors`` (one or more tensors of its shape)."""
+    """``out`` (written in place) = the product of ``factors`` (one or more tensors of its shape); through autograd
+    when a factor needs it (``out=`` products do not record it)."""
     if len(factors) == 1:
         return out.copy_(factors[0])
+    if torch.is_grad_enabled() and any(factor.requires_grad for factor in factors):
+        product = factors[0]
+        for factor in factors[1:]:
+            product = product * factor
+        return out.copy_(product)
     torch.mul(factors[0], factors[1], out=out)
     for factor in factors[2:]:
         out.mul_(factor)

@@ -43,12 +43,13 @@ def test_every_term_and_slope_equals_the_recurrence_product_basis(terms, dense):
     assert (got_dphi[:, torch.as_tensor(exponents).T == 0] == 0).all()  # a term's slope on a joint it lacks: exactly 0
 
 
-def test_contracted_slopes_are_the_autograd_jacobian_and_both_paths_agree(terms):
+@pytest.mark.parametrize("dense", [True, False])
+def test_contracted_slopes_are_the_autograd_jacobian_and_both_paths_agree(terms, dense):
     exponents, product = terms
     coef = torch.randn(3, len(exponents), dtype=torch.float64, generator=torch.Generator().manual_seed(1))
     weights = product.weights(coef)
     x = _x(40, seed=2).requires_grad_()
-    jacobian = torch.autograd.functional.jacobian(lambda z: product.contract(product(z, dense=True), weights)[0], x)
+    jacobian = torch.autograd.functional.jacobian(lambda z: product.contract(product(z, dense=dense), weights)[0], x)
     jacobian = torch.einsum("bmcn->bmn", jacobian * torch.eye(40, dtype=torch.float64)[:, None, :, None])
     with torch.no_grad():
         y_dense, dy_dense = product.contract(product(x, True, dense=True), weights)
