@@ -319,9 +319,10 @@ class PerMusclePath(nn.Module):
                                        f"muscle (0: no cells)")
         *layout, valid, n_cells = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces)
         perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
+        device = self.coef.device  # (a fit sets the cells on its own device, a GPU's too)
         self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
-                                        for start, _, width in self.cell_group_bounds)  # each group's cell basis
-        self.cell_terms_all = ProductTerms(layout[2])  # every cell term (few postures: all muscles at once)
+                                        for start, _, width in self.cell_group_bounds).to(device)  # each group's
+        self.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (few postures: all at once)
         for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
                                 "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
             self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
