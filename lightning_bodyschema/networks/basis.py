@@ -73,7 +73,7 @@ class ProductTerms(nn.Module):
     exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
     ``forward(x, slopes)`` returns a ``Basis``; ``contract`` and ``contract_each`` apply coefficients in the terms'
-    original order. Buffers only, none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
+    original order (laid out for the basis's path on every call: nothing derived from them is kept). Buffers only, none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
     """
 
     def __init__(self, exponents):
@@ -180,25 +180,29 @@ class ProductTerms(nn.Module):
                 after = factors[k] if after is None else after * factors[k]
         return Basis(phi, dphi, True)
 
-    def weights(self, coef: torch.Tensor) -> "Weights":
-        """``coef (M, P)`` (the terms in their original order) laid out for ``contract`` (worth caching: a gather of
-        every coefficient per joint)."""
-        coef_t = coef.T.contiguous()
-        return Weights(coef_t, coef_t.index_select(0, self.perm),
-                       [coef_t.index_select(0, getattr(self, f"joint_terms{j}")) for j in range(self.n_joints)])
+    def layout(self, coef: torch.Tensor, grouped: bool):
+        """Coefficients ``coef (M, P)`` (terms in their original order) as ``contract`` takes them for a dense or a
+        grouped basis: once per evaluation, for all its blocks of rows (a gather of every coefficient per joint)."""
+        if not grouped:
+            return coef
+        return coef.index_select(1, self.perm).T, [coef.index_select(1, getattr(self, f"joint_terms{j}")).T
+                                                   for j in range(self.n_joints)]
 
-    def contract(self, basis: "Basis", weights: "Weights", slopes: bool = True):
-        """``y (B, M)`` of the coefficients ``weights`` (``self.weights``) and, when the basis has slopes and
-        ``slopes``, ``dy (B, M, N)`` (else None)."""
+    def contract(self, basis: "Basis", coef, slopes: bool = True):
+        """``y (B, M)`` of coefficients ``coef`` (``(M, P)`` in the terms' original order, or ``layout``'s for the
+        basis's path) and, when the basis has slopes and ``slopes``, ``dy (B, M, N)`` (else None)."""
+        if torch.is_tensor(coef) and basis.grouped:
+            coef = self.layout(coef, True)
         if not basis.grouped:
-            y = basis.phi @ weights.coef_t
+            y = basis.phi @ coef.T
             if basis.dphi is None or not slopes:
                 return y, None
-            return y, torch.einsum("bpn,pm->bmn", basis.dphi, weights.coef_t)
-        y = basis.phi.T @ weights.by_term
+            return y, torch.einsum("bpn,mp->bmn", basis.dphi, coef)
+        by_term, by_joint = coef
+        y = basis.phi.T @ by_term
         if basis.dphi is None or not slopes:
             return y, None
-        return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, weights.by_joint)], -1)
+        return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, by_joint)], -1)
 
     @staticmethod
     def contract_each(basis: "Basis", coef: torch.Tensor):
@@ -221,14 +225,6 @@ def _product_into(out: torch.Tensor, factors: list) -> torch.Tensor:
     for factor in factors[2:]:
         out.mul_(factor)
     return out
-
-
-class Weights(NamedTuple):
-    """Coefficients ``(M, P)`` laid out for ``ProductTerms.contract``: ``coef_t (P, M)`` (a dense basis), the rows in
-    the grouped order ``by_term (P, M)`` and per joint the rows of the terms that use it ``(P_j, M)``."""
-    coef_t: torch.Tensor
-    by_term: torch.Tensor
-    by_joint: list
 
 
 class Basis(NamedTuple):

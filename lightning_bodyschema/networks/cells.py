@@ -84,7 +84,8 @@ def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tu
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
     fitted; ``x`` is inside the box, float64. Up to ``DENSE_ROWS`` postures (and in an exported program) one basis
-    of every cell term and every muscle's columns and coefficients gathered at once (fewest operations); above, a
+    of every cell term, each muscle's own columns of it and its posture's coefficients gathered at once (fewest
+    operations); above, a
     loop over the groups of muscles that share joints and cell terms (a posture's cell and basis are the group's),
     the postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
     k, x_local = cell_coordinates(x, path.pieces)
@@ -92,61 +93,47 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         perm = path.cell_perm
         muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
         basis = path.cell_terms_all(x_local, dy is not None, dense=True)
-        if torch.compiler.is_exporting():  # no table (built on every call there): each muscle's own columns
-            coef, order = path.cell_coef[perm[None, :], cell], path.cell_order[perm]  # coef (B, Mc, K)
-            y_cell = (basis.phi[:, order] * coef).sum(-1)
-            dy_cell = None if dy is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
-        else:
-            table = path.cached("cell_table", _cell_table, path)  # (Mc, C, every cell term), group by group
-            coef = table[torch.arange(len(perm), device=x.device)[None, :], cell]  # (B, Mc, every cell term)
-            y_cell, dy_cell = path.cell_terms_all.contract_each(basis, coef)
+        coef, order = path.cell_coef[perm[None, :], cell], path.cell_order[perm]  # coef (B, Mc, K): its own columns
+        y_cell = (_columns(basis.phi, order) * coef).sum(-1)
+        dy_cell = None if dy is None else torch.einsum("bmkn,bmk->bmn", _columns(basis.dphi, order), coef)
         fitted = path.cell_fitted[perm[None, :], cell]
         return _replace(path, y, dy, muscles, fitted, y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
-    for g, ((start, end, width), terms) in enumerate(zip(path.cell_group_bounds, path.cell_terms)):
+    for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = k @ path.cell_stride[members[0]]  # (B,): shared by the group
-        weights = path.cached(f"cell_weights{g}", _cell_weights, path, terms, members, width)
-        y_cell, dy_cell = _by_cell(terms, weights, x_local, cell, dy is not None)
+        y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], x_local, cell, dy is not None)
         y, dy = _replace(path, y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
                          dy_cell, copy=False)
     return y, dy
 
 
-def _cell_weights(path, terms, members, width) -> list:
-    """Each cell's coefficients of the group ``members`` (their first ``width`` cell terms) laid out for
-    ``terms.contract``: a list over the group's cells."""
-    n_cells = path.pieces ** int((path.cell_stride[members[0]] > 0).sum())
-    return [terms.weights(path.cell_coef[members, c, :width]) for c in range(n_cells)]
+def _columns(table: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
+    """``table (B, P, ...)`` at the columns ``order (Mc, K)``: ``(B, Mc, K, ...)``; ``index_select`` (twice as fast),
+    or in an exported program indexing (``index_select`` under ``vmap`` fixes the batch size)."""
+    if torch.compiler.is_exporting():
+        return table[:, order]
+    return table.index_select(1, order.flatten()).view(len(table), *order.shape, *table.shape[2:])
 
 
-def _by_cell(terms, weights, x_local, cell, slopes):
-    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N)`` (d/dx_local; or None): the postures sorted by ``cell
-    (B,)``, then per cell its postures' basis and one ``terms.contract`` (a loop over the cells; each cell's basis
-    is a block of rows, never the whole batch's)."""
+def _by_cell(terms, coef, x_local, cell, slopes):
+    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N)`` (d/dx_local; or None) from its cells' coefficients
+    ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, then per cell its postures' basis and one
+    ``terms.contract`` (a loop over the cells; each cell's basis is a block of rows, never the whole batch's)."""
     order = torch.argsort(cell)
-    x_sorted, n_muscles = x_local[order], weights[0].coef_t.shape[1]
-    y = x_local.new_empty(len(x_local), n_muscles)
-    dy = x_local.new_empty(len(x_local), n_muscles, x_local.shape[1]) if slopes else None
+    x_sorted = x_local[order]
+    y = x_local.new_empty(len(x_local), len(coef))
+    dy = x_local.new_empty(len(x_local), len(coef), x_local.shape[1]) if slopes else None
     start = 0
-    for c, count in enumerate(torch.bincount(cell, minlength=len(weights)).tolist()):
+    for c, count in enumerate(torch.bincount(cell).tolist()):
         if count:
             rows = slice(start, start + count)
-            y[rows], dy_c = terms.contract(terms(x_sorted[rows], slopes), weights[c])
+            y[rows], dy_c = terms.contract(terms(x_sorted[rows], slopes), coef[:, c])
             if slopes:
                 dy[rows] = dy_c
             start += count
     inverse = torch.argsort(order)
     return y[inverse], None if dy is None else dy[inverse]
-
-
-def _cell_table(path) -> torch.Tensor:
-    """Every celled muscle's cell coefficients over every cell term ``(Mc, C, P_cells)`` (0 on the terms it does not
-    use), in ``cell_perm``'s order: a posture's coefficients are then one gather, its basis not gathered at all."""
-    perm = path.cell_perm
-    coef, order = path.cell_coef[perm], path.cell_order[perm]  # padded columns hold 0 (added to column 0)
-    table = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents))
-    return table.scatter_add_(2, order[:, None, :].expand_as(coef), coef)
 
 
 def _replace(path, y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):

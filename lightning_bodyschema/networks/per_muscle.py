@@ -32,13 +32,12 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: part of this module's interface)
+from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, solve_systems
 from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
 
-CACHE_SOURCES = ("coef", "coef_alt", "gate", "term_mask", "branched_index", "cell_coef", "cell_perm", "cell_fitted")
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
 
 
@@ -160,7 +159,6 @@ class PerMusclePath(nn.Module):
         self.register_buffer("crossing", torch.tensor(crossing))
         self.register_buffer("exponents", torch.tensor(exponents))
         self.terms = ProductTerms(exponents)  # the evaluation's basis, a support at a time (no state-dict entry)
-        self._tables = {}  # ``cached``
         mask = term_mask(crossing, exponents, degrees, blocks)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
@@ -205,10 +203,14 @@ class PerMusclePath(nn.Module):
         inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
         derive = slopes or not torch.equal(inside, x64)
         rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
-        if torch.compiler.is_exporting() or len(x) <= rows:  # an exported program has one path for every batch
-            y, dy = self._smooth(inside, derive)
+        one_block = torch.compiler.is_exporting() or len(x) <= rows  # an exported program: one path for any batch
+        dense = one_block and dense_for(inside)  # blocks of rows are grouped, a short last one too
+        coefs = self._coefficients(dense)  # laid out once for every block
+        if one_block:
+            y, dy = self._smooth(inside, derive, dense, coefs)
         else:
-            parts = [self._smooth(inside[start:start + rows], derive) for start in range(0, len(x), rows)]
+            parts = [self._smooth(inside[start:start + rows], derive, dense, coefs)
+                     for start in range(0, len(x), rows)]
             y, dy = torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if derive else None
         if self.pieces > 1 and len(self.cell_muscles):
             y, dy = evaluate_cells(self, inside, y, dy)
@@ -217,22 +219,29 @@ class PerMusclePath(nn.Module):
         y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
-    def _smooth(self, inside: torch.Tensor, slopes: bool):
-        """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64: ``(B, M)``, ``(B, M, N)``
-        or None."""
-        basis = self.terms(inside, slopes)
-        y, dy = self.terms.contract(basis, self.cached("weights", lambda: self.terms.weights(self.coef *
-                                                                                           self.term_mask)))
-        if self.branches == 2 and len(self.branched_index):  # the active branch per muscle and sample
-            y, dy = self._active_branch(basis, y, dy)
+    def _coefficients(self, dense: bool) -> tuple:
+        """The whole-box coefficients (masked: exactly zero off each muscle's terms), and the branched muscles' gates
+        and second polynomials (or None), laid out for a dense or a grouped basis (``ProductTerms.layout``)."""
+        layout = lambda coef: self.terms.layout(coef, not dense)  # noqa: E731
+        if self.branches != 2 or not len(self.branched_index):
+            return layout(self.coef * self.term_mask), None, None
+        muscles = self.branched_index
+        return (layout(self.coef * self.term_mask), layout(self.gate[muscles]),
+                layout(self.coef_alt[muscles] * self.term_mask[muscles]))
+
+    def _smooth(self, inside: torch.Tensor, slopes: bool, dense: bool, coefs: tuple):
+        """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
+        (``_coefficients(dense)``): ``(B, M)``, ``(B, M, N)`` or None."""
+        basis = self.terms(inside, slopes, dense=dense)
+        y, dy = self.terms.contract(basis, coefs[0])
+        if coefs[1] is not None:  # the active branch per muscle and sample
+            y, dy = self._active_branch(basis, y, dy, *coefs[1:])
         return y, dy
 
-    def _active_branch(self, basis, y, dy):
-        """``y``, ``dy`` with each branched muscle's second polynomial where its gate is positive (``basis``:
-        ``self.terms``')."""
+    def _active_branch(self, basis, y, dy, gate, alt):
+        """``y``, ``dy`` with each branched muscle's second polynomial ``alt`` where its ``gate`` is positive
+        (``basis``: ``self.terms``'; both laid out for it)."""
         muscles = self.branched_index
-        gate, alt = self.cached("branch_weights", lambda: (self.terms.weights(self.gate[muscles]), self.terms.weights(
-            self.coef_alt[muscles] * self.term_mask[muscles])))
         active = self.terms.contract(basis, gate, slopes=False)[0] > 0  # (B, M')
         y_alt, dy_alt = self.terms.contract(basis, alt)
         y = y.clone()
@@ -242,27 +251,8 @@ class PerMusclePath(nn.Module):
             dy[:, muscles] = torch.where(active[:, :, None], dy_alt, dy[:, muscles])
         return y, dy
 
-    def cached(self, name: str, compute, *args):
-        """``compute(*args)``, kept until what it derives from changes: tables laid out from the coefficients, not
-        rebuilt on every call. Every method that replaces a coefficient or layout tensor clears them (``_forget``);
-        an in-place write from outside bumps the tensor's version, which the stamp holds. In an exported program (and
-        while coefficients require grad) computed every time."""
-        sources = [getattr(self, n) for n in CACHE_SOURCES if hasattr(self, n)]
-        if torch.compiler.is_exporting() or torch.is_grad_enabled() and any(t.requires_grad for t in sources):
-            return compute(*args)
-        stamp = tuple((id(t), t.data_ptr(), t._version, t.device, t.shape) for t in sources)
-        hit = self._tables.get(name)
-        if hit is None or hit[0] != stamp:
-            hit = self._tables[name] = (stamp, compute(*args))
-        return hit[1]
-
-    def _forget(self) -> None:
-        """Clear ``cached``'s tables (a coefficient or layout tensor was replaced)."""
-        self._tables = {}
-
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
-        self._forget()
         names = [n for n in ("coef", "coef_alt", "gate", "cell_coef") if hasattr(self, n)]
         kept = [getattr(self, n) for n in names]
         out = super()._apply(fn, *args, **kwargs)
@@ -293,7 +283,6 @@ class PerMusclePath(nn.Module):
         """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
         if not self.branched.is_meta:
             self.branched_index = torch.nonzero(self.branched).flatten()
-        self._forget()
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
@@ -312,7 +301,6 @@ class PerMusclePath(nn.Module):
     def set_cell_degrees(self, degrees) -> None:
         """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout (``networks.cells.cell_layout``) and zero
         cell coefficients, none fitted. A checkpoint's skeleton is built from the same degrees."""
-        self._forget()
         values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
         if values.shape != (len(self.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
             raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
