@@ -72,8 +72,9 @@ class ProductTerms(nn.Module):
     multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors instead of 8911). An
     exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
-    ``forward(x, slopes)`` returns a ``Basis``; ``contract`` and ``contract_each`` apply coefficients in the terms'
-    original order (laid out for the basis's path on every call: nothing derived from them is kept). Buffers only, none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
+    ``forward(x, slopes)`` returns a ``Basis``; ``contract`` applies coefficients given in the terms' original order
+    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). Buffers only,
+    none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
     """
 
     def __init__(self, exponents):
@@ -116,7 +117,7 @@ class ProductTerms(nn.Module):
             self._buffers[name] = value.to(self._buffers[name].device)
         return out
 
-    def legendre(self, x: torch.Tensor, slopes: bool):
+    def _legendre(self, x: torch.Tensor, slopes: bool):
         """``P_0..P_degree`` of ``x (B, N)`` and (or None) their slopes: ``(B, N, degree + 1)``."""
         # x^k as repeated products (as the grouped path's; pow is slower and rounds differently)
         powers = F.pad(x[..., None].expand(*x.shape, self.degree).cumprod(-1), (1, 0), value=1.0)
@@ -130,7 +131,7 @@ class ProductTerms(nn.Module):
             phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
             return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
         if dense_for(x) if dense is None else dense:
-            return self._dense(*self.legendre(x, slopes))
+            return self._dense(*self._legendre(x, slopes))
         powers = F.pad(x.T[:, None, :].expand(-1, self.degree, -1).cumprod(1), (0, 0, 1, 0), value=1.0)
         # (N, degree + 1, B): each joint's rows contiguous
         return self._grouped(self.to_values.T @ powers, (self.to_slopes.T @ powers) if slopes else None)
@@ -203,12 +204,6 @@ class ProductTerms(nn.Module):
         if basis.dphi is None or not slopes:
             return y, None
         return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, by_joint)], -1)
-
-    @staticmethod
-    def contract_each(basis: "Basis", coef: torch.Tensor):
-        """``contract`` with coefficients per posture ``coef (B, M, P)`` on a dense basis."""
-        y = torch.einsum("bp,bmp->bm", basis.phi, coef)
-        return y, None if basis.dphi is None else torch.einsum("bpn,bmp->bmn", basis.dphi, coef)
 
 
 def _product_into(out: torch.Tensor, factors: list) -> torch.Tensor:

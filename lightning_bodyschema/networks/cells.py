@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .basis import DENSE_ROWS, dense_for, product_basis  # noqa: F401 (DENSE_ROWS: the docstrings')
+from .basis import dense_for, product_basis
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 
@@ -83,11 +83,10 @@ def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tu
 
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
-    fitted; ``x`` is inside the box, float64. Up to ``DENSE_ROWS`` postures (and in an exported program) one basis
-    of every cell term, each muscle's own columns of it and its posture's coefficients gathered at once (fewest
-    operations); above, a
-    loop over the groups of muscles that share joints and cell terms (a posture's cell and basis are the group's),
-    the postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
+    fitted; ``x`` is inside the box, float64. Few postures (``basis.dense_for``): one basis of every cell term, each
+    muscle's own columns of it and its posture's coefficients gathered at once (fewest operations). Many: a loop over
+    the groups of muscles that share joints and cell terms (a posture's cell and basis are the group's), the
+    postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
     k, x_local = cell_coordinates(x, path.pieces)
     if dense_for(x):
         perm = path.cell_perm

@@ -26,7 +26,7 @@ from ..errors import BodySchemaInputError
 from .trim import trimmed_refits
 
 JUMP_ROWS = 4  # up to this many postures the FK jumps pointers (fewest operations); above, a product per node
-_HINGE, _SLIDE = 3, 2  # mujoco.mjtJoint codes (the tree holds no other kind: sim.model refuses them)
+_HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
 ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
 RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's
 # rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
@@ -82,7 +82,7 @@ class GravityTorque(nn.Module):
             self.register_buffer(name, value, persistent=False)
         self.dep_joint, self.dep_follows = tree.dep_joint.tolist(), tree.dep_follows.tolist()
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
-        self.jnt_type, self.frame_body = tree.jnt_type.tolist(), tree.frame_body.tolist()
+        self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
         self._register_nodes(tree)
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
@@ -129,66 +129,64 @@ class GravityTorque(nn.Module):
         # batch under vmap in torch.export)
         motion = F.pad(rot, (0, 1, 0, 1)) + F.pad(shift[..., None], (3, 0, 0, 1)) + self.node_corner  # (B, C, 4, 4)
         if torch.compiler.is_exporting() or len(q) <= JUMP_ROWS:
-            world = self.node_const + _pick(self.node_motion, motion)
+            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
             for k in range(self.n_rounds):
-                world = _pick(getattr(self, f"node_pointer{k}"), world, getattr(self, f"node_pointer_index{k}")) @ world
+                world = self._pick(f"node_pointer{k}", world) @ world
         else:  # many postures: one product per node (parents first; a body offset's a single matrix product)
             nodes = []
             for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
                 T = self.node_const[i] if chain < 0 else motion[:, chain]
                 nodes.append(T.expand(len(q), 4, 4) if parent < 0 else nodes[parent] @ T)
             world = torch.stack(nodes, 1)
-        frames, before = _pick(self.frame_node, world, self.frame_index), _pick(self.before_node, world,
-                                                                                self.before_index)
+        frames, before = self._pick("frame_node", world), self._pick("before_node", world)
         anchors = before[..., :3, 3] + (before[..., :3, :3] @ self.moving_pos[..., None])[..., 0]
         return (frames[..., :3, 3], frames[..., :3, :3], anchors,
                 (before[..., :3, :3] @ self.moving_axis[..., None])[..., 0])
 
     def _register_nodes(self, tree) -> None:
         """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation
-        about its anchor or a slide's shift; the identity for a slide's rotation), each node's parent the node before
-        it (a body's offset: its parent body's last node); an identity node last, every root's parent. Buffers: the
-        offsets ``(Bo, 4, 4)``, the order of [offsets, joint motions] by node, each round's pointers, the frames' last
-        nodes and the node before each moving joint's."""
-        offsets, parent, last, joint_node, order = [], [], {}, {}, []
-        n_offsets = len(self.body_parent) + 1  # every body's, then the identity
+        about its anchor or a slide's shift), each node's parent the node before it (a body's offset: its parent
+        body's last node), and an identity node last, every root's parent. ``node_parent`` and ``node_chain`` (a
+        joint node's motion, or -1); buffers: each node's constant transform (0 on a joint's node) and the one-hot
+        map of the joint motions onto their nodes, and the picks of ``_pick`` (each pointer round, the frames' last
+        nodes, the node before each moving joint)."""
+        parent, last, joint_node, self.node_chain, const = [], {}, {}, [], []
         for i, p in enumerate(self.body_parent):
-            order.append(i)
             parent.append(last[p] if p >= 0 else -1)
+            self.node_chain.append(-1)
+            const.append(np.eye(4))
+            const[-1][:3, :3], const[-1][:3, 3] = tree.body_rot[i], tree.body_pos[i]
             for j in self.body_joints[i]:
-                order.append(n_offsets + self.chain_index[j])
-                parent.append(len(order) - 2)
-                joint_node[j] = len(order) - 1
-            last[i] = len(order) - 1
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = tree.body_rot[i], tree.body_pos[i]
-            offsets.append(T)
-        offsets.append(np.eye(4))
-        n = len(order)
-        self.node_parent = parent
-        self.node_chain = [i - n_offsets if i >= n_offsets else -1 for i in order]  # a joint node's motion, or -1
-        pointer, pointers = np.array([q if q >= 0 else n for q in parent] + [n]), []
-        while (pointer[:n] < n).any():  # log2(depth) rounds
-            pointers.append(pointer)
-            pointer = pointer[pointer]
-        const = np.stack(offsets)[[i if i < n_offsets else n_offsets - 1 for i in order + [n_offsets - 1]]]
-        const[[k for k, i in enumerate(order) if i >= n_offsets]] = 0.0  # a joint's node: its motion alone
+                parent.append(len(parent) - 1)
+                self.node_chain.append(self.chain_index[j])
+                const.append(np.zeros((4, 4)))
+                joint_node[j] = len(parent) - 1
+            last[i] = len(parent) - 1
+        n, self.node_parent = len(parent), parent
         motion = np.zeros((n + 1, len(self.chain_joint)))
-        for k, i in enumerate(order):
-            if i >= n_offsets:
-                motion[k, i - n_offsets] = 1.0
+        motion[[k for k, c in enumerate(self.node_chain) if c >= 0], [c for c in self.node_chain if c >= 0]] = 1.0
         corner = np.zeros((4, 4))
         corner[3, 3] = 1.0
-        for name, value in dict(node_const=const, node_motion=motion, node_corner=corner).items():
+        for name, value in dict(node_const=np.stack(const + [np.eye(4)]), node_motion=motion,
+                                node_corner=corner).items():
             self.register_buffer(name, torch.tensor(value, dtype=torch.float64), persistent=False)
-        self.n_rounds = len(pointers)
-        frame, before = [last[i] for i in self.frame_body], [joint_node[j] - 1 for j in self.moving_joint]
-        picks = {f"node_pointer{k}": p for k, p in enumerate(pointers)} | dict(frame_node=frame, before_node=before)
+        pointer, picks = np.array([q if q >= 0 else n for q in parent] + [n]), {}
+        while (pointer[:n] < n).any():  # log2(depth) rounds
+            picks[f"node_pointer{len(picks)}"], pointer = pointer, pointer[pointer]
+        self.n_rounds = len(picks)
+        picks.update(frame_node=[last[i] for i in self.frame_body],
+                     before_node=[joint_node[j] - 1 for j in self.moving_joint])
         for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
             self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
-            self.register_buffer(name.replace("node", "index") if "pointer" not in name else
-                                 name.replace("pointer", "pointer_index"), torch.as_tensor(rows, dtype=torch.long),
-                                 persistent=False)
+            self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
+
+    def _pick(self, name: str, poses: torch.Tensor) -> torch.Tensor:
+        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather (many
+        times faster at large batches), or in an exported program a product with its one-hot matrix (a gather under
+        ``vmap`` fixes the batch size)."""
+        if torch.compiler.is_exporting():
+            return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
+        return poses.index_select(1, getattr(self, f"{name}_index"))
 
     def _joint_motions(self, full: torch.Tensor):
         """Every chain joint's motion in its body's frame at once: rotation ``(B, C, 3, 3)`` (Rodrigues about the
@@ -270,15 +268,6 @@ class GravityTorque(nn.Module):
             rows = torch.cat([self.features(q[start:start + chunk]), tau[start:start + chunk, :, None]], -1)
             R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
         return R
-
-
-def _pick(one_hot: torch.Tensor, poses: torch.Tensor, index: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` chosen (or summed) by ``one_hot (K, L)``: one matrix product,
-    or where ``index (K,)`` gives the same rows and no program is being exported, a gather (many times faster at
-    large batches)."""
-    if index is None or torch.compiler.is_exporting():
-        return (one_hot @ poses.flatten(2)).unflatten(2, (4, 4))
-    return poses.index_select(1, index)
 
 
 def _solve_triangular(R: torch.Tensor) -> torch.Tensor:
