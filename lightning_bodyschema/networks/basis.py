@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-DENSE_ROWS = 64  # up to this many postures ``ProductTerms`` gathers every factor at once (BENCHMARKS.md)
+DENSE_ROWS = 48  # up to this many postures ``ProductTerms`` gathers every factor at once (BENCHMARKS.md)
 
 
 def legendre(x: torch.Tensor, degree: int) -> tuple[torch.Tensor, torch.Tensor]:
