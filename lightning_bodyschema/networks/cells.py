@@ -13,6 +13,11 @@ muscle's whole-box model; a muscle keeps its cells only where they at least halv
 fitted samples without a larger p99. Muscles over the same joints share each cell's normal equations (one solve,
 a right-hand side per muscle): a loop over such groups and their cells, none over muscles.
 
+A wrap can switch sides inside a cell: the length jumps there (17 to 20 mm on myoArm's shoulder, BIClong, TMAJ,
+DELT1), and one polynomial over both sides rings over the whole cell. With ``PerMusclePath(cell_trim=factor)`` each
+cell is refitted without the samples it misses by more than ``factor`` times the kept ones' median (``_trimmed``):
+it then fits the larger side and misses the smaller one by about the jump.
+
 The length at a posture is its cell's polynomial and the moment arm that polynomial's exact derivative: the learned
 length steps by about the fit's error where a posture crosses into the next cell, and a QP at one posture sees
 that posture's cell only. Joints a muscle does not cross do not cut its box (exactly zero moment arm there).
@@ -31,6 +36,7 @@ CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the 
 CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
 CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
 CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
+CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kept samples stop changing)
 
 
 def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -196,8 +202,39 @@ def _fit_each_cell(path, x, y_m, chunk):
             rows = torch.nonzero(cell == c).flatten()
             if len(rows) < SAMPLES_PER_TERM * width:  # a thin cell keeps the whole-box polynomial
                 continue
-            phi_c = phi[rows]
-            gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_m[rows][:, members]
+            phi_c, y_c = phi[rows], y_m[rows][:, members]
+            gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_c
             solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
+            if path.cell_trim is not None:
+                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * width)
             path.cell_coef[members, c, :width] = solution.T
             path.cell_fitted[members, c] = True
+
+
+def _trimmed(phi, y, gram, rhs, solution, factor: float, least: int) -> torch.Tensor:
+    """Each muscle's cell polynomial ``(K, Mg)`` refitted without the samples it misses by more than ``factor`` times
+    the kept ones' median, up to ``CELL_TRIM_ROUNDS`` times (a dropped sample may come back), from ``phi (S, K)``,
+    ``y (S, Mg)`` and the whole cell's normal equations ``gram``, ``rhs``; each round updates every muscle's normal
+    equations by the rows whose side changed only (few after the first). A muscle keeps every sample where fewer
+    than ``least`` would stay.
+
+    Where a wrap switches sides inside the cell the length jumps (17 to 20 mm on myoArm's shoulder); one
+    polynomial over both sides rings over the whole cell, millimetres far from the jump. Trimmed, it fits the
+    larger side to the micrometre and misses the smaller by about the jump."""
+    keep = torch.ones_like(y, dtype=torch.bool)
+    system, b = gram.expand(y.shape[1], -1, -1).clone(), rhs.T.clone()  # (Mg, K, K), (Mg, K)
+    eye = torch.eye(len(gram), dtype=gram.dtype, device=gram.device)
+    for _ in range(CELL_TRIM_ROUNDS):
+        miss = (phi @ solution - y).abs()
+        new = miss <= factor * torch.where(keep, miss, torch.nan).nanmedian(0).values
+        new |= (new.sum(0) < least)[None, :]
+        rows = torch.nonzero((new != keep).any(1)).flatten()
+        if not len(rows):
+            break
+        phi_r, sign = phi[rows], new[rows].to(phi.dtype) - keep[rows].to(phi.dtype)  # +1 back in, -1 dropped
+        system += (phi_r.T[None] * sign.T[:, None, :]) @ phi_r
+        b += (sign * y[rows]).T @ phi_r
+        keep = new
+        ridge = CELL_RIDGE * system.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * eye
+        solution = torch.linalg.solve(system + ridge, b.unsqueeze(-1)).squeeze(-1).T
+    return solution

@@ -134,11 +134,14 @@ class PerMusclePath(nn.Module):
         blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
             (``check_blocks``; ``sim.separable.separable_blocks`` finds them in an MJCF): no term mixes two
             groups, so the same number of terms reaches a higher degree.
+        cell_trim: None, or each cell refitted without the samples it misses by more than this many times the kept
+            ones' median (``networks.cells._trimmed``: a jump inside a cell then costs its smaller side, not a ring
+            over the whole cell).
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
                  branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
-                 cells: int = 1, cell_degrees=None, blocks=None):
+                 cells: int = 1, cell_degrees=None, blocks=None, cell_trim: Optional[float] = None):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
                                  ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
@@ -150,7 +153,11 @@ class PerMusclePath(nn.Module):
         crossing = check_crossing(crossing)
         blocks = check_blocks(crossing, blocks)
         n_muscles, n_joints = crossing.shape
+        if cell_trim is not None and (isinstance(cell_trim, bool) or not isinstance(cell_trim, (int, float))
+                                      or not cell_trim > 1):
+            raise BodySchemaInputError(f"cell_trim={cell_trim!r} must be None or a number > 1 (times the median miss)")
         self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
+        self.cell_trim = None if cell_trim is None else float(cell_trim)  # the fit's, not the state's
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
         degrees = muscle_degrees(crossing, degree, max_terms, term_budget, blocks=blocks) if degrees is None else \
             check_degrees(degrees, len(crossing))

@@ -92,6 +92,9 @@ class StructuredSchema(BodySchema):
             degree. Needs the robot's MJCF.
         path_blocks: each muscle's group per joint (``(M, N)`` ints, -1 uncrossed), set when ``path_separable``
             (a checkpoint then rebuilds the same polynomials); given, it is used as is.
+        path_cell_trim: None, or each cell refitted without the samples it misses by more than this many times the
+            kept ones' median (a wrap switching sides inside a cell then costs the smaller side, not a ring over
+            the whole cell; ``networks.cells``).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -112,7 +115,7 @@ class StructuredSchema(BodySchema):
                  path_gate_degree: int = 8, path_term_budget: Optional[int] = None,
                  path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None,
                  path_cells: int = 1, path_cell_degrees: Optional[list] = None, path_separable: bool = False,
-                 path_blocks: Optional[list] = None):
+                 path_blocks: Optional[list] = None, path_cell_trim: Optional[float] = None):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -175,7 +178,7 @@ class StructuredSchema(BodySchema):
         self.length_net = PerMusclePath(self._crossing(), hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
                                         hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
                                         hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
-                                        hp.get("path_cell_degrees"), hp.get("path_blocks"))
+                                        hp.get("path_cell_degrees"), hp.get("path_blocks"), hp.get("path_cell_trim"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from torch.nn import functional as F
 
 from physics_checks import assert_exports_with_a_dynamic_batch
 
@@ -92,6 +93,9 @@ def test_cell_numbering_and_degrees(fitted):
         PerMusclePath(CROSSING, 4, 1, 0, cells=0)
     with pytest.raises(BodySchemaInputError, match=r"cell_degrees=\[1, 2\] must be 7 integers >= 0"):
         PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_degrees=[1, 2])
+    for bad in (1, 0.5, True, "10"):
+        with pytest.raises(BodySchemaInputError, match=f"cell_trim={bad!r} must be None or a number > 1"):
+            PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_trim=bad)
 
 
 def test_many_postures_by_cell_equal_few_postures_gathered(fitted):
@@ -106,3 +110,51 @@ def test_many_postures_by_cell_equal_few_postures_gathered(fitted):
 
 def test_a_celled_path_assert_exports_with_a_dynamic_batch(fitted):
     assert_exports_with_a_dynamic_batch(fitted)
+
+
+def test_a_trimmed_cell_fits_the_larger_side_of_a_jump_exactly():
+    """A wrap switching sides inside a cell: a length that jumps by 0.5 on a corner (~6 % of the samples). One
+    least squares rings over the whole cell; trimmed, it recovers the polynomial of the larger side to 1e-9 and
+    misses the corner by about the jump."""
+    from lightning_bodyschema.networks.basis import product_basis
+    from lightning_bodyschema.networks.cells import _trimmed
+    from lightning_bodyschema.networks.per_muscle import term_exponents
+    x = torch.rand(4000, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 2 - 1
+    exponents = torch.as_tensor(term_exponents(np.ones((1, 2), bool), np.array([4])))
+    phi = product_basis(x, exponents, 4)[0]
+    true = torch.linspace(-1, 1, len(exponents), dtype=torch.float64)[:, None]  # (K, 1)
+    corner = (x[:, 0] > 0.5) & (x[:, 1] > 0.5)
+    y = phi @ true + 0.5 * corner[:, None]
+    gram, rhs = phi.T @ phi, phi.T @ y
+    plain = torch.linalg.solve(gram, rhs)
+    assert (plain - true).abs().max() > 1e-3  # the ring (the test can fail)
+    trimmed = _trimmed(phi, y, gram, rhs, plain, 10.0, 3 * len(exponents))
+    np.testing.assert_allclose(trimmed, true, atol=1e-9)
+    miss = (phi @ trimmed - y).abs()[:, 0]
+    assert (miss[~corner] < 1e-9).all() and (miss[corner] > 0.49).all()
+    kept_all = _trimmed(phi, y, gram, rhs, plain, 10.0, len(x))  # too few samples would stay: none dropped
+    torch.testing.assert_close(kept_all, plain, rtol=0, atol=0)
+
+
+def _corner(x):
+    return (x[:, 0] > 0.85) & (x[:, 1] > 0.85)
+
+
+def _jumping(x):
+    """``_lengths`` with muscle 0 jumping by 0.5 on a corner of one of its cells (~0.6 % of the box)."""
+    return _lengths(x) + 0.5 * F.one_hot(torch.zeros(len(x), dtype=torch.long), 7) * _corner(x)[:, None]
+
+
+def test_a_path_with_cell_trim_fits_around_a_jump_inside_a_cell():
+    """A wrap switching sides inside a cell: with ``cell_trim`` the cells fit the rest of the box to 1e-8; without,
+    the cell's polynomial rings (the test can fail)."""
+    x = torch.rand(6000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1
+    held_out = _inside(2000, 5)
+    held_out = held_out[~_corner(held_out)]
+    errors = []
+    for trim in (None, 10.0):
+        path = PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_trim=trim)
+        path.fit_polynomial(x, _jumping(x))
+        assert 0 in path.cell_muscles.tolist()
+        errors.append((path(held_out) - _jumping(held_out))[:, 0].abs().max())
+    assert errors[0] > 1e-3 and errors[1] < 1e-8
