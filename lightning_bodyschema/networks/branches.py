@@ -24,6 +24,8 @@ the jump, which sits where the gate changes sign. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 from .degrees import muscle_degrees
@@ -40,6 +42,20 @@ HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_reassign)
 SWING = 4.0  # a kept gated model's largest residual is at most this many times the one polynomial's
 SAMPLES_PER_TERM = 3  # a kept branch's samples per term of its polynomial (fewer: it interpolates, and swings)
 NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a jump: the first gate's samples
+
+
+@contextlib.contextmanager
+def one_thread():
+    """torch's CPU threads set to 1 inside, then restored: batched float64 LU solves (``torch.linalg.solve`` of
+    ``(2, 300, 300)`` and larger) hang in torch 2.13's MKL with 2 threads, printing "Parameter 6 was incorrect on
+    entry to DLASWP" (one thread: 0.001 s); the fits' least squares run inside (``bodyschema fit`` uses one thread
+    anyway)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def solve_systems(system, b, valid, ridge, scale=None):

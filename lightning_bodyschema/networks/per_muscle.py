@@ -33,7 +33,7 @@ from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
-from .branches import fit_branches, group_system, solve_systems
+from .branches import fit_branches, group_system, one_thread, solve_systems
 from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
@@ -271,8 +271,12 @@ class PerMusclePath(nn.Module):
     def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-12, chunk: int = 8192) -> None:
         """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64: the normal equations
         of every term summed once over the samples, then each group of muscles with the same number of terms solved
-        in one batched solve of their own terms (no padding: memory grows with each group, not with the largest)."""
-        x, y = x.to(torch.float64), y.to(torch.float64)
+        in one batched solve of their own terms (no padding: memory grows with each group, not with the largest).
+        On one CPU thread (``branches.one_thread``)."""
+        with one_thread():
+            self._fit_polynomial(x.to(torch.float64), y.to(torch.float64), ridge, chunk)
+
+    def _fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float, chunk: int) -> None:
         self.x_lo.copy_(x.amin(0))
         self.x_hi.copy_(x.amax(0))
         gram, rhs = self._normal_equations(x, y, chunk)
@@ -332,8 +336,12 @@ class PerMusclePath(nn.Module):
         """The polynomial alone (no branches or cells) by least squares on ``x (S, N)``, ``y (S, M)``, then up to
         ``rounds`` refits without the samples whose residual norm over the muscles exceeds ``factor`` times the
         median (a few wild targets otherwise pull the whole least squares); the kept samples' mask ``(S,)``. The box
-        is every sample's; each refit updates the normal equations by the samples that changed side only."""
-        x, y = x.to(torch.float64), y.to(torch.float64)
+        is every sample's; each refit updates the normal equations by the samples that changed side only. On one
+        CPU thread (``branches.one_thread``)."""
+        with one_thread():
+            return self._fit_trimmed(x.to(torch.float64), y.to(torch.float64), factor, rounds, ridge, chunk)
+
+    def _fit_trimmed(self, x, y, factor, rounds, ridge, chunk) -> torch.Tensor:
         self.x_lo.copy_(x.amin(0))
         self.x_hi.copy_(x.amax(0))
         gram, rhs = self._normal_equations(x, y, chunk)

@@ -93,3 +93,26 @@ def test_outside_the_fitted_box_the_polynomial_extends_to_first_order():
     torch.testing.assert_close(y, y_edge + 0.3 * dy_edge[:, :, 1], rtol=0, atol=1e-12)
     torch.testing.assert_close(dy, dy_edge, rtol=0, atol=1e-12)
     assert (dy[:, ~torch.as_tensor(CROSSING)] == 0).all()
+
+
+_TWO_THREADS = """
+import torch, numpy as np
+torch.set_num_threads(2)
+from lightning_bodyschema.networks.per_muscle import PerMusclePath
+x = torch.rand(3000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1
+y = torch.stack([x[:, 0] ** 3 - x[:, 1] * x[:, 2], x.prod(1) + x[:, 2] ** 5], 1)
+path = PerMusclePath(np.ones((2, 3), bool), 11, 1, 0)  # one batched solve of two 364-term systems
+path.fit_polynomial(x, y)
+print(torch.get_num_threads(), float((path(x) - y).abs().max()))
+"""
+
+
+def test_a_fit_with_two_torch_threads_ends_and_recovers_the_polynomials():
+    """torch 2.13's MKL hangs in batched float64 LU solves with 2 threads (``branches.one_thread``): the fit runs on
+    one thread and gives the caller its two back."""
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", _TWO_THREADS], capture_output=True, text=True, timeout=120)
+    threads, error = done.stdout.split()
+    assert done.returncode == 0 and int(threads) == 2 and float(error) < 1e-9, done.stderr[-2000:]
+    assert "DLASWP" not in done.stderr
