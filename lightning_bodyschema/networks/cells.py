@@ -31,6 +31,7 @@ import torch
 from .basis import dense_for, product_basis
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
+from .trim import trimmed_refits
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
 CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
@@ -213,28 +214,24 @@ def _fit_each_cell(path, x, y_m, chunk):
 
 def _trimmed(phi, y, gram, rhs, solution, factor: float, least: int) -> torch.Tensor:
     """Each muscle's cell polynomial ``(K, Mg)`` refitted without the samples it misses by more than ``factor`` times
-    the kept ones' median, up to ``CELL_TRIM_ROUNDS`` times (a dropped sample may come back), from ``phi (S, K)``,
-    ``y (S, Mg)`` and the whole cell's normal equations ``gram``, ``rhs``; each round updates every muscle's normal
-    equations by the rows whose side changed only (few after the first). A muscle keeps every sample where fewer
-    than ``least`` would stay.
+    the kept ones' median (``trim.trimmed_refits`` per muscle, up to ``CELL_TRIM_ROUNDS`` refits), from
+    ``phi (S, K)``, ``y (S, Mg)``, the whole cell's normal equations ``gram``, ``rhs`` and their ``solution``; each
+    refit updates every muscle's normal equations by the rows whose side changed only (few after the first). A
+    muscle keeps every sample where fewer than ``least`` would stay.
 
     Where a wrap switches sides inside the cell the length jumps (17 to 20 mm on myoArm's shoulder); one
     polynomial over both sides rings over the whole cell, millimetres far from the jump. Trimmed, it fits the
     larger side to the micrometre and misses the smaller by about the jump."""
-    keep = torch.ones_like(y, dtype=torch.bool)
     system, b = gram.expand(y.shape[1], -1, -1).clone(), rhs.T.clone()  # (Mg, K, K), (Mg, K)
     eye = torch.eye(len(gram), dtype=gram.dtype, device=gram.device)
-    for _ in range(CELL_TRIM_ROUNDS):
-        miss = (phi @ solution - y).abs()
-        new = miss <= factor * torch.where(keep, miss, torch.nan).nanmedian(0).values
-        new |= (new.sum(0) < least)[None, :]
+    fitted = [solution]
+
+    def refit(keep, new):
         rows = torch.nonzero((new != keep).any(1)).flatten()
-        if not len(rows):
-            break
         phi_r, sign = phi[rows], new[rows].to(phi.dtype) - keep[rows].to(phi.dtype)  # +1 back in, -1 dropped
-        system += (phi_r.T[None] * sign.T[:, None, :]) @ phi_r
-        b += (sign * y[rows]).T @ phi_r
-        keep = new
+        system.add_((phi_r.T[None] * sign.T[:, None, :]) @ phi_r)
+        b.add_((sign * y[rows]).T @ phi_r)
         ridge = CELL_RIDGE * system.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * eye
-        solution = torch.linalg.solve(system + ridge, b.unsqueeze(-1)).squeeze(-1).T
-    return solution
+        fitted[0] = torch.linalg.solve(system + ridge, b.unsqueeze(-1)).squeeze(-1).T
+    trimmed_refits(lambda p: p @ fitted[0], phi, y, refit, factor, CELL_TRIM_ROUNDS, len(phi), True, least)
+    return fitted[0]

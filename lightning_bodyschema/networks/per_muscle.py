@@ -341,7 +341,8 @@ class PerMusclePath(nn.Module):
         with one_thread():
             return self._fit_trimmed(x.to(torch.float64), y.to(torch.float64), factor, rounds, ridge, chunk)
 
-    def _fit_trimmed(self, x, y, factor, rounds, ridge, chunk) -> torch.Tensor:
+    def _fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float, rounds: int, ridge: float,
+                     chunk: int) -> torch.Tensor:
         self.x_lo.copy_(x.amin(0))
         self.x_hi.copy_(x.amax(0))
         gram, rhs = self._normal_equations(x, y, chunk)

@@ -10,8 +10,9 @@ from torch.nn import functional as F
 from physics_checks import assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.networks.cells import cell_coordinates, cell_degree
-from lightning_bodyschema.networks.per_muscle import PerMusclePath
+from lightning_bodyschema.networks.basis import product_basis
+from lightning_bodyschema.networks.cells import _trimmed, cell_coordinates, cell_degree
+from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
 
@@ -116,9 +117,6 @@ def test_a_trimmed_cell_fits_the_larger_side_of_a_jump_exactly():
     """A wrap switching sides inside a cell: a length that jumps by 0.5 on a corner (~6 % of the samples). One
     least squares rings over the whole cell; trimmed, it recovers the polynomial of the larger side to 1e-9 and
     misses the corner by about the jump."""
-    from lightning_bodyschema.networks.basis import product_basis
-    from lightning_bodyschema.networks.cells import _trimmed
-    from lightning_bodyschema.networks.per_muscle import term_exponents
     x = torch.rand(4000, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 2 - 1
     exponents = torch.as_tensor(term_exponents(np.ones((1, 2), bool), np.array([4])))
     phi = product_basis(x, exponents, 4)[0]
