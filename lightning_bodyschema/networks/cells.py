@@ -25,9 +25,13 @@ Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import torch
+from torch.nn import functional as F
 
+from ..errors import BodySchemaInputError
 from .basis import dense_for, product_basis
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
@@ -38,6 +42,7 @@ CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle
 CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
 CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
 CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kept samples stop changing)
+CELL_JOINTS = ("crossed", "largest_group")  # which joints cut a muscle's box (``cell_cuts``)
 
 
 def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -48,34 +53,60 @@ def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.
     return k.to(torch.long), scaled - 2 * k - 1
 
 
-def cell_degree(joints, degree: int, pieces: int, samples: int) -> int:
+def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[int] = None) -> int:
     """The highest total degree ``<= degree`` whose polynomial over ``joints`` (a number, or the sizes of the groups
     whose effects add up: ``degrees.term_count``) has ``SAMPLES_PER_TERM`` samples per term in each of the
-    ``pieces ** n`` cells of its ``n`` joints when ``samples`` spread evenly (at least 1)."""
+    ``pieces ** cut`` cells of its ``cut`` cutting joints (None: all its joints) when ``samples`` spread evenly (at
+    least 1)."""
     sizes = (joints,) if isinstance(joints, (int, np.integer)) else tuple(joints)
-    room = samples / (SAMPLES_PER_TERM * pieces ** sum(sizes))
+    room = samples / (SAMPLES_PER_TERM * pieces ** (sum(sizes) if cut is None else int(cut)))
     return max([1] + [d for d in range(1, degree + 1) if term_count(sizes, d) <= room])
 
 
+def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray:
+    """``(M, N)`` bool: the joints that cut each muscle's box into cells. ``"crossed"``: every joint it crosses;
+    ``"largest_group"``: only the joints of its largest group of ``blocks`` (``per_muscle.check_blocks``; each tied
+    group), the others left whole: a group of one or two joints (BIClong's elbow next to its shoulder) a polynomial
+    fits over its whole range, and cutting it too would split every cell of the group that needs the cells."""
+    if rule not in CELL_JOINTS:
+        raise BodySchemaInputError(f"cell_joints={rule!r}; allowed: {list(CELL_JOINTS)}")
+    crossing = np.asarray(crossing, dtype=bool)
+    if rule == "crossed":
+        return crossing.copy()
+    blocks = np.asarray(blocks)
+    size = ((blocks[:, :, None] == blocks[:, None, :]) & crossing[:, None, :]).sum(-1)  # each joint's group's size
+    size = np.where(crossing, size, 0)
+    return crossing & (size == size.max(1, keepdims=True))
+
+
 def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarray, degrees: np.ndarray,
-                pieces: int) -> tuple:
+                pieces: int, cut: Optional[np.ndarray] = None) -> tuple:
     """Which muscles have cells and how they are laid out, from each muscle's cell degree ``degrees (M,)`` (0: no
-    cells), in numpy (a checkpoint's skeleton is built on the meta device): ``muscles (Mc,)``, ``strides (Mc, N)``
-    (``pieces ** rank`` on the joints each crosses, rank among them; 0 elsewhere), the cell terms' ``exponents
-    (C, N)`` (each celled muscle's own terms of total degree at most its cell degree), each muscle's term columns
-    ``order (Mc, K)`` (its own first, padding on column 0) and ``valid (Mc, K)``, and the number of cells of the
-    muscle with the most."""
+    cells) and the joints that cut its box ``cut (M, N)`` (``cell_cuts``; None: every crossed joint), in numpy (a
+    checkpoint's skeleton is built on the meta device): ``muscles (Mc,)``, ``strides (Mc, N)`` (``pieces ** rank``
+    on the joints each cuts, rank among them; 0 elsewhere), the cell terms' ``exponents (C, N + E)`` (each celled
+    muscle's own terms of total degree at most its cell degree, in the cells' coordinates: every joint's local one,
+    then the E joints ``extra (E,)`` that some celled muscle crosses uncut, as they are), each muscle's term columns
+    ``order (Mc, K)`` (its own first, padding on column 0) and ``valid (Mc, K)``, the number of cells of the muscle
+    with the most, and ``extra``."""
+    cut = crossing if cut is None else cut
     muscles = np.flatnonzero(degrees > 0)
     mask = term_mask[muscles] & (exponents.sum(1)[None, :] <= degrees[muscles, None])
-    cols = np.flatnonzero(mask.any(0))
-    local = mask[:, cols]
-    width, most = (int(local.sum(1).max()), int(crossing[muscles].sum(1).max())) if len(muscles) else (1, 0)
-    order = np.argsort(~local, axis=1, kind="stable")[:, :width]
-    valid = np.take_along_axis(local, order, 1)
-    rank = np.cumsum(crossing[muscles], 1) - 1
-    strides = np.where(crossing[muscles], pieces ** np.maximum(rank, 0), 0)
-    cell_exponents = exponents[cols] if len(cols) else np.zeros_like(exponents[:1])
-    return muscles, strides, cell_exponents, order * valid, valid, pieces ** most
+    uncut = crossing[muscles] & ~cut[muscles]
+    extra = np.flatnonzero(uncut.any(0))
+    own, term = np.nonzero(mask)  # each muscle's terms in order
+    rows = np.concatenate([term[:, None], exponents[term] * cut[muscles][own],
+                           (exponents[term] * uncut[own])[:, extra]], 1)
+    keys, column = np.unique(rows, axis=0, return_inverse=True)  # by whole-box term, then its cut pattern
+    counts = mask.sum(1)
+    width, most = (int(counts.max()), int(cut[muscles].sum(1).max())) if len(muscles) else (1, 0)
+    valid = np.arange(width)[None, :] < counts[:, None]
+    order = np.zeros((len(muscles), width), np.int64)
+    order[valid] = column.reshape(-1)
+    rank = np.cumsum(cut[muscles], 1) - 1
+    strides = np.where(cut[muscles], pieces ** np.maximum(rank, 0), 0)
+    cell_exponents = keys[:, 1:] if len(keys) else np.zeros((1, exponents.shape[1] + len(extra)), np.int64)
+    return muscles, strides, cell_exponents, order, valid, pieces ** most, extra
 
 
 def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, list]:
@@ -88,29 +119,48 @@ def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tu
     return perm, [(int(a), int(b), int(valid[perm[a]].sum())) for a, b in zip(starts, ends)]
 
 
+def cell_inputs(path, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)``: every joint's
+    local coordinate (``cell_coordinates``), then the joints ``cell_extra`` some celled muscle crosses uncut, as they
+    are (padding and a one-hot product: no concatenation, which specializes the batch in torch.export)."""
+    k, x_local = cell_coordinates(x, path.pieces)
+    extra = len(path.cell_extra)
+    if not extra:
+        return k, x_local
+    return k, F.pad(x_local, (0, extra)) + F.pad(x @ path.cell_unfold.T, (x.shape[1], 0))
+
+
+def _fold(path, dz: torch.Tensor) -> torch.Tensor:
+    """Slopes ``d/dz (..., N + E)`` in the cells' coordinates as ``d/dx (..., N)``: ``d x_local / d x = pieces``."""
+    n = path.cell_stride.shape[1]
+    dx = dz[..., :n] * path.pieces
+    return dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
+
+
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
     fitted; ``x`` is inside the box, float64. Few postures (``basis.dense_for``): one basis of every cell term, each
     muscle's own columns of it and its posture's coefficients gathered at once (fewest operations). Many: a loop over
     the groups of muscles that share joints and cell terms (a posture's cell and basis are the group's), the
     postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
-    k, x_local = cell_coordinates(x, path.pieces)
+    k, z = cell_inputs(path, x)
     if dense_for(x):
         perm = path.cell_perm
         muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
-        basis = path.cell_terms_all(x_local, dy is not None, dense=True)
+        basis = path.cell_terms_all(z, dy is not None, dense=True)
         coef, order = path.cell_coef[perm[None, :], cell], path.cell_order[perm]  # coef (B, Mc, K): its own columns
         y_cell = (_columns(basis.phi, order) * coef).sum(-1)
-        dy_cell = None if dy is None else torch.einsum("bmkn,bmk->bmn", _columns(basis.dphi, order), coef)
+        dy_cell = None if dy is None else _fold(path, torch.einsum("bmkn,bmk->bmn", _columns(basis.dphi, order),
+                                                                   coef))
         fitted = path.cell_fitted[perm[None, :], cell]
-        return _replace(path, y, dy, muscles, fitted, y_cell, dy_cell)
+        return _replace(y, dy, muscles, fitted, y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = k @ path.cell_stride[members[0]]  # (B,): shared by the group
-        y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], x_local, cell, dy is not None)
-        y, dy = _replace(path, y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
-                         dy_cell, copy=False)
+        y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
+        y, dy = _replace(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
+                         None if dy_cell is None else _fold(path, dy_cell), copy=False)
     return y, dy
 
 
@@ -122,14 +172,15 @@ def _columns(table: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
     return table.index_select(1, order.flatten()).view(len(table), *order.shape, *table.shape[2:])
 
 
-def _by_cell(terms, coef, x_local, cell, slopes):
-    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N)`` (d/dx_local; or None) from its cells' coefficients
+def _by_cell(terms, coef, z, cell, slopes):
+    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N + E)`` (d/dz, ``cell_inputs``; or None) at the cells'
+    coordinates ``z (B, N + E)``, from its cells' coefficients
     ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, then per cell its postures' basis and one
     ``terms.contract`` (a loop over the cells; each cell's basis is a block of rows, never the whole batch's)."""
     order = torch.argsort(cell)
-    x_sorted = x_local[order]
-    y = x_local.new_empty(len(x_local), len(coef))
-    dy = x_local.new_empty(len(x_local), len(coef), x_local.shape[1]) if slopes else None
+    x_sorted = z[order]
+    y = z.new_empty(len(z), len(coef))
+    dy = z.new_empty(len(z), len(coef), z.shape[1]) if slopes else None
     start = 0
     for c, count in enumerate(torch.bincount(cell).tolist()):
         if count:
@@ -142,14 +193,14 @@ def _by_cell(terms, coef, x_local, cell, slopes):
     return y[inverse], None if dy is None else dy[inverse]
 
 
-def _replace(path, y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):
-    """``y``, ``dy`` with the cells' ``y_cell (B, Mc)``, ``dy_cell (B, Mc, N)`` (d/dx_local) of ``muscles`` where
+def _replace(y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):
+    """``y``, ``dy`` with the cells' ``y_cell (B, Mc)``, ``dy_cell (B, Mc, N)`` (d/dx, ``_fold``) of ``muscles`` where
     their cell was ``fitted (B, Mc)`` (copies, or with ``copy=False`` written in place)."""
     y = y.clone() if copy else y
     y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
     if dy is not None:
         dy = dy.clone() if copy else dy
-        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell * path.pieces, dy[:, muscles])
+        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell, dy[:, muscles])
     return y, dy
 
 
@@ -166,8 +217,9 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
         return
     total = path.exponents.sum(1)
     own_degree = (total[None, :] * path.term_mask).amax(1)
-    path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x)) if c else 0
-                                        for a, d, c in zip(path.block_sizes, own_degree, candidates)],
+    cuts = path._cell_cut.sum(1).tolist()  # each muscle's cutting joints
+    path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
+                                        for a, d, c, n in zip(path.block_sizes, own_degree, candidates, cuts)],
                                        device=median.device))
     _fit_each_cell(path, x, y[:, path.cell_muscles], chunk)
     muscles = path.cell_muscles
@@ -190,12 +242,12 @@ def _fit_each_cell(path, x, y_m, chunk):
     ``path.cell_fitted (Mc, C)`` (the cells with ``SAMPLES_PER_TERM`` samples per term). Muscles over the same
     joints with the same cell terms share their cells' normal equations (the shoulder's muscles: one system per cell
     for all of them, one right-hand side each): a loop over such groups and their cells."""
-    k, x_local = cell_coordinates(x, path.pieces)
+    k, z = cell_inputs(path, x)
     for start, end, width in path.cell_group_bounds:  # a loop over groups of muscles that share joints and terms
         members = path.cell_perm[start:end]
         first = int(members[0])
         exponents = path.cell_exponents[path.cell_order[first, :width]]
-        phi = torch.cat([product_basis(x_local[i:i + chunk], exponents, int(exponents.max()))[0]
+        phi = torch.cat([product_basis(z[i:i + chunk], exponents, int(exponents.max()))[0]
                          for i in range(0, len(x), chunk)])
         cell = k @ path.cell_stride[first]
         eye = torch.eye(width, dtype=torch.float64, device=x.device)

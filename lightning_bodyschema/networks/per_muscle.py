@@ -34,7 +34,7 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import cell_groups, cell_layout, evaluate_cells, fit_cells
+from .cells import CELL_JOINTS, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
 
@@ -137,11 +137,15 @@ class PerMusclePath(nn.Module):
         cell_trim: None, or each cell refitted without the samples it misses by more than this many times the kept
             ones' median (``networks.cells._trimmed``: a jump inside a cell then costs its smaller side, not a ring
             over the whole cell).
+        cell_joints: which joints cut a celled muscle's box (``networks.cells.cell_cuts``): ``"crossed"`` (every
+            joint it crosses) or ``"largest_group"`` (those of its largest group of ``blocks``; the others stay whole
+            in each cell's polynomial).
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
                  branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
-                 cells: int = 1, cell_degrees=None, blocks=None, cell_trim: Optional[float] = None):
+                 cells: int = 1, cell_degrees=None, blocks=None, cell_trim: Optional[float] = None,
+                 cell_joints: str = "crossed"):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
                                  ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
@@ -156,6 +160,8 @@ class PerMusclePath(nn.Module):
         if cell_trim is not None and (isinstance(cell_trim, bool) or not isinstance(cell_trim, (int, float))
                                       or not cell_trim > 1):
             raise BodySchemaInputError(f"cell_trim={cell_trim!r} must be None or a number > 1 (times the median miss)")
+        if cell_joints not in CELL_JOINTS:
+            raise BodySchemaInputError(f"cell_joints={cell_joints!r}; allowed: {list(CELL_JOINTS)}")
         self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
         self.cell_trim = None if cell_trim is None else float(cell_trim)  # the fit's, not the state's
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
@@ -178,7 +184,8 @@ class PerMusclePath(nn.Module):
             self.register_buffer("branched_index", torch.zeros(0, dtype=torch.long), persistent=False)
             self.register_load_state_dict_post_hook(lambda module, _: module._refresh_branched())
         if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
-            self._cell_sources = (crossing, exponents, mask)
+            self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
+            self._cell_cut = cell_cuts(crossing, blocks, cell_joints)
             self.set_cell_degrees(np.zeros(n_muscles, np.int64) if cell_degrees is None else cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
@@ -316,7 +323,8 @@ class PerMusclePath(nn.Module):
         if values.shape != (len(self.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
             raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
                                        f"muscle (0: no cells)")
-        *layout, valid, n_cells = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces)
+        *layout, valid, n_cells, extra = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces,
+                                                     self._cell_cut)
         perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
         device = self.coef.device  # (a fit sets the cells on its own device, a GPU's too)
         self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
@@ -325,6 +333,10 @@ class PerMusclePath(nn.Module):
         for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
                                 "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
             self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
+        unfold = np.eye(self.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
+        self.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
+        self.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
+                             persistent=False)
         self.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
                                                       device=self.coef.device))
         self.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,

@@ -32,6 +32,7 @@ from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import OK, bounds_command
+from ..networks.cells import CELL_JOINTS
 from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
@@ -95,6 +96,10 @@ class StructuredSchema(BodySchema):
         path_cell_trim: None, or each cell refitted without the samples it misses by more than this many times the
             kept ones' median (a wrap switching sides inside a cell then costs the smaller side, not a ring over
             the whole cell; ``networks.cells``).
+        path_cell_joints: which joints cut a celled muscle's box: ``"crossed"`` (every joint it crosses) or
+            ``"largest_group"`` (with ``path_separable``, only those of its largest group of joints, the others
+            whole in each cell's polynomial: myoArm's BIClong then has 8 cells over its shoulder, not 32 over its
+            shoulder and elbow; ``networks.cells.cell_cuts``).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -115,7 +120,8 @@ class StructuredSchema(BodySchema):
                  path_gate_degree: int = 8, path_term_budget: Optional[int] = None,
                  path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None,
                  path_cells: int = 1, path_cell_degrees: Optional[list] = None, path_separable: bool = False,
-                 path_blocks: Optional[list] = None, path_cell_trim: Optional[float] = None):
+                 path_blocks: Optional[list] = None, path_cell_trim: Optional[float] = None,
+                 path_cell_joints: str = "crossed"):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -135,6 +141,8 @@ class StructuredSchema(BodySchema):
         if isinstance(path_cells, bool) or not isinstance(path_cells, int) or path_cells < 1:
             raise BodySchemaInputError(f"path_cells={path_cells!r} must be an integer >= 1 (pieces per joint; 1: no "
                                        f"cells)")
+        if path_cell_joints not in CELL_JOINTS:
+            raise BodySchemaInputError(f"path_cell_joints={path_cell_joints!r}; allowed: {list(CELL_JOINTS)}")
         if path_tolerance_mm is not None and (path_term_budget is None or isinstance(path_tolerance_mm, bool) or
                                               not 0.0 < float(path_tolerance_mm) < float("inf")):
             raise BodySchemaInputError(f"path_tolerance_mm={path_tolerance_mm!r} must be a finite number > 0 [mm], "
@@ -178,7 +186,8 @@ class StructuredSchema(BodySchema):
         self.length_net = PerMusclePath(self._crossing(), hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
                                         hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
                                         hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
-                                        hp.get("path_cell_degrees"), hp.get("path_blocks"), hp.get("path_cell_trim"))
+                                        hp.get("path_cell_degrees"), hp.get("path_blocks"), hp.get("path_cell_trim"),
+                                        hp.get("path_cell_joints", "crossed"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):

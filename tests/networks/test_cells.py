@@ -11,7 +11,7 @@ from physics_checks import assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
-from lightning_bodyschema.networks.cells import _trimmed, cell_coordinates, cell_degree
+from lightning_bodyschema.networks.cells import _trimmed, cell_coordinates, cell_cuts, cell_degree
 from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
@@ -156,3 +156,55 @@ def test_a_path_with_cell_trim_fits_around_a_jump_inside_a_cell():
         assert 0 in path.cell_muscles.tolist()
         errors.append((path(held_out) - _jumping(held_out))[:, 0].abs().max())
     assert errors[0] > 1e-3 and errors[1] < 1e-8
+
+
+BLOCKED = np.array([[0, 0, 1], [0, 0, -1], [-1, 0, 0], [0, -1, -1]])  # muscle 0: (x0, x1) mixed, plus x2 alone
+
+
+def _grouped_lengths(x):
+    """Muscle 0: a path that wraps on at x0 = 0 over its (x0, x1) group plus a quartic in x2 that adds up; the
+    others low-degree polynomials a whole-box fit represents exactly."""
+    a, b, c = x[:, 0], x[:, 1], x[:, 2]
+    wrapped = torch.where(a > 0, 1 + a ** 2 - 0.5 * b + a * b ** 2, 0.3 * a ** 3 + b - 0.2 * b ** 3)
+    return torch.stack([wrapped + c ** 4 - c, a * b, b * c + c ** 2, a ** 3], 1)
+
+
+def test_cells_over_the_largest_group_leave_the_other_joints_whole():
+    """Cut over (x0, x1) only, 4 cells of 100 samples hold muscle 0's degree 4 (19 terms); cut over every crossed
+    joint, 8 cells of 50 allow degree 3 only, which misses the quartic in x2 (the test can fail)."""
+    crossing = BLOCKED >= 0
+    x = torch.rand(400, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64) * 2 - 1
+    held_out = torch.minimum(torch.maximum(_inside(500, 7), x.amin(0) + 1e-5), x.amax(0) - 1e-5)  # the fitted box
+    held_out = held_out[(held_out[:, 0].abs() > 1e-3)]  # central differences must not straddle x0 = 0
+    errors, paths = {}, {}
+    for rule in ("crossed", "largest_group"):
+        paths[rule] = path = PerMusclePath(crossing, 4, 1, 0, cells=2, blocks=BLOCKED, cell_joints=rule)
+        path.fit_polynomial(x, _grouped_lengths(x))
+        assert path.cell_muscles.tolist() == [0] and bool(path.cell_fitted.all())
+        errors[rule] = float((path(held_out) - _grouped_lengths(held_out))[:, 0].abs().max())
+    assert errors["crossed"] > 1e-3 and errors["largest_group"] < 1e-9
+    path = paths["largest_group"]
+    assert path.cell_stride.tolist() == [[1, 2, 0]] and path.cell_extra.tolist() == [2]
+    y, dy = path.with_jacobian(held_out)
+    h = 1e-6
+    for j in range(3):
+        step = torch.zeros(3, dtype=torch.float64)
+        step[j] = h
+        np.testing.assert_allclose(dy[:, :, j], (path(held_out + step) - path(held_out - step)) / (2 * h),
+                                   atol=1e-7)
+    assert (dy[:, ~torch.as_tensor(crossing)] == 0).all()
+    np.testing.assert_allclose(dy[:, 0, 2], 4 * held_out[:, 2] ** 3 - 1, atol=1e-9)  # the whole joint's slope
+    parts = [path.with_jacobian(held_out[i:i + 40]) for i in range(0, len(held_out), 40)]  # few postures: dense
+    torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
+    assert_exports_with_a_dynamic_batch(path)
+
+
+def test_which_joints_cut_a_box():
+    blocks = np.array([[0, 0, 0, 1, 1, -1], [0, 0, 1, 1, -1, -1], [-1, -1, -1, -1, 0, 0]])
+    crossing = blocks >= 0
+    assert cell_cuts(crossing, blocks, "largest_group").astype(int).tolist() == [
+        [1, 1, 1, 0, 0, 0], [1, 1, 1, 1, 0, 0], [0, 0, 0, 0, 1, 1]]  # BIClong's shoulder; a tie cuts both groups
+    assert (cell_cuts(crossing, blocks, "crossed") == crossing).all()
+    assert cell_degree((3, 2), 16, 2, 80000, cut=3) == 16  # myoArm's BIClong: 8 cells, not 32 (degree 14)
+    with pytest.raises(BodySchemaInputError, match=r"cell_joints='shoulder'; allowed: \['crossed', 'largest_group'\]"):
+        PerMusclePath(crossing, 4, 1, 0, cells=2, blocks=blocks, cell_joints="shoulder")
