@@ -148,10 +148,8 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         perm = path.cell_perm
         muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
         basis = path.cell_terms_all(z, dy is not None, dense=True)
-        coef, order = path.cell_coef[perm[None, :], cell], path.cell_order[perm]  # coef (B, Mc, K): its own columns
-        y_cell = (_columns(basis.phi, order) * coef).sum(-1)
-        dy_cell = None if dy is None else _fold(path, torch.einsum("bmkn,bmk->bmn", _columns(basis.dphi, order),
-                                                                   coef))
+        y_cell, dy_cell = _contract(basis, path.cell_coef[perm[None, :], cell], path.cell_order[perm])
+        dy_cell = None if dy is None else _fold(path, dy_cell)
         fitted = path.cell_fitted[perm[None, :], cell]
         return _replace(y, dy, muscles, fitted, y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
@@ -164,12 +162,18 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     return y, dy
 
 
-def _columns(table: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
-    """``table (B, P, ...)`` at the columns ``order (Mc, K)``: ``(B, Mc, K, ...)``; ``index_select`` (twice as fast),
-    or in an exported program indexing (``index_select`` under ``vmap`` fixes the batch size)."""
+def _contract(basis, coef: torch.Tensor, order: torch.Tensor):
+    """Each muscle's cell polynomial ``(B, Mc)`` and its slopes ``(B, Mc, N + E)`` (or None) from a dense basis of
+    every cell term and its coefficients ``coef (B, Mc, K)`` of its own terms ``order (Mc, K)``: the coefficients
+    spread on every cell term (zero elsewhere; a sum, as the padding's zeros land on column 0 too), then one product
+    with the basis, not a gather of every muscle's columns of it (``(B, Mc, K, N + E)``, the costliest operation at
+    one posture). An exported program gathers (a scatter specializes the batch under vmap in torch.export)."""
     if torch.compiler.is_exporting():
-        return table[:, order]
-    return table.index_select(1, order.flatten()).view(len(table), *order.shape, *table.shape[2:])
+        y = (basis.phi[:, order] * coef).sum(-1)
+        return y, None if basis.dphi is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
+    index = order.expand(len(coef), -1, -1)
+    spread = coef.new_zeros(*coef.shape[:2], basis.phi.shape[1]).scatter_add_(2, index, coef)
+    return (spread @ basis.phi[:, :, None])[..., 0], None if basis.dphi is None else spread @ basis.dphi
 
 
 def _by_cell(terms, coef, z, cell, slopes):
