@@ -256,13 +256,14 @@ class GravityTorque(nn.Module):
         ones = torch.ones_like(q)
         return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
 
-    def forward(self, q: torch.Tensor) -> torch.Tensor:
+    def forward(self, q: torch.Tensor, terms: Optional[tuple] = None) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
         moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features).
         Eager: ``_eager_torque``, the same numbers in about half the operations (at one posture each costs its
-        dispatch); exported: the program traced from ``kinematics``."""
+        dispatch), with ``terms``: ``coef_terms()`` when the caller keeps them; exported: the program traced from
+        ``kinematics``."""
         if not torch.compiler.is_exporting():
-            return self._eager_torque(q.to(torch.float64))
+            return self._eager_torque(q.to(torch.float64), self.coef_terms() if terms is None else terms)
         q = q.to(torch.float64)
         full = self.full_q(q)
         p, R, o, a = self.kinematics(q, full)
@@ -278,7 +279,15 @@ class GravityTorque(nn.Module):
         spring = self.coef[4 * self.n_frames:]
         return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
 
-    def _eager_torque(self, q: torch.Tensor) -> torch.Tensor:
+    def coef_terms(self) -> tuple:
+        """What the eager ``forward`` reads from ``coef``: per frame ``(s, m)`` ``(F, 4, 1)`` (in the order of a
+        pose's columns), each moving joint's mass below it ``(J,)``, the offsets and the spring rates ``(N,)`` (a
+        schema keeps them in its inference cache: ``coef`` is fitted)."""
+        per_frame, spring = self.coef[:4 * self.n_frames].view(self.n_frames, 4), self.coef[4 * self.n_frames:]
+        return (self.coef.index_select(0, self.frame_moment_order).view(-1, 4, 1), self.moves_frame @ per_frame[:, 0],
+                spring[:self.n_free], spring[self.n_free:])
+
+    def _eager_torque(self, q: torch.Tensor, terms: tuple) -> torch.Tensor:
         """``forward``'s torque at float64 postures ``q (B, N)`` with ``_register_eager``'s constants: every
         operation on the values the traced one computes, in its order (the same numbers to the bit), fewer of them:
         gathers by index, constants not rebuilt, each joint's motion in one 4x4 sum, a frame's ``R s + p m`` and a
@@ -288,11 +297,11 @@ class GravityTorque(nn.Module):
         by_sin, by_versine, by_angle = self.motion_terms.unbind()
         motion = self.motion_eye + angle.sin() * by_sin + (1.0 - angle.cos()) * by_versine + angle * by_angle
         frames, before = self._eager_world(q, motion)
-        w = (frames[..., :3, :] @ self.coef.index_select(0, self.frame_moment_order).view(-1, 4, 1))[..., 0]
+        moment_mass, mass_joint, offset, rate = terms
+        w = (frames[..., :3, :] @ moment_mass)[..., 0]
         anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
         o, a = anchor_axis[..., 0], anchor_axis[..., 1]
         w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w.contiguous())
-        mass_joint = self.moves_frame @ self.coef[:4 * self.n_frames].view(self.n_frames, 4)[:, 0]  # (J,)
         tau = -((a.contiguous() @ self.gravity_cross_T) * (w_joint - mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * mass_joint)
@@ -300,8 +309,7 @@ class GravityTorque(nn.Module):
         slope, *columns = self.slope_horner.unbind()
         for column in columns:
             slope = slope * x + column
-        spring = self.coef[4 * self.n_frames:]
-        return (tau * slope) @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
+        return (tau * slope) @ self.free_scatter + offset + rate * q
 
     def _eager_full_q(self, q: torch.Tensor) -> torch.Tensor:
         """``full_q`` by index gathers and precomputed constants (the same operations on the same values)."""
