@@ -85,7 +85,10 @@ class GravityTorque(nn.Module):
         self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
         self._register_nodes(tree)
+        self._register_eager()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
+        self.all_hinges = bool(tree.jnt_type[tree.moving_joint].size) and bool(
+            (tree.jnt_type[tree.moving_joint] == _HINGE).all())
 
     @staticmethod
     def _one_hot(rows, width: int) -> torch.Tensor:
@@ -180,6 +183,33 @@ class GravityTorque(nn.Module):
             self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
 
+    def _register_eager(self) -> None:
+        """The constants of the eager ``forward`` (``_eager_torque``), each the value the traced one computes per
+        call: every gather's indices with its constant half (``qpos0`` there), each polynomial's coefficient columns
+        (contiguous, the highest power first), a joint's motion ``(C, 4, 4)`` as ``I + sin M_sin + versine M_versine + angle M_angle`` (the
+        rotation and the anchor's shift of ``_joint_motions`` in one matrix per term), the 4x4 columns that give a
+        moving joint's anchor and axis in one product, and the order of ``coef`` that puts a frame's first moment
+        before its mass (``R s + p m`` in one product)."""
+        gather = lambda rows: torch.as_tensor(rows, dtype=torch.long, device=self.qpos0.device)  # noqa: E731
+        hinge = self.chain_hinge[:, None]
+        eye = torch.eye(4, dtype=torch.float64, device=self.qpos0.device)
+        terms = torch.zeros(3, *self.chain_cross.shape[:1], 4, 4, dtype=torch.float64, device=self.qpos0.device)
+        terms[0, :, :3, :3], terms[0, :, :3, 3] = self.chain_cross, -hinge * self.chain_cross_pos
+        terms[1, :, :3, :3], terms[1, :, :3, 3] = self.chain_cross2, -hinge * self.chain_cross2_pos
+        terms[2, :, :3, 3] = (1.0 - hinge) * self.chain_axis
+        columns = torch.zeros(len(self.moving_joint), 4, 2, dtype=torch.float64, device=self.qpos0.device)
+        columns[:, :3, 0], columns[:, 3, 0], columns[:, :3, 1] = self.moving_pos, 1.0, self.moving_axis
+        frames = torch.arange(4 * self.n_frames, device=self.qpos0.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
+        buffers = dict(chain_joint_index=gather(self.chain_joint), chain_qpos0=self.qpos0[self.chain_joint],
+                       dep_follows_index=gather(self.dep_follows), dep_follows_qpos0=self.qpos0[self.dep_follows],
+                       dep_index=gather(self.dep_joint), dep_qpos0=self.qpos0[self.dep_joint],
+                       dep_horner=self.dep_coef.T.flip(0).contiguous(), slope_index=gather(self.slope_of),
+                       slope_qpos0=self.qpos0[self.slope_of], slope_horner=self.slope_coef.T.flip(0).contiguous(),
+                       motion_eye=eye, motion_terms=terms, anchor_axis=columns, frame_moment_order=frames,
+                       gravity_cross_T=self.gravity_cross.T.contiguous())
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
+
     def _pick(self, name: str, poses: torch.Tensor) -> torch.Tensor:
         """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather (many
         times faster at large batches), or in an exported program a product with its one-hot matrix (a gather under
@@ -226,9 +256,14 @@ class GravityTorque(nn.Module):
         ones = torch.ones_like(q)
         return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
 
-    def forward(self, q: torch.Tensor) -> torch.Tensor:
+    def forward(self, q: torch.Tensor, terms: Optional[tuple] = None) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
-        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features)."""
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features).
+        Eager: ``_eager_torque``, the same numbers in about half the operations (at one posture each costs its
+        dispatch), with ``terms``: ``coef_terms()`` when the caller keeps them; exported: the program traced from
+        ``kinematics``."""
+        if not torch.compiler.is_exporting():
+            return self._eager_torque(q.to(torch.float64), self.coef_terms() if terms is None else terms)
         q = q.to(torch.float64)
         full = self.full_q(q)
         p, R, o, a = self.kinematics(q, full)
@@ -243,6 +278,64 @@ class GravityTorque(nn.Module):
         tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(full)
         spring = self.coef[4 * self.n_frames:]
         return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
+
+    def coef_terms(self) -> tuple:
+        """What the eager ``forward`` reads from ``coef``: per frame ``(s, m)`` ``(F, 4, 1)`` (in the order of a
+        pose's columns), each moving joint's mass below it ``(J,)``, the offsets and the spring rates ``(N,)`` (a
+        schema keeps them in its inference cache: ``coef`` is fitted)."""
+        per_frame, spring = self.coef[:4 * self.n_frames].view(self.n_frames, 4), self.coef[4 * self.n_frames:]
+        return (self.coef.index_select(0, self.frame_moment_order).view(-1, 4, 1), self.moves_frame @ per_frame[:, 0],
+                spring[:self.n_free], spring[self.n_free:])
+
+    def _eager_torque(self, q: torch.Tensor, terms: tuple) -> torch.Tensor:
+        """``forward``'s torque at float64 postures ``q (B, N)`` with ``_register_eager``'s constants: every
+        operation on the values the traced one computes, in its order (the same numbers to the bit), fewer of them:
+        gathers by index, constants not rebuilt, each joint's motion in one 4x4 sum, a frame's ``R s + p m`` and a
+        joint's anchor and axis each one product of the pose's top rows."""
+        full = self._eager_full_q(q)
+        angle = (full.index_select(1, self.chain_joint_index) - self.chain_qpos0).unflatten(1, (-1, 1, 1))
+        by_sin, by_versine, by_angle = self.motion_terms.unbind()
+        motion = self.motion_eye + angle.sin() * by_sin + (1.0 - angle.cos()) * by_versine + angle * by_angle
+        frames, before = self._eager_world(q, motion)
+        moment_mass, mass_joint, offset, rate = terms
+        w = (frames[..., :3, :] @ moment_mass)[..., 0]
+        anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
+        o, a = anchor_axis[..., 0], anchor_axis[..., 1]
+        w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w.contiguous())
+        tau = -((a.contiguous() @ self.gravity_cross_T) * (w_joint - mass_joint[:, None] * o)).sum(-1)
+        if not self.all_hinges:
+            tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * mass_joint)
+        x = full.index_select(1, self.slope_index) - self.slope_qpos0
+        slope, *columns = self.slope_horner.unbind()
+        for column in columns:
+            slope = slope * x + column
+        return (tau * slope) @ self.free_scatter + offset + rate * q
+
+    def _eager_full_q(self, q: torch.Tensor) -> torch.Tensor:
+        """``full_q`` by index gathers and precomputed constants (the same operations on the same values)."""
+        full = q @ self.free_select + self.full_base
+        if not self.dep_joint:
+            return full
+        x = full.index_select(1, self.dep_follows_index) - self.dep_follows_qpos0
+        value, *columns = self.dep_horner.unbind()  # the highest power first
+        for column in columns:
+            value = value * x + column
+        return full + (value + self.dep_qpos0 - full.index_select(1, self.dep_index)) @ self.dep_scatter
+
+    def _eager_world(self, q: torch.Tensor, motion: torch.Tensor):
+        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
+        (``kinematics``' products, pointer jumping up to ``JUMP_ROWS`` postures)."""
+        if len(q) <= JUMP_ROWS:
+            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
+            for k in range(self.n_rounds):
+                world = world.index_select(1, getattr(self, f"node_pointer{k}_index")) @ world
+        else:
+            nodes = []
+            for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
+                T = self.node_const[i] if chain < 0 else motion[:, chain]
+                nodes.append(T.expand(len(q), 4, 4) if parent < 0 else nodes[parent] @ T)
+            world = torch.stack(nodes, 1)
+        return world.index_select(1, self.frame_node_index), world.index_select(1, self.before_node_index)
 
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()

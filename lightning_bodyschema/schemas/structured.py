@@ -263,17 +263,27 @@ class StructuredSchema(BodySchema):
     def body(self, q_n: torch.Tensor, lengths_only: bool = False):
         """At normalized postures ``q_n (B, N)``: ``l_geo (B, M)`` [m], ``G (B, M, N)`` [m/rad], ``tau (B, N)`` [N m]
         in the networks' dtype (``tau`` None with ``lengths_only``). Differentiable in the weights."""
-        m, dtype = self.n_muscles, q_n.dtype
-        l_mean, l_std = self.normalizer.x_mean[:m].to(dtype), self.normalizer.x_std[:m].to(dtype)
+        l_mean, l_std, arm = self._length_scales(q_n.dtype)
         l_geo_n, dl_n = self.length_net.with_jacobian(q_n)
-        G = dl_n * (l_std[:, None] / self._half_range().to(dtype)[None, :])
-        l_geo = l_mean + l_std * l_geo_n
-        return l_geo, G, None if lengths_only else self.torque(q_n)
+        return l_mean + l_std * l_geo_n, dl_n * arm, None if lengths_only else self.torque(q_n)
+
+    def _length_scales(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``l_mean, l_std (M,)`` [m] and ``l_std / half_range (M, N)`` [m/rad per normalized unit] in ``dtype``: a
+        normalized length and slope to SI; kept in the inference cache (from the normalizer), traced when exporting."""
+        def build():
+            m = self.n_muscles
+            l_std = self.normalizer.x_std[:m].to(dtype)
+            return self.normalizer.x_mean[:m].to(dtype), l_std, l_std[:, None] / self._half_range().to(dtype)[None, :]
+        return build() if torch.compiler.is_exporting() else self.inference_cache.get(("length_scales", dtype), build)
 
     def torque(self, q_n: torch.Tensor) -> torch.Tensor:
         """The learned torque the muscles must balance, ``tau (B, N)`` [N m] (``-G^T f = tau`` in equilibrium)."""
         if self.hparams.torque_model == "gravity":  # the tree's kinematics in radians, float64
-            return self.torque_net(self.normalizer.decode_q(q_n.to(torch.float64))).to(q_n.dtype)
+            q = self.normalizer.decode_q(q_n.to(torch.float64))
+            if torch.compiler.is_exporting():
+                return self.torque_net(q).to(q_n.dtype)
+            terms = self.inference_cache.get("gravity_coef_terms", self.torque_net.coef_terms)  # coef is fitted
+            return self.torque_net(q, terms).to(q_n.dtype)
         scale = self.tau_scale_nm.to(q_n.dtype)
         if self.hparams.torque_model in ("direct", "polynomial"):
             return scale * self.torque_net(q_n)

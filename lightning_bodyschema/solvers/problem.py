@@ -118,6 +118,8 @@ def _tensor(name: str, x, device) -> torch.Tensor:
 def _shaped(name: str, x, shape: tuple, device) -> torch.Tensor:
     """``x`` as a float64 tensor broadcast to ``shape`` (a contiguous copy), or the error naming it."""
     t = _tensor(name, x, device)
+    if t.shape == shape and t.is_contiguous():  # what expand and contiguous return, without their dispatch
+        return t
     try:
         return t.expand(shape).contiguous() if t.dim() <= len(shape) else _wrong(name, t, shape)
     except RuntimeError:
