@@ -60,6 +60,7 @@ class GravityTorque(nn.Module):
         chain = [j for joints in tree.body_joints for j in joints]  # the joints of the bodies the FK visits
         self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
         cross, chain_pos = _cross_matrices(tree.jnt_axis[chain]), torch.tensor(tree.jnt_pos[chain], **f64)
+        cross = cross * torch.tensor(tree.jnt_type[chain] == _HINGE, **f64)[:, None, None]  # a slide does not rotate
         buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=torch.tensor(tree.qpos0, **f64),
                        gravity_cross=_cross_matrices(tree.gravity)[0],  # g x v as a product (vmap, export)
                        free_select=torch.tensor(tree.free_select, **f64),

@@ -12,13 +12,16 @@ from lightning_bodyschema.sim import MusculoskeletalModel
 from lightning_bodyschema.sim.gravity_tree import gravity_tree
 
 
-@pytest.fixture(scope="module", params=["paper_arm", "myoarm"])
+@pytest.fixture(scope="module", params=["paper_arm", "myoarm", "myolegs"])
 def robot(request):
+    """The paper arm; myoArm (the hand locked, couplings kept); myoLegs on a fixed base (its knees' slide joints,
+    coupled to the knee angles, translate without rotating)."""
     if request.param == "paper_arm":
         return MusculoskeletalModel("paper_arm")
     pytest.importorskip("myo_sim")
-    locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]  # the hand locked, couplings kept
-    return MusculoskeletalModel("myo:myoarm", locked_joints=locks)
+    config = {"myoarm": "configs/myoarm.yaml", "myolegs": "configs/myolegs-per-muscle.yaml"}[request.param]
+    data = yaml.safe_load(open(config))["data"]
+    return MusculoskeletalModel(data["model"], **{k: data[k] for k in ("locked_joints", "fixed_base") if k in data})
 
 
 def _postures(robot, n, seed):
