@@ -205,8 +205,9 @@ class PerMusclePath(nn.Module):
         """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)`` of every term (``product_basis``)."""
         return product_basis(x, self.exponents, self.degree, slopes)
 
-    def polynomial(self, x: torch.Tensor, slopes: bool = False):
-        """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype.
+    def polynomial(self, x: torch.Tensor, slopes: bool = False, dense_coefs: Optional[tuple] = None):
+        """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
+        ``dense_coefs``: ``dense_coefficients()`` when the caller keeps them (used when the basis is dense).
 
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
@@ -219,7 +220,7 @@ class PerMusclePath(nn.Module):
         rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
         one_block = torch.compiler.is_exporting() or len(x) <= rows  # an exported program: one path for any batch
         dense = one_block and dense_for(inside)  # blocks of rows are grouped, a short last one too
-        coefs = self._coefficients(dense)  # laid out once for every block
+        coefs = dense_coefs if dense and dense_coefs is not None else self._coefficients(dense)  # once per call
         if one_block:
             y, dy = self._smooth(inside, derive, dense, coefs)
         else:
@@ -230,8 +231,14 @@ class PerMusclePath(nn.Module):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
-        y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
+        if torch.compiler.is_exporting() or not torch.equal(inside, x64):  # outside the box (one path when exported)
+            y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
+
+    def dense_coefficients(self) -> tuple:
+        """The coefficients as a dense basis takes them (``_coefficients``): a caller may keep them between calls
+        while the coefficients do not change (``StructuredSchema.body``: its inference cache)."""
+        return self._coefficients(True)
 
     def _coefficients(self, dense: bool) -> tuple:
         """The whole-box coefficients (masked: exactly zero off each muscle's terms), and the branched muscles' gates
@@ -397,9 +404,10 @@ class PerMusclePath(nn.Module):
         y = self.polynomial(x)[0]
         return y + self._network(x, False)[0] if self.n_hidden else y
 
-    def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross."""
-        y, dy = self.polynomial(x, slopes=True)
+    def with_jacobian(self, x: torch.Tensor, dense_coefs: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross (``dense_coefs``:
+        ``polynomial``'s)."""
+        y, dy = self.polynomial(x, slopes=True, dense_coefs=dense_coefs)
         if self.n_hidden:
             y_net, dy_net = self._network(x, True)
             y, dy = y + y_net, dy + dy_net

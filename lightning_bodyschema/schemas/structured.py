@@ -213,6 +213,7 @@ class StructuredSchema(BodySchema):
         if self.hparams.get("path_tolerance_mm") is not None and self.hparams.get("path_degrees") is None:
             self._choose_degrees(q_n.to(self.device), target_n.to(self.device))
         self.length_net.fit_polynomial(q_n.to(self.device), target_n.to(self.device))
+        self.clear_caches()  # the cache holds the coefficients' layouts (body), whatever the mode
         if self.hparams.get("path_cells", 1) > 1:
             self.hparams.path_cell_degrees = self.length_net.cell_degrees.tolist()
         if self.hparams.torque_model in FITTED_TORQUES:
@@ -240,8 +241,9 @@ class StructuredSchema(BodySchema):
             self.dtype))[1].to(torch.float64) * arm_scale, f[i:i + chunk]) for i in range(0, len(q_n), chunk)])
         if self.hparams.torque_model == "gravity":  # in SI: radians and N m, as the tree's kinematics
             self.torque_net.fit_trimmed(self.normalizer.decode_q(q_n), target, TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
-            return
-        self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n), TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
+        else:
+            self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n), TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
+        self.clear_caches()  # the cache holds terms of the gravity torque's coefficients (torque)
 
     def refresh_from_train_split(self, q_n, x_n) -> None:
         """The fitted torque refitted to the current moment arms (when the lengths have trained weights)."""
@@ -264,7 +266,11 @@ class StructuredSchema(BodySchema):
         """At normalized postures ``q_n (B, N)``: ``l_geo (B, M)`` [m], ``G (B, M, N)`` [m/rad], ``tau (B, N)`` [N m]
         in the networks' dtype (``tau`` None with ``lengths_only``). Differentiable in the weights."""
         l_mean, l_std, arm = self._length_scales(q_n.dtype)
-        l_geo_n, dl_n = self.length_net.with_jacobian(q_n)
+        if isinstance(self.length_net, PerMusclePath) and not torch.compiler.is_exporting():  # fitted coefficients
+            coefs = self.inference_cache.get("path_coefficients", self.length_net.dense_coefficients)
+            l_geo_n, dl_n = self.length_net.with_jacobian(q_n, coefs)
+        else:
+            l_geo_n, dl_n = self.length_net.with_jacobian(q_n)
         return l_mean + l_std * l_geo_n, dl_n * arm, None if lengths_only else self.torque(q_n)
 
     def _length_scales(self, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

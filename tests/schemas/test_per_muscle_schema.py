@@ -3,6 +3,8 @@ matches MuJoCo's to micrometres on the paper arm, exactly zero moment arms off t
 bad input, and checkpoints of the dense schema still answering as before."""
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -77,6 +79,21 @@ def test_moment_arms_are_finite_differences_of_the_learned_lengths(paper_arm):
         fd = (schema.body_si(q + step)[0] - schema.body_si(q - step)[0]) / (2 * h)
         np.testing.assert_allclose(G[:, :, j], fd, atol=1e-9, rtol=1e-6)
     schema.float()
+
+
+def test_a_refit_in_eval_mode_is_not_answered_from_the_inference_cache(paper_arm):
+    """``body`` keeps the fitted coefficients' layouts in the inference cache: a least-squares refit clears it (else
+    the refitted schema would answer with the old body)."""
+    schema = copy.deepcopy(paper_arm[0]).eval()
+    data = EquilibriumDataModule(n_samples=1000, seed=0, cache_dir=None)
+    data.setup("fit")
+    q, x = data.splits["train"]
+    probe = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(7), 5))
+    before = schema.body_si(probe)[0]  # builds the cache's entry
+    longer = x.clone()
+    longer[:, :schema.n_muscles] += 1e-3  # every motor 1 mm longer at the same tension
+    schema._fit_paths(q, longer)
+    np.testing.assert_allclose(schema.body_si(probe)[0], before + 1e-3, atol=1e-7)
 
 
 def test_checkpoint_round_trip_answers_the_same(paper_arm, tmp_path):
