@@ -81,6 +81,7 @@ class GravityTorque(nn.Module):
                        slope_coef=torch.tensor(tree.slope_coef, **f64))
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
+        self.slides = int((tree.jnt_type[chain] != _HINGE).sum())  # slide joints the kinematics visits
         self.dep_joint, self.dep_follows = tree.dep_joint.tolist(), tree.dep_follows.tolist()
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
         self.frame_body = tree.frame_body.tolist()

@@ -26,7 +26,7 @@ from ..sim import SpringParams, elongation_from_tension
 from ..sim.robot import robot_model_from_dict
 from ..training.lightning_module import SchemaLightningModule
 from .cache import InferenceCache
-from .registry import SCHEMA_CLASSES, register, register_root, schema_class_path  # noqa: F401 (re-export)
+from .registry import CHECKPOINT_FORMAT, SCHEMA_CLASSES, register, register_root, schema_class_path  # noqa: F401
 
 
 @register_root
@@ -214,7 +214,12 @@ class BodySchema(SchemaLightningModule):
     def on_save_checkpoint(self, checkpoint):
         super().on_save_checkpoint(checkpoint)
         checkpoint["bodyschema"] = {"class_path": schema_class_path(type(self)),
-                                    "model_xml_sha256": self.robot_model.xml_hash}
+                                    "model_xml_sha256": self.robot_model.xml_hash, "format": CHECKPOINT_FORMAT}
+
+    def checkpoint_refusal(self, meta: dict) -> Optional[str]:
+        """Why this schema, built from a checkpoint's hyperparameters, must not take its weights (a fix since the
+        checkpoint's ``meta["format"]`` changed what they mean), or None; default: None."""
+        return None
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path, map_location=None, hparams_file=None, strict=None,

@@ -28,6 +28,7 @@ import torch
 
 from ..errors import BodySchemaInputError
 from .checks import _describe, check_hparams, check_weights, schema_class
+from .registry import CHECKPOINT_FORMAT
 from .robot_checks import _entry, check_robot
 # the checks' limits and entry points, also importable from here
 from .checks import (LIGHTNING_INSTANTIATOR, MAX_WEIGHT_ELEMENTS, PRIVATE_HPARAMS, SEED_LIMITS,  # noqa: F401
@@ -62,6 +63,10 @@ def _check_entries(checkpoint: dict, where: str) -> dict:
     sha = _entry(meta, "model_xml_sha256", str, f"{where}: bodyschema")
     if not re.fullmatch(r"[0-9a-f]{64}", sha):
         raise BodySchemaInputError(f"{where}: bodyschema.model_xml_sha256 = {sha[:80]!r} is not a sha256 hex digest")
+    fmt = meta.get("format", 1)
+    if isinstance(fmt, bool) or not isinstance(fmt, int) or not 1 <= fmt <= CHECKPOINT_FORMAT:
+        raise BodySchemaInputError(f"{where}: bodyschema.format = {repr(fmt)[:80]}; this version reads formats 1 to "
+                                   f"{CHECKPOINT_FORMAT} (a newer one: update lightning_bodyschema)")
     _entry(checkpoint, "hyper_parameters", dict, where)
     _entry(checkpoint, "state_dict", Mapping, where)
     rng = checkpoint.get("torch_rng_state")
@@ -140,6 +145,9 @@ def load_schema(path: str, expected_model_xml_sha256: str | None = None, cls=Non
             f"!= {expected_model_xml_sha256[:12]})")
     device = None if map_location is None else check_device(map_location, "map_location")
     schema = checked.cls(**checked.hparams)
+    refusal = schema.checkpoint_refusal(checked.checkpoint["bodyschema"])
+    if refusal:
+        raise BodySchemaInputError(f"checkpoint {path!r}: {refusal}")
     schema.load_state_dict(checked.checkpoint["state_dict"])
     return schema.eval() if device is None else schema.eval().to(device)
 

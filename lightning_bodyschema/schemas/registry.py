@@ -6,6 +6,10 @@ depending on each other.
 """
 from __future__ import annotations
 
+# what a checkpoint's weights mean, in its ``bodyschema`` entry (absent: 1). 2: the gravity torque's slide joints
+# translate without rotating (a fix; StructuredSchema.checkpoint_refusal)
+CHECKPOINT_FORMAT = 2
+
 # class path -> schema class, filled by subclassing (BodySchema.__init_subclass__)
 SCHEMA_CLASSES: dict[str, type] = {}
 _ROOTS: list[type] = []  # the base class every schema class derives from (BodySchema), set where it is defined

@@ -165,6 +165,21 @@ class StructuredSchema(BodySchema):
         # typical muscle torque per joint [N m]: the unit of the torque networks (set from the data when a fit starts)
         self.register_buffer("tau_scale_nm", torch.ones(self.n_joints, dtype=torch.float64))
 
+    def checkpoint_refusal(self, meta: dict) -> Optional[str]:
+        """A gravity torque fitted before format 2 on a tree with slide joints: its masses were fitted to kinematics
+        that rotated each slide's body by its displacement (myoLegs' knees), so they do not fit the fixed ones."""
+        if self.hparams.torque_model != "gravity" or meta.get("format", 1) >= 2 or bool(self.torque_net.slides == 0):
+            return None
+        return (f"its gravity torque was fitted before slide joints were fixed (they rotated their bodies; this "
+                f"robot's tree has {int(self.torque_net.slides)}): refit it with `bodyschema fit` (its config)")
+
+    def on_load_checkpoint(self, checkpoint):
+        """Lightning's own loading (``--ckpt_path``): ``checkpoint_refusal`` as ``load_schema``'s."""
+        refusal = self.checkpoint_refusal(checkpoint.get("bodyschema") or {})
+        if refusal:
+            raise BodySchemaInputError(f"checkpoint: {refusal}")
+        super().on_load_checkpoint(checkpoint)
+
     def _separable_blocks(self) -> list:
         """``hparams.path_blocks`` from the MJCF, for the crossings ``hparams.muscle_joints`` names."""
         if not self.robot_model.has_physics or self.hparams.muscle_joints is None:

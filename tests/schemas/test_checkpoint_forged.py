@@ -123,6 +123,7 @@ FORGED = {
                       ("unknown key 'n_timesteps'", "AutoEncoderSchema")),
     "weight_dtype": (weight("eps_model.mlp.net.0.bias", lambda t: t.to(torch.int64)), ("dtype torch.int64",)),
     "rng_state": (lambda c: c.update(torch_rng_state=torch.zeros(3, dtype=torch.uint8)), ("torch_rng_state",)),
+    "format_newer": (lambda c: c["bodyschema"].update(format=99), ("bodyschema.format = 99", "formats 1 to")),
 }
 
 

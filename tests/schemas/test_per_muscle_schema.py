@@ -230,3 +230,17 @@ def test_bad_length_and_torque_models_are_refused():
                          path_cell_joints="shoulder")
     with pytest.raises(BodySchemaInputError, match="path_separable=True needs length_model='per_muscle'"):
         StructuredSchema(robot=robot, path_separable=True)
+
+
+def test_a_gravity_torque_fitted_before_the_slide_fix_is_refused_in_one_line():
+    """Format 1 checkpoints fitted the masses to kinematics that rotated each slide joint's body (myoLegs' knees): a
+    schema on such a tree refuses them, one on a tree of hinges only (the paper arm) takes them."""
+    pytest.importorskip("myo_sim")
+    legs = EquilibriumDataModule(model="myo:myolegs", fixed_base=True, n_samples=20, cache_dir=None).robot
+    schema = StructuredSchema(robot=legs, length_model="per_muscle", torque_model="gravity")
+    assert schema.torque_net.slides == 8
+    assert "refit it with `bodyschema fit`" in schema.checkpoint_refusal({"model_xml_sha256": "0" * 64})
+    assert schema.checkpoint_refusal({"format": 2}) is None
+    arm = EquilibriumDataModule(n_samples=20, cache_dir=None).robot
+    hinges = StructuredSchema(robot=arm, length_model="per_muscle", torque_model="gravity", muscle_joints=PAPER_JOINTS)
+    assert hinges.torque_net.slides == 0 and hinges.checkpoint_refusal({}) is None
