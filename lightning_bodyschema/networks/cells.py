@@ -18,6 +18,12 @@ DELT1), and one polynomial over both sides rings over the whole cell. With ``Per
 cell is refitted without the samples it misses by more than ``factor`` times the kept ones' median (``_trimmed``):
 it then fits the larger side and misses the smaller one by about the jump.
 
+Which joints cut a box: every joint the muscle crosses, or with ``PerMusclePath(cell_joints="largest_group")`` only
+those of its largest group of joints whose effects on the length add up (``cell_cuts``). BIClong's length is a
+shoulder part plus an elbow part and only the shoulder part jumps: 8 cells over the shoulder leave each four times
+the samples of 32 over both, and each cell's polynomial takes the elbow's joints as they are (the cells'
+coordinates ``cell_inputs``: every joint's local one, then those joints).
+
 The length at a posture is its cell's polynomial and the moment arm that polynomial's exact derivative: the learned
 length steps by about the fit's error where a posture crosses into the next cell, and a QP at one posture sees
 that posture's cell only. Joints a muscle does not cross do not cut its box (exactly zero moment arm there).
@@ -139,10 +145,10 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
 
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
-    fitted; ``x`` is inside the box, float64. Few postures (``basis.dense_for``): one basis of every cell term, each
-    muscle's own columns of it and its posture's coefficients gathered at once (fewest operations). Many: a loop over
-    the groups of muscles that share joints and cell terms (a posture's cell and basis are the group's), the
-    postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
+    fitted; ``x`` is inside the box, float64. Few postures (``basis.dense_for``): one basis of every cell term and
+    each muscle's coefficients at its posture's cell, spread on every term (``_contract``: fewest operations).
+    Many: a loop over the groups of muscles that share joints and cell terms (a posture's cell and basis are the
+    group's), the postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
     k, z = cell_inputs(path, x)
     if dense_for(x):
         perm = path.cell_perm

@@ -188,10 +188,11 @@ class GravityTorque(nn.Module):
     def _register_eager(self) -> None:
         """The constants of the eager ``forward`` (``_eager_torque``), each the value the traced one computes per
         call: every gather's indices with its constant half (``qpos0`` there), each polynomial's coefficient columns
-        (contiguous, the highest power first), a joint's motion ``(C, 4, 4)`` as ``I + sin M_sin + versine M_versine + angle M_angle`` (the
-        rotation and the anchor's shift of ``_joint_motions`` in one matrix per term), the 4x4 columns that give a
-        moving joint's anchor and axis in one product, and the order of ``coef`` that puts a frame's first moment
-        before its mass (``R s + p m`` in one product)."""
+        (contiguous, the highest power first), a joint's motion ``(C, 4, 4)`` as
+        ``I + sin M_sin + versine M_versine + angle M_angle`` (the rotation and the anchor's shift of
+        ``_joint_motions``, one matrix per term), the 4x4 columns that give a moving joint's anchor and axis in one
+        product, and the order of ``coef`` that puts a frame's first moment before its mass (``R s + p m`` in one
+        product)."""
         gather = lambda rows: torch.as_tensor(rows, dtype=torch.long, device=self.qpos0.device)  # noqa: E731
         hinge = self.chain_hinge[:, None]
         eye = torch.eye(4, dtype=torch.float64, device=self.qpos0.device)

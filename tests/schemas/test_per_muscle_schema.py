@@ -225,7 +225,8 @@ def test_bad_length_and_torque_models_are_refused():
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_branches=3)
     with pytest.raises(BodySchemaInputError, match=r"path_cells=0 must be an integer >= 1 \(pieces per joint"):
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_cells=0)
-    with pytest.raises(BodySchemaInputError, match=r"path_cell_joints='shoulder'; allowed: \['crossed', 'largest_group'\]"):
+    allowed = r"path_cell_joints='shoulder'; allowed: \['crossed', 'largest_group'\]"
+    with pytest.raises(BodySchemaInputError, match=allowed):
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_cells=2,
                          path_cell_joints="shoulder")
     with pytest.raises(BodySchemaInputError, match="path_separable=True needs length_model='per_muscle'"):
