@@ -34,7 +34,7 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import CELL_JOINTS, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
+from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
 
@@ -140,12 +140,14 @@ class PerMusclePath(nn.Module):
         cell_joints: which joints cut a celled muscle's box (``networks.cells.cell_cuts``): ``"crossed"`` (every
             joint it crosses) or ``"largest_group"`` (those of its largest group of ``blocks``; the others stay whole
             in each cell's polynomial).
+        cell_keep: what a muscle's cells must improve on the fitted samples to be kept (``networks.cells._kept``):
+            ``"median_and_p99"`` (halve the median residual, no larger p99) or ``"median"`` (halve the median).
     """
 
     def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
                  branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
                  cells: int = 1, cell_degrees=None, blocks=None, cell_trim: Optional[float] = None,
-                 cell_joints: str = "crossed"):
+                 cell_joints: str = "crossed", cell_keep: str = "median_and_p99"):
         super().__init__()
         for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
                                  ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
@@ -162,6 +164,9 @@ class PerMusclePath(nn.Module):
             raise BodySchemaInputError(f"cell_trim={cell_trim!r} must be None or a number > 1 (times the median miss)")
         if cell_joints not in CELL_JOINTS:
             raise BodySchemaInputError(f"cell_joints={cell_joints!r}; allowed: {list(CELL_JOINTS)}")
+        if cell_keep not in CELL_KEEP:
+            raise BodySchemaInputError(f"cell_keep={cell_keep!r}; allowed: {list(CELL_KEEP)}")
+        self.cell_keep = cell_keep  # the fit's, not the state's
         self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
         self.cell_trim = None if cell_trim is None else float(cell_trim)  # the fit's, not the state's
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)

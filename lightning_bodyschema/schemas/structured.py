@@ -32,7 +32,7 @@ from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import OK, bounds_command
-from ..networks.cells import CELL_JOINTS
+from ..networks.cells import CELL_JOINTS, CELL_KEEP
 from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
@@ -100,6 +100,10 @@ class StructuredSchema(BodySchema):
             ``"largest_group"`` (with ``path_separable``, only those of its largest group of joints, the others
             whole in each cell's polynomial: myoArm's BIClong then has 8 cells over its shoulder, not 32 over its
             shoulder and elbow; ``networks.cells.cell_cuts``).
+        path_cell_keep: what a muscle's cells must improve on the fitted samples to be kept: ``"median_and_p99"``
+            (halve its median residual without a larger p99) or ``"median"`` (halve its median: myoArm's LAT1 and
+            LAT2, two branches each, then keep cells whose moment arms are far better on all but their jumps' smaller
+            sides; ``networks.cells._kept``).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -121,7 +125,7 @@ class StructuredSchema(BodySchema):
                  path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None,
                  path_cells: int = 1, path_cell_degrees: Optional[list] = None, path_separable: bool = False,
                  path_blocks: Optional[list] = None, path_cell_trim: Optional[float] = None,
-                 path_cell_joints: str = "crossed"):
+                 path_cell_joints: str = "crossed", path_cell_keep: str = "median_and_p99"):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -143,6 +147,8 @@ class StructuredSchema(BodySchema):
                                        f"cells)")
         if path_cell_joints not in CELL_JOINTS:
             raise BodySchemaInputError(f"path_cell_joints={path_cell_joints!r}; allowed: {list(CELL_JOINTS)}")
+        if path_cell_keep not in CELL_KEEP:
+            raise BodySchemaInputError(f"path_cell_keep={path_cell_keep!r}; allowed: {list(CELL_KEEP)}")
         if path_tolerance_mm is not None and (path_term_budget is None or isinstance(path_tolerance_mm, bool) or
                                               not 0.0 < float(path_tolerance_mm) < float("inf")):
             raise BodySchemaInputError(f"path_tolerance_mm={path_tolerance_mm!r} must be a finite number > 0 [mm], "
@@ -202,7 +208,8 @@ class StructuredSchema(BodySchema):
                                         hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
                                         hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
                                         hp.get("path_cell_degrees"), hp.get("path_blocks"), hp.get("path_cell_trim"),
-                                        hp.get("path_cell_joints", "crossed"))
+                                        hp.get("path_cell_joints", "crossed"),
+                                        hp.get("path_cell_keep", "median_and_p99"))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):

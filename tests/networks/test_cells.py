@@ -11,7 +11,7 @@ from physics_checks import assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
-from lightning_bodyschema.networks.cells import _trimmed, cell_coordinates, cell_cuts, cell_degree
+from lightning_bodyschema.networks.cells import _kept, _trimmed, cell_coordinates, cell_cuts, cell_degree
 from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
@@ -208,3 +208,18 @@ def test_which_joints_cut_a_box():
     assert cell_degree((3, 2), 16, 2, 80000, cut=3) == 16  # myoArm's BIClong: 8 cells, not 32 (degree 14)
     with pytest.raises(BodySchemaInputError, match=r"cell_joints='shoulder'; allowed: \['crossed', 'largest_group'\]"):
         PerMusclePath(crossing, 4, 1, 0, cells=2, blocks=blocks, cell_joints="shoulder")
+
+
+def test_which_cells_are_kept():
+    """Muscle 0's cells fit its samples far better but miss 2 % of them (a jump's smaller side) by more than its
+    whole-box model does: kept on the median alone, dropped when the p99 may not grow; muscle 1's cells ring everywhere
+    (no gain on the median), muscle 2's halve it and lower the p99: kept by both rules."""
+    rows = torch.arange(1000, dtype=torch.float64)
+    own = torch.stack([torch.full_like(rows, 1e-3), torch.full_like(rows, 1e-3), torch.full_like(rows, 1e-3)], 1)
+    own[:20, 0] = 0.2
+    miss = torch.stack([torch.full_like(rows, 1e-6), torch.full_like(rows, 0.9e-3), torch.full_like(rows, 0.4e-3)], 1)
+    miss[:20, 0] = 0.5
+    assert _kept(miss, own, "median").tolist() == [True, False, True]
+    assert _kept(miss, own, "median_and_p99").tolist() == [False, False, True]
+    with pytest.raises(BodySchemaInputError, match=r"cell_keep='p99'; allowed: \['median_and_p99', 'median'\]"):
+        PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_keep="p99")

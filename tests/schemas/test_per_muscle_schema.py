@@ -229,6 +229,8 @@ def test_bad_length_and_torque_models_are_refused():
     with pytest.raises(BodySchemaInputError, match=allowed):
         StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_cells=2,
                          path_cell_joints="shoulder")
+    with pytest.raises(BodySchemaInputError, match=r"path_cell_keep='p99'; allowed: \['median_and_p99', 'median'\]"):
+        StructuredSchema(robot=robot, length_model="per_muscle", muscle_joints=PAPER_JOINTS, path_cell_keep="p99")
     with pytest.raises(BodySchemaInputError, match="path_separable=True needs length_model='per_muscle'"):
         StructuredSchema(robot=robot, path_separable=True)
 
