@@ -43,7 +43,7 @@ _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 # the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
 # spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
-_CERTIFY_STEPS, _CERTIFY_STEPS_FEW, _FEW = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
+_CERTIFY_STEPS, _CERTIFY_STEPS_FEW, FEW_CASES = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
 
 
 class NewtonResult(NamedTuple):
@@ -65,6 +65,12 @@ class _State(NamedTuple):
     free: torch.Tensor
     value: torch.Tensor
     balance: torch.Tensor
+
+
+def host_count(mask: torch.Tensor) -> int:
+    """``int(mask.sum())`` of a (B,) bool tensor: at most ``FEW_CASES`` flags are read to the host as a list (about a
+    tenth of the sum's and the read's dispatch at batch 1; one read either way)."""
+    return sum(mask.tolist()) if mask.shape[0] <= FEW_CASES else int(mask.sum())
 
 
 def _f64(x, device=None) -> torch.Tensor:
@@ -188,20 +194,22 @@ def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=
         accepted, trial = _trials(problem, state, step, slope, _trial_steps(problem, state, step, first=True))
         return _select(accepted, trial, _gradient_step(problem, state, residual, lipschitz))
     out = _evaluate(*problem, state.lam + step)
-    rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
-    if rows.numel() == 0:
+    fails = out.value < state.value + _ARMIJO * slope  # the cases the full step fails
+    failing = host_count(fails)
+    if failing == 0:
         return out
-    every = rows.numel() == len(step)  # every case (one, at batch 1): no gather
+    every = failing == step.shape[0]  # every case (one, at batch 1): no gather, no indices
+    rows = None if every else fails.nonzero().squeeze(1)
     items = (problem, state, step, slope, residual, out)
     sub_problem, sub_state, sub_step, sub_slope, sub_residual, sub_out = items if every else _rows(items, rows)
     w = sub_problem[5]
     settled = _settled_step(sub_state, sub_out.free, _residual(sub_out, w), w)
-    if bool(settled.all()):
+    if host_count(settled) == settled.shape[0]:
         return out
     accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope,
                               _trial_steps(sub_problem, sub_state, sub_step, first=False))
     trial = _select(settled, sub_out, trial)
-    if not bool((accepted | settled).all()):
+    if host_count(accepted | settled) < accepted.shape[0]:
         trial = _select(accepted | settled, trial, _gradient_step(sub_problem, sub_state, sub_residual))
     return trial if every else _State(*(x.index_copy(0, rows, y) for x, y in zip(out, trial)))
 
@@ -281,13 +289,14 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
     ``fixed_iterations``: masked steps in a ``torch.while_loop`` (traceable by ``torch.export``) until every case
     settles or ``max_iter``; the eager answer to rounding. ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... (6,
-    8, ... on at most ``_FEW`` cases; with ``fixed_iterations`` not before) and after the last, an equilibrium case
+    8, ... on at most ``FEW_CASES`` cases; with ``fixed_iterations`` not before) and after the last, an equilibrium case
     whose multiplier proves that no tension balances ``tau`` to it (``_separated``) stops, ``infeasible`` (None: no
     such test, ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
     batch = G.shape[0]
-    w = _f64(w, G.device).expand(batch)
+    w = _f64(w, G.device)
+    w = w if w.shape == (batch,) else w.expand(batch)  # a BoxQP's (B,) weight as it is: no expand to dispatch
     infeasible = torch.zeros(batch, dtype=torch.bool, device=G.device)
     if batch == 0 and not fixed_iterations:
         return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible)
@@ -301,10 +310,10 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         residual = _residual(state, w)
         size = residual.abs().amax(1)
         active = size > tol
-        if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > _FEW else _CERTIFY_STEPS_FEW):
+        if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > FEW_CASES else _CERTIFY_STEPS_FEW):
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
-        running = int(active.sum())  # one host read; the indices only where some cases have stopped
+        running = host_count(active)  # one host read; the indices only where some cases have stopped
         if running == 0:
             return NewtonResult(state.f, size <= tol, iterations, infeasible)
         if running == batch:  # every case still runs: no gather
