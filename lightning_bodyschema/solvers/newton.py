@@ -263,11 +263,11 @@ def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tenso
 def _start(G, tau, f_ref, w, traceable: bool = False):
     """``(lam_0, shift)``: the unconstrained multiplier and ``w I`` plus a tiny ridge (G may be 0)."""
     n = G.shape[2]
-    gram = G.transpose(1, 2) @ G
+    gram = torch.bmm(G.transpose(1, 2), G)  # what @ dispatches to for (B, N, M) @ (B, M, N), without its reshapes
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     trace = torch.diagonal(gram, dim1=1, dim2=2).sum(1)
     ridge = _RIDGE * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
-    rhs = (G.transpose(1, 2) @ f_ref.unsqueeze(-1)).squeeze(-1) + tau
+    rhs = torch.bmm(G.transpose(1, 2), f_ref.unsqueeze(-1)).squeeze(-1) + tau
     lam = _solve_spd(gram + ridge, rhs, traceable)
     return lam, ridge + w.view(-1, 1, 1) * eye
 

@@ -130,8 +130,18 @@ def _first_pass(problem: BoxQP, tol: float, max_iter: int):
     ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``)."""
     newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS),
                          infeasible_tol=max(tol, EQUILIBRIUM_TOL_NM))
-    status = torch.where(newton.converged, _OK, torch.where(newton.infeasible, _INFEASIBLE, _NOT_CONVERGED))
-    return newton.f, status.to(torch.int32), newton.iterations
+    return newton.f, _codes(newton.converged, newton.infeasible), newton.iterations
+
+
+def _codes(converged, infeasible) -> torch.Tensor:
+    """(B,) int32: OK where ``converged``, else INFEASIBLE where ``infeasible``, else NOT_CONVERGED (a few cases
+    from host lists: one small copy instead of two selections and a cast)."""
+    if converged.shape[0] <= FEW_CASES:
+        codes = [_OK if ok else _INFEASIBLE if no else _NOT_CONVERGED
+                 for ok, no in zip(converged.tolist(), infeasible.tolist())]
+        return torch.tensor(codes, dtype=torch.int32, device=converged.device)
+    status = torch.where(converged, _OK, torch.where(infeasible, _INFEASIBLE, _NOT_CONVERGED))
+    return status.to(torch.int32)
 
 
 def _check_options(options: _Options):
