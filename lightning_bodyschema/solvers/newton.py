@@ -266,7 +266,7 @@ def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tenso
     factor built column by column from elementwise operations (N is static) and ``torch.cholesky_solve``, which
     AOTInductor compiles without its proxy executor (``linalg`` solvers have no C shim)."""
     if not traceable:
-        return torch.linalg.solve_ex(A, b)[0]  # b (B, N) is a batch of vectors: solve_ex makes the column itself
+        return torch.linalg.solve_ex(A, b.unsqueeze(-1))[0].squeeze(-1)
     n = A.shape[-1]
     rows = torch.arange(n, device=A.device)
     columns = []
