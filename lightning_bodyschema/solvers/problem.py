@@ -48,9 +48,9 @@ class BoxQP(NamedTuple):
         f_ref, lo, hi = (_shaped(name, x, (batch, m), G.device)
                          for name, x in (("f_ref_n", f_ref_n), ("lo_n", lo_n), ("hi_n", hi_n)))
         w = _weight(w_m2, batch, G.device)
-        # lo < inf and hi > -inf as finiteness of lo clamped up to 0 and hi down to 0 (NaN stays NaN): one test
-        valid = torch.isfinite(torch.cat([G.flatten(1), tau, f_ref, lo.clamp_min(0.0), hi.clamp_max(0.0)], 1)).all(1)
-        bad, crossed = ~valid, (lo > hi).any(1) & valid
+        finite = torch.isfinite(torch.cat([G.flatten(1), tau, f_ref], 1)).all(1)
+        bad = ~(finite & ((lo < np.inf) & (hi > -np.inf)).all(1))  # NaN bounds compare False
+        crossed = (lo > hi).any(1) & ~bad
         return cls(G, tau, f_ref, torch.minimum(lo, hi), hi, w, crossed, bad)
 
     @property
