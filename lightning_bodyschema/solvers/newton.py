@@ -43,7 +43,7 @@ _ARMIJO = 1e-4
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 # the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
 # spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
-_CERTIFY_STEPS, _CERTIFY_STEPS_FEW, _FEW = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
+_CERTIFY_STEPS, _CERTIFY_STEPS_FEW, FEW_CASES = frozenset(range(3, 64, 2)), frozenset(range(5, 64, 2)), 8
 
 
 class NewtonResult(NamedTuple):
@@ -67,20 +67,42 @@ class _State(NamedTuple):
     balance: torch.Tensor
 
 
+def host_count(mask: torch.Tensor) -> int:
+    """``int(mask.sum())`` of a (B,) bool tensor: at most ``FEW_CASES`` flags are read to the host as a list (about a
+    tenth of the sum's and the read's dispatch at batch 1; one read either way)."""
+    return sum(mask.tolist()) if mask.shape[0] <= FEW_CASES else int(mask.sum())
+
+
 def _f64(x, device=None) -> torch.Tensor:
     if isinstance(x, torch.Tensor) and x.dtype == torch.float64 and (device is None or x.device == device):
         return x  # what as_tensor returns, without a dispatch
     return torch.as_tensor(x, dtype=torch.float64, device=device)
 
 
-def _evaluate(G, tau, f_ref, lo, hi, w, lam) -> _State:
-    """The state at ``lam``: (1), the free mask of (3) and the dual value (the Lagrangian at f(lam))."""
-    free_f = torch.baddbmm(f_ref.unsqueeze(-1), G, lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)
+class _Views(NamedTuple):
+    """The views of a problem that every evaluation takes, made once by an eager run (each view is a dispatch, a
+    few microseconds at batch 1): ``G^T (B, N, M)``, ``f_ref (B, M, 1)``, ``tau (B, N, 1)``, ``w (B, 1)``."""
+
+    Gt: torch.Tensor
+    f_ref: torch.Tensor
+    tau: torch.Tensor
+    w: torch.Tensor
+
+
+def _views(G, tau, f_ref, w) -> _Views:
+    return _Views(G.transpose(1, 2), f_ref.unsqueeze(-1), tau.unsqueeze(-1), w.unsqueeze(1))
+
+
+def _evaluate(G, tau, f_ref, lo, hi, w, lam, views: _Views | None = None) -> _State:
+    """The state at ``lam``: (1), the free mask of (3) and the dual value (the Lagrangian at f(lam)); ``views``
+    (``_views`` of the same problem) made here when not given."""
+    Gt, f_ref_col, tau_col, w_col = _views(G, tau, f_ref, w) if views is None else views
+    free_f = torch.baddbmm(f_ref_col, G, lam.unsqueeze(-1), alpha=-1.0).squeeze(-1)
     f = torch.clamp(free_f, lo, hi)
-    balance = torch.baddbmm(tau.unsqueeze(-1), G.transpose(1, 2), f.unsqueeze(-1)).squeeze(-1)
+    balance = torch.baddbmm(tau_col, Gt, f.unsqueeze(-1)).squeeze(-1)
     gap = f - f_ref
-    value = 0.5 * torch.linalg.vecdot(gap, gap) + torch.linalg.vecdot(lam, torch.addcmul(balance, w.unsqueeze(1),
-                                                                                         lam, value=-0.5))
+    value = 0.5 * torch.linalg.vecdot(gap, gap) + torch.linalg.vecdot(lam, torch.addcmul(balance, w_col, lam,
+                                                                                         value=-0.5))
     return _State(lam, f, f == free_f, value, balance)  # free: the clip left it (a tension at a bound is either)
 
 
@@ -178,30 +200,33 @@ def _gradient_step(problem, state: _State, residual, lipschitz=None) -> _State:
     return _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
 
 
-def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=None) -> _State:
+def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=None, views=None) -> _State:
     """Armijo's condition on the dual value along the Newton ``step``: the first accepted of ``t = 1``, the exact
     maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``, every case at once
     (eager: ``t = 1`` first, the others on the cases it fails). Where no trial is accepted (a nearly singular Newton
-    system), a gradient step, which always ascends (the dual is concave with a Lipschitz-continuous gradient)."""
+    system), a gradient step, which always ascends (the dual is concave with a Lipschitz-continuous gradient).
+    ``views``: the problem's ``_Views`` (eager, every case of the run)."""
     slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
     if not eager:
         accepted, trial = _trials(problem, state, step, slope, _trial_steps(problem, state, step, first=True))
         return _select(accepted, trial, _gradient_step(problem, state, residual, lipschitz))
-    out = _evaluate(*problem, state.lam + step)
-    rows = (out.value < state.value + _ARMIJO * slope).nonzero().squeeze(1)  # the cases the full step fails
-    if rows.numel() == 0:
+    out = _evaluate(*problem, state.lam + step, views)
+    fails = out.value < state.value + _ARMIJO * slope  # the cases the full step fails
+    failing = host_count(fails)
+    if failing == 0:
         return out
-    every = rows.numel() == len(step)  # every case (one, at batch 1): no gather
+    every = failing == step.shape[0]  # every case (one, at batch 1): no gather, no indices
+    rows = None if every else fails.nonzero().squeeze(1)
     items = (problem, state, step, slope, residual, out)
     sub_problem, sub_state, sub_step, sub_slope, sub_residual, sub_out = items if every else _rows(items, rows)
     w = sub_problem[5]
     settled = _settled_step(sub_state, sub_out.free, _residual(sub_out, w), w)
-    if bool(settled.all()):
+    if host_count(settled) == settled.shape[0]:
         return out
     accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope,
                               _trial_steps(sub_problem, sub_state, sub_step, first=False))
     trial = _select(settled, sub_out, trial)
-    if not bool((accepted | settled).all()):
+    if host_count(accepted | settled) < accepted.shape[0]:
         trial = _select(accepted | settled, trial, _gradient_step(sub_problem, sub_state, sub_residual))
     return trial if every else _State(*(x.index_copy(0, rows, y) for x, y in zip(out, trial)))
 
@@ -220,18 +245,20 @@ def _rows(items, rows):
                  else tuple(y[rows] for y in x) for x in items)
 
 
-def _residual(state: _State, w) -> torch.Tensor:
-    """(2): ``F(lam) = G^T f + tau - w lam`` (B, N) [N m]."""
-    return torch.addcmul(state.balance, w.unsqueeze(1), state.lam, value=-1.0)
+def _residual(state: _State, w, w_col=None) -> torch.Tensor:
+    """(2): ``F(lam) = G^T f + tau - w lam`` (B, N) [N m] (``w_col``: w as (B, 1), made here when not given)."""
+    return torch.addcmul(state.balance, w.unsqueeze(1) if w_col is None else w_col, state.lam, value=-1.0)
 
 
-def _newton_step(problem, state: _State, residual, shift, eager: bool, lipschitz=None) -> _State:
+def _newton_step(problem, state: _State, residual, shift, eager: bool, lipschitz=None, views=None) -> _State:
     """One Newton step on (2) (``residual``) with (3) (``shift``: ``w I`` and the ridge) and the line search, for
-    the (sub)batch ``problem`` (``lipschitz``: the gradient step's constant, made once by a fixed-step run)."""
+    the (sub)batch ``problem`` (``lipschitz``: the gradient step's constant, made once by a fixed-step run;
+    ``views``: the problem's ``_Views``, made once by an eager run on every case)."""
     G = problem[0]
-    hessian = torch.baddbmm(shift, G.transpose(1, 2), G * state.free.unsqueeze(-1))  # (3); a bool factor is 0 or 1
+    Gt = G.transpose(1, 2) if views is None else views.Gt
+    hessian = torch.baddbmm(shift, Gt, G * state.free.unsqueeze(-1))  # (3); a bool factor is 0 or 1
     step = _solve_spd(hessian, residual, traceable=not eager)
-    return _line_search(problem, state, residual, step, eager, lipschitz)
+    return _line_search(problem, state, residual, step, eager, lipschitz, views)
 
 
 def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tensor:
@@ -252,14 +279,16 @@ def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tenso
     return torch.cholesky_solve(b.unsqueeze(-1), torch.stack(columns, 2)).squeeze(-1)
 
 
-def _start(G, tau, f_ref, w, traceable: bool = False):
-    """``(lam_0, shift)``: the unconstrained multiplier and ``w I`` plus a tiny ridge (G may be 0)."""
+def _start(G, tau, f_ref, w, traceable: bool = False, views: _Views | None = None):
+    """``(lam_0, shift)``: the unconstrained multiplier and ``w I`` plus a tiny ridge (G may be 0); ``views``
+    (``_views``) made here when not given."""
     n = G.shape[2]
-    gram = G.transpose(1, 2) @ G
+    views = _views(G, tau, f_ref, w) if views is None else views
+    gram = torch.bmm(views.Gt, G)  # what @ dispatches to for (B, N, M) @ (B, M, N), without its reshapes
     eye = torch.eye(n, dtype=G.dtype, device=G.device)
     trace = torch.diagonal(gram, dim1=1, dim2=2).sum(1)
     ridge = _RIDGE * torch.clamp(trace / n, min=1e-30).view(-1, 1, 1) * eye
-    rhs = (G.transpose(1, 2) @ f_ref.unsqueeze(-1)).squeeze(-1) + tau
+    rhs = torch.bmm(views.Gt, views.f_ref).squeeze(-1) + tau
     lam = _solve_spd(gram + ridge, rhs, traceable)
     return lam, ridge + w.view(-1, 1, 1) * eye
 
@@ -281,41 +310,44 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     tensors on one device, or arrays), ``w`` a scalar or ``(B,)`` (0: the equilibrium QP), ``lo <= hi``.
     ``fixed_iterations``: masked steps in a ``torch.while_loop`` (traceable by ``torch.export``) until every case
     settles or ``max_iter``; the eager answer to rounding. ``infeasible_tol`` [N m]: before steps 4, 6, 8, ... (6,
-    8, ... on at most ``_FEW`` cases; with ``fixed_iterations`` not before) and after the last, an equilibrium case
+    8, ... on at most ``FEW_CASES`` cases; with ``fixed_iterations`` not before) and after the last, an equilibrium case
     whose multiplier proves that no tension balances ``tau`` to it (``_separated``) stops, ``infeasible`` (None: no
     such test, ``infeasible`` all False)."""
     G = _f64(G)
     tau, f_ref, lo, hi = (_f64(x, G.device) for x in (tau, f_ref, lo, hi))
     batch = G.shape[0]
-    w = _f64(w, G.device).expand(batch)
+    w = _f64(w, G.device)
+    w = w if w.shape == (batch,) else w.expand(batch)  # a BoxQP's (B,) weight as it is: no expand to dispatch
     infeasible = torch.zeros(batch, dtype=torch.bool, device=G.device)
     if batch == 0 and not fixed_iterations:
         return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible)
     problem = (G, tau, f_ref, lo, hi, w)
-    lam, shift = _start(G, tau, f_ref, w, fixed_iterations)
-    state = _evaluate(*problem, lam)
+    views = None if fixed_iterations else _views(G, tau, f_ref, w)  # the traced graph as it was: views per use
+    w_col = None if views is None else views.w
+    lam, shift = _start(G, tau, f_ref, w, fixed_iterations, views)
+    state = _evaluate(*problem, lam, views)
     iterations = torch.zeros(batch, dtype=torch.int32, device=G.device)
     if fixed_iterations:
         state, iterations = _masked_steps(problem, state, shift, iterations, tol, max_iter)
     for k in range(0 if fixed_iterations else max_iter):
-        residual = _residual(state, w)
+        residual = _residual(state, w, w_col)
         size = residual.abs().amax(1)
         active = size > tol
-        if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > _FEW else _CERTIFY_STEPS_FEW):
+        if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > FEW_CASES else _CERTIFY_STEPS_FEW):
             infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
             active = active & ~infeasible
-        running = int(active.sum())  # one host read; the indices only where some cases have stopped
+        running = host_count(active)  # one host read; the indices only where some cases have stopped
         if running == 0:
             return NewtonResult(state.f, size <= tol, iterations, infeasible)
         if running == batch:  # every case still runs: no gather
-            state = _newton_step(problem, state, residual, shift, True)
+            state = _newton_step(problem, state, residual, shift, True, views=views)
         else:
             idx = active.nonzero().squeeze(1)
             sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
                                shift[idx], True)
             state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
-    size = _residual(state, w).abs().amax(1)
+    size = _residual(state, w, w_col).abs().amax(1)
     if infeasible_tol is not None:  # what the last step leaves
         infeasible = infeasible | ((size > tol) & _separated(problem, state.lam, infeasible_tol))
     return NewtonResult(state.f, size <= tol, iterations, infeasible)

@@ -110,6 +110,8 @@ def _tensor(name: str, x, device) -> torch.Tensor:
     try:
         if isinstance(x, np.ndarray) and not x.flags.writeable:  # torch warns on read-only arrays (broadcasts)
             x = np.array(x, dtype=np.float64)
+        if isinstance(x, np.ndarray) and x.dtype == np.float64 and getattr(device, "type", device) in (None, "cpu"):
+            return torch.from_numpy(x)  # what as_tensor returns (shared memory), without its two dispatches
         return torch.as_tensor(x, dtype=torch.float64, device=device)
     except (TypeError, ValueError, RuntimeError) as error:
         raise BodySchemaInputError(f"{name} is not numeric ({error}); allowed: arrays or tensors of numbers") from None

@@ -26,7 +26,7 @@ from ..errors import BodySchemaInputError
 from ..status import Status
 from .backends import LS_MAX_ITER, proxsuite_solve
 from .least_squares import LS_REG, least_squares_weight
-from .newton import NEWTON_MAX_ITER, NEWTON_TOL_NM, dual_newton
+from .newton import FEW_CASES, NEWTON_MAX_ITER, NEWTON_TOL_NM, dual_newton, host_count
 from .problem import BoxQP, Solution
 from .torque_reach import outside_torque_reach, residual_direction
 
@@ -69,35 +69,56 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
                        least_squares)
     _check_options(options)
     f, status, iterations = _solvable_first_pass(problem, tol, max_iter)
-    unsettled = status == _NOT_CONVERGED
-    least = unsettled & (problem.w_m2 > 0)
-    equilibrium = (unsettled | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
-    any_least, any_equilibrium, every_equilibrium = torch.stack([least.any(), equilibrium.any(),
-                                                                 equilibrium.all()]).tolist()  # one host sync
+    any_least, any_equilibrium, every_equilibrium = _left(status, problem.w_m2)
     if any_least:
+        least = (status == _NOT_CONVERGED) & (problem.w_m2 > 0)
         f[least], status[least], iterations[least] = _least_squares_rest(problem.take(least), iterations[least],
                                                                          options)
     if every_equilibrium:  # no gather (a single case that needs more than the first pass)
         return Solution(*_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options))
-    if any_equilibrium:
-        rows = equilibrium
+    if any_equilibrium:  # the least-squares rows above have w > 0: not among these
+        rows = ((status == _NOT_CONVERGED) | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
                                                                       status[rows] == _INFEASIBLE, iterations[rows],
                                                                       options)
     return Solution(f, status, iterations)
 
 
+def _left(status, w_m2) -> list:
+    """``[any_least, any_equilibrium, every_equilibrium]``: whether the first pass left a least-squares case
+    unsettled, and an equilibrium case unsettled or proven without a solution (some, every). One host read: a few
+    cases' codes and weights as lists (cheaper than the masks' dispatch), else the three reductions stacked."""
+    if status.shape[0] <= FEW_CASES:
+        pairs = list(zip(status.tolist(), w_m2.tolist()))
+        equilibrium = [code in (_NOT_CONVERGED, _INFEASIBLE) and w == 0 for code, w in pairs]
+        return [any(code == _NOT_CONVERGED and w > 0 for code, w in pairs), any(equilibrium), all(equilibrium)]
+    unsettled = status == _NOT_CONVERGED
+    least = unsettled & (w_m2 > 0)
+    equilibrium = (unsettled | (status == _INFEASIBLE)) & (w_m2 == 0)
+    return torch.stack([least.any(), equilibrium.any(), equilibrium.all()]).tolist()
+
+
+def _every(mask) -> bool:
+    """``bool(mask.all())`` of a (B,) bool tensor (``newton.host_count``: a list read for a few cases)."""
+    return host_count(mask) == mask.shape[0]
+
+
+def _some(mask) -> bool:
+    """``bool(mask.any())`` of a (B,) bool tensor (``newton.host_count``)."""
+    return host_count(mask) > 0
+
+
 def _solvable_first_pass(problem: BoxQP, tol: float, max_iter: int):
     """``(f, status, iterations)``: ``_first_pass`` on the cases with valid input and an uncrossed box; the others
     NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled later)."""
     skip = problem.bad_input | problem.crossed
-    if not bool(skip.any()):  # every case: no gather
+    if not _some(skip):  # every case: no gather
         return _first_pass(problem, tol, max_iter)
     f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
     f = torch.where(problem.bad_input.unsqueeze(1), torch.nan, f)
     status = torch.where(problem.bad_input, Status.BAD_INPUT.code, _NOT_CONVERGED).to(torch.int32)
     iterations = torch.zeros_like(status)
-    if not bool(skip.all()):
+    if not _every(skip):
         run = (~skip).nonzero().squeeze(1)
         f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
     return f, status, iterations
@@ -109,8 +130,18 @@ def _first_pass(problem: BoxQP, tol: float, max_iter: int):
     ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``)."""
     newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS),
                          infeasible_tol=max(tol, EQUILIBRIUM_TOL_NM))
-    status = torch.where(newton.converged, _OK, torch.where(newton.infeasible, _INFEASIBLE, _NOT_CONVERGED))
-    return newton.f, status.to(torch.int32), newton.iterations
+    return newton.f, _codes(newton.converged, newton.infeasible), newton.iterations
+
+
+def _codes(converged, infeasible) -> torch.Tensor:
+    """(B,) int32: OK where ``converged``, else INFEASIBLE where ``infeasible``, else NOT_CONVERGED (a few cases
+    from host lists: one small copy instead of two selections and a cast)."""
+    if converged.shape[0] <= FEW_CASES:
+        codes = [_OK if ok else _INFEASIBLE if no else _NOT_CONVERGED
+                 for ok, no in zip(converged.tolist(), infeasible.tolist())]
+        return torch.tensor(codes, dtype=torch.int32, device=converged.device)
+    status = torch.where(converged, _OK, torch.where(infeasible, _INFEASIBLE, _NOT_CONVERGED))
+    return status.to(torch.int32)
 
 
 def _check_options(options: _Options):
@@ -133,7 +164,7 @@ def _least_squares_rest(problem: BoxQP, iterations, options: _Options):
     """``(f, status, iterations)`` of least-squares cases the Newton's first pass left: the rest of its steps,
     proxsuite on what they leave."""
     f, settled, iterations = _newton_rest(problem, options)
-    if options.fallback == "proxsuite" and not bool(settled.all()):
+    if options.fallback == "proxsuite" and not _every(settled):
         f[~settled], settled[~settled] = proxsuite_solve(problem.take(~settled), LS_MAX_ITER, options.num_threads)
     return f, torch.where(settled, _OK, _NOT_CONVERGED).to(torch.int32), iterations
 
@@ -142,7 +173,7 @@ def _least_squares(problem: BoxQP, options: _Options):
     """``(f, settled)`` of the least-squares ``problem``: the dual Newton, proxsuite on what it leaves."""
     result = dual_newton(*problem[:6])
     f, settled = result.f, result.converged
-    if options.fallback == "proxsuite" and not bool(settled.all()):
+    if options.fallback == "proxsuite" and not _every(settled):
         f[~settled], settled[~settled] = proxsuite_solve(problem.take(~settled), LS_MAX_ITER, options.num_threads)
     return f, settled
 
@@ -154,7 +185,7 @@ def _proofs(problem: BoxQP, f_first, proven, options: _Options):
     if options.least_squares:
         return _least_squares_proof(problem, options, outside)
     f_ls, need = f_first.clone(), ~outside
-    if bool(need.any()):
+    if _some(need):
         f_ls[need], outside[need] = _least_squares_proof(problem.take(need), options, outside[need])
     return f_ls, outside
 
@@ -164,7 +195,7 @@ def _least_squares_proof(problem: BoxQP, options: _Options, outside):
     (known already), or shown by the least squares."""
     w_ls = least_squares_weight(problem.G, options.ls_reg)
     f_ls, settled = _least_squares(problem.with_weight(w_ls), options)
-    if bool(outside.all()):  # nothing left to prove
+    if _every(outside):  # nothing left to prove
         return f_ls, outside
     return f_ls, outside | (settled & _least_squares_proves_no_balance(problem, f_ls, w_ls))
 
@@ -174,19 +205,19 @@ def _no_equilibrium_yet(problem: BoxQP, f_first, proven, iterations, options: _O
     solution (crossed ones included): steps 2 to 4 of the module docstring, the rest of the Newton's steps on the
     cases nothing rules out first."""
     f_ls, outside = _proofs(problem, f_first, proven, options)
-    if bool(outside.all()):  # every case proven without a solution (crossed ones, one at batch 1): nothing to solve
+    if _every(outside):  # every case proven without a solution (crossed ones, one at batch 1): nothing to solve
         return f_ls, torch.full_like(iterations, _INFEASIBLE), iterations
     rows = problem.take(~outside)
     outside[~outside] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM,
                                              residual_direction(rows.G, rows.tau_nm, f_ls[~outside]))
     status = torch.where(outside, _INFEASIBLE, _NOT_CONVERGED).to(torch.int32)
     f, todo = f_ls.clone(), ~outside
-    if bool(todo.any()):
+    if _some(todo):
         f_newton, converged, iterations[todo] = _newton_rest(problem.take(todo), options)
         f[todo] = torch.where(converged.unsqueeze(1), f_newton, f[todo])
         status[todo] = torch.where(converged, _OK, _NOT_CONVERGED).to(torch.int32)
         todo[todo.clone()] = ~converged
-    if options.fallback == "proxsuite" and bool(todo.any()):
+    if options.fallback == "proxsuite" and _some(todo):
         rows = problem.take(todo)
         f_qp, solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads, options.fallback_eps_abs)
         ok = solved & (rows.balance_residual_nm(f_qp) <= EQUILIBRIUM_TOL_NM)
