@@ -228,7 +228,7 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
         return
     total = path.exponents.sum(1)
     own_degree = (total[None, :] * path.term_mask).amax(1)
-    cuts = path._cell_cut.sum(1).tolist()  # each muscle's cutting joints
+    cuts = path.cell_cut.sum(1).tolist()  # each muscle's cutting joints
     path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
                                         for a, d, c, n in zip(path.block_sizes, own_degree, candidates, cuts)],
                                        device=median.device))

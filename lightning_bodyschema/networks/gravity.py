@@ -113,11 +113,17 @@ class GravityTorque(nn.Module):
         full = q @ self.free_select + self.full_base
         if not self.dep_joint:
             return full
-        x = full[:, self.dep_follows] - self.qpos0[self.dep_follows]
-        value = self.dep_coef[:, 4]
-        for k in (3, 2, 1, 0):  # Horner, as numpy's polyval (the same operations)
-            value = value * x + self.dep_coef[:, k]
-        return full + (value + self.qpos0[self.dep_joint] - full[:, self.dep_joint]) @ self.dep_scatter
+        x = self._columns(full, self.dep_follows, self.dep_follows_index) - self.dep_follows_qpos0
+        value, *columns = self.dep_horner.unbind()  # Horner, as numpy's polyval (the same operations)
+        for column in columns:
+            value = value * x + column
+        return full + (value + self.dep_qpos0 - self._columns(full, self.dep_joint, self.dep_index)) @ self.dep_scatter
+
+    @staticmethod
+    def _columns(full: torch.Tensor, joints: list, index: torch.Tensor) -> torch.Tensor:
+        """``full[:, joints]``: ``index_select`` by the precomputed ``index`` (fewest operations), or in an exported
+        program indexing by the list (as traced before)."""
+        return full[:, joints] if torch.compiler.is_exporting() else full.index_select(1, index)
 
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
@@ -133,20 +139,26 @@ class GravityTorque(nn.Module):
         # (B, nodes, 4, 4) by padding and a one-hot product, not concatenation or gathers (which specialize the
         # batch under vmap in torch.export)
         motion = F.pad(rot, (0, 1, 0, 1)) + F.pad(shift[..., None], (3, 0, 0, 1)) + self.node_corner  # (B, C, 4, 4)
-        if torch.compiler.is_exporting() or len(q) <= JUMP_ROWS:
-            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
-            for k in range(self.n_rounds):
-                world = self._pick(f"node_pointer{k}", world) @ world
-        else:  # many postures: one product per node (parents first; a body offset's a single matrix product)
-            nodes = []
-            for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
-                T = self.node_const[i] if chain < 0 else motion[:, chain]
-                nodes.append(T.expand(len(q), 4, 4) if parent < 0 else nodes[parent] @ T)
-            world = torch.stack(nodes, 1)
+        world = self._world(motion)
         frames, before = self._pick("frame_node", world), self._pick("before_node", world)
         anchors = before[..., :3, 3] + (before[..., :3, :3] @ self.moving_pos[..., None])[..., 0]
         return (frames[..., :3, 3], frames[..., :3, :3], anchors,
                 (before[..., :3, :3] @ self.moving_axis[..., None])[..., 0])
+
+    def _world(self, motion: torch.Tensor) -> torch.Tensor:
+        """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``
+        (``kinematics``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program, else one product
+        per node (parents first; a body offset's a single matrix product)."""
+        if torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS:
+            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
+            for k in range(self.n_rounds):
+                world = self._pick(f"node_pointer{k}", world) @ world
+            return world
+        nodes = []
+        for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
+            T = self.node_const[i] if chain < 0 else motion[:, chain]
+            nodes.append(T.expand(len(motion), 4, 4) if parent < 0 else nodes[parent] @ T)
+        return torch.stack(nodes, 1)
 
     def _register_nodes(self, tree) -> None:
         """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation
@@ -236,10 +248,10 @@ class GravityTorque(nn.Module):
 
     def _slopes(self, full: torch.Tensor) -> torch.Tensor:
         """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""
-        x = full[:, self.slope_of] - self.qpos0[self.slope_of]
-        value = self.slope_coef[:, 3]
-        for k in (2, 1, 0):
-            value = value * x + self.slope_coef[:, k]
+        x = self._columns(full, self.slope_of, self.slope_index) - self.slope_qpos0
+        value, *columns = self.slope_horner.unbind()  # the highest power first
+        for column in columns:
+            value = value * x + column
         return value
 
     # ------------------------------------------------------------------ the regressor
@@ -295,11 +307,11 @@ class GravityTorque(nn.Module):
         operation on the values the traced one computes, in its order (the same numbers to the bit), fewer of them:
         gathers by index, constants not rebuilt, each joint's motion in one 4x4 sum, a frame's ``R s + p m`` and a
         joint's anchor and axis each one product of the pose's top rows."""
-        full = self._eager_full_q(q)
+        full = self.full_q(q)
         angle = (full.index_select(1, self.chain_joint_index) - self.chain_qpos0).unflatten(1, (-1, 1, 1))
         by_sin, by_versine, by_angle = self.motion_terms.unbind()
         motion = self.motion_eye + angle.sin() * by_sin + (1.0 - angle.cos()) * by_versine + angle * by_angle
-        frames, before = self._eager_world(q, motion)
+        frames, before = self._eager_world(motion)
         moment_mass, mass_joint, offset, rate = terms
         w = (frames[..., :3, :] @ moment_mass)[..., 0]
         anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
@@ -308,37 +320,13 @@ class GravityTorque(nn.Module):
         tau = -((a.contiguous() @ self.gravity_cross_T) * (w_joint - mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * mass_joint)
-        x = full.index_select(1, self.slope_index) - self.slope_qpos0
-        slope, *columns = self.slope_horner.unbind()
-        for column in columns:
-            slope = slope * x + column
-        return (tau * slope) @ self.free_scatter + offset + rate * q
+        return (tau * self._slopes(full)) @ self.free_scatter + offset + rate * q
 
-    def _eager_full_q(self, q: torch.Tensor) -> torch.Tensor:
-        """``full_q`` by index gathers and precomputed constants (the same operations on the same values)."""
-        full = q @ self.free_select + self.full_base
-        if not self.dep_joint:
-            return full
-        x = full.index_select(1, self.dep_follows_index) - self.dep_follows_qpos0
-        value, *columns = self.dep_horner.unbind()  # the highest power first
-        for column in columns:
-            value = value * x + column
-        return full + (value + self.dep_qpos0 - full.index_select(1, self.dep_index)) @ self.dep_scatter
-
-    def _eager_world(self, q: torch.Tensor, motion: torch.Tensor):
+    def _eager_world(self, motion: torch.Tensor):
         """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
-        (``kinematics``' products, pointer jumping up to ``JUMP_ROWS`` postures)."""
-        if len(q) <= JUMP_ROWS:
-            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
-            for k in range(self.n_rounds):
-                world = world.index_select(1, getattr(self, f"node_pointer{k}_index")) @ world
-        else:
-            nodes = []
-            for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
-                T = self.node_const[i] if chain < 0 else motion[:, chain]
-                nodes.append(T.expand(len(q), 4, 4) if parent < 0 else nodes[parent] @ T)
-            world = torch.stack(nodes, 1)
-        return world.index_select(1, self.frame_node_index), world.index_select(1, self.before_node_index)
+        (``_world``, as ``kinematics``)."""
+        world = self._world(motion)
+        return self._pick("frame_node", world), self._pick("before_node", world)
 
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()

@@ -190,7 +190,7 @@ class PerMusclePath(nn.Module):
             self.register_load_state_dict_post_hook(lambda module, _: module._refresh_branched())
         if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
-            self._cell_cut = cell_cuts(crossing, blocks, cell_joints)
+            self.cell_cut = cell_cuts(crossing, blocks, cell_joints)  # (M, N) numpy: the joints that cut each box
             self.set_cell_degrees(np.zeros(n_muscles, np.int64) if cell_degrees is None else cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
@@ -335,7 +335,7 @@ class PerMusclePath(nn.Module):
             raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
                                        f"muscle (0: no cells)")
         *layout, valid, n_cells, extra = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces,
-                                                     self._cell_cut)
+                                                     self.cell_cut)
         perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
         device = self.coef.device  # (a fit sets the cells on its own device, a GPU's too)
         self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
