@@ -67,8 +67,9 @@ class ProductTerms(nn.Module):
     ``product_basis`` writes every term's N factors and N derivative columns. Here the Legendre values come from
     the powers of x times a fixed matrix (three operations, not a recurrence of ``3 * degree``; they differ from the
     recurrence by about 1e-11 at degree 16 on [-1, 1], 1e-10 for the slopes, far below any length the paths
-    resolve). Up to ``DENSE_ROWS`` postures every term's factors are gathered at once (``dense``: about 15
-    operations in all); above, the terms are grouped by the joints they use (their support) and only those factors
+    resolve). Up to ``DENSE_ROWS`` postures every term's factors on the joints it uses are gathered at once
+    (``dense``: about 15 operations in all; ``n_slots`` factors per term, padded with exact ones: on myoArm's paths
+    3 of 7 joints); above, the terms are grouped by the joints they use (their support) and only those factors
     multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors instead of 8911). An
     exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
@@ -88,9 +89,13 @@ class ProductTerms(nn.Module):
         perm = np.concatenate(members) if members else np.zeros(0, np.int64)
         values, slopes = power_matrices(self.degree)
         long = dict(dtype=torch.long)
-        flat = (np.arange(self.n_joints)[None, :] * (self.degree + 1) + exponents).reshape(-1)
-        for name, value in dict(perm=torch.tensor(perm, **long), flat_index=torch.tensor(flat, **long),
-                                exponents=torch.tensor(exponents, **long),
+        # each term's factors in ``n_slots`` slots: the joints it uses, ascending, then joints it does not use
+        # (exponent 0: a factor of exactly 1, a slope of exactly 0); the dense basis gathers these, not all N
+        self.n_slots = max(1, int((exponents > 0).sum(1).max(initial=0)))
+        slot_joint = np.argsort(exponents == 0, axis=1, kind="stable")[:, :self.n_slots]
+        flat = slot_joint * (self.degree + 1) + np.take_along_axis(exponents, slot_joint, 1)
+        for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.reshape(-1), **long),
+                                slot_joint=torch.tensor(slot_joint, **long), exponents=torch.tensor(exponents, **long),
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):
@@ -137,24 +142,23 @@ class ProductTerms(nn.Module):
         return self._grouped(self.to_values.T @ powers, (self.to_slopes.T @ powers) if slopes else None)
 
     def _dense(self, values, derivs) -> "Basis":
-        """``phi (B, P)`` and ``dphi (B, P, N)`` in the original order, every factor gathered at once."""
-        shape = (len(values), -1, self.n_joints)
-        factors = self._gather(values).view(shape)  # (B, P, N)
+        """``phi (B, P)`` and ``dphi (B, P, N)`` in the original order: every term's factors in its ``n_slots`` slots
+        gathered at once (myoArm's paths: 3 slots of 7 joints), each slope added into its joint's column."""
+        shape = (len(values), -1, self.n_slots)
+        factors = self._gather(values).view(shape)  # (B, P, slots)
         phi = factors.prod(-1)
         if derivs is None:
             return Basis(phi, None, False)
-        # padding, not concatenation (which specializes the batch under vmap in torch.export)
         before = F.pad(factors[..., :-1].cumprod(-1), (1, 0), value=1.0)  # prod_{i<j} factor_i
         after = F.pad(factors[..., 1:].flip(-1).cumprod(-1).flip(-1), (0, 1), value=1.0)  # prod_{i>j} factor_i
-        slopes = self._gather(derivs).view(shape)
-        return Basis(phi, slopes * before * after, False)
+        slopes = self._gather(derivs).view(shape) * before * after
+        index = self.slot_joint.expand(len(values), -1, -1)
+        return Basis(phi, slopes.new_zeros(*phi.shape, self.n_joints).scatter_add_(2, index, slopes), False)
 
     def _gather(self, table: torch.Tensor) -> torch.Tensor:
-        """Every term's factor per joint ``(B, P * N)`` from ``table (B, N, degree + 1)``: ``gather`` (the fastest at
-        one posture), or in an exported program indexing (which keeps the batch generic under vmap)."""
-        if torch.compiler.is_exporting():
-            return table.flatten(1)[:, self.flat_index]
-        return table.flatten(1).gather(1, self.flat_index.expand(len(table), -1))
+        """Every term's factor per slot ``(B, P * slots)`` from ``table (B, N, degree + 1)`` (``gather``: the fastest
+        at one posture; an exported program takes ``product_basis``, never this)."""
+        return table.flatten(1).gather(1, self.slot_index.expand(len(table), -1))
 
     def _grouped(self, values, derivs) -> "Basis":
         """``phi (P, B)`` (transposed) in ``perm``'s order and per joint ``j`` the derivative rows ``(P_j, B)`` of the

@@ -144,21 +144,20 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
     return dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
 
 
-def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
+def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy, spread: Optional[torch.Tensor] = None):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
     fitted; ``x`` is inside the box, float64. Few postures (``basis.dense_for``): one basis of every cell term and
-    each muscle's coefficients at its posture's cell, spread on every term (``_contract``: fewest operations).
-    Many: a loop over the groups of muscles that share joints and cell terms (a posture's cell and basis are the
-    group's), the postures sorted by cell and each cell's one matrix product (no ``(B, muscles, terms)`` gathers)."""
+    each muscle's coefficients at its posture's cell spread on every term (``cell_spread``, or ``spread`` when the
+    caller keeps it; ``_contract``: fewest operations). Many: a loop over the groups of muscles that share joints
+    and cell terms (a posture's cell and basis are the group's), the postures sorted by cell and each cell's one
+    matrix product (no ``(B, muscles, terms)`` gathers)."""
     k, z = cell_inputs(path, x)
     if dense_for(x):
-        perm = path.cell_perm
-        muscles, cell = path.cell_muscles[perm], (k @ path.cell_stride.T)[:, perm]  # (B, Mc), group by group
+        cell = k @ path.cell_stride.T  # (B, Mc): each celled muscle's cell
         basis = path.cell_terms_all(z, dy is not None, dense=True)
-        y_cell, dy_cell = _contract(basis, path.cell_coef[perm[None, :], cell], path.cell_order[perm])
+        y_cell, dy_cell = _contract(path, basis, cell, spread)
         dy_cell = None if dy is None else _fold(path, dy_cell)
-        fitted = path.cell_fitted[perm[None, :], cell]
-        return _replace(y, dy, muscles, fitted, y_cell, dy_cell)
+        return _replace(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
@@ -169,18 +168,28 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     return y, dy
 
 
-def _contract(basis, coef: torch.Tensor, order: torch.Tensor):
-    """Each muscle's cell polynomial ``(B, Mc)`` and its slopes ``(B, Mc, N + E)`` (or None) from a dense basis of
-    every cell term and its coefficients ``coef (B, Mc, K)`` of its own terms ``order (Mc, K)``: the coefficients
-    spread on every cell term (zero elsewhere; a sum, as the padding's zeros land on column 0 too), then one product
-    with the basis, not a gather of every muscle's columns of it (``(B, Mc, K, N + E)``, the costliest operation at
-    one posture). An exported program gathers (a scatter specializes the batch under vmap in torch.export)."""
+def cell_spread(path) -> torch.Tensor:
+    """Every celled muscle's coefficients in each of its cells spread on every cell term, ``(Mc, C, T)``: zero off
+    its own terms (a sum: the padding's zeros land on column 0 too). The dense evaluation takes a posture's cell's
+    rows (one index, not a gather and a scatter per call); a caller may keep it while the coefficients do not change
+    (``PerMusclePath.dense_coefficients``)."""
+    coef = path.cell_coef
+    index = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
+    return coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, index, coef)
+
+
+def _contract(path, basis, cell: torch.Tensor, spread: Optional[torch.Tensor]):
+    """Each celled muscle's cell polynomial ``(B, Mc)`` and its slopes ``(B, Mc, N + E)`` (or None) at its posture's
+    ``cell (B, Mc)`` from a dense basis of every cell term: the rows of ``spread`` (``cell_spread``; None: built
+    here) times the basis, not a gather of every muscle's columns of it (``(B, Mc, K, N + E)``, the costliest
+    operation at one posture). An exported program gathers each muscle's own columns (a scatter specializes the
+    batch under vmap in torch.export)."""
     if torch.compiler.is_exporting():
+        coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
         y = (basis.phi[:, order] * coef).sum(-1)
         return y, None if basis.dphi is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
-    index = order.expand(len(coef), -1, -1)
-    spread = coef.new_zeros(*coef.shape[:2], basis.phi.shape[1]).scatter_add_(2, index, coef)
-    return (spread @ basis.phi[:, :, None])[..., 0], None if basis.dphi is None else spread @ basis.dphi
+    at_cell = (cell_spread(path) if spread is None else spread)[path.cell_rows[None, :], cell]  # (B, Mc, T)
+    return (at_cell @ basis.phi[:, :, None])[..., 0], None if basis.dphi is None else at_cell @ basis.dphi
 
 
 def _by_cell(terms, coef, z, cell, slopes):

@@ -34,7 +34,7 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
+from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, cell_spread, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
 from .trim import trimmed_refits
 
@@ -233,26 +233,29 @@ class PerMusclePath(nn.Module):
                      for start in range(0, len(x), rows)]
             y, dy = torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if derive else None
         if self.pieces > 1 and len(self.cell_muscles):
-            y, dy = evaluate_cells(self, inside, y, dy)
+            y, dy = evaluate_cells(self, inside, y, dy, coefs[3])
         if dy is None:
             return y.to(x.dtype), None
         y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def dense_coefficients(self) -> tuple:
-        """The coefficients as a dense basis takes them (``_coefficients``): a caller may keep them between calls
-        while the coefficients do not change (``StructuredSchema.body``: its inference cache)."""
-        return self._coefficients(True)
+        """The coefficients as a dense basis takes them (``_coefficients``, and the cells' ``cell_spread``): a caller
+        may keep them between calls while the coefficients do not change (``StructuredSchema.body``: its inference
+        cache)."""
+        cells = cell_spread(self) if self.pieces > 1 and len(self.cell_muscles) else None
+        return self._coefficients(True)[:3] + (cells,)
 
     def _coefficients(self, dense: bool) -> tuple:
-        """The whole-box coefficients (masked: exactly zero off each muscle's terms), and the branched muscles' gates
-        and second polynomials (or None), laid out for a dense or a grouped basis (``ProductTerms.layout``)."""
+        """The whole-box coefficients (masked: exactly zero off each muscle's terms), the branched muscles' gates
+        and second polynomials (or None), laid out for a dense or a grouped basis (``ProductTerms.layout``), and None
+        for the cells' spread coefficients (``evaluate_cells`` builds them; ``dense_coefficients`` keeps them)."""
         layout = lambda coef: self.terms.layout(coef, not dense)  # noqa: E731
         if self.branches != 2 or not len(self.branched_index):
-            return layout(self.coef * self.term_mask), None, None
+            return layout(self.coef * self.term_mask), None, None, None
         muscles = self.branched_index
         return (layout(self.coef * self.term_mask), layout(self.gate[muscles]),
-                layout(self.coef_alt[muscles] * self.term_mask[muscles]))
+                layout(self.coef_alt[muscles] * self.term_mask[muscles]), None)
 
     def _smooth(self, inside: torch.Tensor, slopes: bool, dense: bool, coefs: tuple):
         """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
@@ -260,7 +263,7 @@ class PerMusclePath(nn.Module):
         basis = self.terms(inside, slopes, dense=dense)
         y, dy = self.terms.contract(basis, coefs[0])
         if coefs[1] is not None:  # the active branch per muscle and sample
-            y, dy = self._active_branch(basis, y, dy, *coefs[1:])
+            y, dy = self._active_branch(basis, y, dy, *coefs[1:3])
         return y, dy
 
     def _active_branch(self, basis, y, dy, gate, alt):
@@ -345,6 +348,7 @@ class PerMusclePath(nn.Module):
                                 "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
             self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
         unfold = np.eye(self.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
+        self.register_buffer("cell_rows", torch.arange(len(layout[0]), device=device), persistent=False)
         self.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
         self.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
                              persistent=False)

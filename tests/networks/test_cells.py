@@ -109,6 +109,17 @@ def test_many_postures_by_cell_equal_few_postures_gathered(fitted):
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
 
 
+def test_kept_dense_coefficients_answer_as_the_per_call_ones(fitted):
+    x = _inside(40, 6)  # few postures: the dense basis, the cells' coefficients spread at each posture's cell
+    kept = fitted.dense_coefficients()
+    assert kept[3].shape == (3, 4, len(fitted.cell_exponents))  # (celled muscles, cells, cell terms)
+    for ours, theirs in zip(fitted.with_jacobian(x, kept), fitted.with_jacobian(x)):
+        assert torch.equal(ours, theirs)
+    own = torch.zeros_like(kept[3], dtype=torch.bool).scatter_(2, fitted.cell_order[:, None, :].expand_as(
+        fitted.cell_coef), True)  # spread only on each muscle's own terms
+    assert (kept[3][~own] == 0).all() and (kept[3][own] != 0).any()
+
+
 def test_a_celled_path_assert_exports_with_a_dynamic_batch(fitted):
     assert_exports_with_a_dynamic_batch(fitted)
 
