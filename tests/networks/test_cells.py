@@ -169,6 +169,38 @@ def test_a_path_with_cell_trim_fits_around_a_jump_inside_a_cell():
     assert errors[0] > 1e-3 and errors[1] < 1e-8
 
 
+def _four_pieces(x):
+    """Muscle 0 changes polynomial at x0 = -0.5, 0 and 0.5 (four wraps along one joint); muscles 1 and 2 are low-degree
+    polynomials a whole-box fit represents exactly."""
+    a, b, c = x[:, 0], x[:, 1], x[:, 2]
+    piece = torch.clamp(torch.floor(2 * (a + 1)), 0, 3)
+    kinked = (piece - 1.5) * a ** 2 + torch.where(piece % 2 == 0, a * b, b ** 3) + 0.3 * piece
+    return torch.stack([kinked, b * c + c ** 2, a * c], 1)
+
+
+def test_four_cells_per_joint_follow_a_path_with_four_pieces():
+    """``cells=4``: each joint's range in four; a path that changes polynomial at x0 = -0.5, 0, 0.5 is recovered to
+    1e-9 with its moment arms exact, while two cells per joint straddle two of its seams (the test can fail)."""
+    crossing = np.array([[1, 1, 0], [0, 1, 1], [1, 0, 1]], dtype=bool)
+    x = torch.rand(12000, 3, generator=torch.Generator().manual_seed(8), dtype=torch.float64) * 2 - 1
+    held_out = _inside(1000, 9)
+    held_out = held_out[((held_out[:, :1] - torch.tensor([-0.5, 0.0, 0.5], dtype=torch.float64)).abs() > 1e-3).all(1)]
+    errors = {}
+    for pieces in (2, 4):
+        path = PerMusclePath(crossing, 4, 1, 0, cells=pieces)
+        path.fit_polynomial(x, _four_pieces(x))
+        assert path.cell_muscles.tolist() == [0]
+        y, dy = path.with_jacobian(held_out)
+        errors[pieces] = (y - _four_pieces(held_out))[:, 0].abs().max()
+        if pieces == 4:
+            assert path.cell_stride.tolist() == [[1, 4, 0]] and path.cell_fitted.all()  # 16 cells over (x0, x1)
+            a, b = held_out[:, 0], held_out[:, 1]
+            piece = torch.clamp(torch.floor(2 * (a + 1)), 0, 3)
+            slope = 2 * (piece - 1.5) * a + torch.where(piece % 2 == 0, b, torch.zeros_like(b))
+            np.testing.assert_allclose(dy[:, 0, 0], slope, atol=1e-8)
+    assert errors[4] < 1e-9 and errors[2] > 1e-3
+
+
 BLOCKED = np.array([[0, 0, 1], [0, 0, -1], [-1, 0, 0], [0, -1, -1]])  # muscle 0: (x0, x1) mixed, plus x2 alone
 
 
