@@ -8,7 +8,8 @@ two takes DELT1's and TMAJ's median length error from 0.10 to 0.0001 mm and TRIl
 (candidates: a median residual above ``CELL_MEDIANS`` times the median muscle's) ``pieces ** n`` cells over the
 ``n`` joints they cross, each its own polynomial in the cell's local coordinates (the joint range of the cell
 mapped to [-1, 1], where the Legendre basis is well conditioned), of the highest total degree (at most the muscle's
-own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread. A cell with fewer samples keeps the
+own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread. A cell with fewer samples takes the
+highest degree its own samples allow (``thin_cell_terms``), one too thin for a first-degree polynomial keeps the
 muscle's whole-box model; a muscle keeps its cells only where they at least halve its median residual on the
 fitted samples without a larger p99. Muscles over the same joints share each cell's normal equations (one solve,
 a right-hand side per muscle): a loop over such groups and their cells, none over muscles.
@@ -271,7 +272,7 @@ def _kept(miss: torch.Tensor, own: torch.Tensor, rule: str) -> torch.Tensor:
 
 def _fit_each_cell(path, x, y_m, chunk):
     """Least squares of every celled muscle's cells into ``path.cell_coef (Mc, C, K)`` (0 on padded terms) and
-    ``path.cell_fitted (Mc, C)`` (the cells with ``SAMPLES_PER_TERM`` samples per term). Muscles over the same
+    ``path.cell_fitted (Mc, C)`` (the cells with at least a first-degree polynomial: ``thin_cell_terms``). Muscles over the same
     joints with the same cell terms share their cells' normal equations (the shoulder's muscles: one system per cell
     for all of them, one right-hand side each): a loop over such groups and their cells."""
     k, z = cell_inputs(path, x)
@@ -282,18 +283,33 @@ def _fit_each_cell(path, x, y_m, chunk):
         phi = torch.cat([product_basis(z[i:i + chunk], exponents, int(exponents.max()))[0]
                          for i in range(0, len(x), chunk)])
         cell = k @ path.cell_stride[first]
-        eye = torch.eye(width, dtype=torch.float64, device=x.device)
+        totals = exponents.sum(1).tolist()  # each column's total degree, nondecreasing (the whole-box terms' order)
         for c in range(path.pieces ** int((path.cell_stride[first] > 0).sum())):  # a loop over the group's cells
             rows = torch.nonzero(cell == c).flatten()
-            if len(rows) < SAMPLES_PER_TERM * width:  # a thin cell keeps the whole-box polynomial
+            terms = thin_cell_terms(totals, len(rows))
+            if not terms:  # too few samples for a first-degree polynomial: the whole-box polynomial stays
                 continue
-            phi_c, y_c = phi[rows], y_m[rows][:, members]
+            phi_c, y_c = phi[rows, :terms], y_m[rows][:, members]
             gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_c
+            eye = torch.eye(terms, dtype=torch.float64, device=x.device)
             solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
             if path.cell_trim is not None:
-                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * width)
-            path.cell_coef[members, c, :width] = solution.T
+                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * terms)
+            path.cell_coef[members, c, :terms] = solution.T
             path.cell_fitted[members, c] = True
+
+
+def thin_cell_terms(totals: list, samples: int) -> int:
+    """How many of a cell's leading terms (``totals``: each term's total degree, nondecreasing) its ``samples`` fit:
+    all of them with ``SAMPLES_PER_TERM`` samples each, else those of the highest total degree >= 1 that leaves as
+    many (a cell thinner than the even spread the cell degree assumed: trimming, a joint sampled unevenly), else 0.
+    Before, such a cell kept the whole-box polynomial, which for a muscle whose path jumps misses by tens of mm
+    (myoArm's LAT1 at 200 000 samples: 11 of 64 cells)."""
+    for degree in sorted(set(totals), reverse=True):
+        count = sum(1 for t in totals if t <= degree)
+        if degree >= 1 and count * SAMPLES_PER_TERM <= samples:
+            return count
+    return 0
 
 
 def _trimmed(phi, y, gram, rhs, solution, factor: float, least: int) -> torch.Tensor:

@@ -11,7 +11,8 @@ from physics_checks import assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
-from lightning_bodyschema.networks.cells import _kept, _trimmed, cell_coordinates, cell_cuts, cell_degree
+from lightning_bodyschema.networks.cells import (_kept, _trimmed, cell_coordinates, cell_cuts, cell_degree,
+                                                 thin_cell_terms)
 from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
@@ -65,16 +66,25 @@ def test_cell_moment_arms_are_the_learned_lengths_derivative_and_zero_off_the_cr
     np.testing.assert_allclose(dy[:, 0, 0], true_slope, atol=1e-8)
 
 
-def test_a_thin_cell_keeps_the_whole_box_polynomial():
-    x = torch.rand(3000, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 2 - 1
-    x = x[(x[:, 0] < 0) | (x[:, 1] < 0) | (x[:, 1] > 0.95)]  # the cell x0 > 0, x1 > 0: ~40 samples, 15 terms
+def test_a_thin_cell_takes_the_degree_its_samples_allow():
+    """The cell x0 > 0, x1 > 0 of muscle 0 holds 33 samples spread over it, too few for its 15 terms of degree 4
+    with ``SAMPLES_PER_TERM`` each: it takes degree 3 (10 terms), which is muscle 0's path there, recovered to 1e-9
+    where the whole-box polynomial misses it by more than 1e-3 (the test can fail); a cell with fewer samples than a
+    plane's terms keeps the whole-box polynomial."""
+    generator = torch.Generator().manual_seed(3)
+    x = torch.rand(3000, 3, generator=generator, dtype=torch.float64) * 2 - 1
+    x = x[(x[:, 0] < 0) | (x[:, 1] < 0) | (torch.rand(3000, generator=generator, dtype=torch.float64) < 0.05)]
     path = PerMusclePath(CROSSING, 4, 1, 0, cells=2)
     path.fit_polynomial(x, _lengths(x))
-    assert path.cell_muscles[0] == 0 and path.cell_fitted[0].tolist() == [True, True, True, False]
+    assert path.cell_muscles[0] == 0 and path.cell_fitted[0].all()
+    assert path.cell_coef[0, 3, 10:].abs().max() == 0 and path.cell_coef[0, 3, :10].abs().max() > 0
     whole = PerMusclePath(CROSSING, 4, 1, 0)
     whole.fit_polynomial(x, _lengths(x))
-    thin = torch.tensor([[0.5, 0.95, 0.0], [0.2, 0.5, -0.3]], dtype=torch.float64)
-    torch.testing.assert_close(path(thin)[:, 0], whole(thin)[:, 0], rtol=0, atol=0)
+    thin = torch.tensor([[0.5, 0.9, 0.0], [0.2, 0.5, -0.3], [0.9, 0.1, 0.7]], dtype=torch.float64)
+    np.testing.assert_allclose(path(thin)[:, 0], _lengths(thin)[:, 0], atol=1e-9)
+    assert (whole(thin)[:, 0] - _lengths(thin)[:, 0]).abs().max() > 1e-3
+    assert thin_cell_terms([0, 1, 1, 2, 2, 2], 18) == 6 and thin_cell_terms([0, 1, 1, 2, 2, 2], 17) == 3
+    assert thin_cell_terms([0, 1, 1, 2, 2, 2], 8) == 0  # not even a plane: the whole-box polynomial stays
 
 
 def test_cells_survive_a_state_dict_round_trip(fitted):
