@@ -9,10 +9,11 @@ two takes DELT1's and TMAJ's median length error from 0.10 to 0.0001 mm and TRIl
 ``n`` joints they cross, each its own polynomial in the cell's local coordinates (the joint range of the cell
 mapped to [-1, 1], where the Legendre basis is well conditioned), of the highest total degree (at most the muscle's
 own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread. A cell with fewer samples takes the
-highest degree its own samples allow (``thin_cell_terms``), one too thin for a first-degree polynomial keeps the
-muscle's whole-box model; a muscle keeps its cells only where they at least halve its median residual on the
-fitted samples without a larger p99. Muscles over the same joints share each cell's normal equations (one solve,
-a right-hand side per muscle): a loop over such groups and their cells, none over muscles.
+highest degree its own samples allow (``thin_cell_terms``) where that halves the whole-box model's median miss on
+its samples, else (and when too thin for a first-degree polynomial) it keeps the muscle's whole-box model; a
+muscle keeps its cells only where they at least halve its median residual on the fitted samples without a larger
+p99. Muscles over the same joints share each cell's normal equations (one solve, a right-hand side per muscle): a
+loop over such groups and their cells, none over muscles.
 
 A wrap can switch sides inside a cell: the length jumps there (17 to 20 mm on myoArm's shoulder, BIClong, TMAJ,
 DELT1), and one polynomial over both sides rings over the whole cell. With ``PerMusclePath(cell_trim=factor)`` each
@@ -242,7 +243,7 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
                                         for a, d, c, n in zip(path.block_sizes, own_degree, candidates, cuts)],
                                        device=median.device))
-    _fit_each_cell(path, x, y[:, path.cell_muscles], chunk)
+    _fit_each_cell(path, x, y[:, path.cell_muscles], r[:, path.cell_muscles], chunk)
     muscles = path.cell_muscles
     miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])
     miss, own = miss.abs(), r[:, muscles]
@@ -270,11 +271,13 @@ def _kept(miss: torch.Tensor, own: torch.Tensor, rule: str) -> torch.Tensor:
     return keep
 
 
-def _fit_each_cell(path, x, y_m, chunk):
+def _fit_each_cell(path, x, y_m, own, chunk):
     """Least squares of every celled muscle's cells into ``path.cell_coef (Mc, C, K)`` (0 on padded terms) and
-    ``path.cell_fitted (Mc, C)`` (the cells with at least a first-degree polynomial: ``thin_cell_terms``). Muscles over the same
-    joints with the same cell terms share their cells' normal equations (the shoulder's muscles: one system per cell
-    for all of them, one right-hand side each): a loop over such groups and their cells."""
+    ``path.cell_fitted (Mc, C)``: a cell of fewer samples than its terms need takes fewer terms
+    (``thin_cell_terms``), and only where it halves the median miss of the muscle's whole-box model ``own (S, Mc)``
+    on its samples (a plane can be worse than a good whole-box polynomial). Muscles over the same joints with the same
+    cell terms share their cells' normal equations (the shoulder's muscles: one system per cell for all of them, one
+    right-hand side each): a loop over such groups and their cells."""
     k, z = cell_inputs(path, x)
     for start, end, width in path.cell_group_bounds:  # a loop over groups of muscles that share joints and terms
         members = path.cell_perm[start:end]
@@ -295,8 +298,12 @@ def _fit_each_cell(path, x, y_m, chunk):
             solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
             if path.cell_trim is not None:
                 solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * terms)
-            path.cell_coef[members, c, :terms] = solution.T
-            path.cell_fitted[members, c] = True
+            better = torch.ones(len(members), dtype=torch.bool, device=x.device)
+            if terms < width:  # a thin cell replaces the whole-box polynomial only where it halves its miss there
+                miss = (phi_c @ solution - y_c).abs().median(0).values
+                better = miss * CELL_GAIN <= own[rows][:, members].median(0).values
+            path.cell_coef[members[better], c, :terms] = solution.T[better]
+            path.cell_fitted[members[better], c] = True
 
 
 def thin_cell_terms(totals: list, samples: int) -> int:
@@ -304,7 +311,8 @@ def thin_cell_terms(totals: list, samples: int) -> int:
     all of them with ``SAMPLES_PER_TERM`` samples each, else those of the highest total degree >= 1 that leaves as
     many (a cell thinner than the even spread the cell degree assumed: trimming, a joint sampled unevenly), else 0.
     Before, such a cell kept the whole-box polynomial, which for a muscle whose path jumps misses by tens of mm
-    (myoArm's LAT1 at 200 000 samples: 11 of 64 cells)."""
+    (myoArm's LAT1 at 200 000 samples: 11 of 64 cells); ``_fit_each_cell`` keeps such a cell only where it does
+    better."""
     for degree in sorted(set(totals), reverse=True):
         count = sum(1 for t in totals if t <= degree)
         if degree >= 1 and count * SAMPLES_PER_TERM <= samples:

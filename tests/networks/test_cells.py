@@ -276,3 +276,25 @@ def test_which_cells_are_kept():
     assert _kept(miss, own, "median_and_p99").tolist() == [False, False, True]
     with pytest.raises(BodySchemaInputError, match=r"cell_keep='p99'; allowed: \['median_and_p99', 'median'\]"):
         PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_keep="p99")
+
+
+def test_a_thin_cell_worse_than_the_whole_box_polynomial_is_not_used():
+    """Muscle 0 kinks (mildly) along x0 = 0 where x1 < 0 (a whole-box polynomial rings a little everywhere); its cell x0 > 0,
+    x1 > 0 (where the path is x0 ** 2 + x1 ** 2) holds 14 samples: room for a plane only, which misses the curve by
+    far more than the whole-box polynomial does, so that cell keeps the whole-box polynomial (the others are cells)."""
+    generator = torch.Generator().manual_seed(5)
+    x = torch.rand(3000, 3, generator=generator, dtype=torch.float64) * 2 - 1
+    x = x[(x[:, 0] < 0) | (x[:, 1] < 0) | (torch.rand(3000, generator=generator, dtype=torch.float64) < 0.016)]
+    assert int(((x[:, 0] > 0) & (x[:, 1] > 0)).sum()) == 14
+
+    def lengths(x):
+        kinked = x[:, 0] ** 2 + x[:, 1] ** 2 + 0.05 * x[:, 0].abs() * (x[:, 1] < 0)
+        return torch.stack([kinked, x[:, 1] * x[:, 2], x[:, 0] * x[:, 2]], 1)
+    crossing = np.array([[1, 1, 0], [0, 1, 1], [1, 0, 1]], dtype=bool)
+    path = PerMusclePath(crossing, 4, 1, 0, cells=2)
+    path.fit_polynomial(x, lengths(x))
+    whole = PerMusclePath(crossing, 4, 1, 0)
+    whole.fit_polynomial(x, lengths(x))
+    assert path.cell_muscles.tolist() == [0] and path.cell_fitted[0].tolist() == [True, True, True, False]
+    inside = torch.tensor([[0.5, 0.5, 0.0], [0.2, 0.8, -0.3]], dtype=torch.float64)
+    torch.testing.assert_close(path(inside)[:, 0], whole(inside)[:, 0], rtol=0, atol=0)
