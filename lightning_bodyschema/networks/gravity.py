@@ -127,8 +127,8 @@ class GravityTorque(nn.Module):
 
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
-        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics); ``full``:
-        ``full_q(q)`` when the caller has it.
+        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics);
+        ``full``: ``full_q(q)`` when the caller has it.
 
         Every body offset and joint motion is a node of the tree with its 4x4 transform; each node's world pose is
         the product along its ancestors, by pointer jumping (each round a node takes its pointer's product and

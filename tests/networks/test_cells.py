@@ -279,9 +279,10 @@ def test_which_cells_are_kept():
 
 
 def test_a_thin_cell_worse_than_the_whole_box_polynomial_is_not_used():
-    """Muscle 0 kinks (mildly) along x0 = 0 where x1 < 0 (a whole-box polynomial rings a little everywhere); its cell x0 > 0,
-    x1 > 0 (where the path is x0 ** 2 + x1 ** 2) holds 14 samples: room for a plane only, which misses the curve by
-    far more than the whole-box polynomial does, so that cell keeps the whole-box polynomial (the others are cells)."""
+    """Muscle 0 kinks (mildly) along x0 = 0 where x1 < 0 (a whole-box polynomial rings a little everywhere); its cell
+    x0 > 0, x1 > 0 (where the path is x0 ** 2 + x1 ** 2) holds 14 samples: room for a plane only, which misses the
+    curve by far more than the whole-box polynomial does, so that cell keeps the whole-box polynomial (the others
+    are cells)."""
     generator = torch.Generator().manual_seed(5)
     x = torch.rand(3000, 3, generator=generator, dtype=torch.float64) * 2 - 1
     x = x[(x[:, 0] < 0) | (x[:, 1] < 0) | (torch.rand(3000, generator=generator, dtype=torch.float64) < 0.016)]
