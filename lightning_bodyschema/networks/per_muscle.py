@@ -240,22 +240,23 @@ class PerMusclePath(nn.Module):
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def dense_coefficients(self) -> tuple:
-        """The coefficients as a dense basis takes them (``_coefficients``, and the cells' ``cell_spread``): a caller
-        may keep them between calls while the coefficients do not change (``StructuredSchema.body``: its inference
-        cache)."""
-        cells = cell_spread(self) if self.pieces > 1 and len(self.cell_muscles) else None
-        return self._coefficients(True)[:3] + (cells,)
+        """The coefficients as a dense basis takes them (``_coefficients``): a caller may keep them between calls
+        while the coefficients do not change (``StructuredSchema.body``: its inference cache)."""
+        return self._coefficients(True)
 
     def _coefficients(self, dense: bool) -> tuple:
         """The whole-box coefficients (masked: exactly zero off each muscle's terms), the branched muscles' gates
-        and second polynomials (or None), laid out for a dense or a grouped basis (``ProductTerms.layout``), and None
-        for the cells' spread coefficients (``evaluate_cells`` builds them; ``dense_coefficients`` keeps them)."""
+        and second polynomials (or None), laid out for a dense or a grouped basis (``ProductTerms.layout``), and for
+        a dense basis the cells' coefficients spread on their terms (``cells.cell_spread``; else None: the grouped
+        evaluation and an exported program read ``cell_coef``)."""
         layout = lambda coef: self.terms.layout(coef, not dense)  # noqa: E731
+        cells = self.pieces > 1 and len(self.cell_muscles) and dense and not torch.compiler.is_exporting()
+        spread = cell_spread(self) if cells else None
         if self.branches != 2 or not len(self.branched_index):
-            return layout(self.coef * self.term_mask), None, None, None
+            return layout(self.coef * self.term_mask), None, None, spread
         muscles = self.branched_index
         return (layout(self.coef * self.term_mask), layout(self.gate[muscles]),
-                layout(self.coef_alt[muscles] * self.term_mask[muscles]), None)
+                layout(self.coef_alt[muscles] * self.term_mask[muscles]), spread)
 
     def _smooth(self, inside: torch.Tensor, slopes: bool, dense: bool, coefs: tuple):
         """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``

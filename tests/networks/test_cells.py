@@ -12,7 +12,7 @@ from physics_checks import assert_exports_with_a_dynamic_batch
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
 from lightning_bodyschema.networks.cells import (_kept, _trimmed, cell_coordinates, cell_cuts, cell_degree,
-                                                 thin_cell_terms)
+                                                 cell_spread, thin_cell_terms)
 from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
@@ -119,15 +119,20 @@ def test_many_postures_by_cell_equal_few_postures_gathered(fitted):
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
 
 
-def test_kept_dense_coefficients_answer_as_the_per_call_ones(fitted):
-    x = _inside(40, 6)  # few postures: the dense basis, the cells' coefficients spread at each posture's cell
-    kept = fitted.dense_coefficients()
-    assert kept[3].shape == (3, 4, len(fitted.cell_exponents))  # (celled muscles, cells, cell terms)
-    for ours, theirs in zip(fitted.with_jacobian(x, kept), fitted.with_jacobian(x)):
+def test_the_cells_spread_coefficients_are_each_muscles_own(fitted):
+    """``cell_spread``: in each cell, a muscle's coefficients on the cell terms it uses and zero elsewhere, so a
+    product with any basis row equals the product with that muscle's own columns; the kept ones answer as the
+    ones built per call."""
+    spread = cell_spread(fitted)  # (celled muscles, cells, cell terms)
+    assert spread.shape == (3, 4, len(fitted.cell_exponents))
+    v = torch.rand(len(fitted.cell_exponents), generator=torch.Generator().manual_seed(7), dtype=torch.float64)
+    own = torch.einsum("mk,mck->mc", v[fitted.cell_order] * fitted.cell_valid, fitted.cell_coef)
+    torch.testing.assert_close(spread @ v, own, rtol=1e-14, atol=0)
+    used = torch.zeros(3, len(v), dtype=torch.bool).scatter_(1, fitted.cell_order, fitted.cell_valid)
+    assert (spread[~used[:, None, :].expand_as(spread)] == 0).all()
+    x = _inside(40, 6)  # few postures: the dense basis
+    for ours, theirs in zip(fitted.with_jacobian(x, fitted.dense_coefficients()), fitted.with_jacobian(x)):
         assert torch.equal(ours, theirs)
-    own = torch.zeros_like(kept[3], dtype=torch.bool).scatter_(2, fitted.cell_order[:, None, :].expand_as(
-        fitted.cell_coef), True)  # spread only on each muscle's own terms
-    assert (kept[3][~own] == 0).all() and (kept[3][own] != 0).any()
 
 
 def test_a_celled_path_assert_exports_with_a_dynamic_batch(fitted):
