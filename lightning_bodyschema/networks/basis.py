@@ -74,11 +74,14 @@ class ProductTerms(nn.Module):
     exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
     ``forward(x, slopes)`` returns a ``Basis``; ``contract`` applies coefficients given in the terms' original order
-    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). Buffers only,
-    none persistent (a checkpoint's state dict is unchanged); plain PyTorch.
+    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). ``stacked(x)``
+    gives each term and its slopes in one tensor at few postures, each variable's slope added into its output
+    column ``columns (N,)`` (None: its own; several variables may share one: a joint and its cell coordinate in
+    ``networks.few_postures``). Buffers only, none persistent (a checkpoint's state dict is unchanged); plain
+    PyTorch.
     """
 
-    def __init__(self, exponents):
+    def __init__(self, exponents, columns=None):
         super().__init__()
         exponents = np.asarray(exponents, dtype=np.int64)
         self.n_joints, self.degree = exponents.shape[1], max(int(exponents.max(initial=0)), 1)
@@ -94,8 +97,12 @@ class ProductTerms(nn.Module):
         self.n_slots = max(1, int((exponents > 0).sum(1).max(initial=0)))
         slot_joint = np.argsort(exponents == 0, axis=1, kind="stable")[:, :self.n_slots]
         flat = slot_joint * (self.degree + 1) + np.take_along_axis(exponents, slot_joint, 1)
+        columns = np.arange(self.n_joints) if columns is None else np.asarray(columns, dtype=np.int64)
+        self.n_columns = int(columns.max(initial=-1)) + 1
+        stacked = np.concatenate([np.zeros((len(slot_joint), 1), np.int64), 1 + columns[slot_joint]], 1)
         for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.reshape(-1), **long),
                                 slot_joint=torch.tensor(slot_joint, **long), exponents=torch.tensor(exponents, **long),
+                                stacked_index=torch.tensor(stacked, **long),  # (P, 1 + slots): ``stacked``'s columns
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):
@@ -125,7 +132,8 @@ class ProductTerms(nn.Module):
     def _legendre(self, x: torch.Tensor, slopes: bool):
         """``P_0..P_degree`` of ``x (B, N)`` and (or None) their slopes: ``(B, N, degree + 1)``."""
         # x^k as repeated products (as the grouped path's; pow is slower and rounds differently)
-        powers = F.pad(x[..., None].expand(*x.shape, self.degree).cumprod(-1), (1, 0), value=1.0)
+        rising = x[..., None].expand(*x.shape, self.degree).cumprod(-1)
+        powers = torch.cat([torch.ones_like(rising[..., :1]), rising], -1)  # (a pad costs several times a cat)
         return powers @ self.to_values, (powers @ self.to_slopes) if slopes else None
 
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
@@ -146,14 +154,26 @@ class ProductTerms(nn.Module):
         gathered at once (myoArm's paths: 3 slots of 7 joints), each slope added into its joint's column."""
         shape = (len(values), -1, self.n_slots)
         factors = self._gather(values).view(shape)  # (B, P, slots)
-        phi = factors.prod(-1)
         if derivs is None:
-            return Basis(phi, None, False)
-        before = F.pad(factors[..., :-1].cumprod(-1), (1, 0), value=1.0)  # prod_{i<j} factor_i
-        after = F.pad(factors[..., 1:].flip(-1).cumprod(-1).flip(-1), (0, 1), value=1.0)  # prod_{i>j} factor_i
-        slopes = self._gather(derivs).view(shape) * before * after
+            return Basis(_slot_products(factors.unbind(-1), None)[0], None, False)
+        phi, slopes = _slot_products(factors.unbind(-1), self._gather(derivs).view(shape).unbind(-1))
         index = self.slot_joint.expand(len(values), -1, -1)
-        return Basis(phi, slopes.new_zeros(*phi.shape, self.n_joints).scatter_add_(2, index, slopes), False)
+        return Basis(phi, phi.new_zeros(*phi.shape, self.n_joints).scatter_add_(2, index, torch.stack(slopes, -1)),
+                     False)
+
+    def stacked(self, x: torch.Tensor, scale: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Every term and its slopes at few postures ``x (B, V)`` (float64) in one tensor ``(B, P, 1 + n_columns)``:
+        column 0 the term, then each variable's slope added into its output column (``columns``; with ``scale (V,)``
+        times ``d variable / d output``): a contraction with coefficients ``(R, P)`` then gives values and slopes in
+        one product (``networks.few_postures``)."""
+        values, derivs = self._legendre(x, True)
+        shape = (len(x), -1, self.n_slots)
+        derivs = derivs if scale is None else derivs * scale[:, None]
+        phi, slopes = _slot_products(self._gather(values).view(shape).unbind(-1),
+                                     self._gather(derivs).view(shape).unbind(-1))
+        parts = torch.stack([phi] + slopes, -1)
+        index = self.stacked_index.expand(len(x), -1, -1)
+        return parts.new_zeros(*phi.shape, 1 + self.n_columns).scatter_add_(2, index, parts)
 
     def _gather(self, table: torch.Tensor) -> torch.Tensor:
         """Every term's factor per slot ``(B, P * slots)`` from ``table (B, N, degree + 1)`` (``gather``: the fastest
@@ -208,6 +228,23 @@ class ProductTerms(nn.Module):
         if basis.dphi is None or not slopes:
             return y, None
         return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, by_joint)], -1)
+
+
+def _slot_products(factors: tuple, derivs: Optional[tuple]) -> tuple:
+    """``phi`` (the product of ``factors``, one ``(B, P)`` per slot) and, with ``derivs`` (the same), each slot's
+    slope ``derivs_j`` times the product of the other slots' factors (else None): products of the slots before and
+    after each, associated as padded cumulative products would be (the same bits), one elementwise product at a
+    time (at one posture a pad or a flip costs several)."""
+    before, after = [None, factors[0]], [None] * len(factors)  # prod_{i<j} factor_i, prod_{i>j} factor_i
+    for j in range(2, len(factors)):
+        before.append(before[-1] * factors[j - 1])
+    for j in range(len(factors) - 2, -1, -1):
+        after[j] = factors[j + 1] if after[j + 1] is None else after[j + 1] * factors[j + 1]
+    phi = factors[0] if len(factors) == 1 else before[-1] * factors[-1]
+    if derivs is None:
+        return phi, None
+    times = lambda a, b: a if b is None else a * b  # noqa: E731
+    return phi, [times(times(d, b), a) for d, b, a in zip(derivs, before, after)]
 
 
 def _product_into(out: torch.Tensor, factors: list) -> torch.Tensor:

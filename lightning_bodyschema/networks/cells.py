@@ -40,7 +40,7 @@ import torch
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .basis import dense_for, product_basis
+from .basis import product_basis
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 from .trim import trimmed_refits
@@ -146,18 +146,17 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
     return dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
 
 
-def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy, spread: Optional[torch.Tensor] = None):
+def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
-    fitted; ``x`` is inside the box, float64. Few postures (``basis.dense_for``): one basis of every cell term and
-    each muscle's coefficients at its posture's cell spread on every term (``cell_spread``, or ``spread`` when the
-    caller keeps it; ``_contract``: fewest operations). Many: a loop over the groups of muscles that share joints
-    and cell terms (a posture's cell and basis are the group's), the postures sorted by cell and each cell's one
-    matrix product (no ``(B, muscles, terms)`` gathers)."""
+    fitted; ``x`` is inside the box, float64. A loop over the groups of muscles that share joints and cell terms (a
+    posture's cell and basis are the group's), the postures sorted by cell and each cell's one matrix product (no
+    ``(B, muscles, terms)`` gathers); an exported program gathers each muscle's cell coefficients for one basis of
+    every cell term (one path for any batch). Few postures in eager: ``networks.few_postures``."""
     k, z = cell_inputs(path, x)
-    if dense_for(x):
+    if torch.compiler.is_exporting():
         cell = k @ path.cell_stride.T  # (B, Mc): each celled muscle's cell
         basis = path.cell_terms_all(z, dy is not None, dense=True)
-        y_cell, dy_cell = _contract(path, basis, cell, spread)
+        y_cell, dy_cell = _contract(path, basis, cell)
         dy_cell = None if dy is None else _fold(path, dy_cell)
         return _replace(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
@@ -172,26 +171,20 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy, spread: Optional[
 
 def cell_spread(path) -> torch.Tensor:
     """Every celled muscle's coefficients in each of its cells spread on every cell term, ``(Mc, C, T)``: zero off
-    its own terms (a sum: the padding's zeros land on column 0 too). The dense evaluation takes a posture's cell's
-    rows (one index, not a gather and a scatter per call); a caller may keep it while the coefficients do not change
-    (``PerMusclePath.dense_coefficients``)."""
+    its own terms (a sum: the padding's zeros land on column 0 too). The evaluation at few postures takes a
+    posture's cell's rows (``networks.few_postures``: one index, not a gather and a scatter per call)."""
     coef = path.cell_coef
     index = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
     return coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, index, coef)
 
 
-def _contract(path, basis, cell: torch.Tensor, spread: Optional[torch.Tensor]):
+def _contract(path, basis, cell: torch.Tensor):
     """Each celled muscle's cell polynomial ``(B, Mc)`` and its slopes ``(B, Mc, N + E)`` (or None) at its posture's
-    ``cell (B, Mc)`` from a dense basis of every cell term: the rows of ``spread`` (``cell_spread``; None: built
-    here) times the basis, not a gather of every muscle's columns of it (``(B, Mc, K, N + E)``, the costliest
-    operation at one posture). An exported program gathers each muscle's own columns (a scatter specializes the
-    batch under vmap in torch.export)."""
-    if torch.compiler.is_exporting():
-        coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
-        y = (basis.phi[:, order] * coef).sum(-1)
-        return y, None if basis.dphi is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
-    at_cell = (cell_spread(path) if spread is None else spread)[path.cell_rows[None, :], cell]  # (B, Mc, T)
-    return (at_cell @ basis.phi[:, :, None])[..., 0], None if basis.dphi is None else at_cell @ basis.dphi
+    ``cell (B, Mc)`` from a dense basis of every cell term, in an exported program: each muscle's own columns of the
+    basis times its cell's coefficients (a gather; a scatter would specialize the batch under vmap)."""
+    coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
+    y = (basis.phi[:, order] * coef).sum(-1)
+    return y, None if basis.dphi is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
 
 
 def _by_cell(terms, coef, z, cell, slopes):

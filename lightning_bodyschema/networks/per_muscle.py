@@ -34,8 +34,9 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, cell_spread, evaluate_cells, fit_cells
+from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
+from .few_postures import FewCoefficients, evaluate_few, few_coefficients
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -210,53 +211,53 @@ class PerMusclePath(nn.Module):
         """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)`` of every term (``product_basis``)."""
         return product_basis(x, self.exponents, self.degree, slopes)
 
-    def polynomial(self, x: torch.Tensor, slopes: bool = False, dense_coefs: Optional[tuple] = None):
+    def polynomial(self, x: torch.Tensor, slopes: bool = False, dense_coefs: Optional[FewCoefficients] = None):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
-        ``dense_coefs``: ``dense_coefficients()`` when the caller keeps them (used when the basis is dense).
+        ``dense_coefs``: ``dense_coefficients()`` when the caller keeps them (used at few postures).
 
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        The whole-box polynomials of large batches are evaluated in blocks of rows (their basis holds ~2N + 3
-        ``(rows, P)`` tensors; blocks that stay in cache are faster too), the cells a cell at a time."""
+        Up to ``basis.DENSE_ROWS`` postures every part from one basis (``networks.few_postures``); above, the
+        whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay in
+        cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
         x64 = x.to(torch.float64)
-        inside = torch.maximum(torch.minimum(x64, self.x_hi), self.x_lo)
+        inside = torch.clamp(x64, self.x_lo, self.x_hi)
+        exporting = torch.compiler.is_exporting()
+        if not exporting and dense_for(inside):
+            y, dy = evaluate_few(self, x64, inside, self.dense_coefficients() if dense_coefs is None else dense_coefs)
+            return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         derive = slopes or not torch.equal(inside, x64)
         rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
-        one_block = torch.compiler.is_exporting() or len(x) <= rows  # an exported program: one path for any batch
-        dense = one_block and dense_for(inside)  # blocks of rows are grouped, a short last one too
-        coefs = dense_coefs if dense and dense_coefs is not None else self._coefficients(dense)  # once per call
-        if one_block:
-            y, dy = self._smooth(inside, derive, dense, coefs)
+        coefs = self._coefficients(exporting)  # once per call
+        if exporting or len(x) <= rows:
+            y, dy = self._smooth(inside, derive, exporting, coefs)
         else:
-            parts = [self._smooth(inside[start:start + rows], derive, dense, coefs)
+            parts = [self._smooth(inside[start:start + rows], derive, False, coefs)
                      for start in range(0, len(x), rows)]
             y, dy = torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if derive else None
         if self.pieces > 1 and len(self.cell_muscles):
-            y, dy = evaluate_cells(self, inside, y, dy, coefs[3])
+            y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
         y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
-    def dense_coefficients(self) -> tuple:
-        """The coefficients as a dense basis takes them (``_coefficients``): a caller may keep them between calls
-        while the coefficients do not change (``StructuredSchema.body``: its inference cache)."""
-        return self._coefficients(True)
+    def dense_coefficients(self) -> FewCoefficients:
+        """What the evaluation at few postures reads from the coefficients (``few_postures.few_coefficients``): a
+        caller may keep it while they do not change (``StructuredSchema.body``: its inference cache)."""
+        return few_coefficients(self)
 
     def _coefficients(self, dense: bool) -> tuple:
         """The whole-box coefficients (masked: exactly zero off each muscle's terms), the branched muscles' gates
-        and second polynomials (or None), laid out for a dense or a grouped basis (``ProductTerms.layout``), and for
-        a dense basis the cells' coefficients spread on their terms (``cells.cell_spread``; else None: the grouped
-        evaluation and an exported program read ``cell_coef``)."""
+        and second polynomials (or None), laid out for a dense basis (an exported program's) or a grouped one
+        (``ProductTerms.layout``)."""
         layout = lambda coef: self.terms.layout(coef, not dense)  # noqa: E731
-        cells = self.pieces > 1 and len(self.cell_muscles) and dense and not torch.compiler.is_exporting()
-        spread = cell_spread(self) if cells else None
         if self.branches != 2 or not len(self.branched_index):
-            return layout(self.coef * self.term_mask), None, None, spread
+            return layout(self.coef * self.term_mask), None, None
         muscles = self.branched_index
         return (layout(self.coef * self.term_mask), layout(self.gate[muscles]),
-                layout(self.coef_alt[muscles] * self.term_mask[muscles]), spread)
+                layout(self.coef_alt[muscles] * self.term_mask[muscles]))
 
     def _smooth(self, inside: torch.Tensor, slopes: bool, dense: bool, coefs: tuple):
         """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
@@ -344,7 +345,8 @@ class PerMusclePath(nn.Module):
         device = self.coef.device  # (a fit sets the cells on its own device, a GPU's too)
         self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
                                         for start, _, width in self.cell_group_bounds).to(device)  # each group's
-        self.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (few postures: all at once)
+        self.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
+        self._set_few_terms(layout[2], extra)
         for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
                                 "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
             self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
@@ -357,6 +359,19 @@ class PerMusclePath(nn.Module):
                                                       device=self.coef.device))
         self.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
                                                         device=self.coef.device))
+
+    def _set_few_terms(self, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
+        """``few_terms``: the whole-box and the cell terms over the variables of ``few_postures.evaluate_few`` (the
+        joints, their cell coordinates, the ``extra`` joints the cells keep whole), each variable's slope into its
+        joint's column, times ``few_scale`` (``d local / d x = pieces`` on the cell coordinates)."""
+        exponents, n_joints = self._cell_sources[1], self.crossing.shape[1]
+        merged = np.zeros((len(exponents) + len(cell_exponents), 2 * n_joints + len(extra)), np.int64)
+        merged[:len(exponents), :n_joints], merged[len(exponents):, n_joints:] = exponents, cell_exponents
+        columns = np.concatenate([np.arange(n_joints), np.arange(n_joints), extra])
+        self.few_terms = ProductTerms(merged, columns).to(self.coef.device)
+        scale = np.ones(len(columns))
+        scale[n_joints:2 * n_joints] = self.pieces
+        self.register_buffer("few_scale", torch.tensor(scale, device=self.coef.device), persistent=False)
 
     @torch.no_grad()
     def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3,

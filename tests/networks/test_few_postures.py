@@ -1,0 +1,61 @@
+"""networks.few_postures: a per-muscle path at few postures (one basis for the whole-box polynomials, the branches and
+the cells, one gather of each muscle's choice) answers as the blockwise evaluation of many postures, with moment arms
+that are its lengths' derivative, in float64."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from physics_checks import central_differences
+
+from lightning_bodyschema.networks.basis import DENSE_ROWS
+from lightning_bodyschema.networks.per_muscle import PerMusclePath
+
+CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=bool)
+
+
+def _lengths(x):
+    """Muscle 0 jumps by 1.5 across the plane x0 + 0.3 x1 = 0.2 (a wrap switching sides: branches); muscle 1 changes
+    polynomial at x2 = 0 (a path smooth in pieces: cells); muscles 2 and 3 are smooth."""
+    a, b, c = x[:, 0], x[:, 1], x[:, 2]
+    jump = torch.where(a + 0.3 * b > 0.2, 1.5 + a - 0.5 * b ** 2, a * b + 0.2 * a ** 3)
+    pieces = torch.where(c > 0, a * c + c ** 2, a * c - c ** 3)
+    return torch.stack([jump, pieces, b * c + b ** 3, a * b * c], 1)
+
+
+@pytest.fixture(scope="module")
+def path():
+    x = torch.rand(20000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 1.8 - 0.9
+    path = PerMusclePath(CROSSING, 6, 1, 0, branches=2, gate_degree=2, cells=2)
+    path.fit_polynomial(x, _lengths(x))
+    assert path.branched_index.tolist() == [0] and path.cell_muscles.tolist() == [1]
+    path.cell_fitted[0, 0] = False  # a cell the fit left to the whole-box polynomial (a thin cell's fallback)
+    return path
+
+
+def _postures(n, seed):
+    """Postures over the box and beyond it (the box is [-0.9, 0.9]^3: a first-order extension outside)."""
+    return torch.rand(n, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 2.2 - 1.1
+
+
+def test_few_postures_answer_as_the_blockwise_evaluation(path):
+    x = _postures(600, 1)
+    y, dy = path.with_jacobian(x)  # above DENSE_ROWS: blocks of rows, the cells a group and a cell at a time
+    assert ((x[:, 0] + 0.3 * x[:, 1] > 0.2).any() and (x[:, 0] + 0.3 * x[:, 1] < 0.2).any()  # both branches,
+            and (x.abs() > 0.9).any(1).sum() > 100)  # many postures outside the box
+    cell = (path.cell_stride[0] * (x > 0)).sum(1)  # muscle 1's cell (x0, x2 cut at 0)
+    assert (cell == 0).sum() > 50  # the unfitted cell: the whole-box polynomial there
+    for rows in (1, 7, DENSE_ROWS):
+        parts = [path.with_jacobian(x[i:i + rows]) for i in range(0, 600 if rows > 1 else 60, rows)]
+        n = sum(len(p[0]) for p in parts)
+        torch.testing.assert_close(torch.cat([p[0] for p in parts]), y[:n], rtol=0, atol=1e-13)
+        torch.testing.assert_close(torch.cat([p[1] for p in parts]), dy[:n], rtol=0, atol=1e-12)
+        assert (torch.cat([p[1] for p in parts])[:, ~torch.as_tensor(CROSSING)] == 0).all()  # exactly
+
+
+def test_few_postures_moment_arms_are_their_lengths_derivative(path):
+    x = _postures(40, 2).clamp(-0.89, 0.89)  # inside the box: the polynomials themselves
+    x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)]
+    y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
+    assert len(x) <= DENSE_ROWS and len(x) > 30
+    np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
