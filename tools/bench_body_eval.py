@@ -4,12 +4,13 @@
     python tools/bench_body_eval.py --ckpt CKPT [--batches 1 4000] [--repeats 5] [--paths]
 
 At ``--batches`` seeded uniform postures of the checkpoint's robot: ``body_si`` (lengths, moment arms and torque as
-float64 arrays), the length model's ``with_jacobian`` and the torque, in ms per call (medians of ``--repeats``
-rounds; at batch 1 each round times 100 calls). Only public calls: run it from another worktree (its
-``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths`` (a per-muscle checkpoint) also
-the length model with every basis dense and every basis grouped by support (``networks.basis.DENSE_ROWS`` forced),
-and a gravity torque's forward kinematics by pointer jumping and node by node (``networks.gravity.JUMP_ROWS``
-forced): the figures behind the two thresholds. One torch thread; the load average is printed with the figures.
+float64 arrays), the length model's ``with_jacobian`` (with its coefficients as the schema keeps them) and the
+torque, in ms per call (medians of ``--repeats`` rounds; at batch 1 each round times 100 calls). Only public calls:
+run it from another worktree (its ``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths``
+(a per-muscle checkpoint) also the length model by the few-postures path and by blocks of rows
+(``networks.few_postures.FEW_ROWS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
+by node (``networks.gravity.JUMP_ROWS`` forced): the figures behind the two thresholds. One torch thread; the load
+average is printed with the figures.
 """
 import argparse
 import os
@@ -42,18 +43,20 @@ def rows(schema, batch: int, repeats: int, paths: bool):
     """``(label, ms)`` pairs at ``batch`` postures."""
     q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(0), batch))
     q_n = schema.normalizer.encode_q(q.to(torch.float64)).to(schema.dtype)
+    kept = getattr(schema.length_net, "dense_coefficients", lambda: None)()  # as the schema keeps them (per-muscle)
+    lengths = (lambda: schema.length_net.with_jacobian(q_n)) if kept is None else \
+        (lambda: schema.length_net.with_jacobian(q_n, kept))
     out = [("body_si", ms_per_call(lambda: schema.body_si(q), batch, repeats)),
-           ("lengths and moment arms", ms_per_call(lambda: schema.length_net.with_jacobian(q_n), batch, repeats)),
+           ("lengths and moment arms", ms_per_call(lengths, batch, repeats)),
            ("torque", ms_per_call(lambda: schema.torque(q_n), batch, repeats))]
     if paths:
-        from lightning_bodyschema.networks import basis
+        from lightning_bodyschema.networks import few_postures
 
-        kept = basis.DENSE_ROWS
-        for label, rows_dense in (("every basis dense", 10 ** 9), ("every basis grouped", 0)):
-            basis.DENSE_ROWS = rows_dense
-            out.append((f"lengths, {label}", ms_per_call(lambda: schema.length_net.with_jacobian(q_n), batch,
-                                                         repeats)))
-        basis.DENSE_ROWS = kept
+        rows_few = few_postures.FEW_ROWS
+        for label, rows in (("few-postures path", 10 ** 9), ("blockwise path", 0)):
+            few_postures.FEW_ROWS = rows
+            out.append((f"lengths, {label}", ms_per_call(lengths, batch, repeats)))
+        few_postures.FEW_ROWS = rows_few
         if schema.hparams.get("torque_model") == "gravity":
             from lightning_bodyschema.networks import gravity
 
@@ -71,7 +74,8 @@ def main(argv=None):
     parser.add_argument("--ckpt", required=True, help="a trained StructuredSchema checkpoint with its model")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 4000])
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--paths", action="store_true", help="also the dense and grouped bases (per-muscle only)")
+    parser.add_argument("--paths", action="store_true",
+                        help="also the few-postures and blockwise paths (per-muscle only)")
     args = parser.parse_args(argv)
     if min(args.batches) < 1 or args.repeats < 1:
         raise BodySchemaInputError(f"--batches {args.batches} and --repeats {args.repeats}: expected integers >= 1")

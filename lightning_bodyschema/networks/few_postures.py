@@ -19,6 +19,11 @@ import torch
 
 from .cells import cell_coordinates, cell_spread
 
+# up to this many postures a path takes this evaluation; above, blocks of rows and a cell at a time (myoArm's
+# per-muscle path, `tools/bench_body_eval.py --paths`: 5.3 vs 17.5 ms at 49 postures, 35 vs 45 at 256, 103 vs 58 at
+# 400; BENCHMARKS.md "Figures behind code choices")
+FEW_ROWS = 256
+
 
 class FewCoefficients(NamedTuple):
     """What ``evaluate_few`` reads from a path's coefficients (``few_coefficients``; a caller may keep it while they
@@ -87,6 +92,12 @@ def evaluate_few(path, x64: torch.Tensor, inside: torch.Tensor, coefs: FewCoeffi
     picked = candidates.gather(1, choice[..., None].expand(-1, -1, k))
     y, dy = picked[..., 0], picked[..., 1:]
     return y + (dy @ (x64 - inside)[:, :, None])[..., 0], dy
+
+
+def few_for(x: torch.Tensor) -> bool:
+    """Whether a path evaluates postures ``x`` here: up to ``FEW_ROWS`` of them, never in an exported program (one
+    path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
+    return not torch.compiler.is_exporting() and len(x) <= FEW_ROWS
 
 
 def _has_cells(path) -> bool:

@@ -32,11 +32,11 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .basis import ProductTerms, dense_for, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
+from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, one_thread, solve_systems
 from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
-from .few_postures import FewCoefficients, evaluate_few, few_coefficients
+from .few_postures import FewCoefficients, evaluate_few, few_coefficients, few_for
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -218,13 +218,13 @@ class PerMusclePath(nn.Module):
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        Up to ``basis.DENSE_ROWS`` postures every part from one basis (``networks.few_postures``); above, the
+        Up to ``few_postures.FEW_ROWS`` postures every part from one basis (``networks.few_postures``); above, the
         whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay in
         cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
         x64 = x.to(torch.float64)
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         exporting = torch.compiler.is_exporting()
-        if not exporting and dense_for(inside):
+        if few_for(inside):
             y, dy = evaluate_few(self, x64, inside, self.dense_coefficients() if dense_coefs is None else dense_coefs)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         derive = slopes or not torch.equal(inside, x64)

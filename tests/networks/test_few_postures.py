@@ -8,7 +8,7 @@ import pytest
 import torch
 from physics_checks import central_differences
 
-from lightning_bodyschema.networks.basis import DENSE_ROWS
+from lightning_bodyschema.networks.few_postures import FEW_ROWS
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=bool)
@@ -40,12 +40,12 @@ def _postures(n, seed):
 
 def test_few_postures_answer_as_the_blockwise_evaluation(path):
     x = _postures(600, 1)
-    y, dy = path.with_jacobian(x)  # above DENSE_ROWS: blocks of rows, the cells a group and a cell at a time
+    y, dy = path.with_jacobian(x)  # above FEW_ROWS: blocks of rows, the cells a group and a cell at a time
     assert ((x[:, 0] + 0.3 * x[:, 1] > 0.2).any() and (x[:, 0] + 0.3 * x[:, 1] < 0.2).any()  # both branches,
             and (x.abs() > 0.9).any(1).sum() > 100)  # many postures outside the box
     cell = (path.cell_stride[0] * (x > 0)).sum(1)  # muscle 1's cell (x0, x2 cut at 0)
     assert (cell == 0).sum() > 50  # the unfitted cell: the whole-box polynomial there
-    for rows in (1, 7, DENSE_ROWS):
+    for rows in (1, 7, 48, FEW_ROWS):
         parts = [path.with_jacobian(x[i:i + rows]) for i in range(0, 600 if rows > 1 else 60, rows)]
         n = sum(len(p[0]) for p in parts)
         torch.testing.assert_close(torch.cat([p[0] for p in parts]), y[:n], rtol=0, atol=1e-13)
@@ -57,5 +57,5 @@ def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     x = _postures(40, 2).clamp(-0.89, 0.89)  # inside the box: the polynomials themselves
     x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)]
     y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
-    assert len(x) <= DENSE_ROWS and len(x) > 30
+    assert 30 < len(x) <= FEW_ROWS
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
