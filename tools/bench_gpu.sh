@@ -4,9 +4,11 @@
 # (on this project's lent GPU machines: bash .gpu/on_device.sh bash tools/bench_gpu.sh "$OUT" 540).
 # Steps, most wanted first; a step that would not fit in what is left of the budget is skipped and says so:
 #   dataset   myoArm's 100 000 equilibrium samples on every core (the cache both myoArm fits read)
-#   fit_dense `bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu` (issue: the same fit on a GPU)
-#   fit_pm    the same with configs/myoarm-per-muscle.yaml
-#   adapter   the prepared structured adapter on CUDA and on this machine's CPU (one thread), batch 1 and 4000
+#   fit_pm    `bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu` (the per-muscle body; issue: the
+#             same fit on a GPU)
+#   fit_dense the same with configs/myoarm-dense.yaml (the dense body, configs/myoarm.yaml until 2026-11-27)
+#   adapter   the prepared structured adapter of each fit on CUDA and on this machine's CPU (one thread), batch 1
+#             and 4000
 #   tests     python -m pytest -m gpu -q
 # STEPS="dataset fit_pm tests" (an environment variable) runs only the steps it names (default: every step);
 # TESTS_FIRST=1 runs the tests before the fits (TESTS_CAP: their most seconds).
@@ -44,19 +46,20 @@ dataset='import yaml; from lightning_bodyschema.data.datamodule import Equilibri
 D(**yaml.safe_load(open("configs/myoarm.yaml"))["data"]).prepare_data()'
 [[ "${TESTS_FIRST:-0}" == 1 ]] && step tests 60 "${TESTS_CAP:-600}" python3 -m pytest -m gpu -q -p no:cacheprovider
 step dataset 60 120 python3 -c "$dataset"
-step fit_dense 120 330 bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu \
-  --trainer.default_root_dir "$runs/dense"
-step fit_pm 60 300 bodyschema fit --config configs/myoarm-per-muscle.yaml --trainer.accelerator gpu \
+step fit_pm 60 300 bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu \
   --trainer.default_root_dir "$runs/pm"
+step fit_dense 120 330 bodyschema fit --config configs/myoarm-dense.yaml --trainer.accelerator gpu \
+  --trainer.default_root_dir "$runs/dense"
 last() { ls "$runs/$1"/lightning_logs/version_*/checkpoints/*.ckpt 2>/dev/null | tail -1; }
-ckpt=$(last dense)
-[ -n "$ckpt" ] && cp "$ckpt" "$out/dense.ckpt"
+[ -n "$(last dense)" ] && cp "$(last dense)" "$out/dense.ckpt"
 [ -n "$(last pm)" ] && cp "$(last pm)" "$out/per_muscle.ckpt"
 adapter='import sys, torch; sys.path.insert(0, "tools"); torch.set_num_threads(1); torch.set_flush_denormal(True)
 from bench_structured_adapter import myoarm_cases, adapter_latency
 _, _, faults, q = myoarm_cases(4000)
-for device in ("cuda", "cpu"):
-    print(device); adapter_latency(sys.argv[1], faults, q, 5, device, 50)'
-[ -n "$ckpt" ] && step adapter 30 90 python3 -c "$adapter" "$ckpt"
+for ckpt in sys.argv[1:]:
+    for device in ("cuda", "cpu"):
+        print(ckpt, device); adapter_latency(ckpt, faults, q, 5, device, 50)'
+fitted=$(ls "$out/per_muscle.ckpt" "$out/dense.ckpt" 2>/dev/null)
+[ -n "$fitted" ] && step adapter 30 120 python3 -c "$adapter" $fitted
 [[ "${TESTS_FIRST:-0}" == 1 ]] || step tests 60 600 python3 -m pytest -m gpu -q -p no:cacheprovider
 cat "$out/summary.txt"

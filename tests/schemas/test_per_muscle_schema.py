@@ -55,6 +55,16 @@ def test_myoarm_crossing_has_199_uncrossed_pairs():
     assert sorted(crossing.sum(1).tolist()) == sorted([1] * 6 + [2] * 5 + [3] * 23 + [4] * 14 + [5] * 2)
 
 
+def test_configs_myoarm_is_the_per_muscle_body_under_both_names_and_the_dense_one_the_same_robot():
+    import yaml
+
+    arm, per_muscle, dense = (yaml.safe_load(open(f"configs/{name}.yaml"))
+                              for name in ("myoarm", "myoarm-per-muscle", "myoarm-dense"))
+    assert arm["model"]["init_args"]["length_model"] == "per_muscle"  # the recommended myoArm body
+    assert {k: v for k, v in arm.items() if k != "trainer"} == {k: v for k, v in per_muscle.items() if k != "trainer"}
+    assert dense["data"] == arm["data"] and "length_model" not in dense["model"]["init_args"]  # the dense MLP body
+
+
 def test_the_learned_body_matches_mujoco_and_moment_arms_vanish_off_the_crossed_joints(paper_arm):
     schema, _ = paper_arm
     assert schema.hparams.muscle_joints == PAPER_JOINTS  # stored with the checkpoint's hyperparameters
