@@ -76,9 +76,9 @@ class ProductTerms(nn.Module):
     ``forward(x, slopes)`` returns a ``Basis``; ``contract`` applies coefficients given in the terms' original order
     (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). ``stacked(x)``
     gives each term and its slopes in one tensor at few postures, each variable's slope added into its output
-    column ``columns (N,)`` (None: its own; several variables may share one: a joint and its cell coordinate in
-    ``networks.few_postures``). Buffers only, none persistent (a checkpoint's state dict is unchanged); plain
-    PyTorch.
+    column ``columns`` (one per variable; None: its own; several variables may share one: a joint and its cell
+    coordinate in ``networks.few_postures``). Buffers only, none persistent (a checkpoint's state dict is
+    unchanged); plain PyTorch.
     """
 
     def __init__(self, exponents, columns=None):

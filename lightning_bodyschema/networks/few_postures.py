@@ -4,12 +4,12 @@ A controller asks for the body at one posture, where each tensor operation costs
 rather than its arithmetic. Here the whole-box polynomials, the branches' second polynomials and gates, and the
 cells' polynomials share one ``basis.ProductTerms`` over the joint angles, the cells' local coordinates and the
 joints the cells keep whole (``PerMusclePath.few_terms``); its ``stacked`` evaluation puts each term and its slopes
-d/dx in one tensor (a cell coordinate's slope times ``pieces``, its chain rule, exact for the power-of-two
-pieces), so one product with the whole-box rows and one with the posture's cells' rows give every candidate's
-length and moment arms; one gather then picks each muscle's: its cell's polynomial where that cell was fitted, else
-its gate's branch, else its whole-box polynomial. Myoarm's per-muscle path at one posture: 0.52 -> 0.25 ms
-(BENCHMARKS.md). The same values as the blockwise evaluation up to the order of the sums (~1e-13 of a normalized
-length). Plain PyTorch, no Lightning.
+d/dx in one tensor (a cell coordinate's slope times ``pieces``, its chain rule: exact for a power of two), so one
+product with the whole-box rows and one with the posture's cells' rows give every candidate's length and moment
+arms; one gather then picks each muscle's: its cell's polynomial where that cell was fitted, else its gate's branch,
+else its whole-box polynomial. myoArm's per-muscle path at one posture: 0.52 -> 0.29 ms (BENCHMARKS.md). The same
+values as the blockwise evaluation up to the order of the sums (~1e-13 of a normalized length). Plain PyTorch, no
+Lightning.
 """
 from __future__ import annotations
 
