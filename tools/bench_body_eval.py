@@ -8,7 +8,7 @@ float64 arrays), the length model's ``with_jacobian`` (with its coefficients as 
 torque, in ms per call (medians of ``--repeats`` rounds; at batch 1 each round times 100 calls). Only public calls:
 run it from another worktree (its ``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths``
 (a per-muscle checkpoint) also the length model by the few-postures path and by blocks of rows
-(``networks.few_postures.FEW_ROWS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
+(``networks.few_postures.FEW_ELEMENTS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
 by node (``networks.gravity.JUMP_ROWS`` forced): the figures behind the two thresholds. One torch thread; the load
 average is printed with the figures.
 """
@@ -52,11 +52,11 @@ def rows(schema, batch: int, repeats: int, paths: bool):
     if paths:
         from lightning_bodyschema.networks import few_postures
 
-        rows_few = few_postures.FEW_ROWS
-        for label, rows in (("few-postures path", 10 ** 9), ("blockwise path", 0)):
-            few_postures.FEW_ROWS = rows
+        budget = few_postures.FEW_ELEMENTS
+        for label, elements in (("few-postures path", 10 ** 18), ("blockwise path", 0)):
+            few_postures.FEW_ELEMENTS = elements
             out.append((f"lengths, {label}", ms_per_call(lengths, batch, repeats)))
-        few_postures.FEW_ROWS = rows_few
+        few_postures.FEW_ELEMENTS = budget
         if schema.hparams.get("torque_model") == "gravity":
             from lightning_bodyschema.networks import gravity
 

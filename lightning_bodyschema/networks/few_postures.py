@@ -19,10 +19,12 @@ import torch
 
 from .cells import cell_coordinates, cell_spread
 
-# up to this many postures a path takes this evaluation; above, blocks of rows and a cell at a time (myoArm's
-# per-muscle path, `tools/bench_body_eval.py --paths`: 5.3 vs 17.5 ms at 49 postures, 35 vs 45 at 256, 103 vs 58 at
-# 400; BENCHMARKS.md "Figures behind code choices")
-FEW_ROWS = 256
+# the largest stacked basis of this evaluation: postures x terms (whole-box and cell) x (1 + joints), about 11 MB of
+# float64. Above it, blocks of rows and a cell at a time are faster (their slopes touch only the joints each term
+# uses). Measured crossovers (`tools/bench_body_eval.py --paths`): myoArm's per-muscle path ~280 postures (13 600
+# elements per posture), myoLegs + OSL's ~45 (32 300), myoLegs' ~32 (60 900); this budget keeps each below its own:
+# myoArm 102 postures, myoLegs + OSL 43, myoLegs 22, myoHand 241 (BENCHMARKS.md)
+FEW_ELEMENTS = 1_400_000
 
 
 class FewCoefficients(NamedTuple):
@@ -94,10 +96,11 @@ def evaluate_few(path, x64: torch.Tensor, inside: torch.Tensor, coefs: FewCoeffi
     return y + (dy @ (x64 - inside)[:, :, None])[..., 0], dy
 
 
-def few_for(x: torch.Tensor) -> bool:
-    """Whether a path evaluates postures ``x`` here: up to ``FEW_ROWS`` of them, never in an exported program (one
-    path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
-    return not torch.compiler.is_exporting() and len(x) <= FEW_ROWS
+def few_for(path, x: torch.Tensor) -> bool:
+    """Whether ``path`` evaluates postures ``x (B, N)`` here: their stacked basis within ``FEW_ELEMENTS``, never in an
+    exported program (one path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
+    terms = len(path.few_terms.exponents) if _has_cells(path) else path.coef.shape[1]
+    return not torch.compiler.is_exporting() and len(x) * terms * (1 + x.shape[1]) <= FEW_ELEMENTS
 
 
 def _has_cells(path) -> bool:

@@ -218,13 +218,13 @@ class PerMusclePath(nn.Module):
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        Up to ``few_postures.FEW_ROWS`` postures every part from one basis (``networks.few_postures``); above, the
+        At few postures (``few_postures.few_for``) every part from one basis (``networks.few_postures``); above, the
         whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay in
         cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
         x64 = x.to(torch.float64)
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         exporting = torch.compiler.is_exporting()
-        if few_for(inside):
+        if few_for(self, inside):
             y, dy = evaluate_few(self, x64, inside, self.dense_coefficients() if dense_coefs is None else dense_coefs)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         derive = slopes or not torch.equal(inside, x64)

@@ -109,11 +109,15 @@ def test_cell_numbering_and_degrees(fitted):
             PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_trim=bad)
 
 
-def test_many_postures_by_cell_equal_few_postures_gathered(fitted):
+def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
+    from lightning_bodyschema.networks import few_postures
     from lightning_bodyschema.networks.basis import DENSE_ROWS
 
-    x = _inside(600, 5)  # above DENSE_ROWS: a group of muscles and a cell at a time; in pieces of DENSE_ROWS: every
-    y, dy = fitted.with_jacobian(x)  # muscle's coefficients gathered at once, on a dense basis
+    x = _inside(600, 5)
+    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
+    y, dy = fitted.with_jacobian(x)
+    monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.few_postures)
+    assert few_postures.few_for(fitted, x[:DENSE_ROWS])
     parts = [fitted.with_jacobian(x[i:i + DENSE_ROWS]) for i in range(0, 600, DENSE_ROWS)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=1e-13)
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)

@@ -8,7 +8,7 @@ import pytest
 import torch
 from physics_checks import central_differences
 
-from lightning_bodyschema.networks.few_postures import FEW_ROWS
+from lightning_bodyschema.networks import few_postures
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=bool)
@@ -38,14 +38,16 @@ def _postures(n, seed):
     return torch.rand(n, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 2.2 - 1.1
 
 
-def test_few_postures_answer_as_the_blockwise_evaluation(path):
+def test_few_postures_answer_as_the_blockwise_evaluation(path, monkeypatch):
     x = _postures(600, 1)
-    y, dy = path.with_jacobian(x)  # above FEW_ROWS: blocks of rows, the cells a group and a cell at a time
+    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 0)  # blocks of rows, the cells a group and a cell at a time
+    y, dy = path.with_jacobian(x)
     assert ((x[:, 0] + 0.3 * x[:, 1] > 0.2).any() and (x[:, 0] + 0.3 * x[:, 1] < 0.2).any()  # both branches,
             and (x.abs() > 0.9).any(1).sum() > 100)  # many postures outside the box
     cell = (path.cell_stride[0] * (x > 0)).sum(1)  # muscle 1's cell (x0, x2 cut at 0)
     assert (cell == 0).sum() > 50  # the unfitted cell: the whole-box polynomial there
-    for rows in (1, 7, 48, FEW_ROWS):
+    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 10 ** 18)  # every batch by the few-postures path
+    for rows in (1, 7, 48, 600):
         parts = [path.with_jacobian(x[i:i + rows]) for i in range(0, 600 if rows > 1 else 60, rows)]
         n = sum(len(p[0]) for p in parts)
         torch.testing.assert_close(torch.cat([p[0] for p in parts]), y[:n], rtol=0, atol=1e-13)
@@ -53,9 +55,16 @@ def test_few_postures_answer_as_the_blockwise_evaluation(path):
         assert (torch.cat([p[1] for p in parts])[:, ~torch.as_tensor(CROSSING)] == 0).all()  # exactly
 
 
+def test_the_few_postures_path_is_taken_within_its_work_budget(path, monkeypatch):
+    per_posture = len(path.few_terms.exponents) * (1 + 3)  # its stacked basis: whole-box and cell terms x (1 + joints)
+    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 10 * per_posture)
+    x = _postures(11, 3)
+    assert few_postures.few_for(path, x[:10]) and not few_postures.few_for(path, x)
+
+
 def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     x = _postures(40, 2).clamp(-0.89, 0.89)  # inside the box: the polynomials themselves
     x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)]
     y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
-    assert 30 < len(x) <= FEW_ROWS
+    assert len(x) > 30 and few_postures.few_for(path, x)
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
