@@ -62,6 +62,13 @@ def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.
     return k.to(torch.long), scaled - 2 * k - 1
 
 
+def cell_index(piece: torch.Tensor, stride: torch.Tensor) -> torch.Tensor:
+    """Each posture's cell ``(B,)`` or ``(B, Mc)`` from its joints' pieces ``piece (B, N)`` (long) and a muscle's
+    ``stride (N,)`` or every celled muscle's ``(Mc, N)``: a product and a sum, not a matrix product (CUDA has none for
+    integers)."""
+    return (piece[:, None, :] * stride).sum(-1) if stride.dim() == 2 else (piece * stride).sum(-1)
+
+
 def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[int] = None) -> int:
     """The highest total degree ``<= degree`` whose polynomial over ``joints`` (a number, or the sizes of the groups
     whose effects add up: ``degrees.term_count``) has ``SAMPLES_PER_TERM`` samples per term in each of the
@@ -154,7 +161,7 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     every cell term (one path for any batch). Few postures in eager: ``networks.few_postures``."""
     k, z = cell_inputs(path, x)
     if torch.compiler.is_exporting():
-        cell = k @ path.cell_stride.T  # (B, Mc): each celled muscle's cell
+        cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
         basis = path.cell_terms_all(z, dy is not None, dense=True)
         y_cell, dy_cell = _contract(path, basis, cell)
         dy_cell = None if dy is None else _fold(path, dy_cell)
@@ -162,7 +169,7 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
-        cell = k @ path.cell_stride[members[0]]  # (B,): shared by the group
+        cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
         y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
         y, dy = _replace(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
                          None if dy_cell is None else _fold(path, dy_cell), copy=False)
@@ -278,7 +285,7 @@ def _fit_each_cell(path, x, y_m, own, chunk):
         exponents = path.cell_exponents[path.cell_order[first, :width]]
         phi = torch.cat([product_basis(z[i:i + chunk], exponents, int(exponents.max()))[0]
                          for i in range(0, len(x), chunk)])
-        cell = k @ path.cell_stride[first]
+        cell = cell_index(k, path.cell_stride[first])
         totals = exponents.sum(1).tolist()  # each column's total degree, nondecreasing (the whole-box terms' order)
         for c in range(path.pieces ** int((path.cell_stride[first] > 0).sum())):  # a loop over the group's cells
             rows = torch.nonzero(cell == c).flatten()

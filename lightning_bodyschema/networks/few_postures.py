@@ -17,7 +17,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .cells import cell_coordinates, cell_spread
+from .cells import cell_coordinates, cell_index, cell_spread
 
 # the largest stacked basis of this evaluation: postures x terms (whole-box and cell) x (1 + joints), about 11 MB of
 # float64. Above it, blocks of rows and a cell at a time are faster (their slopes touch only the joints each term
@@ -86,7 +86,7 @@ def evaluate_few(path, x64: torch.Tensor, inside: torch.Tensor, coefs: FewCoeffi
     gate = candidates[:, :, 0].index_select(1, coefs.gate_col)
     choice = torch.where((gate > 0) & coefs.gated, coefs.alt_col, coefs.box_col)
     if cells:
-        cell = piece @ path.cell_stride.T  # (B, Mc): each celled muscle's cell
+        cell = cell_index(piece, path.cell_stride)  # (B, Mc): each celled muscle's cell
         at_cell = coefs.spread[path.cell_rows[None, :], cell]  # (B, Mc, T)
         candidates = torch.cat([candidates, at_cell @ basis[:, n_terms:]], 1)
         fitted = path.cell_fitted[path.cell_rows[None, :], cell].index_select(1, coefs.cell_of)

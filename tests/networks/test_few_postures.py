@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 from physics_checks import central_differences
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from lightning_bodyschema.networks import few_postures
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
@@ -68,3 +69,29 @@ def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
     assert len(x) > 30 and few_postures.few_for(path, x)
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
+
+
+class _IntegerProducts(TorchDispatchMode):
+    """Records the matrix products of integer tensors (CUDA has none: cuBLAS multiplies floating point only)."""
+    PRODUCTS = {"mm", "bmm", "addmm", "mv", "addmv", "baddbmm", "dot"}
+
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.__name__.split(".")[0]
+        if name in self.PRODUCTS and any(torch.is_tensor(a) and not a.is_floating_point() for a in args):
+            self.seen.append(name)
+        return func(*args, **(kwargs or {}))
+
+
+def test_the_fit_and_both_paths_multiply_no_integer_matrices(monkeypatch):
+    x = torch.rand(4000, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 1.8 - 0.9
+    path = PerMusclePath(CROSSING, 4, 1, 0, branches=2, gate_degree=2, cells=2)
+    with _IntegerProducts() as products:
+        path.fit_polynomial(x, _lengths(x))
+        path.with_jacobian(x[:7])  # few postures
+        monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 0)
+        path.with_jacobian(x)  # blocks of rows, a group and a cell at a time
+    assert len(path.cell_muscles) and products.seen == []
