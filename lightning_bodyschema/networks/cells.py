@@ -138,11 +138,14 @@ def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tu
 def cell_inputs(path, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)``: every joint's
     local coordinate (``cell_coordinates``), then the joints ``cell_extra`` some celled muscle crosses uncut, as they
-    are (padding and a one-hot product: no concatenation, which specializes the batch in torch.export)."""
+    are (in an exported program by padding and a one-hot product: a concatenation specializes the batch in
+    torch.export; the same values)."""
     k, x_local = cell_coordinates(x, path.pieces)
     extra = len(path.cell_extra)
     if not extra:
         return k, x_local
+    if not torch.compiler.is_exporting():  # two operations, not five (at one posture each costs its dispatch)
+        return k, torch.cat([x_local, x.index_select(1, path.cell_extra)], 1)
     return k, F.pad(x_local, (0, extra)) + F.pad(x @ path.cell_unfold.T, (x.shape[1], 0))
 
 

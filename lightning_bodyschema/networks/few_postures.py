@@ -17,7 +17,7 @@ from typing import NamedTuple, Optional
 
 import torch
 
-from .cells import cell_coordinates, cell_index, cell_spread
+from .cells import cell_index, cell_inputs, cell_spread
 
 # the largest stacked basis of this evaluation: postures x terms (whole-box and cell) x (1 + joints), about 11 MB of
 # float64. Above it, blocks of rows and a cell at a time are faster (their slopes touch only the joints each term
@@ -77,9 +77,9 @@ def evaluate_few(path, x64: torch.Tensor, inside: torch.Tensor, coefs: FewCoeffi
     (module docstring)."""
     n_box, n_terms = len(coefs.box), path.coef.shape[1]
     cells = _has_cells(path)
-    if cells:  # the variables: every joint, its local coordinate in its cell, the joints the cells keep whole
-        piece, local = cell_coordinates(inside, path.pieces)
-        v = torch.cat([inside, local, inside.index_select(1, path.cell_extra)], 1)
+    if cells:  # the variables: every joint, then the cells' coordinates (its local one, the joints kept whole)
+        piece, z = cell_inputs(path, inside)
+        v = torch.cat([inside, z], 1)
     basis = (path.few_terms.stacked(v, path.few_scale) if cells else path.terms.stacked(inside))  # (B, Pt, 1 + N)
     k = basis.shape[-1]
     candidates = (coefs.box @ basis[:, :n_terms].transpose(0, 1).flatten(1)).view(n_box, len(x64), k).transpose(0, 1)
