@@ -9,8 +9,9 @@ torque, in ms per call (medians of ``--repeats`` rounds; at batch 1 each round t
 run it from another worktree (its ``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths``
 (a per-muscle checkpoint) also the length model by the few-postures path and by blocks of rows
 (``networks.few_postures.FEW_ELEMENTS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
-by node (``networks.gravity.JUMP_ROWS`` forced): the figures behind the two thresholds. One torch thread; the load
-average is printed with the figures.
+by node (``networks.gravity.JUMP_ROWS`` forced), and ``body_si`` in numpy and in torch
+(``schemas.host_body.HOST_ROWS`` forced): the figures behind the three thresholds. One torch thread; the load average
+is printed with the figures.
 """
 import argparse
 import os
@@ -65,6 +66,22 @@ def rows(schema, batch: int, repeats: int, paths: bool):
                 gravity.JUMP_ROWS = rows_jump
                 out.append((f"torque, {label}", ms_per_call(lambda: schema.torque(q_n), batch, repeats)))
             gravity.JUMP_ROWS = kept
+        out += host_rows(schema, q, batch, repeats)
+    return out
+
+
+def host_rows(schema, q, batch: int, repeats: int):
+    """``body_si`` by the numpy evaluation and by torch (``schemas.host_body.HOST_ROWS`` forced), where the
+    checkpoint's body has a numpy evaluation: the figures behind that threshold."""
+    from lightning_bodyschema.schemas import host_body
+
+    if host_body.HostBody.of(schema) is None:
+        return []
+    out, kept = [], host_body.HOST_ROWS
+    for label, limit in (("numpy", 10 ** 9), ("torch", 0)):
+        host_body.HOST_ROWS = limit
+        out.append((f"body_si, {label}", ms_per_call(lambda: schema.body_si(q), batch, repeats)))
+    host_body.HOST_ROWS = kept
     return out
 
 

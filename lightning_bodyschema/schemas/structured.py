@@ -41,6 +41,7 @@ from ..sim.separable import separable_blocks
 from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
+from .host_body import host_body
 
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
 FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned moment arms, not the optimizer
@@ -375,7 +376,11 @@ class StructuredSchema(BodySchema):
 
     # ------------------------------------------------------------------ commands
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]."""
+        """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
+        (on the CPU, up to ``schemas.host_body.HOST_ROWS`` postures, in numpy)."""
+        host = host_body(self, q_rad)
+        if host is not None:
+            return host(q_rad.detach().cpu().numpy().astype(np.float64))
         with torch.no_grad():
             q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
             return tuple(t.cpu().numpy().astype(np.float64) for t in self.body(q_n))  # a copy: the caller owns it

@@ -3,6 +3,8 @@ the cells, one gather of each muscle's choice) answers as the blockwise evaluati
 that are its lengths' derivative, in float64."""
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -10,6 +12,7 @@ from physics_checks import central_differences
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from lightning_bodyschema.networks import few_postures
+from lightning_bodyschema.networks.host import HostPath
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=bool)
@@ -69,6 +72,32 @@ def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
     assert len(x) > 30 and few_postures.few_for(path, x)
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
+
+
+def test_the_host_evaluation_answers_as_the_few_postures_path(path):
+    """networks.host.HostPath: numpy, the same operations in the same order (branches, a celled muscle, its unfitted
+    cell, postures beyond the box); a NaN posture answers NaN without a warning."""
+    host, x = HostPath(path, path.dense_coefficients()), _postures(120, 4)
+    for rows in (1, 3, 4):
+        for i in range(0, 120, rows):
+            y, dy = path.with_jacobian(x[i:i + rows])
+            y_host, dy_host = host(x[i:i + rows].numpy())
+            np.testing.assert_allclose(y_host, y.numpy(), rtol=0, atol=1e-13)
+            np.testing.assert_allclose(dy_host, dy.numpy(), rtol=0, atol=1e-12)
+    bad = x[:2].clone()
+    bad[0, 2] = float("nan")  # the cut joint of muscle 1's cells
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        y_host, _ = host(bad.numpy())
+    assert np.isnan(y_host[0, [1, 2]]).all() and np.isfinite(y_host[1]).all()
+
+
+def test_the_host_moment_arms_are_its_lengths_derivative(path):
+    host = HostPath(path, path.dense_coefficients())
+    x = _postures(40, 6).clamp(-0.89, 0.89)
+    x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)][:4]
+    lengths = lambda rows: torch.as_tensor(host(rows.numpy())[0])  # noqa: E731
+    np.testing.assert_allclose(host(x.numpy())[1], central_differences(lengths, x), rtol=0, atol=1e-7)
 
 
 class _IntegerProducts(TorchDispatchMode):

@@ -52,3 +52,29 @@ def test_gravity_needs_the_mjcf_and_the_per_muscle_lengths(paper_arm):
     assert all(f"'{alt}'" in message for alt in ("polynomial", "direct", "potential"))
     with pytest.raises(BodySchemaInputError, match="needs length_model='per_muscle'"):
         StructuredSchema(robot=paper_arm[0].hparams.robot, torque_model="gravity")
+
+
+def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers_as_body(paper_arm, monkeypatch):
+    """Up to HOST_ROWS postures (in eval mode) ``body_si`` takes ``schemas.host_body``: each step and cast of
+    ``StructuredSchema.body`` in numpy; more postures, or training, the torch evaluation."""
+    from lightning_bodyschema.schemas import host_body
+
+    schema, _ = paper_arm
+    calls = []
+    original = host_body.HostBody.__call__
+    monkeypatch.setattr(host_body.HostBody, "__call__", lambda self, q: calls.append(len(q)) or original(self, q))
+    q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(9), 17))
+    q[0] += 0.2  # beyond the sampled range: the first-order extension
+    for rows in (1, 16, 17):
+        l_geo, G, tau = schema.body_si(q[:rows])
+        with torch.no_grad():
+            expected = [t.double().numpy() for t in schema.body(schema.normalizer.encode_q(q[:rows]).to(schema.dtype))]
+        for got, want in zip((l_geo, G, tau), expected):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
+    assert calls == [1, 16] and host_body.HOST_ROWS == 16
+    schema.train()
+    try:
+        schema.body_si(q[:1])
+    finally:
+        schema.eval()
+    assert calls == [1, 16]
