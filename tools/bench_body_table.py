@@ -8,8 +8,10 @@ Columns, each a median: the healthy commands' equilibrium residual ||-G^T f - ta
 ``--postures`` validation postures and its ratio to the median ||tau_bias|| there (issue target <= 0.05), their
 length residual |l_motor + delta(f) - l_geo| [mm]; for a structured schema the learned body's errors against
 MuJoCo (l_geo [mm], moment arms [mm/rad], torque [N m]); the binding protocol's adapted and unadapted E_q [rad] and E_tau [N m] per condition
-(the Gauss-Newton evaluator's phys reading, feasible cases: ``bodyschema test`` adds the settle runs);
-and the fit's wall time when given. One torch thread.
+(the Gauss-Newton evaluator's phys reading, feasible cases); with ``--settle`` also E_q_phys, each command
+dropped into MuJoCo (``sim.settle``: the only reading that models a weakened muscle's slip and a banded winch's stop;
+the evaluator's posture solve models cuts and jams only, so its WEAK / BAND unadapted E_q is the healthy command's
+own); and the fit's wall time when given. One torch thread.
 """
 import argparse
 
@@ -44,8 +46,9 @@ def healthy_row(schema, q, x) -> dict:
     return row
 
 
-def binding_row(schema, q, x, n_per_condition: int) -> dict:
-    """Median E_q [rad] of adapted and unadapted commands, binding protocol, phys reading, feasible cases."""
+def binding_row(schema, q, x, n_per_condition: int, settle: bool = False) -> dict:
+    """Median E_q [rad] and E_tau [N m] (then E_q_phys with ``settle``) of adapted and unadapted commands, binding
+    protocol, phys reading, feasible cases."""
     from lightning_bodyschema.evaluation.benchmark import run_fault_benchmark
     from lightning_bodyschema.evaluation.cases import HealthyPool, make_binding_cases
 
@@ -53,9 +56,11 @@ def binding_row(schema, q, x, n_per_condition: int) -> dict:
     pool = HealthyPool(q.numpy(), x[:, :m].numpy(), x[:, m:2 * m].numpy())
     cases = make_binding_cases(schema.robot_model, pool, n_per_condition, 0, schema.spring)[0]
     result = run_fault_benchmark(schema.robot_model, schema.spring, cases, schema.infer,
-                                 lambda qq, ff: schema.adapt(qq, ff, check_physics=False), oracle=False)
+                                 lambda qq, ff: schema.adapt(qq, ff, check_physics=False), oracle=False,
+                                 settle_check=settle)
     summary = result.summary()
-    return {cond: tuple(summary[kind]["phys"][cond]["feasible"][metric] for metric in ("E_q", "E_tau")
+    metrics = ("E_q", "E_tau") + (("E_q_phys",) if settle else ())
+    return {cond: tuple(summary[kind]["phys"][cond]["feasible"][metric] for metric in metrics
                         for kind in ("adapted", "unadapted")) for cond in summary["adapted"]["phys"]}
 
 
@@ -76,6 +81,8 @@ def main(argv=None):
     parser.add_argument("--postures", type=int, default=2000)
     parser.add_argument("--n-per-condition", type=int, default=20)
     parser.add_argument("--cache-dir", default="runs/cache", help="the fits' data.cache_dir (default: runs/cache)")
+    parser.add_argument("--settle", action="store_true",
+                        help="also E_q_phys: every binding command dropped into MuJoCo (sim.settle)")
     add_device_argument(parser)
     args = parser.parse_args(argv)
     ckpts, seconds = _labelled(args.ckpt, "--ckpt"), _labelled(args.fit_seconds, "--fit-seconds")
@@ -84,18 +91,20 @@ def main(argv=None):
     from lightning_bodyschema.schemas.loading import load_datamodule, load_schema
 
     print("| choice | eq residual [N m] | ratio | length [mm] | l_geo [mm] | arms [mm/rad] | torque [N m] | "
-          "binding E_q adapted / unadapted [rad] | binding E_tau adapted / unadapted [N m] | fit [s] |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "binding E_q adapted / unadapted [rad] | binding E_tau adapted / unadapted [N m] | "
+          + ("binding E_q_phys adapted / unadapted [rad] | " if args.settle else "") + "fit [s] |")
+    print("|---" * (11 if args.settle else 10) + "|")
     for label, path in ckpts.items():
         schema = load_schema(path, map_location=args.device).eval()
         datamodule = load_datamodule(path, cache_dir=args.cache_dir)
         datamodule.setup("test")
         q, x = datamodule.splits["val"]
         h = healthy_row(schema, q[:args.postures], x[:args.postures])
-        b = binding_row(schema, q, x, args.n_per_condition)
+        b = binding_row(schema, q, x, args.n_per_condition, args.settle)
+        settled = f"{_pairs(b, 4)} | " if args.settle else ""
         print(f"| {label} | {_fmt(h['eq_nm'])} | {_fmt(h['ratio'])} | {_fmt(h['length_mm'])} | "
               f"{_fmt(h.get('l_geo_mm'))} | {_fmt(h.get('arm_mm'))} | {_fmt(h.get('tau_nm'))} | "
-              f"{_pairs(b, 0)} | {_pairs(b, 2)} | {seconds.get(label, '—')} |", flush=True)
+              f"{_pairs(b, 0)} | {_pairs(b, 2)} | {settled}{seconds.get(label, '—')} |", flush=True)
 
 
 if __name__ == "__main__":
