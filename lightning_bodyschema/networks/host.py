@@ -18,7 +18,8 @@ import numpy as np
 from .basis import _slot_products
 from .few_postures import _has_cells
 
-def _array(tensor) -> np.ndarray:
+
+def host_copy(tensor) -> np.ndarray:
     """A host copy of ``tensor`` (never a view of the module's memory)."""
     return tensor.detach().cpu().numpy().copy()
 
@@ -29,13 +30,13 @@ class _HostTerms:
 
     def __init__(self, terms):
         self.degree, self.n_slots, self.n_columns = terms.degree, terms.n_slots, terms.n_columns
-        self.to_values, self.to_slopes = _array(terms.to_values), _array(terms.to_slopes)
+        self.to_values, self.to_slopes = host_copy(terms.to_values), host_copy(terms.to_slopes)
         self.n_terms = len(terms.stacked_index)
-        self.slot_index = _array(terms.slot_index).reshape(self.n_terms, -1).T.reshape(-1)  # slot-major
+        self.slot_index = host_copy(terms.slot_index).reshape(self.n_terms, -1).T.reshape(-1)  # slot-major
         # scatter_add's target of each (slot, term) as a flat index: a weighted bincount adds each term's slots in
         # their order, as scatter_add does (the same bits)
         width = 1 + self.n_columns
-        self.flat_index = (np.arange(self.n_terms)[:, None] * width + _array(terms.stacked_index)).T.copy()
+        self.flat_index = (np.arange(self.n_terms)[:, None] * width + host_copy(terms.stacked_index)).T.copy()
 
     def __call__(self, x: np.ndarray, scale=None) -> np.ndarray:
         rising = np.cumprod(np.broadcast_to(x[..., None], (*x.shape, self.degree)), -1)
@@ -57,16 +58,16 @@ class HostPath:
     ``FewCoefficients``: ``(y (B, M), dy (B, M, N))`` float64 at float64 postures ``x (B, N)``."""
 
     def __init__(self, path, coefs):
-        self.x_lo, self.x_hi, self.cells = _array(path.x_lo), _array(path.x_hi), _has_cells(path)
+        self.x_lo, self.x_hi, self.cells = host_copy(path.x_lo), host_copy(path.x_hi), _has_cells(path)
         self.terms = _HostTerms(path.few_terms if self.cells else path.terms)
-        self.n_box, self.n_terms = len(coefs.box), path.coef.shape[1]
-        self.box = _array(coefs.box)
+        self.n_terms = path.coef.shape[1]
+        self.box = host_copy(coefs.box)
         self.box_col, self.alt_col, self.gate_col, self.gated, self.cell_col, self.cell_of, self.celled = (
-            _array(t) for t in coefs[2:])
+            host_copy(t) for t in coefs[2:])
         if self.cells:
-            self.pieces, self.extra, self.scale = path.pieces, _array(path.cell_extra), _array(path.few_scale)
-            self.stride, self.spread = _array(path.cell_stride), _array(coefs.spread)
-            self.rows, self.fitted = _array(path.cell_rows), _array(path.cell_fitted)
+            self.pieces, self.extra, self.scale = path.pieces, host_copy(path.cell_extra), host_copy(path.few_scale)
+            self.stride, self.spread = host_copy(path.cell_stride), host_copy(coefs.spread)
+            self.rows, self.fitted = host_copy(path.cell_rows), host_copy(path.cell_fitted)
 
     def __call__(self, x64: np.ndarray):
         inside = np.minimum(np.maximum(x64, self.x_lo), self.x_hi)
@@ -106,11 +107,11 @@ class HostGravity:
 
     def __init__(self, gravity, terms):
         for name in self.NAMES:
-            setattr(self, name, _array(getattr(gravity, name)))
-        self.pointers = [_array(getattr(gravity, f"node_pointer{k}_index")) for k in range(gravity.n_rounds)]
+            setattr(self, name, host_copy(getattr(gravity, name)))
+        self.pointers = [host_copy(getattr(gravity, f"node_pointer{k}_index")) for k in range(gravity.n_rounds)]
         self.coupled, self.all_hinges = bool(gravity.dep_joint), gravity.all_hinges
-        self.gravity = _array(gravity.gravity)
-        self.moment_mass, self.mass_joint, self.offset, self.rate = (_array(t) for t in terms)
+        self.gravity = host_copy(gravity.gravity)
+        self.moment_mass, self.mass_joint, self.offset, self.rate = (host_copy(t) for t in terms)
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
         full = self._full_q(q)

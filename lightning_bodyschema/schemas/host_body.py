@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ..networks.few_postures import few_for
-from ..networks.host import HostGravity, HostPath, _array
+from ..networks.host import HostGravity, HostPath, host_copy
 from ..networks.per_muscle import PerMusclePath
 
 # up to this many postures (and the few-postures path's own budget, ``few_postures.few_for``): on myoArm numpy takes
@@ -37,11 +37,11 @@ class HostBody:
 
     def __init__(self, schema):
         norm = schema.normalizer
-        self.dtype = _array(torch.empty(0, dtype=schema.dtype)).dtype
-        self.q_lo, self.q_hi = _array(norm.q_lo.to(torch.float64)), _array(norm.q_hi.to(torch.float64))
+        self.dtype = host_copy(torch.empty(0, dtype=schema.dtype)).dtype
+        self.q_lo, self.q_hi = host_copy(norm.q_lo.to(torch.float64)), host_copy(norm.q_hi.to(torch.float64))
         self.path = HostPath(schema.length_net, schema.length_net.dense_coefficients())
         self.gravity = HostGravity(schema.torque_net, schema.torque_net.coef_terms())
-        self.l_mean, self.l_std, self.arm = (_array(t) for t in schema._length_scales(schema.dtype))
+        self.l_mean, self.l_std, self.arm = (host_copy(t) for t in schema._length_scales(schema.dtype))
 
     def __call__(self, q_rad: np.ndarray):
         lo, hi = self.q_lo, self.q_hi
