@@ -4,16 +4,19 @@ At one posture every tensor operation costs its dispatch, not its arithmetic: on
 of ten numbers takes 1.9 us in torch (inference mode; an index or a matrix product 3.5-7 us) and 0.5 us in numpy.
 myoArm's per-muscle body is ~170 of them (``few_postures.evaluate_few``, ``GravityTorque._eager_torque``), most of
 a prepared adapter's time at batch 1. ``HostPath`` and ``HostGravity`` are numpy snapshots of the fitted
-coefficients and constant tables that repeat those two evaluations operation by operation, in the same order: the
-same values up to the order of a matrix product's sums (~1e-12 relative). ``StructuredSchema.body_si``, already a
-numpy boundary, takes them on the CPU at a few postures (``schemas.host_body.HOST_ROWS``).
+coefficients and constant tables that repeat those two evaluations operation by operation, in the same order (the
+two large matrix products by torch, as there): the same values up to the order of a product's sums (~1e-12
+relative). ``StructuredSchema.body_si``, already a numpy boundary, takes them on the CPU at a few postures
+(``schemas.host_body.HOST_ROWS``).
 
 Lifetime: a snapshot copies what it reads when built and never follows the module afterwards; the schema's
-inference cache holds it (``schemas/cache.py``: cleared on every weight, dtype or device change). Plain numpy.
+inference cache holds it (``schemas/cache.py``: cleared on every weight, dtype or device change). numpy, and torch
+for two matrix products; no Lightning.
 """
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from .basis import _slot_products
 from .few_postures import _has_cells
@@ -76,13 +79,13 @@ class HostPath:
             basis = self.terms(np.concatenate([inside, z], 1), self.scale)
         else:
             basis = self.terms(inside)
-        candidates = self.box @ basis[:, :self.n_terms]  # (B, R, 1 + N)
+        candidates = _box_product(self.box, basis[:, :self.n_terms])  # (B, R, 1 + N)
         gate = candidates[:, :, 0][:, self.gate_col]
         choice = np.where((gate > 0) & self.gated, self.alt_col, self.box_col)
         if self.cells:
             cell = (piece[:, None, :] * self.stride).sum(-1)  # (B, Mc)
             at_cell = self.spread[self.rows[None, :], cell]  # (B, Mc, T)
-            candidates = np.concatenate([candidates, at_cell @ basis[:, self.n_terms:]], 1)
+            candidates = np.concatenate([candidates, _product(at_cell, basis[:, self.n_terms:])], 1)
             fitted = self.fitted[self.rows[None, :], cell][:, self.cell_of]
             choice = np.where(fitted & self.celled, self.cell_col, choice)
         picked = candidates[np.arange(len(x64))[:, None], choice]  # (B, M, 1 + N)
@@ -139,6 +142,20 @@ class HostGravity:
             return full
         value = _horner(self.dep_horner, full[:, self.dep_follows_index] - self.dep_follows_qpos0)
         return full + (value + self.dep_qpos0 - full[:, self.dep_index]) @ self.dep_scatter
+
+
+def _product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` by torch: the two products large enough for BLAS to start threads (numpy's OpenBLAS threads by default
+    and does not follow ``torch.set_num_threads``: on myoLegs with the other core busy the body took 3.5 ms instead of
+    1.4), as the torch evaluation multiplies them."""
+    return torch.matmul(torch.from_numpy(a), torch.from_numpy(b)).cpu().numpy()
+
+
+def _box_product(box: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """``(B, R, K)`` rows ``box (R, P)`` times ``basis (B, P, K)``, as one ``(R, P) x (P, B K)`` product (as
+    ``few_postures.evaluate_few``)."""
+    flat = np.ascontiguousarray(basis.transpose(1, 0, 2)).reshape(basis.shape[1], -1)
+    return _product(box, flat).reshape(len(box), len(basis), -1).transpose(1, 0, 2)
 
 
 def _horner(columns: np.ndarray, x: np.ndarray) -> np.ndarray:
