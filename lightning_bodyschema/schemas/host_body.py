@@ -18,8 +18,8 @@ from ..networks.host import HostGravity, HostPath, host_copy
 from ..networks.per_muscle import PerMusclePath
 
 # up to this many postures (and the few-postures path's own budget, ``few_postures.few_for``): on myoArm numpy takes
-# 0.58 / 1.10 / 2.82 ms at 1 / 4 / 16 postures, torch 1.75 / 2.47 / 4.35; level near 100 (BENCHMARKS.md "Per-muscle
-# body evaluation, myoArm")
+# 0.73 / 1.38 / 3.42 ms at 1 / 4 / 16 postures, torch 2.11 / 2.64 / 5.02 (myoLegs 1.07 / 3.09 / 11.3 against
+# 2.36 / 4.58 / 13.9); level near 100 (BENCHMARKS.md "Per-muscle body evaluation, myoArm")
 HOST_ROWS = 16
 
 
