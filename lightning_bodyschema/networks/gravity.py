@@ -32,6 +32,15 @@ RCOND = 1e-10  # singular values of the column-scaled features below this times 
 # rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
 
 
+def horner(columns, x):
+    """A polynomial per column of ``x`` from the rows of ``columns`` (the highest power first), by Horner's rule as
+    numpy's polyval (the same operations); torch tensors (one ``unbind``) or numpy arrays (``networks.host``)."""
+    value, *rest = columns.unbind() if torch.is_tensor(columns) else columns
+    for column in rest:
+        value = value * x + column
+    return value
+
+
 def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
     """(J, 3, 3) ``K`` with ``K v = axis x v`` per axis (numpy: a schema's skeleton is built on the meta device)."""
     x, y, z = np.asarray(axes, float).reshape(-1, 3).T
@@ -113,10 +122,8 @@ class GravityTorque(nn.Module):
         full = q @ self.free_select + self.full_base
         if not self.dep_joint:
             return full
-        x = self._columns(full, self.dep_follows, self.dep_follows_index) - self.dep_follows_qpos0
-        value, *columns = self.dep_horner.unbind()  # Horner, as numpy's polyval (the same operations)
-        for column in columns:
-            value = value * x + column
+        value = horner(self.dep_horner, self._columns(full, self.dep_follows, self.dep_follows_index)
+                       - self.dep_follows_qpos0)
         return full + (value + self.dep_qpos0 - self._columns(full, self.dep_joint, self.dep_index)) @ self.dep_scatter
 
     @staticmethod
@@ -248,11 +255,7 @@ class GravityTorque(nn.Module):
 
     def _slopes(self, full: torch.Tensor) -> torch.Tensor:
         """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""
-        x = self._columns(full, self.slope_of, self.slope_index) - self.slope_qpos0
-        value, *columns = self.slope_horner.unbind()  # the highest power first
-        for column in columns:
-            value = value * x + column
-        return value
+        return horner(self.slope_horner, self._columns(full, self.slope_of, self.slope_index) - self.slope_qpos0)
 
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:

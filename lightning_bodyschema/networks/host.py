@@ -20,6 +20,7 @@ import torch
 
 from .basis import _slot_products
 from .few_postures import _has_cells
+from .gravity import horner
 
 
 def host_copy(tensor) -> np.ndarray:
@@ -132,7 +133,7 @@ class HostGravity:
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * self.mass_joint)
-        slopes = _horner(self.slope_horner, full[:, self.slope_index] - self.slope_qpos0)
+        slopes = horner(self.slope_horner, full[:, self.slope_index] - self.slope_qpos0)
         return (tau * slopes) @ self.free_scatter + self.offset + self.rate * q
 
     def _full_q(self, q: np.ndarray) -> np.ndarray:
@@ -140,7 +141,7 @@ class HostGravity:
         full = q @ self.free_select + self.full_base
         if not self.coupled:
             return full
-        value = _horner(self.dep_horner, full[:, self.dep_follows_index] - self.dep_follows_qpos0)
+        value = horner(self.dep_horner, full[:, self.dep_follows_index] - self.dep_follows_qpos0)
         return full + (value + self.dep_qpos0 - full[:, self.dep_index]) @ self.dep_scatter
 
 
@@ -156,11 +157,3 @@ def _box_product(box: np.ndarray, basis: np.ndarray) -> np.ndarray:
     ``few_postures.evaluate_few``)."""
     flat = np.ascontiguousarray(basis.transpose(1, 0, 2)).reshape(basis.shape[1], -1)
     return _product(box, flat).reshape(len(box), len(basis), -1).transpose(1, 0, 2)
-
-
-def _horner(columns: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """A polynomial per column of ``x`` from ``columns`` (the highest power first), as numpy's polyval."""
-    value = columns[0]
-    for column in columns[1:]:
-        value = value * x + column
-    return value

@@ -39,8 +39,9 @@ class HostBody:
         norm = schema.normalizer
         self.dtype = host_copy(torch.empty(0, dtype=schema.dtype)).dtype
         self.q_lo, self.q_hi = host_copy(norm.q_lo.to(torch.float64)), host_copy(norm.q_hi.to(torch.float64))
-        self.path = HostPath(schema.length_net, schema.length_net.dense_coefficients())
-        self.gravity = HostGravity(schema.torque_net, schema.torque_net.coef_terms())
+        cache = schema.inference_cache  # the entries ``StructuredSchema.body`` and ``torque`` keep (not rebuilt)
+        self.path = HostPath(schema.length_net, cache.get("path_coefficients", schema.length_net.dense_coefficients))
+        self.gravity = HostGravity(schema.torque_net, cache.get("gravity_coef_terms", schema.torque_net.coef_terms))
         self.l_mean, self.l_std, self.arm = (host_copy(t) for t in schema._length_scales(schema.dtype))
 
     def __call__(self, q_rad: np.ndarray):
