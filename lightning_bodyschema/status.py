@@ -29,6 +29,10 @@ class Status(str, Enum):
     UNCHECKED = "unchecked"  # finite, but the asked-for physics check could not run (no model)
     NOT_CONVERGED = "not_converged"  # a solver stopped at its iteration cap without an answer it can vouch for
     ACTIVATION_ABOVE_ONE = "activation_above_one"  # static optimization: the tension needs more than full activation
+    NO_FAULT = "no_fault"  # diagnosis: the log is what a healthy body reads, within the sensor noise
+    IDENTIFIED = "identified"  # diagnosis: one explanation of the log (which muscles, which kind, their parameters)
+    AMBIGUOUS = "ambiguous"  # diagnosis: two or more explanations fit the log within the sensor noise
+    NOT_IDENTIFIABLE = "not_identifiable"  # diagnosis: the log is not a healthy body's, and no explanation fits it
 
     @property
     def code(self) -> int:
@@ -45,12 +49,17 @@ class Status(str, Enum):
         return self.value
 
 
-_CODES = {member: code for code, member in enumerate(Status)}
+# Each member's integer, written out: a contract of every file, exported package and the C++ examples. A code never
+# changes meaning and is never reused; a new member takes the next free code (tests/status pins every pair).
+_CODES = {Status.OK: 0, Status.NON_FINITE: 1, Status.OUT_OF_RANGE: 2, Status.FAULT_NOT_MET: 3, Status.BAD_INPUT: 4,
+          Status.INFEASIBLE: 5, Status.INFEASIBLE_LEARNED: 6, Status.UNREACHABLE: 7, Status.UNCHECKED: 8,
+          Status.NOT_CONVERGED: 9, Status.ACTIVATION_ABOVE_ONE: 10, Status.NO_FAULT: 11, Status.IDENTIFIED: 12,
+          Status.AMBIGUOUS: 13, Status.NOT_IDENTIFIABLE: 14}
 _BY_CODE = {code: member for member, code in _CODES.items()}
 STATUS_CODES = {member.value: code for member, code in _CODES.items()}  # name -> code, for files and the package
 
 
-_MEMBERS = np.array(list(Status), dtype=object)  # code -> member (the codes number the members in order)
+_MEMBERS = np.array([_BY_CODE[code] for code in range(len(_BY_CODE))], dtype=object)  # code -> member
 
 
 def status_array(values: Iterable, size: int | None = None) -> np.ndarray:

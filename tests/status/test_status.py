@@ -15,6 +15,20 @@ def test_members_are_their_names_and_codes_round_trip():
         Status.from_code(99)
 
 
+# The contract, written out once more by hand: every file, exported package and the C++ examples read these integers.
+# Reordering, renaming or renumbering a member must fail here (the module's own mapping is not compared with itself).
+PINNED = {"ok": 0, "non_finite": 1, "out_of_range": 2, "fault_not_met": 3, "bad_input": 4, "infeasible": 5,
+          "infeasible_learned": 6, "unreachable": 7, "unchecked": 8, "not_converged": 9, "activation_above_one": 10,
+          "no_fault": 11, "identified": 12, "ambiguous": 13, "not_identifiable": 14}
+
+
+def test_every_name_keeps_its_code():
+    assert {m.value: m.code for m in Status} == PINNED
+    assert STATUS_CODES == PINNED
+    assert [Status.from_code(code).value for code in sorted(PINNED.values())] == sorted(PINNED, key=PINNED.get)
+    assert list(status_array(np.arange(len(PINNED)))) == [Status(name) for name in sorted(PINNED, key=PINNED.get)]
+
+
 def test_package_codes_are_the_vocabulary():
     """The codes the exported package and the C++ examples already use keep their meaning."""
     for name, code in PACKAGE_CODES.items():
