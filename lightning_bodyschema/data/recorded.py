@@ -60,8 +60,15 @@ class RecordedTable:
 
 def read_recorded(path: str) -> RecordedTable:
     """Read a recorded CSV or NPZ file (module docstring), every row, NaN included; refuse a malformed one."""
+    columns, ranges = read_columns(path, "recorded data file")
+    return _as_table(path, columns, ranges)
+
+
+def read_columns(path: str, what: str) -> tuple[dict, dict]:
+    """``(columns, ranges)`` of a CSV or NPZ table in this module's layout (header, ``# range``, ``# units: SI``),
+    every row as read; a missing file or a units flag other than SI is refused (``what`` names the file's role)."""
     if not os.path.isfile(path):
-        raise BodySchemaInputError(f"recorded data file {path!r} does not exist")
+        raise BodySchemaInputError(f"{what} {path!r} does not exist")
     if path.endswith(".npz"):
         columns, ranges, units = _read_npz_columns(path)
     else:
@@ -69,7 +76,7 @@ def read_recorded(path: str) -> RecordedTable:
     if units is not None and units != UNITS:
         raise BodySchemaInputError(f"{path}: units flag {units!r} is not supported; the file must be in SI units "
                                    f"(rad, m, N) and say so with units {UNITS!r} (or give no units flag)")
-    return _as_table(path, columns, ranges)
+    return columns, ranges
 
 
 def _read_csv_columns(path):
@@ -212,6 +219,13 @@ def write_recorded(path: str, q, l_motor, f, joints: Sequence[str], muscles: Seq
     columns = {f"q_{j}": q[:, i] for i, j in enumerate(joints)}
     columns.update({f"l_{m}": l_motor[:, i] for i, m in enumerate(muscles)})
     columns.update({f"f_{m}": f[:, i] for i, m in enumerate(muscles)})
+    write_columns(path, columns, ranges, meta)
+
+
+def write_columns(path: str, columns: Mapping[str, np.ndarray], ranges: Optional[Mapping] = None,
+                  meta: Optional[dict] = None) -> None:
+    """Write 1-D ``columns`` in this module's layout: CSV for ``*.csv`` (17 significant digits: reads back exactly),
+    else NPZ; deterministic bytes, written atomically. ``meta``: NPZ ``meta_*`` arrays / CSV comment lines."""
     ranges, meta = dict(ranges or {}), dict(meta or {})
     if not path.endswith(".csv"):
         save_npz(path, units=np.array(UNITS), columns=np.array(list(columns)), **columns,
@@ -222,7 +236,7 @@ def write_recorded(path: str, q, l_motor, f, joints: Sequence[str], muscles: Seq
     lines += [f"# range {name} {float(lo)!r} {float(hi)!r}" for name, (lo, hi) in ranges.items()]
     lines += [f"# {name}: {' '.join(str(value).split())}" for name, value in meta.items() if name != "model_xml"]
     lines.append(",".join(columns))
-    table = np.stack(list(columns.values()), axis=1)
+    table = np.stack([np.asarray(v, np.float64) for v in columns.values()], axis=1)
     lines += [",".join(f"{v:.17g}" for v in row) for row in table]
     atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 

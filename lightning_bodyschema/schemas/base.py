@@ -25,7 +25,11 @@ from ..faults import AdaptWeights
 from ..sim import SpringParams, elongation_from_tension
 from ..sim.robot import robot_model_from_dict
 from ..training.lightning_module import SchemaLightningModule
+from ..diagnosis import diagnose
+from ..diagnosis.log import check_log_names
+from ..diagnosis.noise import BodyError, check_noise
 from .cache import InferenceCache
+from .diagnosis import held_out_samples, implied_body, measure_body_error
 from .registry import CHECKPOINT_FORMAT, SCHEMA_CLASSES, register, register_root, schema_class_path  # noqa: F401
 
 
@@ -178,6 +182,42 @@ class BodySchema(SchemaLightningModule):
             mean, std = self.normalizer.x_mean, self.normalizer.x_std
             return PenaltyBuilder(*self.adaptation_units(variant, std), mean, std, self.dtype, self.device)
         return self.inference_cache.get(("penalty_builder", variant), build)
+
+    # ------------------------------------------------------------------ diagnosis (lightning_bodyschema/diagnosis)
+    def learned_body_si(self, q_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The learned body at postures ``q_rad (B, N)`` [rad]: ``l_geo (B, M)`` [m], ``G (B, M, N)`` [m/rad], ``tau
+        (B, N)`` [N m] float64 arrays, ``-G^T f = tau`` at rest. Here the body the healthy commands imply
+        (``schemas.diagnosis.implied_body``); a schema with an explicit body answers with it."""
+        return implied_body(self, to_numpy(q_rad).astype(np.float64))
+
+    def body_error(self) -> BodyError:
+        """The learned body's own error (``diagnosis.BodyError``), measured once on held-out healthy samples (the
+        fit's or the loaded checkpoint's validation split) and kept until the weights change."""
+        return self.inference_cache.get("body_error", lambda: measure_body_error(
+            self.learned_body_si, self.spring, *held_out_samples(self)))
+
+    def calibrate_body_error(self, q_rad, l_motor_m, f_n) -> BodyError:
+        """Measure ``body_error`` on these held-out healthy samples (SI, (S, N), (S, M), (S, M)) instead."""
+        error = measure_body_error(self.learned_body_si, self.spring, to_numpy(q_rad), to_numpy(l_motor_m),
+                                   to_numpy(f_n))
+        self.inference_cache.put("body_error", error)
+        return error
+
+    def diagnose(self, log, noise=None, thresholds=None, body_error=None):
+        """Which muscles failed in each log of ``log`` (a ``diagnosis.SensorLog``; ``diagnosis.read_sensor_log``
+        reads the file format), and how: a ``diagnosis.Diagnosis`` whose ``faults`` go to ``adapt``. ``noise``: the
+        sensors' (``diagnosis.SensorNoise``, documented defaults); ``body_error``: None measures the learned body's
+        own (``body_error``)."""
+        check_log_names(log, self.robot_model)
+        return diagnose(log, self.learned_body_si, self.spring, check_noise(noise),
+                        body_error or self.body_error(), thresholds)
+
+    def monitor(self, noise=None, thresholds=None, window: int = 5, confirm: int = 3, load_cells=None):
+        """A ``diagnosis.Monitor`` for a controller: ``monitor.update(cmd, reading)`` each tick returns the
+        ``Diagnosis`` of the last ``window`` ticks, a fault declared after ``confirm`` consecutive ticks agree."""
+        from ..diagnosis.monitor import Monitor
+
+        return Monitor(self, check_noise(noise), thresholds, window, confirm, load_cells)
 
     # ------------------------------------------------------------------ the cache's lifetime (schemas/cache.py)
     def clear_caches(self) -> None:

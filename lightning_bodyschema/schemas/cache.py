@@ -39,6 +39,11 @@ class InferenceCache:
             self._entries[key] = value
         return value
 
+    def put(self, key: Hashable, value) -> None:
+        """Replace the entry for ``key`` with ``value`` (a measurement of the current weights, e.g. the body's error);
+        dropped with the others when the weights change."""
+        self._entries[key] = value
+
     def clear(self) -> None:
         self._entries.clear()
 

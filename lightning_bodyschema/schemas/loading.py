@@ -149,6 +149,7 @@ def load_schema(path: str, expected_model_xml_sha256: str | None = None, cls=Non
     if refusal:
         raise BodySchemaInputError(f"checkpoint {path!r}: {refusal}")
     schema.load_state_dict(checked.checkpoint["state_dict"])
+    schema.checkpoint_path = path  # where its data module can be rebuilt from (the diagnosis's body error)
     return schema.eval() if device is None else schema.eval().to(device)
 
 

@@ -385,6 +385,10 @@ class StructuredSchema(BodySchema):
             q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
             return tuple(t.cpu().numpy().astype(np.float64) for t in self.body(q_n))  # a copy: the caller owns it
 
+    def learned_body_si(self, q_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``body_si``: the learned body itself (``BodySchema.learned_body_si``'s contract)."""
+        return self.body_si(torch.as_tensor(np.asarray(q_rad, np.float64)))
+
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:
         healthy): ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` as float64 arrays and ``Status`` members, every
