@@ -68,14 +68,18 @@ class Requests:
 
 
 # ---------------------------------------------------------------------------- reading
-def read_requests(path: str, model) -> Requests:
-    """Parse and validate a request file against the robot ``model`` (a ``MusculoskeletalModel``)."""
+def read_requests(path: str, model, diagnosed: Mapping | None = None) -> Requests:
+    """Parse and validate a request file against the robot ``model`` (a ``MusculoskeletalModel``); ``diagnosed``: the
+    faults of a diagnosis (``tools/diagnose.py``'s ``faults`` entry) added to every request (YAML/JSON files)."""
     ext = os.path.splitext(path)[1].lower()
     if ext not in REQUEST_FORMATS:
         raise BodySchemaInputError(f"request file {path!r}: unknown format {ext or '(none)'!r}; "
                                    f"use one of {list(REQUEST_FORMATS)}")
     try:
-        requests = _from_npz(path, model) if ext == ".npz" else _from_mappings(_load_text(path, ext), model)
+        if diagnosed and ext == ".npz":
+            raise BodySchemaInputError("--faults takes YAML or JSON requests (add the faults to an .npz yourself)")
+        requests = _from_npz(path, model) if ext == ".npz" else _from_mappings(
+            with_faults(_load_text(path, ext), diagnosed or {}), model)
         if len(requests) == 0:
             raise BodySchemaInputError("it holds no requests")
         requests.faults.validate(model.n_muscles)
@@ -100,6 +104,47 @@ def _load_text(path: str, ext: str):
         raise BodySchemaInputError(f"cannot parse ({type(err).__name__}: {str(err).splitlines()[0]})") from None
     except Exception as err:  # yaml.YAMLError and friends
         raise BodySchemaInputError(f"cannot parse ({type(err).__name__}: {' '.join(str(err).split())})") from None
+
+
+def with_faults(doc, faults: Mapping):
+    """The request document with ``faults`` (request keys: cut, jam, weak, band) added to every request; a muscle a
+    request names already keeps the request's own fault."""
+    if not faults:
+        return doc
+    items = doc["requests"] if isinstance(doc, Mapping) and "requests" in doc else doc
+    if not isinstance(items, list):
+        return doc  # refused with its own message by _from_mappings
+    merged = []
+    for request in items:
+        if not isinstance(request, Mapping):
+            merged.append(request)
+            continue
+        request = dict(request)
+        own = set(request.get("cut") or []) | {m for key in ("jam", "weak", "band") for m in (request.get(key) or {})}
+        request["cut"] = list(request.get("cut") or []) + [m for m in faults.get("cut", []) if m not in own]
+        for key in ("jam", "weak", "band"):
+            extra = {m: v for m, v in (faults.get(key) or {}).items() if m not in own}
+            if extra:
+                request[key] = {**extra, **(request.get(key) or {})}
+        merged.append(request)
+    return merged
+
+
+def read_diagnosis_faults(path: str, case) -> dict:
+    """The ``faults`` of one entry of a ``tools/diagnose.py`` JSON file: the only one, or the one of ``case``."""
+    entries = _load_text(path, ".json")
+    if not isinstance(entries, list) or not all(isinstance(e, Mapping) and "faults" in e for e in entries):
+        raise BodySchemaInputError(f"--faults {path!r} is not a tools/diagnose.py file (a JSON list of entries with "
+                                   f"'faults')")
+    if case is None and len(entries) != 1:
+        raise BodySchemaInputError(f"--faults {path!r} holds {len(entries)} cases; pick one with --case "
+                                   f"(cases: {[e.get('case') for e in entries][:10]})")
+    pick = entries if case is None else [e for e in entries if e.get("case") == case]
+    if not pick:
+        raise BodySchemaInputError(f"--case {case} is not in {path!r} (cases: {[e.get('case') for e in entries][:10]})")
+    if pick[0].get("status") not in ("identified", "ambiguous"):
+        print(f"note: --faults case {pick[0].get('case')} has status {pick[0].get('status')!r}: no fault to add")
+    return pick[0]["faults"]
 
 
 def _from_mappings(doc, model) -> Requests:
@@ -318,6 +363,9 @@ def predict_main(argv=None):
                         help="add the evaluator's predictions: feasible, E_cut, E_fix, E_tau, E_q, E_weak, E_band, "
                              "E_q_phys (MuJoCo settle check)")
     parser.add_argument("--reading", default="phys", help="evaluator's jam reading: phys (default) or paper")
+    parser.add_argument("--faults", default=None, metavar="DIAGNOSIS.json",
+                        help="add the faults of a tools/diagnose.py file to every request (diagnose, then adapt)")
+    parser.add_argument("--case", type=int, default=None, help="with --faults: the diagnosis case to take")
     args = parser.parse_args(argv)
     start = time.perf_counter()
     args.sampler, options = resolve_sampler(args.sampler)
@@ -327,10 +375,11 @@ def predict_main(argv=None):
         raise BodySchemaInputError(f"--reach-tol-mm {args.reach_tol_mm} must be a positive number")
     check_out(args.out, args.ckpt)
     _check_out_format(args.out, args.requests)
+    diagnosed = read_diagnosis_faults(args.faults, args.case) if args.faults else None
     torch_one_thread()
     schema = load_checked_schema(args)
     check_schema_options(schema, args.variant, args.sampler, options)
-    requests = read_requests(args.requests, schema.robot_model)
+    requests = read_requests(args.requests, schema.robot_model, diagnosed)
     if requests.by_target.any() and args.site not in schema.kinematic_twin().site_names:
         raise BodySchemaInputError(f"unknown --site {args.site!r}; the model's sites are "
                                    f"{schema.kinematic_twin().site_names}")
