@@ -23,7 +23,7 @@ from .log import SensorLog
 from .motors import BAND as M_BAND, JAM as M_JAM, UNEXPLAINED, WEAK as M_WEAK, WEAK_OR_BAND, motor_faults
 from .noise import BodyError, SensorNoise, Thresholds
 from .readings import readings
-from .result import BAND, CUT, HEALTHY, JAM, WEAK, Diagnosis, fault_request
+from .result import BAND, CUT, HEALTHY, JAM, WEAK, Diagnosis, fault_request, merge_requests
 
 OPEN_EDGE_M = 1.0  # a band edge the log never reached is put this far beyond the reached one: it binds nothing
 MAX_CANDIDATES = 16
@@ -113,18 +113,7 @@ def _candidates(c, faults, motors, cells, balance, in_set, muscles) -> list:
         groups.append([{"cut": [muscles[m] for m in np.flatnonzero(s)]} if s.any() else {} for s in sets])
     out = []
     for combo in product(*groups):
-        out.append(_merged(base, combo))
+        out.append(merge_requests(base, combo))
         if len(out) == MAX_CANDIDATES:
             break
-    return out
-
-
-def _merged(base: dict, parts) -> dict:
-    out = {key: (list(value) if isinstance(value, list) else dict(value)) for key, value in base.items()}
-    for part in parts:
-        for key, value in part.items():
-            if key == "cut":
-                out["cut"] = out.get("cut", []) + list(value)
-            else:
-                out.setdefault(key, {}).update(value)
     return out

@@ -7,7 +7,9 @@ sample, SI units:
   ``f_<muscle>`` load cell [N] (optional, per muscle: a robot without a load cell on a muscle leaves its column out);
 * what was sent: ``l_cmd_<muscle>`` [m] and ``f_cmd_<muscle>`` [N] (every muscle);
 * optional ``t`` [s] (time of the sample) and ``case`` (an integer): rows with the same ``case`` are one log, and
-  the logs of a file are answered together (batched); without ``case`` the whole file is one log.
+  the logs of a file are answered together (batched); without ``case`` the whole file is one log;
+* columns whose name starts with ``x_`` are the user's own (a drill's posture error, a controller's state) and are
+  ignored.
 
 Readings are noisy: a tension that reads -0.4 N or 151 N is data, not a bad row (no range filter here, unlike the
 training reader). Refused, with one message: a missing column, a column that names no joint or muscle of the robot,
@@ -26,6 +28,7 @@ from ..errors import BodySchemaInputError
 
 SENT = ("l_cmd_", "f_cmd_")  # checked before the reading prefixes: "l_cmd_x" is a command, not muscle "cmd_x"
 READ = ("q_", "l_", "f_")
+EXTRA = "x_"  # the user's own columns, ignored
 
 
 @dataclass
@@ -101,9 +104,10 @@ def _rank_within(index: np.ndarray, n_groups: int) -> np.ndarray:
     return rank
 
 
-def write_sensor_log(path: str, log: SensorLog) -> None:
-    """Write ``log`` as the file ``read_sensor_log`` reads (CSV for ``*.csv``, else NPZ; atomic)."""
-    write_columns(path, log.flat())
+def write_sensor_log(path: str, log: SensorLog, extra: Optional[dict] = None) -> None:
+    """Write ``log`` as the file ``read_sensor_log`` reads (CSV for ``*.csv``, else NPZ; atomic); ``extra``: columns
+    of the user's own, one value per row, written with the ``x_`` prefix."""
+    write_columns(path, {**log.flat(), **{f"{EXTRA}{k}": np.asarray(v, float) for k, v in (extra or {}).items()}})
 
 
 def read_sensor_log(path: str, joints: Sequence[str], muscles: Sequence[str]) -> SensorLog:
@@ -114,6 +118,8 @@ def read_sensor_log(path: str, joints: Sequence[str], muscles: Sequence[str]) ->
     if n_rows == 0:
         raise BodySchemaInputError(f"{path} has a header but no rows")
     for name, values in columns.items():
+        if name.startswith(EXTRA):
+            continue
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
             raise BodySchemaInputError(f"{path}: column {name!r} is NaN/inf in row {int(bad[0]) + 1} (rows counted "
@@ -131,7 +137,7 @@ def read_sensor_log(path: str, joints: Sequence[str], muscles: Sequence[str]) ->
 def _column_names(path, columns: dict, joints: list, muscles: list) -> None:
     """Refuse a column that names nothing of the robot (with a "did you mean") and a missing required column."""
     for name in columns:
-        if name in ("t", "case"):
+        if name in ("t", "case") or name.startswith(EXTRA):
             continue
         prefix = next((p for p in SENT + READ if name.startswith(p)), None)
         known = joints if prefix == "q_" else muscles

@@ -88,3 +88,16 @@ def fault_request(faults: Faults, c: int, muscles: list) -> dict:
     if band:
         out["band"] = band
     return out
+
+
+def merge_requests(base: dict, parts) -> dict:
+    """``base`` (a request's fault keys) with each of ``parts`` added: cut lists joined, the other kinds' dicts
+    updated."""
+    out = {key: (list(value) if isinstance(value, list) else dict(value)) for key, value in base.items()}
+    for part in parts:
+        for key, value in part.items():
+            if key == "cut":
+                out["cut"] = out.get("cut", []) + list(value)
+            else:
+                out.setdefault(key, {}).update(value)
+    return out

@@ -212,12 +212,13 @@ class BodySchema(SchemaLightningModule):
         return diagnose(log, self.learned_body_si, self.spring, check_noise(noise),
                         body_error or self.body_error(), thresholds)
 
-    def monitor(self, noise=None, thresholds=None, window: int = 5, confirm: int = 3, load_cells=None):
+    def monitor(self, noise=None, thresholds=None, window: int = 5, confirm: int = 3, load_cells=None,
+                reuse_rad: float = 5e-3):
         """A ``diagnosis.Monitor`` for a controller: ``monitor.update(cmd, reading)`` each tick returns the
         ``Diagnosis`` of the last ``window`` ticks, a fault declared after ``confirm`` consecutive ticks agree."""
         from ..diagnosis.monitor import Monitor
 
-        return Monitor(self, check_noise(noise), thresholds, window, confirm, load_cells)
+        return Monitor(self, check_noise(noise), thresholds, window, confirm, load_cells, reuse_rad)
 
     # ------------------------------------------------------------------ the cache's lifetime (schemas/cache.py)
     def clear_caches(self) -> None:
