@@ -60,18 +60,21 @@ def motor_faults(ev: Readings, z_limit: float) -> MotorFaults:
 
 
 def _weak_limit(ev: Readings, slipped: np.ndarray, followed: np.ndarray, z_limit: float):
-    """(f_weak (C, M) [N], consistent (C, M) bool): the limit a slipping motor held, from its load cell or, without
-    one, from the spring between the body's path length and the encoder; consistent when every slipping row shows
-    the same tension and no row that followed its command pulled harder."""
+    """(f_weak (C, M) [N], consistent (C, M) bool): the limit a slipping motor held, from the spring between the body's
+    path length and the encoder, and from its load cell where it has one (the two weighed by their variances);
+    consistent when every slipping row shows the same tension and no row that followed its command pulled harder."""
     log = ev.log
     from_spring = ev.tension(log.l_m)
-    f_seen = np.where(log.has_f, np.nan_to_num(log.f_n), from_spring)
     stiffness = ev.stiffness(from_spring)
     spring_var = stiffness ** 2 * (ev.noise.l_m ** 2 + ev.noise.q_rad ** 2 * ev.arm_norm2() + ev.error.length_m ** 2)
-    sigma = np.sqrt(np.where(log.has_f, ev.sigma_f ** 2, spring_var) + 1e-30)
-    f_weak = masked_mean(f_seen, slipped)
+    cell_var = np.where(log.has_f, ev.sigma_f ** 2, np.inf)
+    weight = 1.0 / cell_var + 1.0 / np.maximum(spring_var, 1e-30)
+    f_seen = (np.nan_to_num(log.f_n) / cell_var + from_spring / np.maximum(spring_var, 1e-30)) / weight
+    sigma = np.sqrt(1.0 / weight)
+    f_weak = masked_mean(f_seen * weight, slipped) / masked_mean(weight, slipped)
     held = np.where(log.has_f, np.nan_to_num(log.f_n), ev.tension(log.l_cmd_m))
+    held_sigma = np.sqrt(np.where(log.has_f, ev.sigma_f ** 2, spring_var) + 1e-30)
     with np.errstate(invalid="ignore"):
         same = masked_spread(f_seen, slipped, f_weak, sigma) <= z_limit
-        above_limit = (followed & (held > f_weak[:, None] + z_limit * sigma)).any(1)
+        above_limit = (followed & (held > f_weak[:, None] + z_limit * held_sigma)).any(1)
     return f_weak, same & ~above_limit
