@@ -17,7 +17,7 @@ TOLERANCE = 0.10  # "as well as the true faults": within 10 % of the true-fault 
 FLOOR_RAD = 1e-4  # ... or within this of it (the settle check's own resolution is ~3e-5 rad)
 
 
-def parse_fault(text: str, muscles: list) -> dict:
+def parse_fault(text: str) -> dict:
     """``cut:NAME``, ``jam:NAME=L_M``, ``weak:NAME=F_N``, ``band:NAME=LO,HI`` as a request dict (predict's keys)."""
     kind, _, rest = text.partition(":")
     name, _, value = rest.partition("=")
@@ -34,11 +34,11 @@ def parse_fault(text: str, muscles: list) -> dict:
     return {kind: {name: numbers if kind == "band" else numbers[0]}}
 
 
-def _faults(texts, muscles):
+def _faults(specs: list, muscles):
     from ..diagnosis.result import merge_requests
     from ..faults import Faults
 
-    request = merge_requests({}, [parse_fault(t, muscles) for t in texts])
+    request = merge_requests({}, specs)
     return Faults.from_names(muscles, n_cases=1, **{k: [v] if k == "cut" else v for k, v in request.items()})
 
 
@@ -90,12 +90,13 @@ def fault_drill_main(argv=None):
         raise BodySchemaInputError("give --fault KIND:NAME (one drill) or --n N (random drills), one of the two")
     if os.path.isfile(args.out):
         raise BodySchemaInputError(f"--out {args.out!r} is a file; give a directory")
+    specs = [parse_fault(text) for text in args.fault]  # the format, before anything heavy
     torch_one_thread()
     schema = load_checked_schema(args)
     if not schema.has_physics:
         raise BodySchemaInputError("the drill runs in MuJoCo: the checkpoint's robot needs its MJCF")
     muscles = schema.robot_model.muscle_names
-    faults = _faults(args.fault, muscles) if args.fault else None
+    faults = _faults(specs, muscles) if specs else None
     from ..schemas.loading import load_datamodule
 
     q_pool = np.asarray(load_datamodule(args.ckpt).splits["val"][0], float)
