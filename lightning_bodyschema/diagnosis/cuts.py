@@ -78,8 +78,10 @@ class BalanceCuts:
 
 def balance_cuts(ev: Readings, motors: MotorFaults, cells: LoadCellCuts, thr: Thresholds) -> BalanceCuts:
     """Score no cut, every single cut and pairs of the best single cuts among the muscles with no load cell."""
-    f_pred, _ = predicted_tensions(ev, motors)
     has_f = ev.log.has_f
+    if has_f.all():  # every muscle has its load cell: nothing is left for the balance to decide
+        return _nothing_to_test(motors.kind.shape)
+    f_pred, _ = predicted_tensions(ev, motors)
     f_used = np.where(has_f, np.nan_to_num(ev.log.f_n), f_pred)
     imbalance = -np.einsum("crmn,crm->crn", ev.G, f_used) - ev.tau
     whiten = _whitener(ev, f_pred)
@@ -100,6 +102,13 @@ def balance_cuts(ev: Readings, motors: MotorFaults, cells: LoadCellCuts, thr: Th
     close = fits & (ranked <= ranked[np.arange(len(best)), best][:, None] + thr.margin)
     return BalanceCuts(sets, chi2, score, fits, best, close, observed, np.where(observed, chi0[:, None] - chi1, 0.0),
                        tested)
+
+
+def _nothing_to_test(shape) -> BalanceCuts:
+    C, M = shape
+    zeros = np.zeros(shape)
+    return BalanceCuts(np.full((C, 1, 2), -1), np.zeros((C, 1)), np.zeros((C, 1)), np.ones((C, 1), bool),
+                       np.zeros(C, int), np.ones((C, 1), bool), zeros.astype(bool), zeros, np.zeros(C, bool))
 
 
 def _whitener(ev: Readings, f_pred) -> np.ndarray:

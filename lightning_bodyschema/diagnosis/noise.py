@@ -2,6 +2,7 @@
 decision thresholds. Every default is a documented choice (README "When you don't know what broke")."""
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Optional
@@ -79,8 +80,9 @@ def chi2_quantile(p: float, dof) -> np.ndarray:
     return k * (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
 
 
+@functools.lru_cache(maxsize=64)
 def _normal_quantile(p: float) -> float:
-    """The standard normal quantile (bisection on erf: exact to 1e-12, and called once per decision)."""
+    """The standard normal quantile (bisection on erf: exact to 1e-12; a few settings, cached)."""
     lo, hi = -40.0, 40.0
     for _ in range(200):
         mid = 0.5 * (lo + hi)
