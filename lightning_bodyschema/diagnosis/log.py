@@ -33,7 +33,7 @@ EXTRA = "x_"  # the user's own columns, ignored
 
 @dataclass
 class SensorLog:
-    """C logs of up to R rows each (shorter logs padded; ``rows`` marks the real ones), SI units.
+    """C logs of up to R rows each (shorter logs padded with zeros; ``rows`` marks the real ones), SI units.
 
     q_rad (C, R, N) joint readings; l_m (C, R, M) motor encoders; f_n (C, R, M) load cells, NaN in the columns of
     muscles without one (``has_f`` (M,) False); l_cmd_m, f_cmd_n (C, R, M) what was sent; rows (C, R) bool;
@@ -70,8 +70,8 @@ class SensorLog:
         rows = np.zeros((len(labels), width), bool)
         rows[index, rank] = True
 
-        def grouped(a, fill=np.nan):
-            out = np.full((len(labels), width) + a.shape[1:], fill, float)
+        def grouped(a):  # padding rows hold zeros: finite, and masked out by ``rows`` wherever it matters
+            out = np.zeros((len(labels), width) + a.shape[1:])
             out[index, rank] = a
             return out
         has_f = ~np.isnan(f_n).all(0) if n_rows else np.zeros(l_m.shape[1], bool)

@@ -69,7 +69,7 @@ def _draw_faults(l_cmd, f_cmd, n_faults, kinds, rng):
     truth[np.arange(C)[:, None], muscles] = picks
     mm = 1e-3
     l_fixed = np.where(truth == JAM, l_cmd - rng.uniform(0.5, 8.0, (C, M)) * mm, np.nan)
-    f_weak = np.where(truth == WEAK, f_cmd * rng.uniform(0.3, 0.8, (C, M)), np.nan)
+    f_weak = np.where(truth == WEAK, np.maximum(f_cmd, 0.0) * rng.uniform(0.3, 0.8, (C, M)), np.nan)
     gap, width = rng.uniform(0.5, 5.0, (C, M)) * mm, rng.uniform(2.0, 20.0, (C, M)) * mm
     lower = rng.random((C, M)) < 0.5  # the command lies below the band (its lower edge binds), else above it
     lo = np.where(lower, l_cmd + gap, l_cmd - gap - width)
