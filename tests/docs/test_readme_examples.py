@@ -35,8 +35,9 @@ _FENCE = re.compile(r"^( *)```(\w+)\n(.*?)^\1```", re.MULTILINE | re.DOTALL)
 FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA = ("schema.adapt(q_ref, faults)", "too_short = Faults",
                                                 "schema.adapter(", "class RegressionSchema")
 ADAPTING_SCHEMA = "class AdaptingSchema"
+DIAGNOSE = "schema.diagnose(log"
 REQUESTS, OWN_ROBOT = ("- q_ref:", "model: path/to/my_robot.xml")
-RUN = {"python": (FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA, ADAPTING_SCHEMA), "yaml": (REQUESTS, OWN_ROBOT)}
+RUN = {"python": (FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA, ADAPTING_SCHEMA, DIAGNOSE), "yaml": (REQUESTS, OWN_ROBOT)}
 # marker -> why a block cannot run here
 NOT_RUN: dict[str, str] = {"static_optimization(arm": "needs myo-sim and two MyoSuite builds: run by "
                                                      "tests/statics/test_static_opt.py::test_readme_example (slow)"}
@@ -156,6 +157,38 @@ def test_the_adapting_block_meets_a_cut_through_the_adapter(dm):
     result = schema.adapt(q, faults, check_physics=False)
     assert (result.status == "ok").all() and healthy_f.min() > 1.0
     assert result.diagnostics["cut_violation_n"].max() < 0.01 * healthy_f.min()
+
+
+def test_the_diagnosis_block_names_a_cut_and_adapts_to_it(tmp_path):
+    """The "When you don't know what broke" block on a log of the paper arm with its elbow flexor cut (simulated in
+    MuJoCo from the checkpoint's own healthy commands, with the documented noise). The checkpoint at the README's
+    path is a structured schema here (fitted in seconds): a 60-epoch diffusion body is centimetres off (its measured
+    body error), and on such a body no cut is observable (the block then rightly says ``no_fault``)."""
+    from physics_checks import fit_structured
+
+    from lightning_bodyschema.diagnosis import SensorLog, SensorNoise, write_sensor_log
+    from lightning_bodyschema.diagnosis.sensors import noisy, true_readings
+    from lightning_bodyschema.faults import Faults
+
+    dm = EquilibriumDataModule(n_samples=1000, seed=0, cache_dir=None)
+    schema, trainer = fit_structured(dm, length_model="per_muscle", path_degree=10, torque_model="gravity")
+    (tmp_path / README_CKPT).parent.mkdir(parents=True)
+    trainer.save_checkpoint(str(tmp_path / README_CKPT), weights_only=False)
+    arm = schema.robot_model
+    q = np.array([[0.3, -0.2], [0.5, 0.1], [-0.2, 0.4]])
+    l_cmd, f_cmd = schema.infer(q)
+    faults = Faults.from_names(arm.muscle_names, cut=[["elbow_flexor"]] * 3)
+    read = noisy(true_readings(arm, schema.spring, q, l_cmd, f_cmd, faults), schema.spring, SensorNoise(),
+                 np.random.default_rng(0))
+    write_sensor_log(str(tmp_path / "log.csv"), SensorLog.from_rows(arm.joint_names, arm.muscle_names, read[0],
+                                                                    read[1], l_cmd, f_cmd, read[2]))
+    namespace = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(tmp_path)
+        exec(compile(block("python", DIAGNOSE), "README.md:diagnose", "exec"), namespace)
+    record, result = namespace["diagnosis"].records()[0], namespace["result"]
+    assert record["status"] == "identified" and record["faults"] == {"cut": ["elbow_flexor"]}
+    assert list(result.status) == ["ok"] and result.f_n[0, arm.muscle_names.index("elbow_flexor")] == 0.0
 
 
 # ---------------------------------------------------------------------------- YAML
