@@ -88,11 +88,15 @@ def trial_log(trial: Trial, model, spring, noise: SensorNoise, rng, has_f=None, 
                                trial.log_rows)
 
 
+def oracle_diagnosis(trial: Trial, model, spring, noise: SensorNoise, thresholds: Thresholds, has_f=None):
+    """The true body's diagnosis of the noise-free logs: what the logs themselves show (module docstring)."""
+    return diagnose(trial_log(trial, model, spring, noise, None, has_f, noise_free=True), model.kinematics, spring,
+                    noise, BodyError.exact(model.n_muscles, model.n_joints), thresholds)
+
+
 def identifiable(trial: Trial, model, spring, noise: SensorNoise, thresholds: Thresholds, has_f=None) -> np.ndarray:
     """(C,) bool: the true body's diagnosis of the noise-free log names exactly the true faults (module docstring)."""
-    oracle = diagnose(trial_log(trial, model, spring, noise, None, has_f, noise_free=True), model.kinematics, spring,
-                      noise, BodyError.exact(model.n_muscles, model.n_joints), thresholds)
-    return right(oracle, trial.truth)
+    return right(oracle_diagnosis(trial, model, spring, noise, thresholds, has_f), trial.truth)
 
 
 def right(diagnosis, truth: np.ndarray) -> np.ndarray:
