@@ -52,9 +52,11 @@ def load_cell_cuts(ev: Readings, motors: MotorFaults, thr: Thresholds) -> LoadCe
     candidate = ev.log.has_f & (motors.kind == NONE)
     observed = candidate & (signal > thr.z_observed ** 2)
     score = np.where(candidate, chi_healthy - chi_cut, 0.0)
+    # a cut reads 0 within the load cell's noise: a reading that is not 0 is no cut, however far the body's
+    # prediction is (its own error at that posture), so both verdicts need the cut's explanation to fit
     fits = chi_cut <= thr.fit_limit(ev.log.rows.sum(1))[:, None]
     cut = observed & (score > thr.margin) & fits
-    ambiguous = observed & (np.abs(score) <= thr.margin)
+    ambiguous = observed & (np.abs(score) <= thr.margin) & fits
     return LoadCellCuts(cut, ambiguous, observed, score)
 
 
