@@ -218,12 +218,29 @@ class _Simulator:
         self.alpha = np.broadcast_to(np.asarray(spring.alpha_per_m, float), (len(self.ids),)).copy()
         self.params = params
         self.joint_map = model.joint_map
-        self._hold_couplings_and_locks()
+        self.joint_damping = self.m.dof_damping.copy()  # [N m s/rad]: integrated implicitly in _reduced_step
+        self.m.dof_damping[:] = 0.0
+        self._hold_exactly()
         self.pool: list[mujoco.MjData] = []
         self._jacobian_index()
 
+    def _hold_exactly(self):
+        """Couplings and locks are not MuJoCo constraints here: every <equality joint> is switched off and the
+        step itself keeps the state on the manifold (``_reduced_step`` gives the followers the acceleration the
+        polynomials prescribe, ``_project`` puts positions and velocities back on it after MuJoCo integrates)."""
+        m, jm = self.m, self.joint_map
+        self._locked = np.array(sorted(jm.locked), dtype=int)
+        self._locked_values = np.array([jm.locked[j] for j in self._locked])
+        for e in range(m.neq):
+            if int(m.eq_type[e]) == int(mujoco.mjtEq.mjEQ_JOINT):
+                m.eq_active0[e] = 0
+        # a follower's range is its leader's (JointMap.free_range narrows the free joints' ranges to keep followers
+        # inside theirs); its own limit would only push where that narrowing rounds (0.2 mrad on myoLegs' knee)
+        m.jnt_limited[[j for j, _, _ in jm.deps]] = 0
+
     def _hold_couplings_and_locks(self):
-        """Locks: the equality is switched off and the joint gets a huge armature, so it does not accelerate while
+        """(``statics.check``'s MuJoCo check; the settle simulation holds them exactly, ``_hold_exactly``.)
+        Locks: the equality is switched off and the joint gets a huge armature, so it does not accelerate while
         the rest of the arm moves exactly as if it were welded (M_jj -> inf), then is reset each step. Couplings:
         MuJoCo's equality constraint made stiff (time constant 2 steps, impedance COUPLING_IMPEDANCE): at rest a
         follower misses its polynomial by ~(1 - d) a / (d k), and its constraint force is the one the arm needs."""
@@ -259,40 +276,83 @@ class _Simulator:
                 spring += (self.params.muscle_damping_s * self.alpha * self.k) * (taut * grow) * velocity
             return np.minimum(np.maximum(np.where(laws.spring, spring, laws.f_const_n), 0.0), laws.f_cap_n)
 
-    def _joint_forces(self, ten_j, f) -> np.ndarray:
-        """-J_ten^T f (B, nv) [N m] from the sparse ``ten_J`` values (B, nJ) of each data."""
-        jac = np.zeros((len(f), len(self.ids), self.m.nv))
-        jac[:, self.j_rows, self.j_cols] = ten_j[:, self.j_entries]
-        return -np.einsum("bmn,bm->bn", jac, f)
+    def stiffness(self, length, laws: _Laws) -> np.ndarray:
+        """d tension / d length (B, M) [N/m] of the springs as ``tension`` pulls them (0 where slack, where the tension
+        is a constant or clipped at 0 or at its cap): the stiffness the step integrates implicitly."""
+        delta = length - laws.rest_m
+        with np.errstate(over="ignore", invalid="ignore"):
+            slope = self.alpha * self.k * np.exp(self.alpha * np.where(delta > 0.0, delta, 0.0))
+        return np.where(laws.spring & (delta > 0.0), slope, 0.0)
 
     def step(self, datas, laws: _Laws) -> tuple[np.ndarray, np.ndarray]:
-        """One lockstep step: state -> tensions -> qfrc_applied -> integrate.
+        """One lockstep step: state -> tensions -> qfrc_applied -> integrate -> back on the couplings.
 
-        Returns the tensions (B, M) and a (B,) mask of blown-up cases (a joint force above
-        ``max_torque_nm`` or NaN), which are left unstepped so MuJoCo never sees (and prints) the blow-up.
+        Returns the tensions (B, M) and a (B,) mask of blown-up cases (a muscle/damping joint force above
+        ``max_torque_nm``, or NaN), which are left unstepped so MuJoCo never sees (and prints) the blow-up.
         """
-        m, damping = self.m, self.params.mass_damping_per_s
-        mass_v = np.zeros((len(datas), m.nv))
-        for d, mv in zip(datas, mass_v):
-            mujoco.mj_step1(m, d)  # positions, tendons, velocities of the current state
-            mujoco.mj_mulM(m, d, mv, d.qvel)
+        m = self.m
+        mass = np.zeros((len(datas), m.nv, m.nv))
+        for d, mb in zip(datas, mass):
+            mujoco.mj_step1(m, d)  # positions, tendons, mass matrix, bias and passive forces of the current state
+            mujoco.mj_fullM(m, d, mb)
         length = np.array([d.ten_length for d in datas])[:, self.ids]
-        velocity = np.array([d.ten_velocity for d in datas])[:, self.ids]
-        f = self.tension(length, velocity, laws)
-        qfrc = self._joint_forces(np.array([d.ten_J for d in datas]), f) - damping * mass_v
-        blown = ~np.all(np.abs(qfrc) <= self.params.max_torque_nm, axis=1)  # NaN counts as blown
-        for d, tau, skip in zip(datas, qfrc, blown):
+        f = self.tension(length, np.array([d.ten_velocity for d in datas])[:, self.ids], laws)
+        jac = np.zeros((len(f), len(self.ids), m.nv))
+        jac[:, self.j_rows, self.j_cols] = np.array([d.ten_J for d in datas])[:, self.j_entries]
+        qvel = np.array([d.qvel for d in datas])
+        pull = -np.einsum("bmn,bm->bn", jac, f) - self.params.mass_damping_per_s * np.einsum("bij,bj->bi", mass, qvel)
+        applied = self._reduced_step(datas, mass, jac, pull, self.stiffness(length, laws))
+        blown = ~(np.all(np.abs(pull) <= self.params.max_torque_nm, axis=1) & np.all(np.isfinite(applied), axis=1))
+        for d, tau, skip in zip(datas, applied, blown):
             if not skip:
                 d.qfrc_applied[:] = tau
-                mujoco.mj_step2(m, d)  # acceleration, limit constraints, Euler integration
-        if self._locked.size:
-            self._project(datas)
+                mujoco.mj_step2(m, d)  # limit constraints, Euler integration
+        self._onto_couplings([d for d, skip in zip(datas, blown) if not skip])
         return f, blown
 
+    def _reduced_step(self, datas, mass, jac, pull, stiffness) -> np.ndarray:
+        """qfrc_applied (B, nv) that gives every joint the acceleration of the free joints' linearly implicit Euler
+        step, followers exactly on their couplings (so MuJoCo's integration of it is that step).
+
+        In the free joints q (``E = dq_full/dq``): ``(M_r + dt D_r + dt^2 K_r) dqdot = dt (F_r - dt K_r qdot)`` with
+        ``M_r = E^T M E``, the muscles' stiffness ``K_r = G^T diag(dtension/dlength) G`` (``G = J_ten E``), the damping
+        ``D_r = muscle_damping_s K_r + mass_damping_per_s M_r + E^T diag(joint damping) E`` and ``F_r`` every force at
+        the current state through E. The rest posture is where ``F_r = 0``: the oracle's equilibrium, exactly."""
+        m, p, jm, dt = self.m, self.params, self.joint_map, self.m.opt.timestep
+        qpos, qvel = np.array([d.qpos for d in datas]), np.array([d.qvel for d in datas])
+        q, qdot = qpos[:, jm.free], qvel[:, jm.free]
+        e = jm.tangent(q, qpos)  # (B, nv, N)
+        drift = jm.tangent_rate(q, qdot, qpos)  # (B, nv): followers' acceleration at zero free acceleration
+        smooth = np.array([d.qfrc_passive - d.qfrc_bias for d in datas])  # gravity, Coriolis, springs
+        force = pull + smooth - self.joint_damping * qvel - np.einsum("bij,bj->bi", mass, drift)
+        mass_r = np.einsum("bin,bij,bjk->bnk", e, mass, e)
+        g = jac @ e
+        stiff_r = np.einsum("bmn,bm,bmk->bnk", g, stiffness, g)
+        damp_r = (p.muscle_damping_s * stiff_r + p.mass_damping_per_s * mass_r
+                  + np.einsum("bin,i,bik->bnk", e, self.joint_damping, e))
+        rhs = dt * (np.einsum("bin,bi->bn", e, force) - dt * np.einsum("bnk,bk->bn", stiff_r, qdot))
+        with np.errstate(invalid="ignore", over="ignore"):
+            qddot = np.linalg.solve(mass_r + dt * damp_r + dt * dt * stiff_r, rhs[..., None])[..., 0] / dt
+        accel = np.einsum("bin,bn->bi", e, qddot) + drift
+        return np.einsum("bij,bj->bi", mass, accel) - smooth
+
     def _project(self, datas):
-        """Locked joints back at their value and at rest (their huge armature leaves them only ~1e-9 to undo)."""
+        """Locked joints back at their value and at rest (``statics.check``'s MuJoCo check, with
+        ``_hold_couplings_and_locks``)."""
         for d in datas:
             d.qpos[self._locked], d.qvel[self._locked] = self._locked_values, 0.0
+
+    def _onto_couplings(self, datas):
+        """Every joint back on the couplings and locks: followers and locked joints from the free joints' positions
+        and velocities (MuJoCo's Euler step leaves them off by the limit constraints' share and by rounding)."""
+        if self.joint_map.identity or not datas:
+            return
+        jm = self.joint_map
+        qpos, qvel = np.array([d.qpos for d in datas]), np.array([d.qvel for d in datas])
+        full = jm.full_q(qpos[:, jm.free])
+        speed = np.einsum("bin,bn->bi", jm.tangent(qpos[:, jm.free], full), qvel[:, jm.free])
+        for d, pos, vel in zip(datas, full, speed):
+            d.qpos[:], d.qvel[:] = pos, vel
 
     def verdict(self, datas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(status (B,) with -1 = keep going, qpos (B, N), qvel (B, N)) of the current states."""
