@@ -25,37 +25,39 @@ Force model (one case = one MuJoCo rollout), muscle i with tendon length ``l_geo
 * banded motors (``FaultCases.l_band``, length mode): the winch stops at its band, rest length
   ``clip(l_motor, lo, hi)`` (after the jam's ``min``); in tension mode the band is not modelled.
 
-Tensions act on the joints as ``qfrc_applied = -J_ten^T f`` with MuJoCo's own ``ten_length`` /
-``ten_J`` (sparse in MuJoCo 4, scattered into a dense (M, nv) buffer) of the current state:
-each step is ``mj_step1`` (positions, tendons, velocities), forces from that state, ``mj_step2``
-(acceleration, joint-limit constraints, integration). No global MuJoCo callback is installed.
+Tensions act on the joints as ``-J_ten^T f`` with MuJoCo's own ``ten_length`` / ``ten_J`` (sparse in MuJoCo 4,
+scattered into a dense (M, nv) buffer) of the current state: each step is ``mj_step1`` (positions, tendons, mass
+matrix, gravity and passive forces), the step below in numpy, ``mj_step2`` (joint-limit constraints, integration).
+No global MuJoCo callback is installed.
 
-Integration and damping (the rest posture does not depend on damping; only how fast it is reached):
+Integration (``_Simulator._reduced_step``), in the free joints q of ``sim/joints.py`` (``E = d q_full / dq``):
 
-* semi-implicit Euler (MuJoCo ``mjINT_EULER``, the model's timestep, 1 ms for the paper arm) on a
-  private copy of the model; the model's joint damping stays and is integrated implicitly by MuJoCo.
-* mass-proportional damping ``-a M(q) qdot`` with ``a = mass_damping_per_s`` (default 8 1/s):
-  critical for a 4 rad/s mode (the hanging paper arm's slowest pendulum mode); every faster mode
-  decays at least as ``exp(-a t / 2)``. For another robot take about twice its slowest frequency.
-* stiffness-proportional muscle damping (Kelvin-Voigt muscle): a taut spring adds
-  ``beta * dphi/ddelta * dl_geo/dt`` with ``beta = muscle_damping_s`` (default 0.01 s), which damps the
-  stiff muscle modes (20-60 rad/s) harder. The total tension is clipped at 0: a wire never pushes.
-* Both added dampers are explicit; at 1 ms they are far inside the stability limit
-  (``a dt << 2``, ``beta omega^2 dt << 2`` for omega up to ~400 rad/s). The stiffness of the spring
-  itself, ``alpha (f + k)``, is explicit too: a command that stretches a muscle by many centimetres
-  (tensions of thousands of newtons) can blow the integration up, reported as UNSTABLE.
+* linearly implicit Euler: ``(M_r + dt D_r + dt^2 K_r) dqdot = dt (F_r - dt K_r qdot)``, ``M_r = E^T M E``,
+  ``F_r = E^T F`` every force of the current state, ``K_r = G^T diag(dphi/ddelta) G`` the taut springs' stiffness
+  (``G = J_ten E``), ``D_r`` the dampers below; the model's timestep (1 ms paper arm, 2 ms MyoSuite). MuJoCo
+  integrates it: ``qfrc_applied`` is the force that gives every joint ``E qddot + dE/dt qdot``.
+  The rest posture is where ``F_r = 0``, the balance the data and the oracle solve, exactly (to float rounding).
+  Why implicit: the springs are stiff (``alpha (f + k)``) on light segments (myoLegs' toes: modes near 1000 rad/s);
+  the explicit spring and muscle damping rang there at a 2 ms step (a limit cycle, never at rest). A command
+  stretching a muscle by tens of centimetres now rests where its antagonists balance it (MN tensions) instead of
+  blowing up; joint forces above ``max_torque_nm`` are UNSTABLE.
+* damping (the rest posture does not depend on it; only how fast it is reached): mass-proportional ``a M_r qdot``,
+  ``a = mass_damping_per_s`` (default 8 1/s, critical for the hanging paper arm's 4 rad/s pendulum mode);
+  stiffness-proportional muscle damping (Kelvin-Voigt muscle) ``beta * dphi/ddelta * dl_geo/dt``,
+  ``beta = muscle_damping_s`` (default 0.01 s); the model's joint damping. All three implicitly.
+  The total tension is clipped at 0: a wire never pushes.
 * no contacts: the static equilibrium the data and the schemas use has no contact forces, so the
   simulation has none either (on myoArm the upper arm would otherwise push against the torso at
   postures the data holds as equilibria, and exact commands would settle elsewhere).
-* joint limits: MuJoCo's soft limit constraints of the model (so a posture pressed into a limit may
-  sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N).
+* joint limits: MuJoCo's soft limit constraints of the model on the free joints (so a posture pressed into a limit
+  may sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N). A follower's own limit is off:
+  its range is its leader's (``JointMap.free_range``), which otherwise pushed where that narrowing rounds.
 
 Stopping: every ``check_every_steps`` steps, SETTLED when ``max|qvel| < qvel_tol_rad_s`` and
 ``max|qacc| < qacc_tol_rad_s2`` over the free joints (followers and locked joints are not coordinates of
-q; a follower's velocity is its leader's times the coupling slope plus its constraint's own ringing)
-(the acceleration test rejects the turning point of an oscillation,
-where the velocity is momentarily zero; with the defaults the rest posture is within ~3e-5 rad of the
-true equilibrium); UNSTABLE when a joint force exceeds ``max_torque_nm`` or is NaN (checked every step,
+q) (the acceleration test rejects the turning point of an oscillation, where the velocity is momentarily zero; with
+the defaults the torque left unbalanced at rest is about ``M_r qacc_tol + a M_r qvel_tol``: the rest posture is within
+~3e-5 rad of the true equilibrium on the paper arm, further on soft bodies, that torque over the softest stiffness); UNSTABLE when a joint force exceeds ``max_torque_nm`` or is NaN (checked every step,
 before MuJoCo integrates it, so MuJoCo never prints its own blow-up warning), the state is non-finite,
 or ``max|qvel| > max_qvel_rad_s``; NOT_SETTLED when ``max_time_s`` runs out. A case at rest more than
 ``limit_tol_rad`` outside the joint range is BEYOND_LIMIT: tensions far above f_max (a wire stretched by
@@ -63,16 +65,13 @@ centimetres) overpower MuJoCo's soft limit, and that rest posture is not physica
 unstable equilibrium at q_ref is reported as settled: the simulation starts without a perturbation.
 
 Couplings and locks (``<equality joint>``, sim/joints.py): q_ref and q_settle are the free joints; the
-simulation runs on every joint. A locked joint gets a huge armature (so the arm moves as if it were welded)
-and is reset to its value at rest after every step: it never moves. A coupling is MuJoCo's equality
-constraint made near-hard (MuJoCo's largest impedance; a follower misses its polynomial at rest by the
-constraint's softness times the force it carries, so E_q_phys of an exact equilibrium command is that small
-miss instead of float rounding). MuJoCo's constraint solver stops when an
-iteration improves its cost by less than ``opt.tolerance`` of it; the constraint forces it leaves are off by
-about that fraction, and near-hard couplings turn that error into accelerations that change at random from
-step to step: the free joints jitter at a speed set by the solver, not by the physics. The simulation solves
-to ``SOLVER_TOLERANCE`` instead of MuJoCo's default 1e-8 (Newton converges quadratically: a step or two more),
-which leaves that jitter far below ``qvel_tol_rad_s``: the rest test keeps its meaning (the arm's own motion).
+simulation runs on every joint, held exactly on the couplings and locks: MuJoCo's equality constraints are off
+(``_hold_exactly``), the step gives each follower the acceleration its polynomial prescribes and a locked joint none,
+and after MuJoCo integrates, followers and locked joints are put back from the free joints' positions and velocities
+(``_onto_couplings``). Measured on myoLegs (knees: patella and tibia translations and rotations coupled to the knee
+angle), why: MuJoCo's constraints are soft by construction (the previous near-hard ones left followers 0.2-0.3 mm off
+their polynomials at a 2 ms step, shrinking as dt^2), and the legs' softest directions (0.7 N m/rad) turned that
+into 0.01-0.02 rad: exact equilibria did not rest where they are.
 
 Batching: MuJoCo steps one MjData at a time and the tension law needs a per-step computation that
 ``mujoco.rollout`` cannot express (it would need a global Python callback). So the cases of a chunk
@@ -104,9 +103,11 @@ from .settle_inputs import _Laws, _check_inputs, _force_laws, _is_cases
 from .spring import SpringParams
 
 MODES = ("length", "tension")
+# statics.check's MuJoCo check holds locks and couplings with MuJoCo (_hold_couplings_and_locks); settle holds them
+# exactly (_hold_exactly) and keeps these only for that check:
 LOCK_ARMATURE = 1e6  # [kg m^2] added to a locked joint: it does not accelerate (see _hold_couplings_and_locks)
-COUPLING_IMPEDANCE = 0.9999  # MuJoCo solimp d of a coupling in the simulation: near-hard (MuJoCo's largest d)
-SOLVER_TOLERANCE = 1e-12  # MuJoCo opt.tolerance in the simulation: constraint forces solved to convergence
+COUPLING_IMPEDANCE = 0.9999  # MuJoCo solimp d of a coupling: near-hard (MuJoCo's largest d)
+SOLVER_TOLERANCE = 1e-12  # MuJoCo opt.tolerance: constraint (limit) forces solved to convergence
 JAM_MODES = ("one_sided", "immobile")  # the same names as evaluation.feasibility.JAM_MODELS
 
 
@@ -209,7 +210,7 @@ class _Simulator:
         self.m = copy.copy(model.mj_model)  # private: integrator, timestep and flags are ours to set
         self.m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # blow-ups stay visible
-        self.m.opt.tolerance = min(self.m.opt.tolerance, SOLVER_TOLERANCE)  # no solver jitter (module docstring)
+        self.m.opt.tolerance = min(self.m.opt.tolerance, SOLVER_TOLERANCE)  # limit forces solved to convergence
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)  # the equilibrium has no contacts
         if params.timestep_s is not None:
             self.m.opt.timestep = params.timestep_s
