@@ -188,6 +188,18 @@ class SettleResult:
         return self.status == SettleStatus.SETTLED
 
     @property
+    def unsettled(self) -> np.ndarray:
+        """(B,) bool: simulated but never at rest (NOT_SETTLED: still moving at max_time_s; UNSTABLE: blew up). Its
+        q_settle is no rest posture: a score counts these apart (``E_q_rest``), never as an E_q_phys."""
+        return np.isin(self.status, (SettleStatus.NOT_SETTLED, SettleStatus.UNSTABLE))
+
+    @property
+    def E_q_rest(self) -> np.ndarray:
+        """(B,) E_q_phys [rad] of the cases that came to rest (SETTLED, BEYOND_LIMIT), NaN elsewhere (``unsettled``
+        and NONFINITE_COMMAND): what medians of rest postures take, with ``unsettled.sum()`` reported beside."""
+        return np.where(self.unsettled, np.nan, self.E_q_phys)
+
+    @property
     def status_names(self) -> list[str]:
         return [SettleStatus(int(s)).name for s in self.status]
 
@@ -301,7 +313,8 @@ class _Simulator:
         jac = np.zeros((len(f), len(self.ids), m.nv))
         jac[:, self.j_rows, self.j_cols] = np.array([d.ten_J for d in datas])[:, self.j_entries]
         qvel = np.array([d.qvel for d in datas])
-        pull = -np.einsum("bmn,bm->bn", jac, f) - self.params.mass_damping_per_s * np.einsum("bij,bj->bi", mass, qvel)
+        pull = -(jac.transpose(0, 2, 1) @ f[..., None])[..., 0] - self.params.mass_damping_per_s * (
+            mass @ qvel[..., None])[..., 0]
         applied = self._reduced_step(datas, mass, jac, pull, self.stiffness(length, laws))
         blown = ~(np.all(np.abs(pull) <= self.params.max_torque_nm, axis=1) & np.all(np.isfinite(applied), axis=1))
         for d, tau, skip in zip(datas, applied, blown):
@@ -324,18 +337,19 @@ class _Simulator:
         q, qdot = qpos[:, jm.free], qvel[:, jm.free]
         e = jm.tangent(q, qpos)  # (B, nv, N)
         drift = jm.tangent_rate(q, qdot, qpos)  # (B, nv): followers' acceleration at zero free acceleration
-        smooth = np.array([d.qfrc_passive - d.qfrc_bias for d in datas])  # gravity, Coriolis, springs
-        force = pull + smooth - self.joint_damping * qvel - np.einsum("bij,bj->bi", mass, drift)
-        mass_r = np.einsum("bin,bij,bjk->bnk", e, mass, e)
+        smooth = np.array([d.qfrc_passive for d in datas]) - np.array([d.qfrc_bias for d in datas])  # gravity, springs
+        force = pull + smooth - self.joint_damping * qvel - (mass @ drift[..., None])[..., 0]
+        e_t = e.transpose(0, 2, 1)
+        mass_r = e_t @ mass @ e
         g = jac @ e
-        stiff_r = np.einsum("bmn,bm,bmk->bnk", g, stiffness, g)
+        stiff_r = (g.transpose(0, 2, 1) * stiffness[:, None, :]) @ g
         damp_r = (p.muscle_damping_s * stiff_r + p.mass_damping_per_s * mass_r
-                  + np.einsum("bin,i,bik->bnk", e, self.joint_damping, e))
-        rhs = dt * (np.einsum("bin,bi->bn", e, force) - dt * np.einsum("bnk,bk->bn", stiff_r, qdot))
+                  + e_t @ (self.joint_damping[:, None] * e))
+        rhs = dt * (e_t @ force[..., None] - dt * stiff_r @ qdot[..., None])
         with np.errstate(invalid="ignore", over="ignore"):
-            qddot = np.linalg.solve(mass_r + dt * damp_r + dt * dt * stiff_r, rhs[..., None])[..., 0] / dt
-        accel = np.einsum("bin,bn->bi", e, qddot) + drift
-        return np.einsum("bij,bj->bi", mass, accel) - smooth
+            qddot = np.linalg.solve(mass_r + dt * damp_r + dt * dt * stiff_r, rhs) / dt
+        accel = (e @ qddot)[..., 0] + drift
+        return (mass @ accel[..., None])[..., 0] - smooth
 
     def _project(self, datas):
         """Locked joints back at their value and at rest (``statics.check``'s MuJoCo check, with

@@ -39,6 +39,9 @@ def test_all_slack_command_falls_to_the_hanging_posture(arm, healthy):
     short = settle(arm, slack, healthy.f[rows], q_ref, params=SettleParams(max_time_s=0.2))
     assert np.all(short.status == SettleStatus.NOT_SETTLED) and np.allclose(short.time_s, 0.2)
     assert short.status_names == ["NOT_SETTLED"] * len(rows)
+    # an arm still falling is no rest posture: E_q_phys says where it was, E_q_rest scores nothing and counts it apart
+    assert np.all(short.E_q_phys > 0.05) and np.all(np.isnan(short.E_q_rest)) and np.all(short.unsettled)
+    np.testing.assert_array_equal(res.E_q_rest[res.settled], res.E_q_phys[res.settled])
 
 
 # ---------------------------------------------------------------------------- (c) cuts
