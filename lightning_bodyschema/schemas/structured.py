@@ -46,7 +46,7 @@ from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
 from .host_body import host_body
 
-BODY_ERROR_ROWS = 2048  # validation postures the worst-muscle-per-posture figures use (physical_errors)
+BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s on myoArm
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
 FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned moment arms, not the optimizer
 TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
