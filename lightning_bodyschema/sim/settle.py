@@ -173,6 +173,8 @@ class SettleResult:
     final joint velocity; f_settle_n (B, M) muscle tensions in the final state [N] (0 for cut muscles).
     Rows of NONFINITE_COMMAND cases are NaN (time_s 0). UNSTABLE rows hold the last state that passed a
     check (q_ref at rest, f NaN, if the case blew up before its first check) for diagnosis, and E_q_phys +inf.
+    A NOT_SETTLED row holds the state at max_time_s, a body still moving: no rest posture (``unsettled``,
+    ``E_q_rest``).
     """
 
     q_settle: np.ndarray
