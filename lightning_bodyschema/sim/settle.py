@@ -299,6 +299,7 @@ class _Simulator:
             slope = self.alpha * self.k * np.exp(self.alpha * np.where(delta > 0.0, delta, 0.0))
         return np.where(laws.spring & (delta > 0.0), slope, 0.0)
 
+    @np.errstate(invalid="ignore", over="ignore")
     def step(self, datas, laws: _Laws) -> tuple[np.ndarray, np.ndarray]:
         """One lockstep step: state -> tensions -> qfrc_applied -> integrate -> back on the couplings.
 
@@ -326,6 +327,7 @@ class _Simulator:
         self._onto_couplings([d for d, skip in zip(datas, blown) if not skip])
         return f, blown
 
+    @np.errstate(invalid="ignore", over="ignore")  # a blow-up is reported as UNSTABLE, not warned
     def _reduced_step(self, datas, mass, jac, pull, stiffness) -> np.ndarray:
         """qfrc_applied (B, nv) that gives every joint the acceleration of the free joints' linearly implicit Euler
         step, followers exactly on their couplings (so MuJoCo's integration of it is that step).
@@ -348,8 +350,7 @@ class _Simulator:
         damp_r = (p.muscle_damping_s * stiff_r + p.mass_damping_per_s * mass_r
                   + e_t @ (self.joint_damping[:, None] * e))
         rhs = dt * (e_t @ force[..., None] - dt * stiff_r @ qdot[..., None])
-        with np.errstate(invalid="ignore", over="ignore"):
-            qddot = np.linalg.solve(mass_r + dt * damp_r + dt * dt * stiff_r, rhs) / dt
+        qddot = _solve_or_nan(mass_r + dt * damp_r + dt * dt * stiff_r, rhs) / dt
         accel = (e @ qddot)[..., 0] + drift
         return (mass @ accel[..., None])[..., 0] - smooth
 
@@ -433,6 +434,26 @@ class _Simulator:
         done = status >= 0
         out.status[active[done]] = status[done]
         return active[~done]
+
+
+def _solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``solve(a, b)`` per case (B, N, N) x (B, N, 1); NaN rows where a case's system is not finite or singular (a
+    spring stretched far past its range overflows): the step reports that case as blown up, the others go on."""
+    bad = ~(np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2)))
+    a, b = np.where(bad[:, None, None], np.eye(a.shape[1]), a), np.where(bad[:, None, None], 0.0, b)
+    try:
+        out = np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:  # an overflowed but finite system: find it case by case (rare)
+        out = np.stack([_solve_one(ai, bi) for ai, bi in zip(a, b)])
+    out[bad] = np.nan
+    return out
+
+
+def _solve_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        return np.full_like(b, np.nan)
 
 
 def _mark_beyond_limits(out: SettleResult, q_range, tol_rad: float):

@@ -145,6 +145,30 @@ def test_absurd_stretch_is_reported_not_printed(arm, healthy, capfd):
     assert out.out == "" and out.err == ""  # MuJoCo never gets to print its blow-up warning
 
 
+def test_an_overflowing_spring_blows_up_alone(arm, healthy):
+    """A wire 100 m too short overflows its spring (inf tension and stiffness in the implicit step): that case is
+    UNSTABLE, the cases beside it settle exactly as they do alone, and nothing is warned."""
+    l_motor = healthy.l_motor[:4].copy()
+    l_motor[1, 2] -= 100.0
+    res = settle(arm, l_motor, healthy.f[:4], healthy.q[:4])
+    alone = settle(arm, l_motor[[0, 2, 3]], healthy.f[[0, 2, 3]], healthy.q[[0, 2, 3]])
+    assert res.status_names[1] == "UNSTABLE" and res.E_q_phys[1] == np.inf
+    np.testing.assert_array_equal(res.q_settle[[0, 2, 3]], alone.q_settle)
+    assert np.all(alone.settled)
+
+
+def test_a_singular_step_is_that_cases_alone():
+    """A spring stiffness of ~1e36 N/m (tools/reproduce_paper.py --quick's barely trained commands) left a case's
+    implicit system exactly singular in floats: numpy's batched solve raised for the whole chunk. Now that case's
+    row is NaN (reported UNSTABLE by the step) and the others are solved."""
+    from lightning_bodyschema.sim.settle import _solve_or_nan
+
+    a = np.stack([np.eye(2) * 2.0, np.ones((2, 2)) * 1e29, np.full((2, 2), np.inf)])  # regular, singular, overflow
+    out = _solve_or_nan(a, np.ones((3, 2, 1)))
+    np.testing.assert_array_equal(out[0], 0.5)
+    assert np.isnan(out[1:]).all()
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"l_motor": np.zeros((3, 6))}, "l_motor has shape"),
     ({"f": None}, "f is required"),
