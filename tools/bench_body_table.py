@@ -59,7 +59,7 @@ def binding_row(schema, q, x, n_per_condition: int, settle: bool = False) -> dic
                                  lambda qq, ff: schema.adapt(qq, ff, check_physics=False), oracle=False,
                                  settle_check=settle)
     summary = result.summary()
-    metrics = ("E_q", "E_tau") + (("E_q_phys",) if settle else ())
+    metrics = ("E_q", "E_tau") + (("E_q_phys", "n_unsettled") if settle else ())  # settle runs never at rest: apart
     return {cond: tuple(summary[kind]["phys"][cond]["feasible"][metric] for metric in metrics
                         for kind in ("adapted", "unadapted")) for cond in summary["adapted"]["phys"]}
 
@@ -101,7 +101,7 @@ def main(argv=None):
         q, x = datamodule.splits["val"]
         h = healthy_row(schema, q[:args.postures], x[:args.postures])
         b = binding_row(schema, q, x, args.n_per_condition, args.settle)
-        settled = f"{_pairs(b, 4)} | " if args.settle else ""
+        settled = f"{_pairs(b, 4)}; runs not at rest (left out) {_pairs(b, 6)} | " if args.settle else ""
         print(f"| {label} | {_fmt(h['eq_nm'])} | {_fmt(h['ratio'])} | {_fmt(h['length_mm'])} | "
               f"{_fmt(h.get('l_geo_mm'))} | {_fmt(h.get('arm_mm'))} | {_fmt(h.get('tau_nm'))} | "
               f"{_pairs(b, 0)} | {_pairs(b, 2)} | {settled}{seconds.get(label, '—')} |", flush=True)

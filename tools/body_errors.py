@@ -7,8 +7,12 @@ At ``--postures`` seeded uniform postures of the checkpoint's robot (its MJCF; a
 with one line): |l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
 (MuJoCo's tendon Jacobian is nonzero), and the largest |G| on the pairs it does not cross (truly 0); the torque
 error ||tau - tau_bias|| [N m] and its ratio to the median ||tau_bias||; then the ``--worst`` muscles by length
-p99 (their share of postures off by more than 0.1 mm and their largest error: where a pooled p99 comes from). Any
-schema with ``body_si`` (``StructuredSchema``). One torch thread.
+p99 (their share of postures off by more than 0.1 mm and their largest error: where a pooled p99 comes from).
+Then the worst muscle per posture (``evaluation.body_errors``: a posture is only as good as its worst muscle): the
+largest length, moment-arm and torque error at each posture, median / p90 / p99 / max over the postures, the share of
+postures whose worst muscle is off by more than 0.1 mm, and where those bad postures are (the muscle worst there most
+often, the joint they bunch on and their interval). Any schema with ``body_si`` (``StructuredSchema``). One torch
+thread.
 """
 import argparse
 
@@ -17,6 +21,7 @@ import torch
 
 from lightning_bodyschema.apps.common import exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
 
 
 def body_errors(schema, q: np.ndarray) -> dict:
@@ -32,7 +37,21 @@ def body_errors(schema, q: np.ndarray) -> dict:
             "uncrossed_max_mm_per_rad": 1e3 * float(np.abs(G_hat[:, ~crossed]).max(initial=0.0)),
             "pairs": (int(crossed.sum()), int((~crossed).sum())), "torque_nm": (pct(tau_nm, 50), pct(tau_nm, 99)),
             "torque_ratio": pct(tau_nm, 50) / tau_ref, "tau_bias_median_nm": tau_ref,
-            "per_muscle_length_mm": length_mm}
+            "per_muscle_length_mm": length_mm,
+            "worst": worst_per_posture((l_hat, G_hat, tau_hat), (l_true, G_true, tau_true), crossed), "crossed": crossed}
+
+
+def worst_report(errors: dict, model, k: int) -> str:
+    """The worst muscle per posture: its errors over the postures, then where the bad postures are."""
+    s, n = summary(errors["worst"]), len(errors["worst"].length_mm)
+    lines = [f"| worst per posture ({n} postures) | median | p90 | p99 | max |", "|---|---|---|---|---|"]
+    for label, key in (("muscle length [mm]", "length_mm"), ("moment arm [mm/rad]", "arm_mm_per_rad"),
+                       ("joint torque [N m]", "torque_N_m")):
+        lines.append(f"| {label} | " + " | ".join(f"{s[f'worst_{key}_{p}']:.4g}" for p in ("p50", "p90", "p99", "max"))
+                     + " |")
+    lines += ["", f"postures whose worst muscle is off by > 0.1 mm: {100 * s['bad_posture_fraction']:.3g} %", "", ""]
+    rows = bad_regions(errors["worst"], errors["q"], model.q_range, errors["crossed"], max(k, 1))
+    return "\n".join(lines) + bad_regions_table(rows, model.muscle_names, model.joint_names)
 
 
 def worst_muscles(errors: dict, names, k: int) -> str:
@@ -81,11 +100,13 @@ def main(argv=None):
         raise BodySchemaInputError(f"{args.ckpt}: its robot has no model (recorded data): there is no MuJoCo body "
                                    "to compare with")
     q = schema.robot_model.sample_q(np.random.default_rng(args.seed), args.postures)
-    errors = body_errors(schema, q)
+    errors = dict(body_errors(schema, q), q=q)
     print(report(errors))
     if args.worst:
         print()
         print(worst_muscles(errors, schema.robot_model.muscle_names, args.worst))
+    print()
+    print(worst_report(errors, schema.robot_model, args.worst))
 
 
 if __name__ == "__main__":

@@ -43,4 +43,5 @@ for cond in ("WEAK", "BAND"):
             m = r.metrics[kind]["phys"]
             med = lambda a, k=1: f"{k*np.nanmedian(a[sel]):.3g}" if np.isfinite(a[sel]).any() else "—"
             print(f"| {cond} | {subset} | {sel.sum()} | {name} | {med(m['E_weak'])} | {med(m['E_band'], 1e3)} | "
-                  f"{med(m['E_tau'])} | {med(m['E_q'])} | {med(m['E_q_phys'])} |")
+                  f"{med(m['E_tau'])} | {med(m['E_q'])} | {med(m['E_q_phys'])} "
+                  f"({int(m['settle_unsettled'][sel].sum())} not at rest, left out) |")

@@ -34,13 +34,15 @@ def draw(protocol: str, schema, datamodule, seeds, n_per_condition: int):
 
 def score(schema, cases, l_motor, f) -> dict:
     """Per-case metrics of one command batch, physical reading, with E_q_phys from the settle check."""
+    from ..evaluation.benchmark import settle_metrics
     from ..evaluation.forward_solver import ForwardSolverParams
     from ..evaluation.metrics import evaluate_commands
     from ..sim.settle import settle
 
     metrics = evaluate_commands(schema.robot_model, cases, l_motor, f, schema.spring,
                                 ForwardSolverParams(jammed_tension_in_torque=True))
-    metrics["E_q_phys"] = settle(schema.robot_model, l_motor, f, cases, spring=schema.spring).E_q_phys
+    # E_q_phys of the runs that came to rest; the others (still moving, blown up) NaN and in settle_unsettled
+    metrics.update(settle_metrics(settle(schema.robot_model, l_motor, f, cases, spring=schema.spring)))
     return metrics
 
 
@@ -67,7 +69,8 @@ def table(cases, runs: dict, keep=None, seed: int = 0) -> list[dict]:
             if not sel.any():
                 continue
             row = {"variant": name, "condition": cond, "n": int(sel.sum()), "ms_per_case": run["ms_per_case"],
-                   "not_ok": int((run["status"][sel] != "ok").sum())}  # NaN rows: left out of the medians
+                   "not_ok": int((run["status"][sel] != "ok").sum()),  # NaN rows: left out of the medians
+                   "not_at_rest": int(np.asarray(run["metrics"]["settle_unsettled"])[sel].sum())}  # nor in E_q_phys
             for k in METRICS:
                 values = np.asarray(run["metrics"][k], float)[sel]
                 row[k] = float(np.nanmedian(values)) if np.isfinite(values).any() else None
@@ -80,10 +83,10 @@ def table(cases, runs: dict, keep=None, seed: int = 0) -> list[dict]:
 
 def markdown(rows: list[dict]) -> str:
     fmt = lambda v: "-" if v is None else f"{v:.3g}"  # noqa: E731
-    out = ["| variant | cond | n | not ok | " + " | ".join(METRICS) + " | dE_tau 95% | dE_q 95% | ms/case |",
-           "|---|---|---|---|" + "---|" * (len(METRICS) + 3)]
+    out = ["| variant | cond | n | not ok | settle not at rest | " + " | ".join(METRICS)
+           + " | dE_tau 95% | dE_q 95% | ms/case |", "|---|---|---|---|---|" + "---|" * (len(METRICS) + 3)]
     for r in rows:
-        out.append(f"| {r['variant']} | {r['condition']} | {r['n']} | {r['not_ok']} | "
+        out.append(f"| {r['variant']} | {r['condition']} | {r['n']} | {r['not_ok']} | {r['not_at_rest']} | "
                    + " | ".join(fmt(r[k]) for k in METRICS)
                    + " | " + " | ".join("[{:+.3g}, {:+.3g}]".format(*r[f"d{k}_95"]) for k in ("E_tau", "E_q"))
                    + f" | {r['ms_per_case']:.3g} |")

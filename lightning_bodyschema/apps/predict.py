@@ -20,7 +20,8 @@ The output (``.npz`` or ``.json``, by extension; written atomically, only when e
 holds per request ``status``, ``q_ref`` (the IK posture of a target request, NaN if unreachable),
 ``target``, ``target_error_m``, ``l_motor`` [m], ``f`` [N] and the faults as read; with ``--evaluate``
 also the evaluator's predictions: ``feasible``, ``E_cut``, ``E_fix``, ``E_tau``, ``E_q``, ``E_weak``,
-``E_band`` and the MuJoCo settle check's ``E_q_phys`` and ``settle_status`` (NaN / "" where no command).
+``E_band`` and the MuJoCo settle check's ``E_q_phys`` and ``settle_status`` (NaN / "" where no command;
+``E_q_phys`` NaN as well where the run never came to rest: ``settle_status`` NOT_SETTLED or UNSTABLE).
 
 Only rows with status ``ok`` hold a command; every other row is NaN.
 """
@@ -307,7 +308,7 @@ def evaluate_predictions(schema, out: dict, faults: Faults, jammed_pull: bool) -
     for name in METRICS + EXTRA_METRICS:
         metrics[name][ok] = scores[name]
     physical = settle(model, l_motor, f, cases, spring=spring)
-    metrics["E_q_phys"][ok] = physical.E_q_phys
+    metrics["E_q_phys"][ok] = physical.E_q_rest  # NaN where the run never came to rest: settle_status says why
     metrics["settle_status"][ok] = [SettleStatus(int(s)).name for s in physical.status]
     return metrics
 

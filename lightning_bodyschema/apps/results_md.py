@@ -42,7 +42,9 @@ def results_table(results: dict, reading: str, subset: str, conds=CONDS, columns
     named = [row for row in named if row[2] in reference.metrics] + [(n, r, "adapted") for n, r in results.items()]
     for name, result, kind in named:
         for cond in conds:
-            n = result.summary()[kind][reading][cond][subset]["n"]
+            values = result.summary()[kind][reading][cond][subset]
+            # settle runs never at rest are left out of E_q_phys's median: their count stands beside n
+            n = f"{values['n']}" + (f" ({values['n_unsettled']} not at rest)" if values.get("n_unsettled") else "")
             cells = [_fmt(_med(result, m, cond, reading, subset, kind), m) for m in columns]
             rows.append(f"| {name} | {cond} | {n} | " + " | ".join(cells) + " |")
     return "\n".join(rows)

@@ -96,7 +96,8 @@ def _medians(values: dict, rows: np.ndarray) -> dict:
         v = np.asarray(values[name])[rows]
         v = v[np.isfinite(v)]
         out[name] = float(np.median(v)) if v.size else None
-    return out | {"n": int(rows.sum())}
+    # settle runs never at rest are not in E_q_phys's median: counted beside it
+    return out | {"n": int(rows.sum()), "n_unsettled": int(np.asarray(values["settle_unsettled"])[rows].sum())}
 
 
 def score(values: dict, cases, feasible: np.ndarray) -> dict:
@@ -111,12 +112,13 @@ def score_commands(model, spring, cases, l_motor, f) -> dict:
     """E_tau, E_q (forward solver, jammed wires pull) and E_q_phys (settle check) of commands on ``model``."""
     from ..evaluation.forward_solver import ForwardSolverParams
     from ..evaluation.metrics import evaluate_commands
-    from ..sim.settle import SettleStatus, settle
+    from ..evaluation.benchmark import settle_metrics
+    from ..sim.settle import settle
 
     metrics = evaluate_commands(model, cases, l_motor, f, spring, ForwardSolverParams(jammed_tension_in_torque=True))
-    settled = settle(model, l_motor, f, cases, spring=spring)
-    # a simulation that blew up (UNSTABLE) has no rest posture (settle reports E_q_phys +inf): not a score, left out
-    metrics["E_q_phys"] = np.where(settled.status == int(SettleStatus.UNSTABLE), np.nan, settled.E_q_phys)
+    # a simulation still moving at its time limit or blown up has no rest posture: not a score, left out (NaN) and
+    # counted in settle_unsettled
+    metrics.update(settle_metrics(settle(model, l_motor, f, cases, spring=spring)))
     return metrics
 
 
@@ -198,22 +200,28 @@ def _fmt(value) -> str:
     return "—" if value is None else f"{value:.3g}"
 
 
+def _n(values: dict) -> str:
+    """The case count, and the settle runs among them that never came to rest (not in E_q_phys's median)."""
+    return f"{values['n']}" + (f" ({values['n_unsettled']} not at rest)" if values.get("n_unsettled") else "")
+
+
 def markdown(results: list[dict], oracle: dict, meta: dict) -> str:
     lines = [f"Command: `{meta['command']}`; {meta['epochs']} epochs per schema, {meta['n']} samples, "
              f"{meta['n_per_condition']} cases per condition; {meta['minutes']:.1f} min on 2 cores "
              f"(load average {meta['load_start']:.1f} at start, {meta['load_end']:.1f} at end). Medians over the "
-             "cases with a physical solution on the true model; E_tau [N m], E_q and E_q_phys [rad].", ""]
+             "cases with a physical solution on the true model; E_tau [N m], E_q and E_q_phys [rad]; E_q_phys over the "
+             "settle runs that came to rest (`n (k not at rest)`: k runs still moving or blown up, left out).", ""]
     lines += summary_table(results, oracle)
     for protocol in oracle:
         lines += ["", f"Fault cases, {protocol} protocol (adapted / unadapted):", "",
                   "| training data | cond | n | E_tau | E_q | E_q_phys |", "|---|---|---|---|---|---|"]
         for cond in _conditions(oracle[protocol]):
             o = oracle[protocol][cond]
-            lines.append(f"| physics oracle | {cond} | {o['n']} | " + " | ".join(_fmt(o[k]) for k in METRICS) + " |")
+            lines.append(f"| physics oracle | {cond} | {_n(o)} | " + " | ".join(_fmt(o[k]) for k in METRICS) + " |")
         for r in results:
             for cond in _conditions(r["protocols"][protocol]["adapted"]):
                 a, u = r["protocols"][protocol]["adapted"][cond], r["protocols"][protocol]["unadapted"][cond]
-                lines.append(f"| {_label(r['level'])} | {cond} | {a['n']} | "
+                lines.append(f"| {_label(r['level'])} | {cond} | {_n(a)} | "
                              + " | ".join(f"{_fmt(a[k])} / {_fmt(u[k])}" for k in METRICS) + " |")
     return "\n".join(lines) + "\n"
 

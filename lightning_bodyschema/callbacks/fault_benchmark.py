@@ -13,6 +13,8 @@ E_q; ``settle_check``, on by default); ``{reading}`` is ``paper`` or ``phys`` (s
     fault_unadapted/{reading}/{cond}/{metric}_{subset}    the healthy command at the same cases (baseline)
     fault_oracle/{reading}/{cond}/{metric}_{subset}       the physics oracle (test only: a constant of the cases)
     fault/{reading}/{cond}/n_feasible                     cases with a physical solution
+    {prefix}/{reading}/{cond}/n_unsettled_{subset}        settle runs never at rest (still moving at max_time_s or
+                                                          blown up): left out of E_q_phys, counted here
     fault/adapt_ok_fraction, fault/adapt_seconds, fault/infer_seconds, fault/evaluate_seconds
     fault/boxplots                                        figure: phys reading, all cases, unadapted vs adapted
 
@@ -275,6 +277,8 @@ def scalar_metrics(result: BenchmarkResult) -> dict[str, float]:
                         key, factor = METRIC_KEYS[metric]
                         if values[metric] is not None:
                             out[f"{prefix}/{reading}/{cond}/{key}_{subset}"] = factor * values[metric]
+                    if "n_unsettled" in values:  # settle runs never at rest: no E_q_phys, counted here
+                        out[f"{prefix}/{reading}/{cond}/n_unsettled_{subset}"] = float(values["n_unsettled"])
                 if kind == "adapted":
                     out[f"fault/{reading}/{cond}/n_feasible"] = float(by_subset["feasible"]["n"])
     out["fault/adapt_ok_fraction"] = float(np.mean(result.adapt_status == "ok"))
@@ -337,12 +341,16 @@ def benchmark_markdown(result: BenchmarkResult, meta: Optional[dict] = None, rea
     # every metric some command has (adapted commands that all failed have none)
     names = [m for m in SUMMARY_METRICS if any(m in by_subset["all"] for kind in summary
                                                 for by_subset in summary[kind]["phys"].values())]
-    header = ["condition", "reading", "subset", "command", "n"] + [METRIC_HEADERS[m] for m in names]
+    settled = "E_q_phys" in names  # the settle check ran: its runs that never came to rest are counted apart
+    header = (["condition", "reading", "subset", "command", "n"] + [METRIC_HEADERS[m] for m in names]
+              + (["settle runs not at rest"] if settled else []))
     lines = [f"# Fault benchmark: {meta.get('model', 'schema')}, {meta.get('protocol', 'paper')} protocol", ""] if title \
         else []
     lines += [f"{len(result.cases)} cases ({meta.get('n_per_condition', '?')} per condition, seed "
               f"{meta.get('seed', '?')}), adaptation variant `{meta.get('variant', '?')}`; medians over the cases "
-              f"(NaN left out); adaptation ok: {int(np.sum(result.adapt_status == 'ok'))}/{len(result.cases)}.",
+              f"(NaN left out); adaptation ok: {int(np.sum(result.adapt_status == 'ok'))}/{len(result.cases)}."
+              + (" E_q_phys: medians over the settle runs that came to rest; `settle runs not at rest`: still moving "
+                 "at the time limit or blown up, left out of them." if settled else ""),
               "Readings: `paper` = the paper's metric definitions (jammed muscles excluded from the torque); "
               "`phys` = jammed muscles pull with their stretch. `feasible`: cases with a physical solution. "
               "`oracle`: the command the true physics gives (the physical limit of every metric).", "",
@@ -356,6 +364,7 @@ def benchmark_markdown(result: BenchmarkResult, meta: Optional[dict] = None, rea
                     values = summary[kind][reading][cond][subset]
                     row = [cond, reading, subset, kind, str(values["n"])]
                     row += [_cell(values.get(metric), METRIC_KEYS[metric][1]) for metric in names]
+                    row += [str(values.get("n_unsettled", "n/a"))] if settled else []
                     lines.append("| " + " | ".join(row) + " |")
     timing = ", ".join(f"{k} {v:.3f} s" for k, v in result.seconds.items())
     if "oracle" in result.seconds:

@@ -76,13 +76,19 @@ class BenchmarkResult:
         for cond in dict.fromkeys(self.cases.cond.tolist()):
             rows = self.cases.cond == cond
             table[cond] = {subset: {m: _median(values[m][rows & mask]) if m in values else None for m in names}
-                           | {"n": int((rows & mask).sum())} for subset, mask in subsets}
+                           | {"n": int((rows & mask).sum())} | _unsettled_count(values, rows & mask)
+                           for subset, mask in subsets}
         return table
 
 
 def _defined(values) -> bool:
     """A metric a case set has at all: E_weak / E_band only where some muscle is weakened / banded."""
     return not np.issubdtype(np.asarray(values).dtype, np.floating) or bool(np.isfinite(values).any())
+
+
+def _unsettled_count(values, mask) -> dict:
+    """{"n_unsettled": settle runs that never came to rest} where the settle check ran (their E_q_phys is NaN)."""
+    return {"n_unsettled": int(values["settle_unsettled"][mask].sum())} if "settle_unsettled" in values else {}
 
 
 def _median(values) -> float | None:
@@ -121,8 +127,15 @@ def oracle_scores(model: MusculoskeletalModel, spring: SpringParams, cases: Faul
                        for reading in READINGS}
         if settle_check:
             for reading in READINGS:
-                out.metrics[reading]["E_q_phys"] = settle(model, *commands[reading], cases, spring=spring).E_q_phys
+                out.metrics[reading].update(settle_metrics(settle(model, *commands[reading], cases, spring=spring)))
     return out
+
+
+def settle_metrics(result) -> dict:
+    """The settle check's per-case entries of a benchmark: ``E_q_phys`` of the cases that came to rest (NaN for a
+    run still moving or blown up: no rest posture to score) and ``settle_unsettled`` (those runs, counted apart as
+    ``n_unsettled`` in the summary)."""
+    return {"E_q_phys": result.E_q_rest, "settle_unsettled": result.unsettled}
 
 
 def _score(model, spring, cases, l_motor, f, params, reading):
@@ -137,7 +150,8 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
     beside them (the baseline and the physical limit).
 
     settle_check: also drop every command into MuJoCo (``settle.settle``: one simulation per command) and report
-    ``E_q_phys`` (B,) [rad], the distance of the posture the arm really settles in from q_ref, beside E_q.
+    ``E_q_phys`` (B,) [rad], the distance of the posture the arm really settles in from q_ref, beside E_q (NaN where
+    the run never came to rest, flagged in ``settle_unsettled`` and counted as ``n_unsettled`` in the summary).
     oracle: True (score it here), False (feasibility only), or the ``oracle_scores`` of these cases (scored once
     for several schemas); ``seconds["oracle"]`` is the physical reading's oracle time.
     """
@@ -159,9 +173,9 @@ def run_fault_benchmark(model: MusculoskeletalModel, spring: SpringParams, cases
     if settle_check:
         start = time.perf_counter()
         for kind, command in commands.items():  # the physics has one reading: one settle per command
-            e_q_phys = settle(model, *command, cases, spring=spring).E_q_phys
+            physical = settle_metrics(settle(model, *command, cases, spring=spring))
             for reading in READINGS:
-                metrics[kind][reading]["E_q_phys"] = e_q_phys
+                metrics[kind][reading].update(physical)
         seconds["settle"] = time.perf_counter() - start
     if oracle.metrics is not None:
         metrics["oracle"] = oracle.metrics

@@ -25,10 +25,13 @@ from typing import Optional
 
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 
+from .._numpy import to_numpy
 from ..adaptation.command import safe_command
 from ..adaptation.pipeline import Adapter, check_postures
 from ..errors import BodySchemaInputError
+from ..evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import OK, bounds_command
@@ -43,6 +46,7 @@ from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
 from .host_body import host_body
 
+BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s on myoArm
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
 FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned moment arms, not the optimizer
 TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
@@ -373,6 +377,26 @@ class StructuredSchema(BodySchema):
         """k [N] and alpha [1/m] as tensors like ``like`` (scalars or (M,): the spring may be per muscle)."""
         return tuple(torch.as_tensor(v, dtype=like.dtype, device=like.device)
                      for v in (self.spring.k_n, self.spring.alpha_per_m))
+
+    # ------------------------------------------------------------------ validation
+    def physical_errors(self, q: torch.Tensor, x_true: torch.Tensor) -> dict[str, float]:
+        """``BodySchema.physical_errors`` and the learned body's worst muscle per posture against MuJoCo
+        (``evaluation.body_errors.summary``: length, moment arm, torque), on the first ``BODY_ERROR_ROWS`` postures
+        (cheap: validation runs it; their MuJoCo kinematics is the cached one). ``last_bad_regions`` keeps where
+        the bad postures are (``evaluation.body_errors.bad_regions``) for the log line and for callers."""
+        errors = super().physical_errors(q, x_true)
+        if not self.has_physics:
+            return errors
+        q_np = to_numpy(q)
+        l_geo, G, tau = (a[:BODY_ERROR_ROWS] for a in self._physics(q_np))
+        q_np = q_np[:BODY_ERROR_ROWS]
+        crossed = np.abs(G).max(axis=0) > 1e-12  # MuJoCo's nonzero moment arms: tools/body_errors.py's pairs
+        worst = worst_per_posture(self.body_si(torch.as_tensor(q_np)), (l_geo, G, tau), crossed)
+        self.last_bad_regions = bad_regions(worst, q_np, self.robot_model.q_range, crossed, k=3)
+        if self.last_bad_regions:
+            rank_zero_info("learned body, worst muscle per posture:\n" + bad_regions_table(
+                self.last_bad_regions, self.robot_model.muscle_names, self.robot_model.joint_names))
+        return {**errors, **summary(worst)}
 
     # ------------------------------------------------------------------ commands
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

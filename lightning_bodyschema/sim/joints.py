@@ -107,6 +107,22 @@ class JointMap:
             e[:, j, [column[int(c)] for c in k]] = _horner(full[:, k] - self.qpos0[k], slope)
         return e
 
+    def tangent_rate(self, q: np.ndarray, qdot: np.ndarray, full: np.ndarray | None = None) -> np.ndarray:
+        """``dE/dt qdot`` (B, nq): the acceleration every joint has at velocity ``qdot`` (B, N) of the free joints
+        and zero free acceleration, ``p''(x) xdot^2`` for a follower of x (0 for free and locked joints). With
+        ``E qddot`` it is a follower's whole acceleration: the term that keeps a moving arm on the couplings."""
+        out = np.zeros((len(q), len(self.qpos0)))
+        column = {j: c for c, j in enumerate(self.free)}
+        moving = [i for i, (_, k, _) in enumerate(self.deps) if k in column]
+        if moving:
+            j, k, coef = (a[moving] for a in self._dep_arrays)
+            full = self.full_q(q) if full is None else full
+            powers = np.arange(2, coef.shape[1])
+            curvature = coef[:, 2:] * powers * (powers - 1)  # d2/dx2 of a0 + a1 x + ... + a4 x^4
+            speed = qdot[:, [column[int(c)] for c in k]]
+            out[:, j] = _horner(full[:, k] - self.qpos0[k], curvature) * speed ** 2
+        return out
+
     @cached_property
     def _dep_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The couplings as arrays: followers (D,), followed joints (D,), coefficients a0..a4 (D, 5)."""

@@ -25,37 +25,39 @@ Force model (one case = one MuJoCo rollout), muscle i with tendon length ``l_geo
 * banded motors (``FaultCases.l_band``, length mode): the winch stops at its band, rest length
   ``clip(l_motor, lo, hi)`` (after the jam's ``min``); in tension mode the band is not modelled.
 
-Tensions act on the joints as ``qfrc_applied = -J_ten^T f`` with MuJoCo's own ``ten_length`` /
-``ten_J`` (sparse in MuJoCo 4, scattered into a dense (M, nv) buffer) of the current state:
-each step is ``mj_step1`` (positions, tendons, velocities), forces from that state, ``mj_step2``
-(acceleration, joint-limit constraints, integration). No global MuJoCo callback is installed.
+Tensions act on the joints as ``-J_ten^T f`` with MuJoCo's own ``ten_length`` / ``ten_J`` (sparse in MuJoCo 4,
+scattered into a dense (M, nv) buffer) of the current state: each step is ``mj_step1`` (positions, tendons, mass
+matrix, gravity and passive forces), the step below in numpy, ``mj_step2`` (joint-limit constraints, integration).
+No global MuJoCo callback is installed.
 
-Integration and damping (the rest posture does not depend on damping; only how fast it is reached):
+Integration (``_Simulator._reduced_step``), in the free joints q of ``sim/joints.py`` (``E = d q_full / dq``):
 
-* semi-implicit Euler (MuJoCo ``mjINT_EULER``, the model's timestep, 1 ms for the paper arm) on a
-  private copy of the model; the model's joint damping stays and is integrated implicitly by MuJoCo.
-* mass-proportional damping ``-a M(q) qdot`` with ``a = mass_damping_per_s`` (default 8 1/s):
-  critical for a 4 rad/s mode (the hanging paper arm's slowest pendulum mode); every faster mode
-  decays at least as ``exp(-a t / 2)``. For another robot take about twice its slowest frequency.
-* stiffness-proportional muscle damping (Kelvin-Voigt muscle): a taut spring adds
-  ``beta * dphi/ddelta * dl_geo/dt`` with ``beta = muscle_damping_s`` (default 0.01 s), which damps the
-  stiff muscle modes (20-60 rad/s) harder. The total tension is clipped at 0: a wire never pushes.
-* Both added dampers are explicit; at 1 ms they are far inside the stability limit
-  (``a dt << 2``, ``beta omega^2 dt << 2`` for omega up to ~400 rad/s). The stiffness of the spring
-  itself, ``alpha (f + k)``, is explicit too: a command that stretches a muscle by many centimetres
-  (tensions of thousands of newtons) can blow the integration up, reported as UNSTABLE.
+* linearly implicit Euler: ``(M_r + dt D_r + dt^2 K_r) dqdot = dt (F_r - dt K_r qdot)``, ``M_r = E^T M E``,
+  ``F_r = E^T F`` every force of the current state, ``K_r = G^T diag(dphi/ddelta) G`` the taut springs' stiffness
+  (``G = J_ten E``), ``D_r`` the dampers below; the model's timestep (1 ms paper arm, 2 ms MyoSuite). MuJoCo
+  integrates it: ``qfrc_applied`` is the force that gives every joint ``E qddot + dE/dt qdot``.
+  The rest posture is where ``F_r = 0``, the balance the data and the oracle solve, exactly (to float rounding).
+  Why implicit: the springs are stiff (``alpha (f + k)``) on light segments (myoLegs' toes: modes near 1000 rad/s);
+  the explicit spring and muscle damping rang there at a 2 ms step (a limit cycle, never at rest). A command
+  stretching a muscle by tens of centimetres now rests where its antagonists balance it (MN tensions) instead of
+  blowing up; joint forces above ``max_torque_nm`` are UNSTABLE.
+* damping (the rest posture does not depend on it; only how fast it is reached): mass-proportional ``a M_r qdot``,
+  ``a = mass_damping_per_s`` (default 8 1/s, critical for the hanging paper arm's 4 rad/s pendulum mode);
+  stiffness-proportional muscle damping (Kelvin-Voigt muscle) ``beta * dphi/ddelta * dl_geo/dt``,
+  ``beta = muscle_damping_s`` (default 0.01 s); the model's joint damping. All three implicitly.
+  The total tension is clipped at 0: a wire never pushes.
 * no contacts: the static equilibrium the data and the schemas use has no contact forces, so the
   simulation has none either (on myoArm the upper arm would otherwise push against the torso at
   postures the data holds as equilibria, and exact commands would settle elsewhere).
-* joint limits: MuJoCo's soft limit constraints of the model (so a posture pressed into a limit may
-  sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N).
+* joint limits: MuJoCo's soft limit constraints of the model on the free joints (so a posture pressed into a limit
+  may sit slightly beyond it: a few mrad at ordinary tensions, 0.05 rad at 1500 N). A follower's own limit is off:
+  its range is its leader's (``JointMap.free_range``), which otherwise pushed where that narrowing rounds.
 
 Stopping: every ``check_every_steps`` steps, SETTLED when ``max|qvel| < qvel_tol_rad_s`` and
 ``max|qacc| < qacc_tol_rad_s2`` over the free joints (followers and locked joints are not coordinates of
-q; a follower's velocity is its leader's times the coupling slope plus its constraint's own ringing)
-(the acceleration test rejects the turning point of an oscillation,
-where the velocity is momentarily zero; with the defaults the rest posture is within ~3e-5 rad of the
-true equilibrium); UNSTABLE when a joint force exceeds ``max_torque_nm`` or is NaN (checked every step,
+q) (the acceleration test rejects the turning point of an oscillation, where the velocity is momentarily zero; with
+the defaults the torque left unbalanced at rest is about ``M_r qacc_tol + a M_r qvel_tol``: the rest posture is within
+~3e-5 rad of the true equilibrium on the paper arm, further on soft bodies, that torque over the softest stiffness); UNSTABLE when a joint force exceeds ``max_torque_nm`` or is NaN (checked every step,
 before MuJoCo integrates it, so MuJoCo never prints its own blow-up warning), the state is non-finite,
 or ``max|qvel| > max_qvel_rad_s``; NOT_SETTLED when ``max_time_s`` runs out. A case at rest more than
 ``limit_tol_rad`` outside the joint range is BEYOND_LIMIT: tensions far above f_max (a wire stretched by
@@ -63,16 +65,13 @@ centimetres) overpower MuJoCo's soft limit, and that rest posture is not physica
 unstable equilibrium at q_ref is reported as settled: the simulation starts without a perturbation.
 
 Couplings and locks (``<equality joint>``, sim/joints.py): q_ref and q_settle are the free joints; the
-simulation runs on every joint. A locked joint gets a huge armature (so the arm moves as if it were welded)
-and is reset to its value at rest after every step: it never moves. A coupling is MuJoCo's equality
-constraint made near-hard (MuJoCo's largest impedance; a follower misses its polynomial at rest by the
-constraint's softness times the force it carries, so E_q_phys of an exact equilibrium command is that small
-miss instead of float rounding). MuJoCo's constraint solver stops when an
-iteration improves its cost by less than ``opt.tolerance`` of it; the constraint forces it leaves are off by
-about that fraction, and near-hard couplings turn that error into accelerations that change at random from
-step to step: the free joints jitter at a speed set by the solver, not by the physics. The simulation solves
-to ``SOLVER_TOLERANCE`` instead of MuJoCo's default 1e-8 (Newton converges quadratically: a step or two more),
-which leaves that jitter far below ``qvel_tol_rad_s``: the rest test keeps its meaning (the arm's own motion).
+simulation runs on every joint, held exactly on the couplings and locks: MuJoCo's equality constraints are off
+(``_hold_exactly``), the step gives each follower the acceleration its polynomial prescribes and a locked joint none,
+and after MuJoCo integrates, followers and locked joints are put back from the free joints' positions and velocities
+(``_onto_couplings``). Measured on myoLegs (knees: patella and tibia translations and rotations coupled to the knee
+angle), why: MuJoCo's constraints are soft by construction (the previous near-hard ones left followers 0.2-0.3 mm off
+their polynomials at a 2 ms step, shrinking as dt^2), and the legs' softest directions (0.7 N m/rad) turned that
+into 0.01-0.02 rad: exact equilibria did not rest where they are.
 
 Batching: MuJoCo steps one MjData at a time and the tension law needs a per-step computation that
 ``mujoco.rollout`` cannot express (it would need a global Python callback). So the cases of a chunk
@@ -104,9 +103,11 @@ from .settle_inputs import _Laws, _check_inputs, _force_laws, _is_cases
 from .spring import SpringParams
 
 MODES = ("length", "tension")
+# statics.check's MuJoCo check holds locks and couplings with MuJoCo (_hold_couplings_and_locks); settle holds them
+# exactly (_hold_exactly) and keeps these only for that check:
 LOCK_ARMATURE = 1e6  # [kg m^2] added to a locked joint: it does not accelerate (see _hold_couplings_and_locks)
-COUPLING_IMPEDANCE = 0.9999  # MuJoCo solimp d of a coupling in the simulation: near-hard (MuJoCo's largest d)
-SOLVER_TOLERANCE = 1e-12  # MuJoCo opt.tolerance in the simulation: constraint forces solved to convergence
+COUPLING_IMPEDANCE = 0.9999  # MuJoCo solimp d of a coupling: near-hard (MuJoCo's largest d)
+SOLVER_TOLERANCE = 1e-12  # MuJoCo opt.tolerance: constraint (limit) forces solved to convergence
 JAM_MODES = ("one_sided", "immobile")  # the same names as evaluation.feasibility.JAM_MODELS
 
 
@@ -172,6 +173,8 @@ class SettleResult:
     final joint velocity; f_settle_n (B, M) muscle tensions in the final state [N] (0 for cut muscles).
     Rows of NONFINITE_COMMAND cases are NaN (time_s 0). UNSTABLE rows hold the last state that passed a
     check (q_ref at rest, f NaN, if the case blew up before its first check) for diagnosis, and E_q_phys +inf.
+    A NOT_SETTLED row holds the state at max_time_s, a body still moving: no rest posture (``unsettled``,
+    ``E_q_rest``).
     """
 
     q_settle: np.ndarray
@@ -185,6 +188,18 @@ class SettleResult:
     def settled(self) -> np.ndarray:
         """(B,) bool: the case came to rest."""
         return self.status == SettleStatus.SETTLED
+
+    @property
+    def unsettled(self) -> np.ndarray:
+        """(B,) bool: simulated but never at rest (NOT_SETTLED: still moving at max_time_s; UNSTABLE: blew up). Its
+        q_settle is no rest posture: a score counts these apart (``E_q_rest``), never as an E_q_phys."""
+        return np.isin(self.status, (SettleStatus.NOT_SETTLED, SettleStatus.UNSTABLE))
+
+    @property
+    def E_q_rest(self) -> np.ndarray:
+        """(B,) E_q_phys [rad] of the cases that came to rest (SETTLED, BEYOND_LIMIT), NaN elsewhere (``unsettled``
+        and NONFINITE_COMMAND): what medians of rest postures take, with ``unsettled.sum()`` reported beside."""
+        return np.where(self.unsettled, np.nan, self.E_q_phys)
 
     @property
     def status_names(self) -> list[str]:
@@ -209,7 +224,7 @@ class _Simulator:
         self.m = copy.copy(model.mj_model)  # private: integrator, timestep and flags are ours to set
         self.m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # blow-ups stay visible
-        self.m.opt.tolerance = min(self.m.opt.tolerance, SOLVER_TOLERANCE)  # no solver jitter (module docstring)
+        self.m.opt.tolerance = min(self.m.opt.tolerance, SOLVER_TOLERANCE)  # limit forces solved to convergence
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)  # the equilibrium has no contacts
         if params.timestep_s is not None:
             self.m.opt.timestep = params.timestep_s
@@ -218,12 +233,29 @@ class _Simulator:
         self.alpha = np.broadcast_to(np.asarray(spring.alpha_per_m, float), (len(self.ids),)).copy()
         self.params = params
         self.joint_map = model.joint_map
-        self._hold_couplings_and_locks()
+        self.joint_damping = self.m.dof_damping.copy()  # [N m s/rad]: integrated implicitly in _reduced_step
+        self.m.dof_damping[:] = 0.0
+        self._hold_exactly()
         self.pool: list[mujoco.MjData] = []
         self._jacobian_index()
 
+    def _hold_exactly(self):
+        """Couplings and locks are not MuJoCo constraints here: every <equality joint> is switched off and the
+        step itself keeps the state on the manifold (``_reduced_step`` gives the followers the acceleration the
+        polynomials prescribe, ``_project`` puts positions and velocities back on it after MuJoCo integrates)."""
+        m, jm = self.m, self.joint_map
+        self._locked = np.array(sorted(jm.locked), dtype=int)
+        self._locked_values = np.array([jm.locked[j] for j in self._locked])
+        for e in range(m.neq):
+            if int(m.eq_type[e]) == int(mujoco.mjtEq.mjEQ_JOINT):
+                m.eq_active0[e] = 0
+        # a follower's range is its leader's (JointMap.free_range narrows the free joints' ranges to keep followers
+        # inside theirs); its own limit would only push where that narrowing rounds (0.2 mrad on myoLegs' knee)
+        m.jnt_limited[[j for j, _, _ in jm.deps]] = 0
+
     def _hold_couplings_and_locks(self):
-        """Locks: the equality is switched off and the joint gets a huge armature, so it does not accelerate while
+        """(``statics.check``'s MuJoCo check; the settle simulation holds them exactly, ``_hold_exactly``.)
+        Locks: the equality is switched off and the joint gets a huge armature, so it does not accelerate while
         the rest of the arm moves exactly as if it were welded (M_jj -> inf), then is reset each step. Couplings:
         MuJoCo's equality constraint made stiff (time constant 2 steps, impedance COUPLING_IMPEDANCE): at rest a
         follower misses its polynomial by ~(1 - d) a / (d k), and its constraint force is the one the arm needs."""
@@ -259,40 +291,86 @@ class _Simulator:
                 spring += (self.params.muscle_damping_s * self.alpha * self.k) * (taut * grow) * velocity
             return np.minimum(np.maximum(np.where(laws.spring, spring, laws.f_const_n), 0.0), laws.f_cap_n)
 
-    def _joint_forces(self, ten_j, f) -> np.ndarray:
-        """-J_ten^T f (B, nv) [N m] from the sparse ``ten_J`` values (B, nJ) of each data."""
-        jac = np.zeros((len(f), len(self.ids), self.m.nv))
-        jac[:, self.j_rows, self.j_cols] = ten_j[:, self.j_entries]
-        return -np.einsum("bmn,bm->bn", jac, f)
+    def stiffness(self, length, laws: _Laws) -> np.ndarray:
+        """d tension / d length (B, M) [N/m] of the springs as ``tension`` pulls them (0 where slack, where the tension
+        is a constant or clipped at 0 or at its cap): the stiffness the step integrates implicitly."""
+        delta = length - laws.rest_m
+        with np.errstate(over="ignore", invalid="ignore"):
+            slope = self.alpha * self.k * np.exp(self.alpha * np.where(delta > 0.0, delta, 0.0))
+        return np.where(laws.spring & (delta > 0.0), slope, 0.0)
 
+    @np.errstate(invalid="ignore", over="ignore")
     def step(self, datas, laws: _Laws) -> tuple[np.ndarray, np.ndarray]:
-        """One lockstep step: state -> tensions -> qfrc_applied -> integrate.
+        """One lockstep step: state -> tensions -> qfrc_applied -> integrate -> back on the couplings.
 
-        Returns the tensions (B, M) and a (B,) mask of blown-up cases (a joint force above
-        ``max_torque_nm`` or NaN), which are left unstepped so MuJoCo never sees (and prints) the blow-up.
+        Returns the tensions (B, M) and a (B,) mask of blown-up cases (a muscle/damping joint force above
+        ``max_torque_nm``, or NaN), which are left unstepped so MuJoCo never sees (and prints) the blow-up.
         """
-        m, damping = self.m, self.params.mass_damping_per_s
-        mass_v = np.zeros((len(datas), m.nv))
-        for d, mv in zip(datas, mass_v):
-            mujoco.mj_step1(m, d)  # positions, tendons, velocities of the current state
-            mujoco.mj_mulM(m, d, mv, d.qvel)
+        m = self.m
+        mass = np.zeros((len(datas), m.nv, m.nv))
+        for d, mb in zip(datas, mass):
+            mujoco.mj_step1(m, d)  # positions, tendons, mass matrix, bias and passive forces of the current state
+            mujoco.mj_fullM(m, d, mb)
         length = np.array([d.ten_length for d in datas])[:, self.ids]
-        velocity = np.array([d.ten_velocity for d in datas])[:, self.ids]
-        f = self.tension(length, velocity, laws)
-        qfrc = self._joint_forces(np.array([d.ten_J for d in datas]), f) - damping * mass_v
-        blown = ~np.all(np.abs(qfrc) <= self.params.max_torque_nm, axis=1)  # NaN counts as blown
-        for d, tau, skip in zip(datas, qfrc, blown):
+        f = self.tension(length, np.array([d.ten_velocity for d in datas])[:, self.ids], laws)
+        jac = np.zeros((len(f), len(self.ids), m.nv))
+        jac[:, self.j_rows, self.j_cols] = np.array([d.ten_J for d in datas])[:, self.j_entries]
+        qvel = np.array([d.qvel for d in datas])
+        pull = -(jac.transpose(0, 2, 1) @ f[..., None])[..., 0] - self.params.mass_damping_per_s * (
+            mass @ qvel[..., None])[..., 0]
+        applied = self._reduced_step(datas, mass, jac, pull, self.stiffness(length, laws))
+        blown = ~(np.all(np.abs(pull) <= self.params.max_torque_nm, axis=1) & np.all(np.isfinite(applied), axis=1))
+        for d, tau, skip in zip(datas, applied, blown):
             if not skip:
                 d.qfrc_applied[:] = tau
-                mujoco.mj_step2(m, d)  # acceleration, limit constraints, Euler integration
-        if self._locked.size:
-            self._project(datas)
+                mujoco.mj_step2(m, d)  # limit constraints, Euler integration
+        self._onto_couplings([d for d, skip in zip(datas, blown) if not skip])
         return f, blown
 
+    @np.errstate(invalid="ignore", over="ignore")  # a blow-up is reported as UNSTABLE, not warned
+    def _reduced_step(self, datas, mass, jac, pull, stiffness) -> np.ndarray:
+        """qfrc_applied (B, nv) that gives every joint the acceleration of the free joints' linearly implicit Euler
+        step, followers exactly on their couplings (so MuJoCo's integration of it is that step).
+
+        In the free joints q (``E = dq_full/dq``): ``(M_r + dt D_r + dt^2 K_r) dqdot = dt (F_r - dt K_r qdot)`` with
+        ``M_r = E^T M E``, the muscles' stiffness ``K_r = G^T diag(dtension/dlength) G`` (``G = J_ten E``), the damping
+        ``D_r = muscle_damping_s K_r + mass_damping_per_s M_r + E^T diag(joint damping) E`` and ``F_r`` every force at
+        the current state through E. The rest posture is where ``F_r = 0``: the oracle's equilibrium, exactly."""
+        m, p, jm, dt = self.m, self.params, self.joint_map, self.m.opt.timestep
+        qpos, qvel = np.array([d.qpos for d in datas]), np.array([d.qvel for d in datas])
+        q, qdot = qpos[:, jm.free], qvel[:, jm.free]
+        e = jm.tangent(q, qpos)  # (B, nv, N)
+        drift = jm.tangent_rate(q, qdot, qpos)  # (B, nv): followers' acceleration at zero free acceleration
+        smooth = np.array([d.qfrc_passive for d in datas]) - np.array([d.qfrc_bias for d in datas])  # gravity, springs
+        force = pull + smooth - self.joint_damping * qvel - (mass @ drift[..., None])[..., 0]
+        e_t = e.transpose(0, 2, 1)
+        mass_r = e_t @ mass @ e
+        g = jac @ e
+        stiff_r = (g.transpose(0, 2, 1) * stiffness[:, None, :]) @ g
+        damp_r = (p.muscle_damping_s * stiff_r + p.mass_damping_per_s * mass_r
+                  + e_t @ (self.joint_damping[:, None] * e))
+        rhs = dt * (e_t @ force[..., None] - dt * stiff_r @ qdot[..., None])
+        qddot = _solve_or_nan(mass_r + dt * damp_r + dt * dt * stiff_r, rhs) / dt
+        accel = (e @ qddot)[..., 0] + drift
+        return (mass @ accel[..., None])[..., 0] - smooth
+
     def _project(self, datas):
-        """Locked joints back at their value and at rest (their huge armature leaves them only ~1e-9 to undo)."""
+        """Locked joints back at their value and at rest (``statics.check``'s MuJoCo check, with
+        ``_hold_couplings_and_locks``)."""
         for d in datas:
             d.qpos[self._locked], d.qvel[self._locked] = self._locked_values, 0.0
+
+    def _onto_couplings(self, datas):
+        """Every joint back on the couplings and locks: followers and locked joints from the free joints' positions
+        and velocities (MuJoCo's Euler step leaves them off by the limit constraints' share and by rounding)."""
+        if self.joint_map.identity or not datas:
+            return
+        jm = self.joint_map
+        qpos, qvel = np.array([d.qpos for d in datas]), np.array([d.qvel for d in datas])
+        full = jm.full_q(qpos[:, jm.free])
+        speed = np.einsum("bin,bn->bi", jm.tangent(qpos[:, jm.free], full), qvel[:, jm.free])
+        for d, pos, vel in zip(datas, full, speed):
+            d.qpos[:], d.qvel[:] = pos, vel
 
     def verdict(self, datas) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(status (B,) with -1 = keep going, qpos (B, N), qvel (B, N)) of the current states."""
@@ -356,6 +434,26 @@ class _Simulator:
         done = status >= 0
         out.status[active[done]] = status[done]
         return active[~done]
+
+
+def _solve_or_nan(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``solve(a, b)`` per case (B, N, N) x (B, N, 1); NaN rows where a case's system is not finite or singular (a
+    spring stretched far past its range overflows): the step reports that case as blown up, the others go on."""
+    bad = ~(np.isfinite(a).all(axis=(1, 2)) & np.isfinite(b).all(axis=(1, 2)))
+    a, b = np.where(bad[:, None, None], np.eye(a.shape[1]), a), np.where(bad[:, None, None], 0.0, b)
+    try:
+        out = np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:  # an overflowed but finite system: find it case by case (rare)
+        out = np.stack([_solve_one(ai, bi) for ai, bi in zip(a, b)])
+    out[bad] = np.nan
+    return out
+
+
+def _solve_one(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.solve(a, b)
+    except np.linalg.LinAlgError:
+        return np.full_like(b, np.nan)
 
 
 def _mark_beyond_limits(out: SettleResult, q_range, tol_rad: float):

@@ -40,6 +40,7 @@ def test_fit_logs_fault_scalars_and_boxplots(fitted):
                    f"fault_unadapted/{reading}/CUT/E_cut_all"]
         always += [f"fault/{reading}/{c}/{m}_all" for c in ("CUT", "FIX", "BOTH") for m in ("E_tau", "E_q", "E_q_phys")]
         always += [f"fault/{reading}/{c}/n_feasible" for c in ("CUT", "FIX", "BOTH")]
+        always += [f"fault/{reading}/{c}/n_unsettled_all" for c in ("CUT", "FIX", "BOTH")]  # apart from E_q_phys
     for tag in always:
         assert tag in scalars, f"{tag} missing from {sorted(t for t in scalars if t.startswith('fault'))}"
         values = events.Scalars(tag)
@@ -84,6 +85,12 @@ def test_test_writes_identical_json_and_a_markdown_table(fitted, capsys):
             assert set(by_cond) == {"CUT", "FIX", "BOTH"}
             for cond in ("CUT", "FIX", "BOTH"):
                 assert by_cond[cond]["all"]["n"] == 4
+                # settle runs never at rest are counted, and E_q_phys's median is over the others only
+                unsettled = np.array(report["per_case"][kind][reading]["settle_unsettled"], bool)
+                rows = np.array(report["cases"]["cond"]) == cond
+                assert by_cond[cond]["all"]["n_unsettled"] == int(unsettled[rows].sum())
+                e_q_phys = report["per_case"][kind][reading]["E_q_phys"]
+                assert all(e_q_phys[i] is None for i in np.flatnonzero(unsettled))
             assert by_cond["CUT"]["all"]["E_fix"] is None and by_cond["FIX"]["all"]["E_cut"] is None
     for kind in ("adapted", "unadapted"):
         for cond in ("CUT", "FIX", "BOTH"):

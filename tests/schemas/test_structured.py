@@ -149,6 +149,12 @@ def test_healthy_command_holds_the_paper_arm_on_mujoco(paper_arm):
     q, x = datamodule.splits["val"]
     errors = schema.physical_errors(q, x)
     assert errors["eq_residual_N_m"] < 0.4 and errors["length_residual_mm"] < 0.2, errors
+    # the learned body's worst muscle per posture, logged beside them: MuJoCo against body_si, muscle by muscle
+    rows = q[:1024].numpy()  # BODY_ERROR_ROWS
+    miss_mm = 1e3 * np.abs(schema.body_si(torch.as_tensor(rows))[0] - schema.robot_model.kinematics(rows)[0])
+    assert errors["worst_length_mm_p99"] == pytest.approx(np.percentile(miss_mm.max(axis=1), 99), rel=1e-9)
+    assert errors["worst_length_mm_p99"] >= np.percentile(miss_mm, 99)  # the pooled figure never shows more
+    assert errors["bad_posture_fraction"] == pytest.approx(np.mean(miss_mm.max(axis=1) > 0.1), abs=1e-12)
 
 
 def test_bad_options_and_variants_are_refused(paper_arm):

@@ -39,6 +39,9 @@ def test_all_slack_command_falls_to_the_hanging_posture(arm, healthy):
     short = settle(arm, slack, healthy.f[rows], q_ref, params=SettleParams(max_time_s=0.2))
     assert np.all(short.status == SettleStatus.NOT_SETTLED) and np.allclose(short.time_s, 0.2)
     assert short.status_names == ["NOT_SETTLED"] * len(rows)
+    # an arm still falling is no rest posture: E_q_phys says where it was, E_q_rest scores nothing and counts it apart
+    assert np.all(short.E_q_phys > 0.05) and np.all(np.isnan(short.E_q_rest)) and np.all(short.unsettled)
+    np.testing.assert_array_equal(res.E_q_rest[res.settled], res.E_q_phys[res.settled])
 
 
 # ---------------------------------------------------------------------------- (c) cuts
@@ -142,6 +145,30 @@ def test_absurd_stretch_is_reported_not_printed(arm, healthy, capfd):
     assert out.out == "" and out.err == ""  # MuJoCo never gets to print its blow-up warning
 
 
+def test_an_overflowing_spring_blows_up_alone(arm, healthy):
+    """A wire 100 m too short overflows its spring (inf tension and stiffness in the implicit step): that case is
+    UNSTABLE, the cases beside it settle exactly as they do alone, and nothing is warned."""
+    l_motor = healthy.l_motor[:4].copy()
+    l_motor[1, 2] -= 100.0
+    res = settle(arm, l_motor, healthy.f[:4], healthy.q[:4])
+    alone = settle(arm, l_motor[[0, 2, 3]], healthy.f[[0, 2, 3]], healthy.q[[0, 2, 3]])
+    assert res.status_names[1] == "UNSTABLE" and res.E_q_phys[1] == np.inf
+    np.testing.assert_array_equal(res.q_settle[[0, 2, 3]], alone.q_settle)
+    assert np.all(alone.settled)
+
+
+def test_a_singular_step_is_that_cases_alone():
+    """A spring stiffness of ~1e36 N/m (tools/reproduce_paper.py --quick's barely trained commands) left a case's
+    implicit system exactly singular in floats: numpy's batched solve raised for the whole chunk. Now that case's
+    row is NaN (reported UNSTABLE by the step) and the others are solved."""
+    from lightning_bodyschema.sim.settle import _solve_or_nan
+
+    a = np.stack([np.eye(2) * 2.0, np.ones((2, 2)) * 1e29, np.full((2, 2), np.inf)])  # regular, singular, overflow
+    out = _solve_or_nan(a, np.ones((3, 2, 1)))
+    np.testing.assert_array_equal(out[0], 0.5)
+    assert np.isnan(out[1:]).all()
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"l_motor": np.zeros((3, 6))}, "l_motor has shape"),
     ({"f": None}, "f is required"),
@@ -174,7 +201,9 @@ def test_a_case_settles_the_same_whatever_runs_beside_it(arm, healthy, chunk_siz
     result depended on its chunk. Each case alone (chunk_size=1) is the reference, byte for byte."""
     b = np.arange(24)
     l_motor = healthy.l_motor[b].copy()
-    l_motor[::3] -= 0.4  # 8 km/s^2-class forces: these blow up within a few steps, between checks
+    # joint forces above max_torque_nm: these blow up in the first step, between checks (0.4 m did with the explicit
+    # spring; the implicit step holds it: the antagonists balance it at 3 MN, within the joint range)
+    l_motor[::3] -= 0.8
     args = (l_motor, healthy.f[b], healthy.q[b])
     alone = settle(arm, *args, params=SettleParams(chunk_size=1, n_threads=1))
     together = settle(arm, *args, params=SettleParams(chunk_size=chunk_size, n_threads=n_threads))
