@@ -18,12 +18,14 @@ rewriting the command before the solve:
 * a banded motor (``l_band_m`` [lo, hi]) stops at its band: ``l_motor`` becomes ``clip(l_motor, lo, hi)``
   and a jammed one's ``l_fixed`` becomes ``clip(l_fixed, lo, hi)`` (clip is monotone, so this is
   settle's ``clip(min(l_motor, l_fixed), lo, hi)``);
-* a weakened muscle (``f_max_n`` = f_max') whose command asks more than its limit (``f > f_max'``,
-  *saturated*) pulls f_max' and its motor slips: ``f`` becomes ``f_max'`` in every term, and stretching
-  it further costs nothing (tension ``min(spring, f_max')`` stays f_max'), so of its length residual
-  only the under-stretched side ``max(0, r_eq)`` is kept (and a jammed one's ``r_fix``, an overstretch,
-  is dropped). A constant tension adds no length stiffness, so d r/dq is 0 where the hinge is off.
-  A weakened muscle commanded at or below its limit is a healthy one: nothing changes.
+* a weakened muscle (``f_max_n`` = f_max') never pulls more than f_max' (tension ``min(spring, f_max')``):
+  its motor slips once the wire is stretched past phi^-1(f_max'). So ``f`` becomes ``min(f, f_max')`` in
+  every term, and each of its overstretch residuals (``-r_eq``, ``r_slack``, ``r_fix``) is capped at the
+  slip margin ``phi^-1(f_max') - phi^-1(f)``: beyond it the wire pulls a constant f_max', so the
+  residual stays constant and d r/dq is 0 (no length stiffness). A command above its limit (*saturated*)
+  has margin 0: it pulls f_max' and only its under-stretched side ``max(0, r_eq)`` counts. The cap is
+  continuous in f (a command at its limit up to rounding scores as one just below it), and a muscle
+  whose stretch stays inside its margin scores as a healthy one.
 
 Without weakened or banded muscles every array is the paper's, bit for bit.
 
@@ -163,7 +165,7 @@ class _Command(NamedTuple):
     cut: np.ndarray  # (B, M) bool
     fix: np.ndarray  # (B, M) bool
     l_fixed: np.ndarray  # (B, M) [m], 0 where not jammed (clipped to a motor's band)
-    sat: np.ndarray  # (B, M) bool: weakened muscle commanded above its limit (f is then the limit)
+    slip_m: np.ndarray  # (B, M) [m] phi^-1(f_max') - phi^-1(f): overstretch at which a weakened motor slips; inf
 
     def take(self, idx):
         return _Command(*(a[idx] for a in self))
@@ -198,22 +200,22 @@ def classify_muscles(l_geo, cmd: _Command, params: ForwardSolverParams):
     """Taut set E, length residuals and their Jacobian signs (all (B, M)).
 
     E = {i not cut, not jammed | f_i > 0, l_geo_i - l_motor_i >= -eps_slack} (paper, verbatim).
-    A saturated muscle's motor slips: its overstretch terms (r_eq < 0, r_slack, r_fix) are 0.
+    A weakened muscle's overstretch terms (-r_eq, r_slack, r_fix) stop growing at its slip margin ``slip_m``.
     Returns ``taut``, ``r`` [m] and ``sign`` with d r / d q = sign * G.
     """
     healthy = ~(cmd.cut | cmd.fix)
     stretch = l_geo - cmd.l_motor
     taut = healthy & (cmd.f > 0) & (stretch >= -params.eps_slack_m)
     slack = healthy & ~taut
-    over_fix = l_geo - (cmd.l_fixed + cmd.delta)
+    over_fix = np.maximum(0.0, l_geo - (cmd.l_fixed + cmd.delta))
     r_eq = cmd.l_motor + cmd.delta - l_geo
-    holds = ~cmd.sat  # all True without weakened muscles: then every line below is the paper's
-    pulls = taut & (holds | (r_eq > 0))  # a saturated taut muscle counts only while under-stretched
-    r = np.where(pulls, r_eq, 0.0)
-    r = np.where(slack & holds, np.maximum(0.0, stretch), r)
-    r = np.where(cmd.fix & holds, np.maximum(0.0, over_fix), r)
-    sign = np.where(pulls, -1.0, 0.0)
-    sign = np.where(((slack & (stretch > 0)) | (cmd.fix & (over_fix > 0))) & holds, 1.0, sign)
+    cap = cmd.slip_m  # inf without weakened muscles: then every line below is the paper's, bit for bit
+    r = np.where(taut, np.maximum(r_eq, -cap), 0.0)
+    r = np.where(slack, np.minimum(np.maximum(0.0, stretch), cap), r)
+    r = np.where(cmd.fix, np.minimum(over_fix, cap), r)
+    sign = np.where(taut & (r_eq > -cap), -1.0, 0.0)
+    sign = np.where((slack & (stretch > 0) & (stretch < cap)) | (cmd.fix & (over_fix > 0) & (over_fix < cap)),
+                    1.0, sign)
     return taut, r, sign
 
 
@@ -319,7 +321,7 @@ def _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed) -> tuple[_Command
     l_motor, f = np.where(finite[:, None], l_motor, 0.0), np.where(finite[:, None], f, 0.0)
     lo, hi = model.q_range.T
     cmd = _Command(l_motor, f, None, np.clip(q_ref, lo, hi), cut, fix, np.where(fix, l_fixed, 0.0),
-                   np.zeros((batch, n_m), bool))
+                   np.full((batch, n_m), np.inf))
     return cmd, finite
 
 
@@ -346,17 +348,19 @@ def _check_new_faults(shape, f_max_n, l_band_m):
     return f_max_n, l_band_m
 
 
-def _apply_new_faults(cmd: _Command, f_max_n, l_band_m) -> _Command:
+def _apply_new_faults(cmd: _Command, f_max_n, l_band_m, spring: SpringParams) -> _Command:
     """The command as weakened muscles and banded motors realize it (module docstring): l_motor / l_fixed clipped
-    to a band, f capped at f_max' with ``sat`` where it was above. Untouched entries keep their exact values."""
+    to a band, f capped at f_max' and its slip margin set. Untouched entries keep their exact values."""
     if l_band_m is not None:
         banded = ~np.isnan(l_band_m).all(-1)
         lo, hi = l_band_m[..., 0], l_band_m[..., 1]
         cmd = cmd._replace(l_motor=np.where(banded, np.clip(cmd.l_motor, lo, hi), cmd.l_motor),
                            l_fixed=np.where(banded & cmd.fix, np.clip(cmd.l_fixed, lo, hi), cmd.l_fixed))
     if f_max_n is not None:
-        sat = cmd.f > f_max_n  # False where NaN (not weakened)
-        cmd = cmd._replace(f=np.where(sat, f_max_n, cmd.f), sat=sat)
+        weak = ~np.isnan(f_max_n)
+        f = np.where(weak & (cmd.f > f_max_n), f_max_n, cmd.f)
+        margin = elongation_from_tension(np.where(weak, f_max_n, 0.0), spring) - elongation_from_tension(f, spring)
+        cmd = cmd._replace(f=f, slip_m=np.where(weak, margin, np.inf))
     return cmd
 
 
@@ -365,7 +369,7 @@ def prepare_command(model, l_motor, f, q_ref, cut, fix, l_fixed, spring: SpringP
     """The validated command as the faulty body realizes it, phi^-1 taken, and the (B,) finite-command mask
     (``solve_posture``'s arguments)."""
     cmd, finite = _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed)
-    cmd = _apply_new_faults(cmd, *_check_new_faults(cmd.f.shape, f_max_n, l_band_m))
+    cmd = _apply_new_faults(cmd, *_check_new_faults(cmd.f.shape, f_max_n, l_band_m), spring)
     return cmd._replace(delta=elongation_from_tension(cmd.f, spring)), finite
 
 
@@ -380,7 +384,7 @@ def solve_posture(model: MusculoskeletalModel, l_motor, f, q_ref, cut, fix, l_fi
     length at jamming (ignored, may be NaN, where not jammed). ``f_max_n`` (B, M) [N]: a weakened
     muscle's tension limit f_max'; ``l_band_m`` (B, M, 2) [m]: a banded motor's [lo, hi]; NaN (or None
     for the batch) where there is no such fault. The search starts at ``q_ref`` (clipped into the joint
-    limits) and stays inside ``model.q_range``. ``tau_nm`` and ``taut`` count a saturated muscle at f_max'.
+    limits) and stays inside ``model.q_range``. ``tau_nm`` counts a weakened muscle at ``min(f, f_max')``.
     """
     cmd, finite = prepare_command(model, l_motor, f, q_ref, cut, fix, l_fixed, spring, f_max_n, l_band_m)
     batch, n_j, n_m = cmd.q_ref.shape[0], model.n_joints, model.n_muscles
