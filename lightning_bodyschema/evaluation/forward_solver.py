@@ -334,8 +334,8 @@ def _check_new_faults(shape, f_max_n, l_band_m):
             raise BodySchemaInputError(f"f_max_n has shape {f_max_n.shape}; expected {shape}")
         bad = np.isinf(f_max_n) | (f_max_n < 0)
         if bad.any():
-            raise BodySchemaInputError(f"f_max_n has the limit {float(f_max_n[bad][0])!r} N; a weakened muscle's limit is "
-                                       "finite and >= 0 N, NaN where not weakened")
+            raise BodySchemaInputError(f"f_max_n has the limit {float(f_max_n[bad][0])!r} N; a weakened muscle's "
+                                       "limit is finite and >= 0 N, NaN where not weakened")
     if l_band_m is not None:
         l_band_m = np.asarray(l_band_m, float)
         if l_band_m.shape != shape + (2,):
