@@ -9,9 +9,8 @@ Columns, each a median: the healthy commands' equilibrium residual ||-G^T f - ta
 length residual |l_motor + delta(f) - l_geo| [mm]; for a structured schema the learned body's errors against
 MuJoCo (l_geo [mm], moment arms [mm/rad], torque [N m]); the binding protocol's adapted and unadapted E_q [rad]
 and E_tau [N m] per condition (the Gauss-Newton evaluator's phys reading, feasible cases); with ``--settle`` also
-E_q_phys, each command dropped into MuJoCo (``sim.settle``: the only reading that models a weakened muscle's slip
-and a banded winch's stop; the evaluator's posture solve models cuts and jams only, so its WEAK / BAND unadapted
-E_q is the healthy command's own); and the fit's wall time when given. One torch thread.
+E_q_phys, each command dropped into MuJoCo (``sim.settle``: every fault kind, as the posture solve models them,
+with the spring's own stiffness); and the fit's wall time when given. One torch thread.
 """
 import argparse
 

@@ -1,17 +1,19 @@
 #!/usr/bin/env python
 """WEAK and BAND rows for RESULTS.md: the paper Diff schema on 40 + 40 new-fault cases (test split, seed 0).
 
-    python tools/results_new_faults.py   # needs runs/paper/diff-10000 from tools/reproduce_paper.py
+    python tools/results_new_faults.py [CKPT]   # default: runs/paper/diff-10000 from tools/reproduce_paper.py
 
 WEAK: one random muscle per case limited to half its healthy tension; BAND: one random motor confined to
 [healthy - 4 mm, healthy - 2 mm]. Prints a Markdown table (phys reading, medians): the unadapted command, the
 default adaptation, and a stronger guidance (``n_guide=4, lr=1.0``).
 """
+import glob, sys
 import numpy as np, torch
 torch.set_num_threads(1)
 from lightning_bodyschema.schemas import load_schema, load_datamodule
 from lightning_bodyschema.evaluation import FaultCases, run_fault_benchmark
-ck = "runs/paper/diff-10000/lightning_logs/version_0/checkpoints/epoch=9999-step=10000.ckpt"
+ck = sys.argv[1] if len(sys.argv) > 1 else sorted(glob.glob(
+    "runs/paper/diff-10000/lightning_logs/version_*/checkpoints/epoch=9999-*.ckpt"))[-1]
 s = load_schema(ck); dm = load_datamodule(ck)
 q, x = dm.splits["val"]; q = q.numpy(); M = s.n_muscles
 rng = np.random.default_rng(0)

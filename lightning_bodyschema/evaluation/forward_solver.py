@@ -12,6 +12,23 @@ with, re-classified at every iterate (E = taut set, see ``classify_muscles``):
 * ruptured muscles:                 excluded
 * torque imbalance tau(q) = -G(q)^T f_eff - tau_bias(q), ``f_eff = f`` on E and 0 elsewhere.
 
+The two faults beyond the paper enter as ``sim.settle`` models them (``sim/settle_inputs.py``), by
+rewriting the command before the solve:
+
+* a banded motor (``l_band_m`` [lo, hi]) stops at its band: ``l_motor`` becomes ``clip(l_motor, lo, hi)``
+  and a jammed one's ``l_fixed`` becomes ``clip(l_fixed, lo, hi)`` (clip is monotone, so this is
+  settle's ``clip(min(l_motor, l_fixed), lo, hi)``);
+* a weakened muscle (``f_max_n`` = f_max') never pulls more than f_max' (tension ``min(spring, f_max')``):
+  its motor slips once the wire is stretched past phi^-1(f_max'). So ``f`` becomes ``min(f, f_max')`` in
+  every term, and each of its overstretch residuals (``-r_eq``, ``r_slack``, ``r_fix``) is capped at the
+  slip margin ``phi^-1(f_max') - phi^-1(f)``: beyond it the wire pulls a constant f_max', so the
+  residual stays constant and d r/dq is 0 (no length stiffness). A command above its limit (*saturated*)
+  has margin 0: it pulls f_max' and only its under-stretched side ``max(0, r_eq)`` counts. The cap is
+  continuous in f (a command at its limit up to rounding scores as one just below it), and a muscle
+  whose stretch stays inside its margin scores as a healthy one.
+
+Without weakened or banded muscles every array is the paper's, bit for bit.
+
 The paper writes the length terms as ``sum w_i (r_i/s_l)^2`` solved by IRLS "minimizing the Huber
 loss"; we take the Huber loss itself, ``rho(u) = u^2 (|u| <= d), 2 d |u| - d^2 (otherwise)``, as the
 true objective and ``w = min(1, d/|u|)`` as the IRLS weights (the weighted quadratic majorizes rho,
@@ -138,15 +155,17 @@ class PostureResult:
 
 
 class _Command(NamedTuple):
-    """One batch of commands and faults, pre-processed (NaN l_fixed replaced, phi^-1 taken)."""
+    """One batch of commands and faults, pre-processed (NaN l_fixed replaced, bands and limits applied, phi^-1
+    taken): the command as the faulty body can realize it (module docstring)."""
 
-    l_motor: np.ndarray  # (B, M) [m]
-    f: np.ndarray  # (B, M) [N]
+    l_motor: np.ndarray  # (B, M) [m], clipped to a banded motor's band
+    f: np.ndarray  # (B, M) [N], min(f, f_max') on a weakened muscle
     delta: np.ndarray  # (B, M) phi^-1(f) [m]
     q_ref: np.ndarray  # (B, N) [rad]
     cut: np.ndarray  # (B, M) bool
     fix: np.ndarray  # (B, M) bool
-    l_fixed: np.ndarray  # (B, M) [m], 0 where not jammed
+    l_fixed: np.ndarray  # (B, M) [m], 0 where not jammed (clipped to a motor's band)
+    slip_m: np.ndarray  # (B, M) [m] phi^-1(f_max') - phi^-1(f): overstretch at which a weakened motor slips; inf
 
     def take(self, idx):
         return _Command(*(a[idx] for a in self))
@@ -181,18 +200,22 @@ def classify_muscles(l_geo, cmd: _Command, params: ForwardSolverParams):
     """Taut set E, length residuals and their Jacobian signs (all (B, M)).
 
     E = {i not cut, not jammed | f_i > 0, l_geo_i - l_motor_i >= -eps_slack} (paper, verbatim).
+    A weakened muscle's overstretch terms (-r_eq, r_slack, r_fix) stop growing at its slip margin ``slip_m``.
     Returns ``taut``, ``r`` [m] and ``sign`` with d r / d q = sign * G.
     """
     healthy = ~(cmd.cut | cmd.fix)
     stretch = l_geo - cmd.l_motor
     taut = healthy & (cmd.f > 0) & (stretch >= -params.eps_slack_m)
     slack = healthy & ~taut
-    over_fix = l_geo - (cmd.l_fixed + cmd.delta)
-    r = np.where(taut, cmd.l_motor + cmd.delta - l_geo, 0.0)
-    r = np.where(slack, np.maximum(0.0, stretch), r)
-    r = np.where(cmd.fix, np.maximum(0.0, over_fix), r)
-    sign = np.where(taut, -1.0, 0.0)
-    sign = np.where((slack & (stretch > 0)) | (cmd.fix & (over_fix > 0)), 1.0, sign)
+    over_fix = np.maximum(0.0, l_geo - (cmd.l_fixed + cmd.delta))
+    r_eq = cmd.l_motor + cmd.delta - l_geo
+    cap = cmd.slip_m  # inf without weakened muscles: then every line below is the paper's, bit for bit
+    r = np.where(taut, np.maximum(r_eq, -cap), 0.0)
+    r = np.where(slack, np.minimum(np.maximum(0.0, stretch), cap), r)
+    r = np.where(cmd.fix, np.minimum(over_fix, cap), r)
+    sign = np.where(taut & (r_eq > -cap), -1.0, 0.0)
+    sign = np.where((slack & (stretch > 0) & (stretch < cap)) | (cmd.fix & (over_fix > 0) & (over_fix < cap)),
+                    1.0, sign)
     return taut, r, sign
 
 
@@ -297,22 +320,73 @@ def _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed) -> tuple[_Command
     finite = np.all(np.isfinite(l_motor) & np.isfinite(f), axis=1)
     l_motor, f = np.where(finite[:, None], l_motor, 0.0), np.where(finite[:, None], f, 0.0)
     lo, hi = model.q_range.T
-    cmd = _Command(l_motor, f, None, np.clip(q_ref, lo, hi), cut, fix, np.where(fix, l_fixed, 0.0))
+    cmd = _Command(l_motor, f, None, np.clip(q_ref, lo, hi), cut, fix, np.where(fix, l_fixed, 0.0),
+                   np.full((batch, n_m), np.inf))
     return cmd, finite
+
+
+def _check_new_faults(shape, f_max_n, l_band_m):
+    """f_max' (B, M) [N] and the band (B, M, 2) [m] as float arrays (NaN: no such fault), or None; one clear
+    error for a wrong shape or value."""
+    if f_max_n is not None:
+        f_max_n = np.asarray(f_max_n, float)
+        if f_max_n.shape != shape:
+            raise BodySchemaInputError(f"f_max_n has shape {f_max_n.shape}; expected {shape}")
+        bad = np.isinf(f_max_n) | (f_max_n < 0)
+        if bad.any():
+            raise BodySchemaInputError(f"f_max_n has the limit {float(f_max_n[bad][0])!r} N; a weakened muscle's "
+                                       "limit is finite and >= 0 N, NaN where not weakened")
+    if l_band_m is not None:
+        l_band_m = np.asarray(l_band_m, float)
+        if l_band_m.shape != shape + (2,):
+            raise BodySchemaInputError(f"l_band_m has shape {l_band_m.shape}; expected {shape + (2,)}")
+        banded = ~np.isnan(l_band_m).all(-1)
+        lo, hi = l_band_m[..., 0][banded], l_band_m[..., 1][banded]
+        if not (np.all(np.isfinite(lo) & np.isfinite(hi)) and np.all(lo <= hi)):
+            raise BodySchemaInputError("l_band_m has a band with a NaN/inf bound or lo > hi; a banded motor needs "
+                                       "finite lo <= hi [m], NaN for both where the motor is free")
+    return f_max_n, l_band_m
+
+
+def _apply_new_faults(cmd: _Command, f_max_n, l_band_m, spring: SpringParams) -> _Command:
+    """The command as weakened muscles and banded motors realize it (module docstring): l_motor / l_fixed clipped
+    to a band, f capped at f_max' and its slip margin set. Untouched entries keep their exact values."""
+    if l_band_m is not None:
+        banded = ~np.isnan(l_band_m).all(-1)
+        lo, hi = l_band_m[..., 0], l_band_m[..., 1]
+        cmd = cmd._replace(l_motor=np.where(banded, np.clip(cmd.l_motor, lo, hi), cmd.l_motor),
+                           l_fixed=np.where(banded & cmd.fix, np.clip(cmd.l_fixed, lo, hi), cmd.l_fixed))
+    if f_max_n is not None:
+        weak = ~np.isnan(f_max_n)
+        f = np.where(weak & (cmd.f > f_max_n), f_max_n, cmd.f)
+        margin = elongation_from_tension(np.where(weak, f_max_n, 0.0), spring) - elongation_from_tension(f, spring)
+        cmd = cmd._replace(f=f, slip_m=np.where(weak, margin, np.inf))
+    return cmd
+
+
+def prepare_command(model, l_motor, f, q_ref, cut, fix, l_fixed, spring: SpringParams = SpringParams(),
+                    f_max_n=None, l_band_m=None) -> tuple[_Command, np.ndarray]:
+    """The validated command as the faulty body realizes it, phi^-1 taken, and the (B,) finite-command mask
+    (``solve_posture``'s arguments)."""
+    cmd, finite = _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed)
+    cmd = _apply_new_faults(cmd, *_check_new_faults(cmd.f.shape, f_max_n, l_band_m), spring)
+    return cmd._replace(delta=elongation_from_tension(cmd.f, spring)), finite
 
 
 # ---------------------------------------------------------------------------- the solver
 def solve_posture(model: MusculoskeletalModel, l_motor, f, q_ref, cut, fix, l_fixed,
                   spring: SpringParams = SpringParams(),
-                  params: ForwardSolverParams = ForwardSolverParams()) -> PostureResult:
+                  params: ForwardSolverParams = ForwardSolverParams(), *,
+                  f_max_n=None, l_band_m=None) -> PostureResult:
     """The postures q_hat (B, N) [rad] that commands (l_motor [m], f [N]) (B, M) would realize.
 
     ``cut``/``fix`` (B, M) bool mark ruptured / jammed muscles; ``l_fixed`` (B, M) [m] is the motor
-    length at jamming (ignored, may be NaN, where not jammed). The search starts at ``q_ref``
-    (clipped into the joint limits) and stays inside ``model.q_range``.
+    length at jamming (ignored, may be NaN, where not jammed). ``f_max_n`` (B, M) [N]: a weakened
+    muscle's tension limit f_max'; ``l_band_m`` (B, M, 2) [m]: a banded motor's [lo, hi]; NaN (or None
+    for the batch) where there is no such fault. The search starts at ``q_ref`` (clipped into the joint
+    limits) and stays inside ``model.q_range``. ``tau_nm`` counts a weakened muscle at ``min(f, f_max')``.
     """
-    cmd, finite = _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed)
-    cmd = cmd._replace(delta=elongation_from_tension(cmd.f, spring))
+    cmd, finite = prepare_command(model, l_motor, f, q_ref, cut, fix, l_fixed, spring, f_max_n, l_band_m)
     batch, n_j, n_m = cmd.q_ref.shape[0], model.n_joints, model.n_muscles
     out = PostureResult(np.full((batch, n_j), np.nan), np.full(batch, int(SolverStatus.MAX_ITER), np.int8),
                         np.zeros(batch, int), np.full(batch, np.nan), np.zeros((batch, n_m), bool),

@@ -2,7 +2,8 @@
 
     E_cut = mean_{i in I_cut} |f_i|                                   [N]
     E_fix = mean_{j in I_fix} max(0, l_motor_j - l_fixed_j)           [m]  (x 1000 for mm, as tables do)
-    E_tau = || -G(q_hat)^T f_eff - tau_bias(q_hat) ||_2               [N m] f_eff: f on the taut set E(q_hat)
+    E_tau = || -G(q_hat)^T f_eff - tau_bias(q_hat) ||_2               [N m] f_eff: f on the taut set E(q_hat),
+                                                                      min(f, f_max') on a weakened muscle
     E_q   = || q_ref - q_hat ||_2                                     [rad]
 
 Beyond the paper (``EXTRA_METRICS``, NaN for cases without such a fault):
@@ -10,8 +11,9 @@ Beyond the paper (``EXTRA_METRICS``, NaN for cases without such a fault):
     E_weak = mean_{i weakened} max(0, f_i - f_max'_i)                 [N]
     E_band = mean_{j banded} max(0, lo_j - l_motor_j, l_motor_j - hi_j) [m]
 
-The posture solver takes the command as sent (weakened and banded muscles as healthy ones), so
-E_tau and E_q score the command itself; E_weak and E_band say how far it breaks the new faults.
+The posture solver models every fault kind as ``sim.settle`` does: a weakened muscle commanded above
+its limit pulls f_max' and slips, a banded motor stops at its band (``forward_solver``). So E_tau and
+E_q score what the command does to the faulty body; E_weak and E_band say how far it breaks the new faults.
 
 q_hat comes from ``solve_posture``. A metric whose index set is empty for a case (E_fix under CUT,
 E_cut under FIX) is NaN there, so means over a condition never mix in meaningless zeros.
@@ -73,7 +75,8 @@ def evaluate_commands(model: MusculoskeletalModel, cases: FaultCases, l_motor, f
     Returns (B,) arrays E_cut, E_fix, E_tau, E_q, E_weak, E_band, status (``SolverStatus`` ints), converged, n_iter,
     objective, and q_hat (B, N). Cases with a non-finite command have NaN E_tau, E_q and q_hat.
     """
-    res = solve_posture(model, l_motor, f, cases.q_ref, cases.cut, cases.fix, cases.l_fixed, spring, params)
+    res = solve_posture(model, l_motor, f, cases.q_ref, cases.cut, cases.fix, cases.l_fixed, spring, params,
+                        f_max_n=cases.f_max, l_band_m=cases.l_band)
     return {
         "E_cut": cut_error(cases, f),
         "E_fix": fix_error(cases, l_motor),
