@@ -22,6 +22,7 @@ from .errors import BodySchemaInputError
 from .schemas import (AutoEncoderSchema, BodySchema, DiffusionSchema, StructuredSchema,  # noqa: F401 (short names)
                       VAESchema)
 from .training.fit_loop import check_val_check_interval, half_precision_refusal
+from .training.lightning_module import RENAMED_METRICS
 from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
 
 
@@ -85,6 +86,7 @@ class BodySchemaCLI(LightningCLI):
             config["trainer"]["enable_checkpointing"] = True
         if str(config["trainer"].get("precision")) in ("16-true", "bf16-true"):  # before any file is written
             raise BodySchemaInputError(half_precision_refusal(config["trainer"]["precision"]))
+        _check_monitor(config.get("checkpoint"))
         if self.subcommand == "fit":
             _check_max_epochs(config)
             if config.get("lr_scheduler") and not config.get("optimizer"):
@@ -253,6 +255,15 @@ def _check_max_epochs(config):
             f"--trainer.max_epochs=-1 (endless training) cannot anneal the learning rate to "
             f"--model.lr_final={init_args.get('lr_final')}; give a positive max_epochs or max_steps, "
             "or --model.lr_final=null for a constant learning rate")
+
+
+def _check_monitor(checkpoint_config):
+    """Refuse a checkpoint monitor on a renamed metric (Lightning would warn, each validation, that it is missing)."""
+    monitor = str((checkpoint_config or {}).get("monitor") or "")
+    stage, _, name = monitor.rpartition("/")
+    if name in RENAMED_METRICS:
+        raise BodySchemaInputError(f"--checkpoint.monitor={monitor}: that metric is now "
+                                   f"{stage + '/' if stage else ''}{RENAMED_METRICS[name]} (the same quantity, in N m)")
 
 
 def _check_same_class(cls, model_config, ckpt_path):

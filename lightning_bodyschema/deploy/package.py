@@ -25,6 +25,7 @@ import torch
 from .._numpy import to_numpy
 from ..adaptation.command import FAULT_TOL_M, FAULT_TOL_N, AdaptationResult, statuses
 from ..errors import BodySchemaInputError
+from ..npz import default_file_mode
 from ..status import STATUS_CODES
 from .module import VARIANT, AdapterModule
 
@@ -116,6 +117,7 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
     try:
         torch._inductor.aoti_compile_and_package(program, package_path=tmp,
                                                  inductor_configs={"aot_inductor.metadata": metadata})
+        os.chmod(tmp, default_file_mode())  # as open() would make it: a controller running as another user reads it
         os.replace(tmp, out)
     finally:
         if os.path.exists(tmp):

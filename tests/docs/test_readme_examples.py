@@ -140,6 +140,14 @@ def test_the_new_architecture_block_learns_the_body_schema(dm):
     assert learned < 0.5 * baseline, (learned, baseline)
 
 
+def test_the_new_architecture_block_is_examples_regression_schema():
+    """The README shows the network examples/regression_schema.py trains (two hidden layers, as the file has)."""
+    def network(text: str) -> str:
+        return "".join(text[text.index("nn.Sequential("):].split(")\n")[0].split())
+
+    assert network(block("python", NEW_SCHEMA)) == network((ROOT / "examples" / "regression_schema.py").read_text())
+
+
 def test_the_adapting_block_meets_a_cut_through_the_adapter(dm):
     """The README's capability example: declared ``adapts_normalized``, the adapter runs its descent, and a cut
     muscle's tension goes from what the healthy command asks to ~0."""
