@@ -14,6 +14,7 @@ from jsonargparse import ActionSubCommands
 from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.loggers import TensorBoardLogger
 
 from .callbacks import EpochProgressBar, FaultBenchmark, FinalValidation, InitFrom, ReconstructionFigure
 from .cli_parser import OneLineErrorParser, _known_options
@@ -104,6 +105,27 @@ class BodySchemaCLI(LightningCLI):
         # before the dataset is built and the run folder written (Lightning checks this only once the fit loop starts)
         if hasattr(self.datamodule, "train_batches_per_epoch"):
             check_val_check_interval(self.trainer, self.datamodule.train_batches_per_epoch(self.trainer.world_size))
+
+    def before_validate(self):
+        self._log_beside_the_checkpoint("validate")
+
+    def before_test(self):
+        self._log_beside_the_checkpoint("test")
+
+    def _log_beside_the_checkpoint(self, subcommand: str):
+        """With the default logger, validate and test log (and the benchmark writes its tables) into
+        ``<the checkpoint's run>/<subcommand>``, else ``<default_root_dir>/lightning_logs/<subcommand>``: never a new
+        ``version_N`` folder, which would shift the version of the next fit into that root."""
+        if self.config[subcommand]["trainer"].get("logger") not in (None, True) or not self.trainer.loggers:
+            return  # the user's own logger (or none) decides
+        ckpt = self.config[subcommand].get("ckpt_path")
+        folder = os.path.dirname(os.path.abspath(str(ckpt))) if ckpt else ""
+        if os.path.basename(folder) == "checkpoints":
+            folder = os.path.dirname(folder)  # .../version_N: the fit that wrote the checkpoint
+        else:
+            folder = os.path.join(self.trainer.default_root_dir, "lightning_logs")
+        self.trainer.loggers = [TensorBoardLogger(save_dir=folder, name="", version=subcommand,
+                                                  default_hp_metric=False)]
 
     def after_fit(self):
         if self.trainer.is_global_zero:
