@@ -27,7 +27,7 @@ from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.sim.spring import tension_from_elongation
 
 ROOT = Path(__file__).resolve().parents[2]
-README_CKPT = "runs/diff/lightning_logs/version_0/checkpoints/last.ckpt"  # the path the README loads
+README_CKPT = "runs/quick/diff-1000/lightning_logs/version_0/checkpoints/last.ckpt"  # the path the README loads
 # fenced blocks, possibly indented (inside a list item): indent, language, body
 _FENCE = re.compile(r"^( *)```(\w+)\n(.*?)^\1```", re.MULTILINE | re.DOTALL)
 
@@ -68,8 +68,8 @@ def workdir(tmp_path_factory):
     the commands are still absurd, beyond 20 healthy spreads, and ``adapt`` rightly calls them ``out_of_range``;
     from ~30 epochs on they are plausible and the physics decides.)"""
     folder = tmp_path_factory.mktemp("readme")
-    ckpt = fit_tiny_checkpoint(folder / "runs" / "diff", "--data.n_samples=200", "--faults.every_n_epochs=0",
-                               "--progress.enabled=false", epochs=60)
+    ckpt = fit_tiny_checkpoint(folder / "runs" / "quick" / "diff-1000", "--data.n_samples=200",
+                               "--faults.every_n_epochs=0", "--progress.enabled=false", epochs=60)
     assert Path(ckpt) == folder / README_CKPT
     return folder
 
