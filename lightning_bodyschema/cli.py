@@ -10,7 +10,8 @@ The data module's robot (XML, muscles, spring) is linked into the schema at inst
 checkpoint is self-contained. User errors exit with code 2 and one line, without a traceback, before
 anything is written (``cli_parser.OneLineErrorParser``: a misspelt option gets a "did you mean"); an option of a
 fixed group (``--trainer.*``, ``--checkpoint.*``, ...) is checked against ``cli_options`` before torch and Lightning
-are imported, so a typo costs about a second (the parser itself takes 5-25 s to build on 2 cores). There
+are imported, so a typo costs no heavy import. ``validate`` and ``test`` log into the checkpoint's run folder
+(``.../version_N/<subcommand>``), never into a new version folder; a fit ends by printing where its outputs are. There
 is no ``predict`` subcommand: LightningCLI's predict runs over the data module's split, while a controller's
 requests carry their own faults; ``tools/predict.py`` serves those. Beyond what jsonargparse checks:
 
@@ -21,6 +22,7 @@ requests carry their own faults; ``tools/predict.py`` serves those. Beyond what 
   muscles and spring), checked before Lightning loads it; ``last`` is the newest ``last.ckpt`` under
   ``--trainer.default_root_dir``; ``best`` (only known inside one Python process) is refused;
 * ``--trainer.max_steps`` must be positive or -1;
+* ``--checkpoint.monitor`` on a renamed metric (``val/eq_residual_nm``) is refused, naming the new one;
 """
 from __future__ import annotations
 
