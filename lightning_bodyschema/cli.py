@@ -8,7 +8,10 @@
 
 The data module's robot (XML, muscles, spring) is linked into the schema at instantiation, so every
 checkpoint is self-contained. User errors exit with code 2 and one line, without a traceback, before
-anything is written (``cli_parser.OneLineErrorParser``: a misspelt option gets a "did you mean"). There
+anything is written (``cli_parser.OneLineErrorParser``: a misspelt option gets a "did you mean"); an option of a
+fixed group (``--trainer.*``, ``--checkpoint.*``, ...) is checked against ``cli_options`` before torch and Lightning
+are imported, so a typo costs no heavy import. ``validate`` and ``test`` log into the checkpoint's run folder
+(``.../version_N/<subcommand>``), never into a new version folder; a fit ends by printing where its outputs are. There
 is no ``predict`` subcommand: LightningCLI's predict runs over the data module's split, while a controller's
 requests carry their own faults; ``tools/predict.py`` serves those. Beyond what jsonargparse checks:
 
@@ -19,134 +22,18 @@ requests carry their own faults; ``tools/predict.py`` serves those. Beyond what 
   muscles and spring), checked before Lightning loads it; ``last`` is the newest ``last.ckpt`` under
   ``--trainer.default_root_dir``; ``best`` (only known inside one Python process) is refused;
 * ``--trainer.max_steps`` must be positive or -1;
+* ``--checkpoint.monitor`` on a renamed metric (``val/eq_residual_nm``) is refused, naming the new one;
 """
 from __future__ import annotations
 
-import glob
-import os
+import difflib
 import sys
-import warnings
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
-import torch
-from lightning.fabric.utilities.exceptions import MisconfigurationException
-from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.cli import LightningCLI
+if TYPE_CHECKING:
+    from .cli_app import BodySchemaCLI
 
-from .callbacks import EpochProgressBar, FaultBenchmark, FinalValidation, InitFrom, ReconstructionFigure
-from .cli_parser import OneLineErrorParser
-from .data import EquilibriumDataModule, RecordedDataModule  # noqa: F401 (--data RecordedDataModule)
-from .errors import BodySchemaInputError
-from .schemas import (AutoEncoderSchema, BodySchema, DiffusionSchema, StructuredSchema,  # noqa: F401 (short names)
-                      VAESchema)
-from .training.fit_loop import check_val_check_interval, half_precision_refusal
-from .schemas.loading import check_checkpoint, read_checkpoint, schema_class
-
-
-DESCRIPTION = ("Train and evaluate body schemas of musculoskeletal robots (AE, VAE, diffusion; Kawaharazuka & "
-               "Ikemoto). Subcommands: fit (train, with validation in physical units and the in-fit fault "
-               "benchmark), validate and test (a checkpoint on the data's splits). Adapting commands to faults: "
-               "tools/predict.py, tools/adapt_cases.py, or schema.adapt from Python.")
-
-
-class BodySchemaCLI(LightningCLI):
-    @staticmethod
-    def subcommands() -> dict[str, set[str]]:
-        """fit, validate and test; no predict (see the module docstring)."""
-        return {name: skip for name, skip in LightningCLI.subcommands().items() if name != "predict"}
-
-    def add_arguments_to_parser(self, parser):
-        parser.link_arguments("data.robot", "model.init_args.robot", apply_on="instantiate")
-        # the data module serves the minibatches; --model.batch_size (recorded in the checkpoint) sets its size
-        parser.link_arguments("model.init_args.batch_size", "data.init_args.batch_size")
-        # always-on callbacks, configurable as --progress.*, --figures.* and --faults.*
-        parser.add_lightning_class_args(EpochProgressBar, "progress")
-        parser.add_lightning_class_args(ReconstructionFigure, "figures")
-        parser.add_lightning_class_args(FaultBenchmark, "faults")
-        # physical metrics at the end of every fit, whatever check_val_every_n_epoch
-        parser.add_lightning_class_args(FinalValidation, "final_validation")
-        # fine-tune: --init_from.ckpt OLD.ckpt starts from its weights and normalizer (a fresh optimizer and schedule)
-        parser.add_lightning_class_args(InitFrom, "init_from")
-        # checkpoints: keep last.ckpt beside the newest epoch file, so `--ckpt_path .../last.ckpt` always works
-        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
-        parser.set_defaults({"checkpoint.save_last": True})
-        # --data is a class option (EquilibriumDataModule or RecordedDataModule): the simulation module by default
-        parser.set_defaults({"data": {"class_path": "lightning_bodyschema.data.EquilibriumDataModule"}})
-
-    # ---------------------------------------------------------------- input checks (exit 2, one line)
-    def parse_arguments(self, parser, args):
-        # main() always passes the command line explicitly; LightningCLI's "args and sys.argv both given" warning
-        # would fire on every run (and under pytest, whose sys.argv is not ours), so parse without it
-        self.config = parser.parse_args(args)
-        # before Lightning's own torch.load of --ckpt_path, which dies with a traceback on a bad file
-        self._checkpoint = None
-        subcommand = self.config.get("subcommand")
-        ckpt_path = _resolve_ckpt_keyword(self.config[subcommand]) if subcommand else None
-        if ckpt_path and str(ckpt_path) not in _LIGHTNING_CKPT_KEYWORDS:
-            # the loader's every check (schemas/loading.py): Lightning then imports the checkpoint's _class_path
-            # and loads its hyperparameters and weights, which must have passed first
-            self._checkpoint = read_checkpoint(str(ckpt_path))
-            checked = check_checkpoint(self._checkpoint, str(ckpt_path))
-            _check_same_class(checked.cls, self.config[subcommand].get("model"), ckpt_path)
-
-    def before_instantiate_classes(self):
-        config = self.config[self.subcommand]
-        if config["trainer"].get("enable_progress_bar") is False:
-            # Lightning refuses a progress-bar callback beside enable_progress_bar=False; ours is always in the
-            # callbacks, so the Trainer flag switches it off instead (same effect: no bar)
-            config["progress"]["enabled"] = False
-            config["trainer"]["enable_progress_bar"] = True
-        if config["trainer"].get("enable_checkpointing") is False and config.get("checkpoint") is not None:
-            # likewise for the always-present ModelCheckpoint: it keeps nothing instead
-            config["checkpoint"]["save_top_k"] = 0
-            config["checkpoint"]["save_last"] = False
-            config["trainer"]["enable_checkpointing"] = True
-        if str(config["trainer"].get("precision")) in ("16-true", "bf16-true"):  # before any file is written
-            raise BodySchemaInputError(half_precision_refusal(config["trainer"]["precision"]))
-        if self.subcommand == "fit":
-            _check_max_epochs(config)
-            if config.get("lr_scheduler") and not config.get("optimizer"):
-                # LightningCLI would drop it without a word: the schema's own optimizer brings its own schedule
-                raise BodySchemaInputError(
-                    f"--lr_scheduler {config['lr_scheduler'].get('class_path')} needs --optimizer too (e.g. "
-                    "--optimizer Adam --optimizer.lr 1e-3); without --optimizer the schema trains with Adam and "
-                    "its cosine schedule from --model.lr to --model.lr_final")
-        if self._checkpoint is not None:  # before the trainer exists: nothing printed, nothing written
-            data = _data_module(config["data"])  # light: the robot only (a recorded file is read), no dataset yet
-            _check_same_robot(self._checkpoint, config.get("ckpt_path"), data)
-
-
-    def before_fit(self):
-        # before the dataset is built and the run folder written (Lightning checks this only once the fit loop starts)
-        if hasattr(self.datamodule, "train_batches_per_epoch"):
-            check_val_check_interval(self.trainer, self.datamodule.train_batches_per_epoch(self.trainer.world_size))
-
-
-def _data_module(data_config):
-    """The configured data module (``--data`` is a subclass of EquilibriumDataModule: RecordedDataModule too)."""
-    classes = {cls.__name__: cls for cls in (EquilibriumDataModule, RecordedDataModule)}
-    name = str(data_config["class_path"]).rpartition(".")[2]
-    cls = classes.get(name)
-    if cls is None:
-        raise BodySchemaInputError(f"--data {data_config['class_path']!r}: --ckpt_path is checked against "
-                                   f"{list(classes)} only")
-    return cls(**data_config["init_args"].as_dict())
-
-
-# a misspelt flag is an error, not a prefix of some option (argparse's default would run
-# `--trainer.max_epoch=3` as max_epochs); config files never accepted abbreviations either
-_NO_ABBREVIATIONS = {"allow_abbrev": False, **{name: {"allow_abbrev": False} for name in BodySchemaCLI.subcommands()}}
-
-
-def _trainer_defaults() -> dict:
-    return {
-        "max_epochs": 10000,  # the paper's setting
-        "check_val_every_n_epoch": 500,
-        "log_every_n_steps": 50,  # optimizer steps: every 5 epochs of the paper's 640 samples in batches of 64
-        "num_sanity_val_steps": 0,
-        "enable_model_summary": False,
-        "default_root_dir": "runs",  # every output of a run under runs/ (git-ignored), not the working tree
-    }
+_CLOSE_ENOUGH = 0.75  # as cli_parser's: max_epoch -> max_epochs is 0.95; unrelated options score below 0.6
 
 
 def main(args: Optional[list[str]] = None) -> Optional["BodySchemaCLI"]:
@@ -158,119 +45,61 @@ def main(args: Optional[list[str]] = None) -> Optional["BodySchemaCLI"]:
     (``cli.trainer``, ``cli.model``, ...) for scripts and tests; ``sys.argv`` is then never read.
     """
     from_command_line = args is None
-    # resolved here, once, and handed to LightningCLI explicitly (see BodySchemaCLI.parse_arguments)
+    # resolved here, once, and handed to LightningCLI explicitly (see cli_app.BodySchemaCLI.parse_arguments)
     args = sys.argv[1:] if from_command_line else [str(arg) for arg in args]
-    torch.set_num_threads(1)  # one thread per process is fastest for these tiny MLPs (docs/design.md, data and training)
-    torch.set_flush_denormal(True)
-    # 10 optimizer steps per epoch with the paper's data: the "fewer batches than log interval" notice is noise
-    warnings.filterwarnings("ignore", message=".*smaller than the logging interval.*")
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*")
-    # --optimizer / --lr_scheduler replace the schema's default Adam + cosine by design (README, Lightning)
-    warnings.filterwarnings("ignore", message=".*configure_optimizers` will be overridden by.*")
-    try:
-        cli = BodySchemaCLI(BodySchema, EquilibriumDataModule, subclass_mode_model=True, subclass_mode_data=True,
-                            args=args,
-                            seed_everything_default=0, save_config_kwargs={"overwrite": True},
-                            trainer_defaults=_trainer_defaults(),
-                            parser_kwargs={**_NO_ABBREVIATIONS, "prog": "bodyschema", "description": DESCRIPTION},
-                            parser_class=OneLineErrorParser)
-    except Exception as err:  # jsonargparse wraps errors raised while instantiating classes
-        cause = _input_error_in_chain(err)
-        if cause is None:
-            raise
-        print(f"error: {' '.join(str(cause).split())}", file=sys.stderr)  # one line, whatever the message
-        raise SystemExit(2) from None
+    refuse_unknown_options(args)
+    from .cli_app import run  # torch, Lightning and the schemas: only for arguments that may be right
+
+    cli = run(args)
     return None if from_command_line else cli
 
 
-_LIGHTNING_CKPT_KEYWORDS = ("hpc", "registry")  # --ckpt_path values left to Lightning (not file paths)
+def refuse_unknown_options(args: list[str]) -> None:
+    """Exit 2 with one line (as the full parser would) on an option of a fixed group that the subcommand's parser
+    does not know; options of class groups (``--model.*``, ``--data.*``, ...) and anything the copy in
+    ``cli_options`` cannot judge (another Lightning version, no subcommand) are left to the parser."""
+    from . import cli_options
 
-
-def _resolve_ckpt_keyword(config):
-    """``--ckpt_path last``: the newest ``last.ckpt`` under ``--trainer.default_root_dir`` (Lightning looks only in
-    this run's new version folder, finds nothing and silently starts over); ``best`` and an empty path: one line."""
-    ckpt_path = config.get("ckpt_path")
-    if ckpt_path is None or str(ckpt_path) not in ("", "best", "last") and str(ckpt_path).strip():
-        return ckpt_path
-    if not str(ckpt_path).strip():  # `--ckpt_path "$CKPT"` with CKPT unset
-        raise BodySchemaInputError(f"--ckpt_path {str(ckpt_path)!r} is empty: give a checkpoint file, last (the "
-                                   "newest last.ckpt under --trainer.default_root_dir), or leave the option out")
-    root = config["trainer"].get("default_root_dir") or os.getcwd()
-    if ckpt_path == "best":
-        raise BodySchemaInputError("--ckpt_path best is the best checkpoint of a fit run earlier in the same Python "
-                                   "process, which a new bodyschema run has not; give its file (under "
-                                   f"{os.path.join(root, 'lightning_logs', 'version_*', 'checkpoints')}) or last")
-    found = glob.glob(os.path.join(glob.escape(str(root)), "**", "checkpoints", "last.ckpt"), recursive=True)
-    if not found:
-        raise BodySchemaInputError(f"--ckpt_path last: no .../checkpoints/last.ckpt under --trainer.default_root_dir "
-                                   f"{str(root)!r}; give the checkpoint file, or the root of the earlier fit")
-    config["ckpt_path"] = max(found, key=os.path.getmtime)
-    print(f"--ckpt_path last: {config['ckpt_path']}")
-    return config["ckpt_path"]
-
-
-def _check_max_epochs(config):
-    """Refuse epoch counts that train nothing, or forever under a schedule that needs an end."""
-    steps = config["trainer"].get("max_steps")
-    if steps is not None and steps != -1 and steps <= 0:
-        raise BodySchemaInputError(f"--trainer.max_steps={steps} trains nothing; give a positive number of optimizer "
-                                   "steps, or -1 (the default) to let max_epochs end the fit")
-    epochs = config["trainer"].get("max_epochs")
-    if epochs is None or epochs > 0:
+    subcommand = next((arg for arg in args if not arg.startswith("-")), None)
+    known = cli_options.options(str(subcommand))
+    if not known or not _same_lightning(cli_options.LIGHTNING_VERSION):
         return
-    if epochs != -1:
-        raise BodySchemaInputError(f"--trainer.max_epochs={epochs} trains nothing; give a positive number of "
-                                   "epochs (or -1 for endless training with a constant learning rate)")
-    if config["trainer"].get("max_steps") not in (None, -1):
-        return  # bounded by steps, as Lightning documents: the schedule spans the epochs those steps take
-    init_args = config["model"].get("init_args") if config.get("model") is not None else None
-    if init_args is not None and init_args.get("lr_final") is not None:
-        raise BodySchemaInputError(
-            f"--trainer.max_epochs=-1 (endless training) cannot anneal the learning rate to "
-            f"--model.lr_final={init_args.get('lr_final')}; give a positive max_epochs or max_steps, "
-            "or --model.lr_final=null for a constant learning rate")
+    for arg in args[args.index(subcommand) + 1:]:
+        name = arg.split("=", 1)[0]
+        if name.startswith("--") and not _accepted(name, known):
+            close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=_CLOSE_ENOUGH)
+            hint = f"; did you mean {close[0]}?" if close else ""
+            sys.stderr.write(f"error: unrecognized arguments: {arg}{hint}\n"
+                             f"(bodyschema {subcommand} --help lists every option)\n")
+            raise SystemExit(2)
 
 
-def _check_same_class(cls, model_config, ckpt_path):
-    """Refuse a checkpoint of another schema class than --model (Lightning would fail on its hyperparameters)."""
-    named = model_config.get("class_path") if model_config is not None else None
-    if named and schema_class(str(named), where="--model") is not cls:
-        raise BodySchemaInputError(f"--ckpt_path {str(ckpt_path)!r} holds a {cls.__name__}, but --model is {named}; "
-                                   f"give --model={cls.__name__} (or the config the checkpoint was trained with)")
+def _accepted(name: str, known: set[str]) -> bool:
+    """``name`` is an option, lies under a class option (``--trainer.logger.init_args.x``), or under a group whose
+    class is chosen on the command line (``--model.*``: the parser knows those options once it has the class)."""
+    parts = name.split(".")
+    if name in known or f"{parts[0]}.help" in known:
+        return True
+    return any(".".join(parts[:end]) in known for end in range(2, len(parts)))
 
 
-def _check_same_robot(checkpoint: dict, ckpt_path, datamodule):
-    """Refuse a checkpoint whose robot (model XML, muscles, spring) is not the data module's.
+def _same_lightning(version_copied: str) -> bool:
+    from importlib.metadata import PackageNotFoundError, version
 
-    Lightning would otherwise fail deep inside ``load_state_dict`` (other sizes) or, worse, run a
-    same-sized schema of another robot without a word.
-    """
-    trained = checkpoint.get("hyper_parameters", {}).get("robot") or {}
-    trained_hash, here = checkpoint["bodyschema"].get("model_xml_sha256"), datamodule.robot
-    differs = [what for what, same in (
-        ("model XML", trained_hash == datamodule.robot_model.xml_hash),
-        ("muscles", list(trained.get("muscles", here["muscles"])) == list(here["muscles"])),
-        ("spring", trained.get("spring", here["spring"]) == here["spring"])) if not same]
-    if differs:
-        raise BodySchemaInputError(
-            f"--ckpt_path {str(ckpt_path)!r} was trained on another robot ({', '.join(differs)} differ): "
-            f"{len(trained.get('muscles', []))} muscles {list(trained.get('muscles', []))} (xml sha256 "
-            f"{str(trained_hash)[:12]}), but the data's robot is {datamodule.robot_model} (xml sha256 "
-            f"{datamodule.robot_model.xml_hash[:12]}); give the config (--data.*) the checkpoint was trained with")
+    try:
+        return version("lightning") == version_copied
+    except PackageNotFoundError:
+        return False
 
 
-def _input_error_in_chain(err: BaseException | None) -> BaseException | None:
-    """The user-input error at the root of ``err``'s cause/context chain, if there is one.
+def __getattr__(name):
+    """``BodySchemaCLI`` and the rest of ``cli_app``, imported on first use (``main`` refuses bad options first).
+    Not for dunder names: ``from lightning_bodyschema.cli import main`` asks for ``__path__`` first."""
+    if name.startswith("__"):
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from . import cli_app
 
-    Lightning's ``MisconfigurationException`` (e.g. an accelerator this machine lacks) is a user error too.
-    """
-    seen = set()
-    while err is not None and id(err) not in seen:
-        if isinstance(err, (BodySchemaInputError, MisconfigurationException)):
-            return err
-        seen.add(id(err))
-        err = err.__cause__ or err.__context__
-    return None
+    return getattr(cli_app, name)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ def atomic_writer(path: str):
     try:
         with os.fdopen(fd, "wb") as fh:
             yield fh
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a data file is readable like open() makes it
+        os.chmod(tmp, default_file_mode())  # mkstemp makes 0600; a data file is readable like open() makes it
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -42,6 +42,12 @@ def atomic_write_bytes(path: str, payload: bytes) -> None:
     """Write ``payload`` to ``path`` via a temp file in the same folder and ``os.replace``."""
     with atomic_writer(path) as fh:
         fh.write(payload)
+
+
+def default_file_mode() -> int:
+    """The mode ``open()`` gives a new file under the process's umask (0644 under the usual 022), for files first
+    written to a ``mkstemp`` name (0600: another user, e.g. a controller's, could not read them)."""
+    return 0o666 & ~_umask()
 
 
 def _umask() -> int:

@@ -1,6 +1,7 @@
 import copy
 import os
 import sys
+import tempfile
 
 import numpy as np
 import pytest
@@ -9,6 +10,8 @@ import torch
 torch.set_num_threads(1)
 torch.set_flush_denormal(True)
 os.environ.setdefault("MPLBACKEND", "Agg")
+# what the tools remember between runs (tools/static_opt.py: a body's names) stays out of the user's cache
+os.environ["BODYSCHEMA_CACHE_DIR"] = tempfile.mkdtemp(prefix="bodyschema-cache-")
 # the tests live in one folder per subpackage; their shared checks (physics_checks.py) live here
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 

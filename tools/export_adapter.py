@@ -57,6 +57,8 @@ def main(argv=None):
         raise BodySchemaInputError(f"--steps {args.steps}: must be in 1..{schema.schedule.n_timesteps}")
     if seeds is not None:  # the schema's own draw first: the package's default seed
         seeds = [int(schema.hparams.sample_seed)] + [s for s in seeds if s != int(schema.hparams.sample_seed)]
+    print("exporting: torch.export traces the adapter, then AOTInductor compiles it to C++ (several minutes on 2 "
+          "cores; it prints the package's path when done)", flush=True)
     start = time.perf_counter()
     export_package(schema, args.out, args.steps, batch, file_sha256(args.ckpt), seeds)
     what = "structured" if structured else f"diffusion, {args.steps} steps"

@@ -15,7 +15,7 @@ import os
 
 import numpy as np
 
-from ..errors import BodySchemaInputError
+from ..errors import BodySchemaInputError, did_you_mean
 from ..status import status_codes, status_names
 from .common import argument_parser, config_data, exits_cleanly, robot_options, write_npz
 
@@ -69,28 +69,50 @@ def _faults_file(path: str, faults: dict) -> dict:
 
 def read_postures(path: str, model) -> np.ndarray:
     """(B, N) postures of ``model``'s free joints from a CSV or NPZ with one column per joint (module docstring)."""
-    from ..data.recorded import _read_csv_columns, _read_npz_columns
+    return postures_of(read_posture_columns(path), model.joint_names, path)
+
+
+def read_posture_columns(path: str) -> dict:
+    """``{column: (B,) values}`` of a posture file, checked for what needs no body: it exists, parses, has rows,
+    and every value is finite (rows counted from 1, the first posture after the header)."""
+    from ..column_files import read_csv_columns, read_npz_columns
 
     if not os.path.isfile(path):
         raise BodySchemaInputError(f"--postures {path!r} does not exist")
-    columns = (_read_npz_columns(path) if path.endswith(".npz") else _read_csv_columns(path))[0]
-    free = model.joint_names
-    named = {(name[2:] if name.startswith("q_") and name[2:] in free else name): v for name, v in columns.items()}
-    unknown = [name for name in columns if (name[2:] if name.startswith("q_") else name) not in free]
-    if unknown:
-        raise BodySchemaInputError(f"{path}: columns {unknown} are not free joints of the body; allowed: {free}")
-    missing = [name for name in free if name not in named]
-    if missing:
-        raise BodySchemaInputError(f"{path}: missing columns {missing}; the body's free joints are {free}")
-    q = np.stack([named[name] for name in free], axis=1)
+    columns = (read_npz_columns(path) if path.endswith(".npz") else read_csv_columns(path))[0]
+    names = list(columns)
+    q = np.stack([np.asarray(columns[name], dtype=np.float64) for name in names], axis=1) if names else np.zeros((0, 0))
     if not len(q):
         raise BodySchemaInputError(f"{path} has no posture rows")
     bad = np.argwhere(~np.isfinite(q))
     if bad.size:
         row, col = bad[0]
-        raise BodySchemaInputError(f"{path}: posture row {row}, joint {free[col]!r} is {q[row, col]}; every value must "
-                                   f"be a finite number ({len(np.unique(bad[:, 0]))} row(s) affected)")
-    return q
+        raise BodySchemaInputError(f"{path}: posture row {row + 1} (counted from 1 after the header), joint "
+                                   f"{names[col]!r} is {q[row, col]}; every value must be a finite number "
+                                   f"({len(np.unique(bad[:, 0]))} row(s) affected)")
+    return columns
+
+
+def postures_of(columns: dict, free: list, path: str) -> np.ndarray:
+    """(B, N) postures in the order of the free joints ``free`` from ``read_posture_columns``' columns."""
+    named = {(name[2:] if name.startswith("q_") and name[2:] in free else name): v for name, v in columns.items()}
+    unknown = [name for name in columns if (name[2:] if name.startswith("q_") else name) not in free]
+    if unknown:
+        raise BodySchemaInputError(f"{path}: columns {unknown} are not free joints of the body"
+                                   f"{did_you_mean(unknown[0].removeprefix('q_'), free)}; allowed: {free}")
+    missing = [name for name in free if name not in named]
+    if missing:
+        raise BodySchemaInputError(f"{path}: missing columns {missing}; the body's free joints are {free}")
+    return np.stack([np.asarray(named[name], dtype=np.float64) for name in free], axis=1)
+
+
+def check_fault_names(faults: dict, muscles: list) -> None:
+    """Every muscle a fault names is one of ``muscles`` (what ``StaticBody.fault_batch`` checks, with a body)."""
+    named = list(faults["cut"]) + [name for key in ("jam", "weak", "band") for name in faults[key]]
+    for name in named:
+        if isinstance(name, str) and name not in muscles:
+            raise BodySchemaInputError(f"unknown muscle {name!r}{did_you_mean(name, muscles)}; the body's muscles "
+                                       f"are {list(muscles)}")
 
 
 def _csv_text(result) -> str:
@@ -155,13 +177,11 @@ def _parser():
     return parser
 
 
-def _body(args):
+def _body(data: dict, locks: dict, args):
     from ..statics import StaticBody
 
-    data = config_data(args.config) if args.config else {"model": args.model, "fixed_base": args.fixed_base}
     options = robot_options(data)
-    locks = dict(options.pop("locked_joints") or {})
-    locks.update(_name_value(t, "--lock") for t in args.lock)
+    locks = {**dict(options.pop("locked_joints") or {}), **locks}
     options["fixed_base"] = options["fixed_base"] or args.fixed_base
     return StaticBody(options.pop("source"), locked_joints=locks, k_n=data.get("k_n"),
                       alpha_per_m=data.get("alpha_per_m", 20.0), f_max_n=data.get("f_max_n"), threads=args.threads,
@@ -170,26 +190,97 @@ def _body(args):
 
 @exits_cleanly
 def static_opt_main(argv=None):
-    from tqdm.auto import tqdm
-
     args = _parser().parse_args(argv)
     if os.path.isdir(args.out):
         raise BodySchemaInputError(f"--out {args.out!r} is a directory; give a file path such as tensions.csv")
     faults = read_faults(args)
-    body = _body(args)
-    q = read_postures(args.postures, body.model)
+    locks = dict(_name_value(t, "--lock") for t in args.lock)
+    columns = read_posture_columns(args.postures)
+    data = config_data(args.config) if args.config else {"model": args.model, "fixed_base": args.fixed_base}
+    known = _remembered_names(data, args)  # the names of this body when it was built before: checked at once
+    if known is not None:
+        postures_of(columns, known["joints"], args.postures)
+        check_fault_names(faults, known["muscles"])
+    print("building the body (MuJoCo model, muscle paths; a MyoSuite body takes ~15-60 s on 2 cores)", flush=True)
+    body = _body(data, locks, args)
+    _remember_names(data, args, body.model)
+    q = postures_of(columns, body.model.joint_names, args.postures)
     body.model.check_q(q, within_range=True)
     body.fault_batch(faults, 1)  # names checked before any solve
+    result = _solve(body, q, faults, args)
+    write_result(args.out, result)
+    counts = dict(zip(*np.unique(status_names(result.status), return_counts=True)))
+    print(f"wrote {args.out}: {len(q)} postures, {len(result.muscles)} muscles, objective {result.objective}; "
+          + ", ".join(f"{k} {int(v)}" for k, v in counts.items()))
+
+
+def _solve(body, q, faults, args):
+    from tqdm.auto import tqdm
+
     parts = []
     with tqdm(total=len(q), desc="postures", unit="posture", disable=args.no_progress or len(q) <= CHUNK) as bar:
         for start in range(0, len(q), CHUNK):
             parts.append(body.solve(q[start:start + CHUNK], faults, args.objective, solver=args.solver))
             bar.update(len(parts[-1].q))
-    result = _concatenate(parts)
-    write_result(args.out, result)
-    counts = dict(zip(*np.unique(status_names(result.status), return_counts=True)))
-    print(f"wrote {args.out}: {len(q)} postures, {len(result.muscles)} muscles, objective {result.objective}; "
-          + ", ".join(f"{k} {int(v)}" for k, v in counts.items()))
+    return _concatenate(parts)
+
+
+def _names_file(data: dict, args) -> str:
+    """Where the joint and muscle names of the body ``data`` and ``args`` describe are remembered: a file named by a
+    hash of everything that decides them (options, locks, model file bytes, package and MuJoCo versions)."""
+    import hashlib
+    import json
+    from importlib.metadata import PackageNotFoundError, version
+
+    from .. import __version__
+
+    def installed(name):
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return None
+
+    source = str(data.get("model", "paper_arm"))
+    model_bytes = open(source, "rb").read() if os.path.isfile(source) else b""
+    key = json.dumps([{k: data.get(k) for k in ("model", "muscles", "gravity", "locked_joints", "fixed_base")},
+                      args.fixed_base, sorted(args.lock), hashlib.sha256(model_bytes).hexdigest(), __version__,
+                      installed("mujoco"), installed("myo-sim")], sort_keys=True, default=str)
+    return os.path.join(_cache_root(), "body_names", hashlib.sha256(key.encode()).hexdigest() + ".json")
+
+
+def _cache_root() -> str:
+    """``$BODYSCHEMA_CACHE_DIR``, else ``$XDG_CACHE_HOME/lightning_bodyschema`` (``~/.cache/lightning_bodyschema``)."""
+    if os.environ.get("BODYSCHEMA_CACHE_DIR"):
+        return os.environ["BODYSCHEMA_CACHE_DIR"]
+    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+                        "lightning_bodyschema")
+
+
+def _remembered_names(data: dict, args):
+    """``{"joints": [...], "muscles": [...]}`` of this body from an earlier run, or None (never built, unreadable)."""
+    import json
+
+    try:
+        with open(_names_file(data, args)) as fh:
+            names = json.load(fh)
+        return names if set(names) == {"joints", "muscles"} else None
+    except (OSError, ValueError):
+        return None
+
+
+def _remember_names(data: dict, args, model) -> None:
+    """Keep the body's names for the next run's checks (best effort: a cache that cannot be written is skipped)."""
+    import json
+
+    from ..npz import atomic_write_bytes
+
+    path = _names_file(data, args)
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        text = json.dumps({"joints": list(model.joint_names), "muscles": list(model.muscle_names)})
+        atomic_write_bytes(path, text.encode())
+    except OSError:
+        pass
 
 
 def _concatenate(parts):

@@ -39,6 +39,18 @@ class EpochProgressBar(ProgressBar):
                     if k in ("train/loss", "val/loss", "val/eq_residual_N_m")}
             self.bar.set_postfix(post, refresh=False)
 
+    def on_validation_start(self, trainer, pl_module):
+        # the bar advances at an epoch's end, after its validation: say what the pause before the last tick is
+        if self.bar is None or trainer.sanity_checking:
+            return
+        due = any(cb._due_in_fit(trainer) for cb in trainer.callbacks if hasattr(cb, "_due_in_fit"))
+        what = "validating, then the fault benchmark (~30 s on 2 cores)" if due else "validating"
+        self.bar.set_description(f"Epoch {trainer.current_epoch + 1}: {what}", refresh=True)
+
+    def on_validation_end(self, trainer, pl_module):
+        if self.bar is not None and not trainer.sanity_checking:
+            self.bar.set_description("Epoch", refresh=True)
+
     def on_train_end(self, trainer, pl_module):
         if self.bar is not None:
             self.bar.close()

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import warnings
 import zipfile
 
 import numpy as np
@@ -25,6 +26,7 @@ import torch
 from .._numpy import to_numpy
 from ..adaptation.command import FAULT_TOL_M, FAULT_TOL_N, AdaptationResult, statuses
 from ..errors import BodySchemaInputError
+from ..npz import default_file_mode
 from ..status import STATUS_CODES
 from .module import VARIANT, AdapterModule
 
@@ -99,7 +101,8 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
     if batch == "dynamic":
         dim = Dim("batch", min=1, max=MAX_BATCH)
         shapes = tuple({0: dim} for _ in INPUTS[:-1]) + (None,)
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\.")  # as for the compile below
         try:
             program = export(module, example, dynamic_shapes=shapes, strict=False)
         except torch._dynamo.exc.UserError as error:  # a dynamic batch the traced code fixed to one size
@@ -114,8 +117,11 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
     handle, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt2", dir=folder)
     os.close(handle)
     try:
-        torch._inductor.aoti_compile_and_package(program, package_path=tmp,
-                                                 inductor_configs={"aot_inductor.metadata": metadata})
+        with warnings.catch_warnings():  # torch's notes to itself (its internals' deprecations): nothing a user can do
+            warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\.")
+            torch._inductor.aoti_compile_and_package(program, package_path=tmp,
+                                                     inductor_configs={"aot_inductor.metadata": metadata})
+        os.chmod(tmp, default_file_mode())  # as open() would make it: a controller running as another user reads it
         os.replace(tmp, out)
     finally:
         if os.path.exists(tmp):

@@ -9,7 +9,7 @@ from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from ..errors import BodySchemaInputError
+from ..errors import BodySchemaInputError, did_you_mean
 
 
 @dataclass
@@ -176,7 +176,8 @@ def muscle_index(muscle, names) -> int:
             raise BodySchemaInputError(f"muscle index {muscle} is out of range 0..{len(names) - 1}")
         return int(muscle)
     if muscle not in names:
-        raise BodySchemaInputError(f"unknown muscle {muscle!r}; the model's muscles are {list(names)}")
+        raise BodySchemaInputError(f"unknown muscle {muscle!r}{did_you_mean(muscle, names)}; the model's muscles are "
+                                   f"{list(names)}")
     return list(names).index(muscle)
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
+import sys
 from dataclasses import dataclass
 from typing import NamedTuple, Optional, Sequence
 
@@ -321,10 +322,21 @@ def _from_stacked(matrices, w_r, scalars, biases, x, penalty, net, projection=No
 @functools.lru_cache(maxsize=1)
 def compiled_sampler():
     """``guided_loop`` (through ``_from_stacked``) compiled by inductor with its C++ wrapper, the whole loop as one
-    graph. Specialised to a plan and a batch size: the first call for each compiles (~20-40 s on the project's CPU;
-    a C++ compiler is needed; inductor's on-disk cache makes a repeat in a new process a few seconds); later calls
+    graph. Specialised to a plan and a batch size: the first call for each compiles (a C++ compiler is needed;
+    ``denoise`` says so on stderr; inductor's on-disk cache makes a repeat in a new process quick); later calls
     skip Python's per-op dispatch and fuse the elementwise ops."""
     return torch.compile(_from_stacked, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
+
+
+_COMPILED_FOR: set = set()  # the (batch shape, dtype, steps, guided, inpainted) the sampler was compiled for
+
+
+def _announce_compile(key: tuple) -> None:
+    """One stderr line before a call that compiles (a new batch size or plan): it is silent for minutes otherwise."""
+    if key not in _COMPILED_FOR:
+        _COMPILED_FOR.add(key)
+        print(f"compiling the sampler for {key[0][0]} case(s) per call, {key[2]} steps (torch.compile, C++: 1-3 min "
+              "on 2 cores the first time, seconds once inductor's disk cache has it)", file=sys.stderr, flush=True)
 
 
 def denoise(net, plan: DenoisePlan, biases: torch.Tensor, x_T: torch.Tensor, penalty=None, compiled: bool = False,
@@ -337,6 +349,7 @@ def denoise(net, plan: DenoisePlan, biases: torch.Tensor, x_T: torch.Tensor, pen
     with torch.inference_mode(inference_mode):
         if compiled:
             matrices, w_r, scalars = plan.stacked
+            _announce_compile((tuple(x_T.shape), x_T.dtype, len(plan.steps), penalty is None, projection is None))
             out = compiled_sampler()(matrices, w_r, scalars, biases, x_T, penalty, net, projection)
         else:
             out = guided_loop(plan.steps, biases.unbind(0), x_T, penalty, net, net.eager, projection)

@@ -16,8 +16,10 @@ differ only in the materials dropped here); two different classes under one name
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import sys
 import warnings
 import xml.etree.ElementTree as ET
 from importlib import resources
@@ -61,11 +63,33 @@ def _myo_sim():
     return myo_sim
 
 
+@contextlib.contextmanager
+def quiet_attach_warnings():
+    """MuJoCo's "Attaching a spec with an empty prefix may prevent the model from being saved correctly", which
+    myo-sim's composition of bodies triggers on every load, silenced (we save the compiled model's own XML, not the
+    spec); MuJoCo's other warnings go to stderr as before."""
+    previous = mujoco.get_mju_user_warning()
+
+    def warn(message: str):
+        if "empty prefix" in message:
+            return
+        if previous is not None:
+            previous(message)
+        else:
+            print(f"WARNING: {message}", file=sys.stderr)
+
+    mujoco.set_mju_user_warning(warn)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
 def load_myo_spec(name: str) -> mujoco.MjSpec:
     """A MyoSuite model by ``myo_sim`` name (``myoelbow_2dof``, ``myoarm``, ``myohand``, ...)."""
     myo_sim = _myo_sim()
     try:
-        with warnings.catch_warnings():  # myo-sim's composition warns about empty attach prefixes
+        with warnings.catch_warnings(), quiet_attach_warnings():  # myo-sim's composition attaches specs
             warnings.simplefilter("ignore")
             return myo_sim.load_spec(name)
     except ValueError as err:  # myo_sim's message lists the names it knows
@@ -95,7 +119,7 @@ def load_spec(source: str) -> mujoco.MjSpec:
 
 def compile_spec(spec: mujoco.MjSpec) -> mujoco.MjModel:
     try:
-        with warnings.catch_warnings():  # specs composed by myo-sim warn about empty attach prefixes
+        with warnings.catch_warnings(), quiet_attach_warnings():  # specs composed by myo-sim: empty prefixes
             warnings.simplefilter("ignore")
             return spec.compile()
     except Exception as err:

@@ -15,9 +15,10 @@ from typing import Mapping, Sequence
 import mujoco
 import numpy as np
 
-from ..errors import BodySchemaInputError
+from ..errors import BodySchemaInputError, did_you_mean
 from .joints import JointMap
-from .mjcf import compile_spec, load_spec, packaged_model_names, packaged_model_xml, self_contained_xml
+from .mjcf import (compile_spec, load_spec, packaged_model_names, packaged_model_xml, quiet_attach_warnings,
+                   self_contained_xml)
 
 FIXED_BASE_HINT = "hold the base with fixed_base=True (data.fixed_base: true in a config)"
 UNLOADED_TAU_NM = 1e-9  # below this gravity torque at every probed posture, gravity does not load the joints
@@ -39,7 +40,8 @@ def _muscle_forces(spec: mujoco.MjSpec) -> dict[str, float]:
     forces = {a.target: float(a.gainprm[2]) for a in muscles}
     if any(f <= 0 for f in forces.values()):
         try:
-            compiled = spec.copy().compile()
+            with quiet_attach_warnings():
+                compiled = spec.copy().compile()
             for a in muscles:
                 i = mujoco.mj_name2id(compiled, mujoco.mjtObj.mjOBJ_ACTUATOR, a.name) if a.name else -1
                 if i >= 0 and forces[a.target] <= 0:
@@ -68,7 +70,8 @@ def _add_locks(spec: mujoco.MjSpec, locked: Mapping[str, float]):
             _check_same_lock(constrained[name], name, float(value) - float(joints[name].ref) if name in joints else 0.0)
             continue
         if name not in joints:
-            raise BodySchemaInputError(f"locked joint {name!r} is not a joint of the model; joints are {sorted(joints)}")
+            raise BodySchemaInputError(f"locked joint {name!r} is not a joint of the model"
+                                       f"{did_you_mean(name, joints)}; joints are {sorted(joints)}")
         joint, value = joints[name], float(value)
         lo, hi = joint.range
         if not np.isfinite(value) or (lo < hi and not lo <= value <= hi):
@@ -250,7 +253,8 @@ class MusculoskeletalModel:
             return np.array(spatial, dtype=int)
         unknown = [name for name in muscles if name not in names]
         if unknown:
-            raise BodySchemaInputError(f"unknown muscle {unknown}; the model's spatial tendons are {sorted(names)}")
+            raise BodySchemaInputError(f"unknown muscle {unknown}{did_you_mean(unknown[0], names)}; the model's "
+                                       f"spatial tendons are {sorted(names)}")
         return np.array([names[name] for name in muscles], dtype=int)
 
     def _tendon_jacobian_index(self):

@@ -14,7 +14,7 @@ from typing import Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from ..errors import BodySchemaInputError
+from ..errors import BodySchemaInputError, did_you_mean
 from .model import MusculoskeletalModel
 
 
@@ -116,7 +116,8 @@ def check_muscle_joints(muscle_joints: Mapping, muscles: Sequence[str], joints: 
         raise BodySchemaInputError(f"muscle_joints={muscle_joints!r} must be a mapping {{muscle: [joints]}}")
     unknown = [m for m in muscle_joints if m not in muscles]
     if unknown:
-        raise BodySchemaInputError(f"muscle_joints names unknown muscle {unknown[0]!r}; the muscles are "
+        raise BodySchemaInputError(f"muscle_joints names unknown muscle {unknown[0]!r}"
+                                   f"{did_you_mean(unknown[0], muscles)}; the muscles are "
                                    f"{list(muscles)}")
     missing = [m for m in muscles if m not in muscle_joints]
     if missing:
@@ -126,7 +127,8 @@ def check_muscle_joints(muscle_joints: Mapping, muscles: Sequence[str], joints: 
         crossed = [crossed] if isinstance(crossed, str) else list(crossed)
         bad = [j for j in crossed if j not in joints]
         if bad:
-            raise BodySchemaInputError(f"muscle_joints[{muscle!r}] names unknown joint {bad[0]!r}; the joints are "
+            raise BodySchemaInputError(f"muscle_joints[{muscle!r}] names unknown joint {bad[0]!r}"
+                                       f"{did_you_mean(bad[0], joints)}; the joints are "
                                        f"{list(joints)}")
         if not crossed:
             raise BodySchemaInputError(f"muscle_joints[{muscle!r}] is empty; a muscle crosses at least one joint")

@@ -22,8 +22,8 @@ from .fit_loop import (check_same_batch_size, check_val_check_interval, drop_che
                        monitors_train_metrics, publish_train_metrics, remember_batch_hook_owners,
                        weight_averaging_last)
 
-# renamed metrics: new name -> old name, still logged beside it (deprecated; see CHANGELOG.md)
-DEPRECATED_METRIC_NAMES = {"eq_residual_N_m": "eq_residual_nm"}
+# renamed metrics: old name -> new name (one name per quantity: the old one is no longer logged; CHANGELOG.md)
+RENAMED_METRICS = {"eq_residual_nm": "eq_residual_N_m"}
 
 
 class SchemaLightningModule(L.LightningModule):
@@ -222,8 +222,6 @@ class SchemaLightningModule(L.LightningModule):
         # sync_dist reduces the (then equal) figures so every rank's callbacks see the same
         for name, value in self.physical_errors(batch[0], batch[1]).items():
             self.log(f"{stage}/{name}", value, prog_bar=name == "eq_residual_N_m" and stage == "val", sync_dist=True)
-            if name in DEPRECATED_METRIC_NAMES:  # old monitors and dashboards keep working for one release
-                self.log(f"{stage}/{DEPRECATED_METRIC_NAMES[name]}", value, sync_dist=True)
         return loss
 
     def validation_step(self, batch, batch_idx):

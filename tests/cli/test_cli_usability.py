@@ -141,6 +141,44 @@ def test_the_console_script_exits_0_after_a_fit(tmp_path):
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "BodySchemaCLI object" not in done.stderr
+    # it ends by saying where its outputs are, and those paths exist; no advertisement for a cloud logger
+    run = tmp_path / "lightning_logs" / "version_0"
+    assert f"checkpoint:   {run / 'checkpoints' / 'last.ckpt'}" in done.stdout and (run / "checkpoints").is_dir()
+    assert f"tensorboard --logdir {run}" in done.stdout and list(run.glob("events.out.tfevents.*"))
+    assert "litlogger" not in done.stdout + done.stderr
+
+
+def test_a_misspelt_option_is_refused_before_torch_and_lightning_are_imported():
+    """The quick check against ``cli_options``' copy of the parser's options: the typo costs no heavy import."""
+    from importlib.metadata import version
+
+    from lightning_bodyschema import cli_options
+
+    if version("lightning") != cli_options.LIGHTNING_VERSION:
+        pytest.skip(f"cli_options was copied from Lightning {cli_options.LIGHTNING_VERSION}: the quick check is off")
+    script = ("import sys; from lightning_bodyschema.cli import main\ntry: main(['fit', '--trainer.max_epoch', '5'])\n"
+              "except SystemExit as stop: print(stop.code, 'torch' in sys.modules, 'lightning' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.stdout.split() == ["2", "False", "False"], done.stdout + done.stderr
+    assert done.stderr.splitlines() == ["error: unrecognized arguments: --trainer.max_epoch; did you mean "
+                                        "--trainer.max_epochs?", "(bodyschema fit --help lists every option)"]
+
+
+def test_the_quick_option_copy_is_the_parsers():
+    """``cli_options.options(subcommand)`` is what each subcommand's parser accepts (remake: python -m
+    lightning_bodyschema.cli_options); options of a class chosen on the command line pass the quick check."""
+    from importlib.metadata import version
+
+    from lightning_bodyschema import cli_options
+    from lightning_bodyschema.cli import refuse_unknown_options
+    from lightning_bodyschema.cli_app import known_options
+
+    if version("lightning") != cli_options.LIGHTNING_VERSION:
+        pytest.skip(f"cli_options was copied from Lightning {cli_options.LIGHTNING_VERSION}: the quick check is off")
+    assert {name: sorted(options) for name, options in known_options().items()} == {
+        name: sorted(cli_options.options(name)) for name in cli_options.ONLY}
+    refuse_unknown_options(["fit", "--model=DiffusionSchema", "--model.n_timesteps=5", "--data.n_samples", "9",
+                            "--trainer.logger.init_args.save_dir=x", "--trainer.callbacks+=EarlyStopping"])
 
 
 def test_a_fit_ended_by_max_steps_validates_at_its_end(tmp_path):

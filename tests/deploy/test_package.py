@@ -2,6 +2,7 @@
 example matches it. Slow: the session's export compiles for a minute or more, the C++ build as long."""
 import json
 import os
+import stat
 import subprocess
 
 import numpy as np
@@ -13,6 +14,7 @@ from lightning_bodyschema.deploy import STATUS_CODES, file_sha256, load_exported
 from lightning_bodyschema.deploy.module import FAULT_TOL_M
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
+from lightning_bodyschema.npz import default_file_mode
 
 pytestmark = pytest.mark.slow
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -44,6 +46,9 @@ def test_metadata_names_units_codes_and_checkpoint(package, diff60):
     assert meta["status_codes"] == STATUS_CODES and meta["checkpoint_sha256"] == "test-session"
     assert meta["n_steps"] == 20 and meta["units"]["l_motor_m"] == "m" and meta["spring"]["k_n"] == 1000.0
     assert meta["schema_class"].endswith("DiffusionSchema") and meta["schema_kind"] == "diffusion"
+    # readable as open() would have made it (0644 under umask 022), not mkstemp's 0600: a controller running as
+    # another user must read it
+    assert stat.S_IMODE(os.stat(package).st_mode) == default_file_mode()
 
 
 def test_bad_values_are_a_bad_input_status_never_an_ok_command(package, diff60, mixed_cases):

@@ -27,7 +27,7 @@ from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.sim.spring import tension_from_elongation
 
 ROOT = Path(__file__).resolve().parents[2]
-README_CKPT = "runs/diff/lightning_logs/version_0/checkpoints/last.ckpt"  # the path the README loads
+README_CKPT = "runs/quick/diff-1000/lightning_logs/version_0/checkpoints/last.ckpt"  # the path the README loads
 # fenced blocks, possibly indented (inside a list item): indent, language, body
 _FENCE = re.compile(r"^( *)```(\w+)\n(.*?)^\1```", re.MULTILINE | re.DOTALL)
 
@@ -69,8 +69,8 @@ def workdir(tmp_path_factory):
     the commands are still absurd, beyond 20 healthy spreads, and ``adapt`` rightly calls them ``out_of_range``;
     from ~30 epochs on they are plausible and the physics decides.)"""
     folder = tmp_path_factory.mktemp("readme")
-    ckpt = fit_tiny_checkpoint(folder / "runs" / "diff", "--data.n_samples=200", "--faults.every_n_epochs=0",
-                               "--progress.enabled=false", epochs=60)
+    ckpt = fit_tiny_checkpoint(folder / "runs" / "quick" / "diff-1000", "--data.n_samples=200",
+                               "--faults.every_n_epochs=0", "--progress.enabled=false", epochs=60)
     assert Path(ckpt) == folder / README_CKPT
     return folder
 
@@ -139,6 +139,14 @@ def test_the_new_architecture_block_learns_the_body_schema(dm):
     mean_f = np.broadcast_to(dm.splits["train"][1][:, schema.n_muscles:].numpy().mean(0), (len(q), schema.n_muscles))
     baseline = float(np.median(torque_residual(schema.robot_model, q.numpy(), mean_f)))
     assert learned < 0.5 * baseline, (learned, baseline)
+
+
+def test_the_new_architecture_block_is_examples_regression_schema():
+    """The README shows the network examples/regression_schema.py trains (two hidden layers, as the file has)."""
+    def network(text: str) -> str:
+        return "".join(text[text.index("nn.Sequential("):].split(")\n")[0].split())
+
+    assert network(block("python", NEW_SCHEMA)) == network((ROOT / "examples" / "regression_schema.py").read_text())
 
 
 def test_the_adapting_block_meets_a_cut_through_the_adapter(dm):

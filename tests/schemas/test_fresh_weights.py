@@ -43,6 +43,9 @@ def test_each_validation_sees_the_current_weights_and_matches_bodyschema_validat
     ckpt = glob.glob(f"{log_dir}/checkpoints/last.ckpt")[0]
     cli = _cli("validate", *common, f"--ckpt_path={ckpt}")
     assert float(cli.trainer.callback_metrics["val/eq_residual_N_m"]) == pytest.approx(second, rel=1e-6)
+    # it logged beside the checkpoint's run: no version_1 that would shift the next fit's version
+    assert cli.trainer.log_dir == f"{log_dir}/validate" and _scalars(cli.trainer.log_dir, "val/eq_residual_N_m")
+    assert [p.name for p in (tmp_path / "lightning_logs").iterdir()] == ["version_0"]
 
 
 @pytest.mark.parametrize("cls", list(SCHEMAS.values()), ids=list(SCHEMAS))

@@ -1,15 +1,12 @@
 """The torque residual is logged as ``val/eq_residual_N_m`` / ``test/eq_residual_N_m`` (newton metres; the old
 ``eq_residual_nm`` read as nanometres) and is what its name says: the median over the split of
-|-G(q)^T f - tau_bias(q)| of the schema's healthy commands. The old name stays, deprecated, with the same value,
-so monitors and dashboards written for it keep working."""
+|-G(q)^T f - tau_bias(q)| of the schema's healthy commands. One name per quantity: the old name is no longer
+logged, and a checkpoint monitor on it is refused with the new name."""
 import copy
-import glob
-import warnings
 
 import lightning as L
 import numpy as np
 import pytest
-import torch
 from physics_checks import torque_residual
 
 from lightning_bodyschema.cli import main as cli_main
@@ -37,18 +34,15 @@ def test_the_torque_residual_is_named_in_newton_metres_and_is_one(metrics, dm, s
 
 
 @pytest.mark.parametrize("stage", ["val", "test"])
-def test_the_old_name_is_a_deprecated_alias_with_the_same_value(metrics, stage):
+def test_one_name_per_quantity_the_old_one_is_gone(metrics, stage):
     logged = metrics[1] if stage == "val" else metrics[2]
-    assert logged[f"{stage}/eq_residual_nm"] == logged[f"{stage}/eq_residual_N_m"]
+    assert f"{stage}/eq_residual_N_m" in logged and not [name for name in logged if name.endswith("_nm")]
 
 
-def test_a_checkpoint_monitor_on_the_old_name_still_works(tmp_path):
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", RuntimeWarning)  # "monitor ... not found" would be a warning
-        cli = cli_main(["fit", "--model=DiffusionSchema", "--data.n_samples=200", "--faults.every_n_epochs=0",
-                        "--progress.enabled=false", "--trainer.max_epochs=4", "--trainer.check_val_every_n_epoch=2",
-                        "--checkpoint.monitor=val/eq_residual_nm", "--checkpoint.filename=best",
-                        f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
-    best = cli.trainer.checkpoint_callback.best_model_score
-    assert best is not None and torch.isfinite(best)
-    assert glob.glob(f"{tmp_path}/lightning_logs/version_0/checkpoints/best.ckpt")
+def test_a_checkpoint_monitor_on_the_old_name_is_refused_with_the_new_one(tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        cli_main(["fit", "--model=DiffusionSchema", "--trainer.max_epochs=4", "--checkpoint.monitor=val/eq_residual_nm",
+                  f"--trainer.default_root_dir={tmp_path}", f"--data.cache_dir={tmp_path}/cache"])
+    err = capsys.readouterr().err.strip()
+    assert stop.value.code == 2 and "\n" not in err and "now val/eq_residual_N_m" in err, err
+    assert not list(tmp_path.iterdir())  # refused before anything is written

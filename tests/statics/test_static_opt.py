@@ -151,6 +151,7 @@ def test_spring_body_tension_objective_is_the_dataset_qp():
     (lambda b: b.solve([[0.0, 9.0]]), "outside its range"),
     (lambda b: b.solve([[0.0, np.nan]]), "NaN"),
     (lambda b: b.solve([[0.0, 1.0]], {"cut": ["nope"]}), "unknown muscle 'nope'"),
+    (lambda b: b.solve([[0.0, 1.0]], {"weak": {"BRA": 50.0}}), r"unknown muscle 'BRA' \(did you mean 'BRA_tendon'\?\)"),
     (lambda b: b.solve([[0.0, 1.0]], {"snap": ["BRA_tendon"]}), "unknown fault kind"),
     (lambda b: b.solve([[0.0, 1.0]], objective="effort"), "objective='effort'"),
 ])

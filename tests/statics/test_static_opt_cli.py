@@ -77,10 +77,12 @@ def test_npz_with_faults_file(tmp_path):
 
 @pytest.mark.parametrize("columns, rows, extra, match", [
     (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 9.0]], [], "r_elbow_flex.*outside its range"),
-    (("r_shoulder_elev", "r_elbow_flex"), [[0.0, "nan"]], [], "row 0, joint 'r_elbow_flex' is nan"),
+    (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0], [0.0, "nan"]], [], "row 2 .*, joint 'r_elbow_flex' is nan"),
     (("r_shoulder_elev",), [[0.0]], [], r"missing columns \['r_elbow_flex'\]"),
     (("r_shoulder_elev", "r_elbow_flex", "wrist"), [[0.0, 1.0, 0.0]], [], r"columns \['wrist'\] are not free joints"),
     (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--cut", "BRAx"], "unknown muscle 'BRAx'"),
+    (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--cut", "BRA"], r"'BRA' \(did you mean 'BRA_tendon'\?\)"),
+    (("r_shoulder_elev", "r_elbw_flex"), [[0.0, 1.0]], [], r"did you mean 'r_elbow_flex'\?"),
     (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--weak", "BRA_tendon"], "expected NAME=NUMBER"),
     (("r_shoulder_elev", "r_elbow_flex"), [[0.0, 1.0]], ["--threads", "0"], r"threads=0; give an integer >= 1"),
 ])
@@ -93,6 +95,18 @@ def test_bad_input_exits_2_with_one_line_and_no_file(tmp_path, capsys, columns, 
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "\n" not in err and __import__("re").search(match, err), err
     assert list(tmp_path.iterdir()) == [tmp_path / "q.csv"]  # nothing written, not even a temporary file
+
+
+def test_a_misspelt_muscle_is_refused_before_the_body_is_built_once_the_body_is_known(tmp_path, capsys):
+    """The first run remembers the body's names; the next refuses a misspelt one before building anything."""
+    postures = _postures_csv(tmp_path / "q.csv", [[0.0, 1.0]])
+    static_opt_main(ELBOW + ["--postures", postures, "--out", str(tmp_path / "a.csv"), "--no-progress"])
+    assert "building the body" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as stop:
+        static_opt_main(ELBOW + ["--postures", postures, "--cut", "BRA", "--out", str(tmp_path / "b.csv")])
+    out, err = capsys.readouterr()
+    assert stop.value.code == 2 and "building the body" not in out and "did you mean 'BRA_tendon'?" in err
+    assert not (tmp_path / "b.csv").exists()
 
 
 def test_help_has_an_example():

@@ -178,8 +178,8 @@ def test_accumulate_grad_batches_steps_once_per_n_batches(dm):
     assert fit.global_step == 15 and adam_steps(schema) == 15
 
 
-@pytest.mark.parametrize("name, metric", [("ae", "val/eq_residual_N_m"), ("diff", "val/eq_residual_nm"),
-                                          ("vae", "val/eq_residual_nm")])  # the name is the deprecated alias
+@pytest.mark.parametrize("name, metric", [("ae", "val/eq_residual_N_m"), ("diff", "val/eq_residual_N_m"),
+                                          ("vae", "val/eq_residual_N_m")])
 def test_early_stopping_on_the_validation_residual_stops_a_fit(dm, name, metric):
     L.seed_everything(0)
     schema = SCHEMAS[name](robot=dm.robot)
