@@ -321,9 +321,9 @@ def _from_stacked(matrices, w_r, scalars, biases, x, penalty, net, projection=No
 @functools.lru_cache(maxsize=1)
 def compiled_sampler():
     """``guided_loop`` (through ``_from_stacked``) compiled by inductor with its C++ wrapper, the whole loop as one
-    graph. Specialised to a plan and a batch size: the first call for each compiles (~20-40 s on the project's CPU;
-    a C++ compiler is needed; inductor's on-disk cache makes a repeat in a new process a few seconds); later calls
-    skip Python's per-op dispatch and fuse the elementwise ops."""
+    graph. Specialised to a plan and a batch size: the first call for each compiles (a C++ compiler is needed;
+    inductor's on-disk cache serves a repeat in a new process; BENCHMARKS.md "Figures behind code choices" has the
+    cost); later calls skip Python's per-op dispatch and fuse the elementwise ops."""
     return torch.compile(_from_stacked, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
 
 
