@@ -18,7 +18,9 @@ def namespace(a):
 
 def fill(like, value):
     """An array or tensor like ``like`` (float64 in numpy) holding ``value`` everywhere."""
-    return np.full_like(like, value, dtype=float) if namespace(like) is np else sys.modules["torch"].full_like(like, value)
+    if namespace(like) is np:
+        return np.full_like(like, value, dtype=float)
+    return sys.modules["torch"].full_like(like, value)
 
 
 def where(cond, a, b):

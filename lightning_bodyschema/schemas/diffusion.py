@@ -38,7 +38,8 @@ class DiffusionSchema(BodySchema):
             sample's squared error weighted by min(SNR_t, gamma) in its prediction's units; None: unweighted.
         compile_sampler: run the fast sampling loop through ``torch.compile`` (``samplers.guided.compiled_sampler``;
             per call: ``compiled=``). The first call per (step plan, batch size) compiles (its cost: BENCHMARKS.md
-            "Figures behind code choices"); later calls save Python's per-op dispatch. Off by default: a controller that restarts pays the compile again.
+            "Figures behind code choices"); later calls save Python's per-op dispatch. Off by default: a
+            controller that restarts pays the compile again.
     The healthy command runs the deterministic denoising eq:diff-1/eq:diff-2 from x_T.
 
     The strided sampler: ``"quad"``-spaced steps (dense at low noise, ending at t = 0, see

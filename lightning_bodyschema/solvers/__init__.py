@@ -18,5 +18,5 @@ from .torque_reach import MAX_SCREEN_NORMALS, outside_torque_reach, residual_dir
 
 __all__ = ["BoxQP", "Solution", "solve_box_qp", "dual_newton", "NewtonResult", "box_least_squares",
            "least_squares_weight", "outside_torque_reach", "residual_direction", "proxsuite_solve", "qpsolvers_solve",
-           "uncrossed_box", "EQUILIBRIUM_TOL_NM", "FALLBACK_MAX_ITER", "LS_REG", "MAX_SCREEN_NORMALS", "screen_is_exact",
-           "NEWTON_MAX_ITER", "NEWTON_TOL_NM"]
+           "uncrossed_box", "EQUILIBRIUM_TOL_NM", "FALLBACK_MAX_ITER", "LS_REG", "MAX_SCREEN_NORMALS",
+           "screen_is_exact", "NEWTON_MAX_ITER", "NEWTON_TOL_NM"]

@@ -57,9 +57,9 @@ class _Options(NamedTuple):
 
 
 def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_TOL_NM,
-                 max_iter: int = NEWTON_MAX_ITER, fallback: str = "proxsuite", fallback_max_iter: int = FALLBACK_MAX_ITER,
-                 ls_reg: float = LS_REG, num_threads: int = 1, fallback_eps_abs: float | None = None,
-                 least_squares: bool = True) -> Solution:
+                 max_iter: int = NEWTON_MAX_ITER, fallback: str = "proxsuite",
+                 fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG, num_threads: int = 1,
+                 fallback_eps_abs: float | None = None, least_squares: bool = True) -> Solution:
     """The ``Solution`` of every case of ``problem`` by the back-end ``solver`` (module docstring).
 
     Args:
@@ -104,24 +104,31 @@ def _external(problem: BoxQP, solver: str, options: _Options):
     ``solver`` on the cases with valid input (NaN and ``BAD_INPUT`` on the others)."""
     f = torch.full_like(problem.f_ref_n, torch.nan)
     status = torch.full_like(problem.crossed, Status.BAD_INPUT.code, dtype=torch.int32)
-    rows = problem.take(~problem.bad_input)
+    good = ~problem.bad_input
+    rows = problem.take(good)
     if solver == "proxqp":
-        f_rows, solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads, options.fallback_eps_abs)
+        f[good], solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads,
+                                          options.fallback_eps_abs)
     elif _some(rows.w_m2 > 0):
         raise BodySchemaInputError(f"solver={solver!r} solves equilibrium QPs (w_m2 = 0) only; least squares: "
                                    "'newton' or 'proxqp'")
     else:
-        f_rows, solved = qpsolvers_solve(rows, solver)
-    equilibrium = rows.w_m2 == 0
-    ok = solved & ~rows.crossed & (~equilibrium | (rows.balance_residual_nm(f_rows) <= EQUILIBRIUM_TOL_NM))
-    outside = rows.crossed.clone()
+        f[good], solved = qpsolvers_solve(rows, solver)
+    status[good] = _external_codes(rows, f[good], solved)
+    return f, status, torch.zeros_like(status)
+
+
+def _external_codes(problem: BoxQP, f, solved) -> torch.Tensor:
+    """(B,) int32: OK where ``solved`` (and, for an equilibrium case, balanced to ``EQUILIBRIUM_TOL_NM`` in an
+    uncrossed box), else INFEASIBLE where the box crosses or the torque-reach screen proves it, else NOT_CONVERGED."""
+    equilibrium = problem.w_m2 == 0
+    ok = solved & ~problem.crossed & (~equilibrium | (problem.balance_residual_nm(f) <= EQUILIBRIUM_TOL_NM))
+    outside = problem.crossed.clone()
     screen = ~ok & equilibrium & ~outside
     if _some(screen):
-        sub = rows.take(screen)
-        outside[screen] = outside_torque_reach(sub.G, sub.tau_nm, sub.lo_n, sub.hi_n, EQUILIBRIUM_TOL_NM)
-    f[~problem.bad_input] = f_rows
-    status[~problem.bad_input] = torch.where(ok, _OK, torch.where(outside, _INFEASIBLE, _NOT_CONVERGED)).to(torch.int32)
-    return f, status, torch.zeros_like(status)
+        rows = problem.take(screen)
+        outside[screen] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM)
+    return torch.where(ok, _OK, torch.where(outside, _INFEASIBLE, _NOT_CONVERGED)).to(torch.int32)
 
 
 def _left(status, w_m2) -> list:
