@@ -395,6 +395,7 @@ class StructuredSchema(BodySchema):
         reg = self.hparams.qp_reg if reg is None else reg
         return bounds_command(l_geo, G, tau, 0.5 * f_max, bounds.on_host(), reg)
 
+    @torch.inference_mode()  # numpy out: no tensor here needs autograd's version counters
     def adapt_si(self, q_rad: torch.Tensor, bounds, variant: str = "default", reg: Optional[float] = None):
         """Adapted commands at ``q_rad (B, N)`` [rad] under ``bounds`` (the faults' ``FaultBounds``), the contract's
         ``adapts_in_si`` with the status: ``solve_si``'s ``(l_motor_m (B, M), f_n (B, M), status (B,))``; rows whose
