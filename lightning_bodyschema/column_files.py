@@ -6,12 +6,15 @@ Lightning or MuJoCo (``data.recorded`` reads recorded data with these; ``tools/s
 from __future__ import annotations
 
 import csv
-from typing import Optional
+import os
+from typing import Mapping, Optional
 
 import numpy as np
 
 from .errors import BodySchemaInputError
-from .npz import load_npz
+from .npz import atomic_write_bytes, load_npz, save_npz
+
+UNITS = "SI"  # the one accepted units flag: rad (or m for slide joints), m, N
 
 
 def read_csv_columns(path: str) -> tuple[dict, dict, Optional[str]]:
@@ -118,3 +121,37 @@ def _in_column_order(path, arrays: dict) -> dict:
     if missing:
         raise BodySchemaInputError(f"{path}: missing column {missing} (named in its 'columns' array)")
     return {**{name: arrays[name] for name in order}, **arrays}
+
+
+def read_columns(path: str, what: str) -> tuple[dict, dict]:
+    """``(columns, ranges)`` of a CSV or NPZ table in this layout (header, ``# range``, ``# units: SI``),
+    every row as read; a missing file or a units flag other than SI is refused (``what`` names the file's role)."""
+    if not os.path.isfile(path):
+        raise BodySchemaInputError(f"{what} {path!r} does not exist")
+    if path.endswith(".npz"):
+        columns, ranges, units = read_npz_columns(path)
+    else:
+        columns, ranges, units = read_csv_columns(path)
+    if units is not None and units != UNITS:
+        raise BodySchemaInputError(f"{path}: units flag {units!r} is not supported; the file must be in SI units "
+                                   f"(rad, m, N) and say so with units {UNITS!r} (or give no units flag)")
+    return columns, ranges
+
+
+def write_columns(path: str, columns: Mapping[str, np.ndarray], ranges: Optional[Mapping] = None,
+                  meta: Optional[dict] = None) -> None:
+    """Write 1-D ``columns`` in this layout: CSV for ``*.csv`` (17 significant digits: reads back exactly),
+    else NPZ; deterministic bytes, written atomically. ``meta``: NPZ ``meta_*`` arrays / CSV comment lines."""
+    ranges, meta = dict(ranges or {}), dict(meta or {})
+    if not path.endswith(".csv"):
+        save_npz(path, units=np.array(UNITS), columns=np.array(list(columns)), **columns,
+                 **{f"range_{name}": np.asarray(lim, np.float64) for name, lim in ranges.items()},
+                 **{f"meta_{name}": np.asarray(value) for name, value in meta.items()})
+        return
+    lines = [f"# units: {UNITS}"]
+    lines += [f"# range {name} {float(lo)!r} {float(hi)!r}" for name, (lo, hi) in ranges.items()]
+    lines += [f"# {name}: {' '.join(str(value).split())}" for name, value in meta.items() if name != "model_xml"]
+    lines.append(",".join(columns))
+    table = np.stack([np.asarray(v, np.float64) for v in columns.values()], axis=1)
+    lines += [",".join(f"{v:.17g}" for v in row) for row in table]
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())

@@ -16,9 +16,11 @@ training step, validation in physical units, checkpoints, ``adapt``/``adapter`` 
     for its gradient) per case; for generative schemas (AE, VAE, diffusion). The penalty is built once per fault
     set from ``penalty_builder(variant)``; ``fault_projection`` may add a projection the sampler takes as an option.
   - ``ADAPTS_IN_SI``: ``adapt_si(q_rad, bounds, variant, **options) -> (l_motor_m, f_n)``, both (B, M)
-    float64 tensors, from postures ``q_rad (B, N)`` [rad] (float64 tensor) and the faults' SI bounds
-    (``faults.bounds.FaultBounds``: tension and motor-length bounds, the tension box through the spring); for
-    schemas that solve for the command directly (e.g. a QP on a learned body).
+    float64 tensors or arrays (NaN rows: no command), from postures ``q_rad (B, N)`` [rad] (float64 tensor) and the
+    faults' SI bounds (``faults.bounds.FaultBounds``: tension and motor-length bounds, the tension box through the
+    spring); for schemas that solve for the command directly (e.g. a QP on a learned body). It may add a third
+    output, ``status (B,)`` ``status.Status`` members saying why a row holds no command (its values are then a best
+    effort, not sent: ``StructuredSchema``'s ``infeasible_learned``).
 
   Either way the result goes through the same safe-command step and physics check. A schema declaring neither is
   a plain regressor: ``adapt`` refuses it.
@@ -78,7 +80,7 @@ class SchemaContract(Protocol):
 
     def adapt_normalized(self, q_n, penalty, variant: str, **options): ...
 
-    def adapt_si(self, q_rad, bounds, variant: str, **options) -> tuple[Any, Any]: ...
+    def adapt_si(self, q_rad, bounds, variant: str, **options) -> tuple: ...
 
 
 def check_capabilities(cls: type, base: type) -> None:

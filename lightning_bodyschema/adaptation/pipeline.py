@@ -4,9 +4,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..contract import ADAPTATION_CAPABILITIES, ADAPTS_IN_SI
 from ..errors import BodySchemaInputError
 from ..faults.bounds import FaultBounds
+from ..status import Status
 from .command import AdaptationResult, motor_length_range, safe_command
 from ..variants import check_variant
 from .physics import flag_infeasible, mark_unchecked
@@ -38,10 +40,12 @@ class Adapter:
 
     The schema (a ``contract.SchemaContract``) declares how it adapts, and the adapter dispatches on it:
     ``adapts_normalized``: prepare the penalty L_adapt of eq:latent-opt (and the variant's fault projection); per call
-    check postures -> encode -> ``adapt_normalized`` -> decode. ``adapts_in_si``: prepare the faults' SI bounds
-    (``FaultBounds``);
-    per call check postures -> ``adapt_si`` on q [rad]. Then, either way, ``safe_command`` -> ``flag_infeasible``
-    (when ``check_physics``; ``mark_unchecked`` when the robot has no model to check on).
+    check postures -> encode -> ``adapt_normalized`` -> decode. ``adapts_in_si`` (``StructuredSchema``'s QP on its
+    learned body, a user's SI schema): the faults' SI bounds (``FaultBounds``, prepared either way); per call check
+    postures -> ``adapt_si`` on q [rad]; where it also says why a row holds no command (a third output, ``Status``
+    members), that status stays and the row's best effort goes to ``diagnostics`` (``qp_l_motor_m``, ``qp_f_n``).
+    Then, either way, ``safe_command`` -> ``flag_infeasible`` (when ``check_physics``; ``mark_unchecked`` when the
+    robot has no model to check on; the physical reason wins over the schema's own).
 
     Lifetime: the penalty is built from the schema's normalizer, dtype and device as they are now; the networks
     are the schema's current weights at each call (through its inference cache). Build a new adapter after
@@ -72,21 +76,38 @@ class Adapter:
         if projection is not None:  # built once with the penalty; the sampler takes it as a value
             self.options["projection"] = projection
 
-    def _adapted_si(self, q: np.ndarray) -> torch.Tensor:
+    def __call__(self, q_ref) -> AdaptationResult:
+        q = check_postures(self.schema, q_ref, len(self.faults))
+        if self.in_si:
+            return self._si_result(q)
+        return self._checked(safe_command(self._adapted_normalized(q), self.bounds, l_range_m=self.l_range_m), q)
+
+    def _adapted_normalized(self, q: np.ndarray) -> torch.Tensor:
         """The schema's adapted command [l_motor, f] (B, 2M) in SI units, float64."""
         schema = self.schema
-        with torch.inference_mode(False), torch.no_grad():
-            q_rad = torch.as_tensor(q, device=schema.device)  # on the schema's device until safe_command
-            if self.in_si:
-                l_motor_m, f_n = schema.adapt_si(q_rad, self.bounds, self.variant, **self.options)
-                return torch.cat([l_motor_m, f_n], dim=1).to(torch.float64)
-            x_n = schema.adapt_normalized(schema.encode_q(q_rad), self.penalty, self.variant, **self.options)
-        return schema.decode(x_n)
+        with torch.inference_mode(False), torch.no_grad():  # a sampler may need ordinary tensors
+            q_n = schema.encode_q(torch.as_tensor(q, device=schema.device))
+            return schema.decode(schema.adapt_normalized(q_n, self.penalty, self.variant, **self.options))
 
-    def __call__(self, q_ref) -> AdaptationResult:
+    def _si_result(self, q: np.ndarray) -> AdaptationResult:
+        """``adapts_in_si``: ``adapt_si``'s command through ``safe_command`` and the physics check, with the schema's
+        own status where it gave one (class docstring)."""
         schema = self.schema
-        q = check_postures(schema, q_ref, len(self.faults))
-        return self._checked(safe_command(self._adapted_si(q), self.bounds, l_range_m=self.l_range_m), q)
+        with torch.inference_mode(False), torch.no_grad():  # on the schema's device until here
+            answer = schema.adapt_si(torch.as_tensor(q, device=schema.device), self.bounds, self.variant,
+                                     **self.options)
+        l_motor, f = (to_numpy(a, np.float64) for a in answer[:2])
+        why = np.asarray(answer[2], dtype=object) if len(answer) > 2 else np.full(len(q), Status.OK, dtype=object)
+        refused = why != Status.OK
+        result = safe_command(np.where(refused[:, None], np.nan, np.concatenate([l_motor, f], 1)), self.bounds,
+                              l_range_m=self.l_range_m)
+        result.status[refused] = why[refused]
+        if len(answer) > 2:
+            result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)
+        result = self._checked(result, q)
+        if self.check_physics and schema.has_physics:  # the physical reason wins over the schema's own
+            result.status[~result.diagnostics["feasible"] & refused] = Status.INFEASIBLE
+        return result
 
     def _checked(self, result: AdaptationResult, q: np.ndarray) -> AdaptationResult:
         """``result`` with the physics check's verdict (``check_physics``), or ``unchecked`` where there is no model."""

@@ -306,8 +306,8 @@ def robustness_main(argv=None):
                              "healthy and adapted commands on the true paper arm; writes a table, a figure, json.")
     parser.add_argument("--out-dir", default="runs/robustness", help="folder for data, checkpoints and results")
     parser.add_argument("--epochs", type=int, default=1500,
-                        help="training epochs per schema (paper: 10000; 1500 keeps the study within 20 min on "
-                             "2 shared cores)")
+                        help="training epochs per schema (paper: 10000; fewer shorten the study, BENCHMARKS.md "
+                             "\"Figures behind code choices\")")
     parser.add_argument("--n", type=int, default=800, help="samples per dataset (paper: 800)")
     parser.add_argument("--seed", type=int, default=0, help="seed of postures, noise, split, training and cases")
     parser.add_argument("--mismatch-seed", type=int, default=0)

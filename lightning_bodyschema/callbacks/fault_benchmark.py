@@ -72,8 +72,8 @@ class FaultBenchmark(Callback):
     Args:
         every_n_epochs: during fit, benchmark at the first validation at or after every multiple of this many
             epochs, and at the last validated epoch (0: never during fit, nor without a logger; test always
-            runs it). Default 5000: twice in the paper's 10000 epochs (about 1.5 s each for 120 cases on one
-            CPU core), which keeps the full paper fit under 2 minutes here.
+            runs it). Default 5000: twice in the paper's 10000 epochs (its cost per run: BENCHMARKS.md "Figures
+            behind code choices").
         n_per_condition: cases per condition (paper: 40), drawn from the validation (= test) split.
         protocols: the case protocols ``test`` benchmarks (``evaluation.cases.PROTOCOLS``); fit uses the paper's.
         binding_n_per_condition: binding cases per condition at test (5 conditions; 40 keeps ``bodyschema test``

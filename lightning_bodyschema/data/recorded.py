@@ -24,23 +24,19 @@ evaluation, inverse kinematics) needs an MJCF, given separately.
 """
 from __future__ import annotations
 
-import os
 import re
 from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
 import numpy as np
 
-from ..column_files import read_csv_columns as _read_csv_columns
-from ..column_files import read_npz_columns as _read_npz_columns
+from ..column_files import UNITS, read_columns, write_columns
 from ..errors import BodySchemaInputError
-from ..npz import atomic_write_bytes, save_npz
 from ..sim import SpringParams
 from ..sim.robot import ModelFreeRobot, check_muscle_joints
 from .datamodule import EquilibriumDataModule, check_loader_args, check_split
 from .normalizer import Normalizer
 
-UNITS = "SI"  # the one accepted units flag: rad (or m for slide joints), m, N
 PAPER_F_MAX_N = 150.0  # tension limit when neither the file nor the config gives one (the paper's f_max)
 _COLUMN = re.compile(r"^([qlf])_(.+)$")
 _MIN_ROWS = 10  # fewer kept rows cannot make a train and a validation split
@@ -63,21 +59,6 @@ def read_recorded(path: str) -> RecordedTable:
     """Read a recorded CSV or NPZ file (module docstring), every row, NaN included; refuse a malformed one."""
     columns, ranges = read_columns(path, "recorded data file")
     return _as_table(path, columns, ranges)
-
-
-def read_columns(path: str, what: str) -> tuple[dict, dict]:
-    """``(columns, ranges)`` of a CSV or NPZ table in this module's layout (header, ``# range``, ``# units: SI``),
-    every row as read; a missing file or a units flag other than SI is refused (``what`` names the file's role)."""
-    if not os.path.isfile(path):
-        raise BodySchemaInputError(f"{what} {path!r} does not exist")
-    if path.endswith(".npz"):
-        columns, ranges, units = _read_npz_columns(path)
-    else:
-        columns, ranges, units = _read_csv_columns(path)
-    if units is not None and units != UNITS:
-        raise BodySchemaInputError(f"{path}: units flag {units!r} is not supported; the file must be in SI units "
-                                   f"(rad, m, N) and say so with units {UNITS!r} (or give no units flag)")
-    return columns, ranges
 
 
 def _as_table(path, columns: dict, ranges: dict) -> RecordedTable:
@@ -119,25 +100,6 @@ def write_recorded(path: str, q, l_motor, f, joints: Sequence[str], muscles: Seq
     columns.update({f"l_{m}": l_motor[:, i] for i, m in enumerate(muscles)})
     columns.update({f"f_{m}": f[:, i] for i, m in enumerate(muscles)})
     write_columns(path, columns, ranges, meta)
-
-
-def write_columns(path: str, columns: Mapping[str, np.ndarray], ranges: Optional[Mapping] = None,
-                  meta: Optional[dict] = None) -> None:
-    """Write 1-D ``columns`` in this module's layout: CSV for ``*.csv`` (17 significant digits: reads back exactly),
-    else NPZ; deterministic bytes, written atomically. ``meta``: NPZ ``meta_*`` arrays / CSV comment lines."""
-    ranges, meta = dict(ranges or {}), dict(meta or {})
-    if not path.endswith(".csv"):
-        save_npz(path, units=np.array(UNITS), columns=np.array(list(columns)), **columns,
-                 **{f"range_{name}": np.asarray(lim, np.float64) for name, lim in ranges.items()},
-                 **{f"meta_{name}": np.asarray(value) for name, value in meta.items()})
-        return
-    lines = [f"# units: {UNITS}"]
-    lines += [f"# range {name} {float(lo)!r} {float(hi)!r}" for name, (lo, hi) in ranges.items()]
-    lines += [f"# {name}: {' '.join(str(value).split())}" for name, value in meta.items() if name != "model_xml"]
-    lines.append(",".join(columns))
-    table = np.stack([np.asarray(v, np.float64) for v in columns.values()], axis=1)
-    lines += [",".join(f"{v:.17g}" for v in row) for row in table]
-    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
 
 
 # ---------------------------------------------------------------------------- the data module

@@ -14,7 +14,9 @@ from __future__ import annotations
 import torch
 
 from ..errors import BodySchemaInputError
+from ..faults.qp import learned_body_status
 from ..solvers.newton import NEWTON_TOL_NM, dual_newton
+from ..solvers.problem import uncrossed_box
 from ..status import Status
 from .module import PackageModule
 
@@ -51,17 +53,11 @@ class StructuredAdapterModule(PackageModule):
         bad, q, bounds = self.faults(q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed)
         l_geo, G, tau = (t.to(torch.float64) for t in self.body(self.normalized_q(q, self.dtype)))
         box_lo, box_hi = bounds.tension_box(l_geo)
-        crossed = (box_lo > box_hi).any(1)  # no tension meets the bounds
+        box_lo, crossed = uncrossed_box(box_lo, box_hi)  # crossed: no tension meets the bounds
         f_ref = (0.5 * self.f_max_n).expand_as(box_lo)
-        newton = dual_newton(G, tau, f_ref, torch.minimum(box_lo, box_hi), box_hi, 0.0, NEWTON_TOL_NM, self.max_iter,
-                             fixed_iterations=True)
+        newton = dual_newton(G, tau, f_ref, box_lo, box_hi, 0.0, NEWTON_TOL_NM, self.max_iter, fixed_iterations=True)
         held = newton.converged & ~crossed
-        f = newton.f
-        l_motor = l_geo - torch.log1p(f.clamp_min(0.0) / self.k_n) / self.alpha_per_m
-        l_lo = bounds.l_lo_m  # a slack wire: the motor may stand anywhere above l_geo, so inside its band
-        l_motor = torch.where((f <= 0.0) & torch.isfinite(l_lo), torch.maximum(l_motor, l_lo), l_motor)
-        l_motor = torch.minimum(l_motor, bounds.l_hi_m)  # rounding of exp/log1p only: the box keeps l_motor <= l_hi
-        x = torch.where(held[:, None], torch.cat([l_motor, f], 1), float("nan"))
+        x = torch.where(held[:, None], torch.cat([bounds.motor_length_m(l_geo, newton.f), newton.f], 1), float("nan"))
         l_motor, f, status = self.safe(x, bounds, bad)
-        status = torch.where(~held & ~bad, Status.INFEASIBLE_LEARNED.code, status).to(torch.int32)
-        return l_motor, f, status
+        status = learned_body_status(torch.where(~held & ~bad, Status.INFEASIBLE.code, status))
+        return l_motor, f, status.to(torch.int32)

@@ -23,7 +23,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..data.recorded import read_columns, write_columns
+from ..column_files import read_columns, write_columns
 from ..errors import BodySchemaInputError
 
 SENT = ("l_cmd_", "f_cmd_")  # checked before the reading prefixes: "l_cmd_x" is a command, not muscle "cmd_x"
@@ -113,7 +113,7 @@ def write_sensor_log(path: str, log: SensorLog, extra: Optional[dict] = None) ->
 def read_sensor_log(path: str, joints: Sequence[str], muscles: Sequence[str]) -> SensorLog:
     """Read a sensor log for a robot with these joints and muscles (module docstring); refuse a malformed one."""
     columns, _ = read_columns(path, "sensor log")
-    names = _column_names(path, columns, list(joints), list(muscles))
+    _column_names(path, columns, list(joints), list(muscles))
     n_rows = len(next(iter(columns.values()))) if columns else 0
     if n_rows == 0:
         raise BodySchemaInputError(f"{path} has a header but no rows")

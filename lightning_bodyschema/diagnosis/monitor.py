@@ -24,7 +24,7 @@ from ..status import Status
 from .explain import diagnose
 from .log import SensorLog
 from .noise import SensorNoise, Thresholds
-from .result import HEALTHY, KINDS
+from .result import HEALTHY, KINDS, Diagnosis
 
 
 class Monitor:
@@ -58,7 +58,7 @@ class Monitor:
         self.ticks_seen = 0
         self._anchor = None  # (q0, l_geo, G, tau) where the body was last evaluated
 
-    def update(self, cmd, reading) -> "Diagnosis":  # noqa: F821
+    def update(self, cmd, reading) -> Diagnosis:
         """``cmd = (l_cmd_m (M,), f_cmd_n (M,))`` sent, ``reading = (q_rad (N,), l_m (M,), f_n (M,) or None)`` read.
         Returns the ``Diagnosis`` of the window with the guard applied: ``no_fault`` until a fault is declared
         (``pending`` says how many consistent ticks the current explanation has), then the declared one."""

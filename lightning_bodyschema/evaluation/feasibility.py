@@ -5,12 +5,11 @@ path (``adaptation``) can use it without the benchmark; its names are also impor
 """
 from __future__ import annotations
 
-import numpy as np
-
+from ..faults.bounds import FaultBounds
 from ..sim.feasibility import (JAM_MODELS, MAX_SCREEN_NORMALS, feasible_tensions, outside_torque_reach,  # noqa: F401
                                tension_bounds)
 from ..sim.model import MusculoskeletalModel
-from ..sim.spring import SpringParams, elongation_from_tension
+from ..sim.spring import SpringParams
 
 
 def check_feasible(model: MusculoskeletalModel, cases, spring: SpringParams = SpringParams(),
@@ -23,14 +22,12 @@ def check_feasible(model: MusculoskeletalModel, cases, spring: SpringParams = Sp
 def oracle_commands(model: MusculoskeletalModel, cases, spring: SpringParams = SpringParams(), **kwargs):
     """(feasible, l_motor [m], f [N]) (B, M): a perfect command for every feasible case (NaN rows else).
 
-    ``l_motor = l_geo(q_ref) - phi^-1(f*)``; for a jammed muscle this is <= l_fixed by construction. A
-    banded motor is clipped into its band (only moves a slack wire's motor: f* = 0 there, any
-    l_motor >= l_geo gives it). A yardstick for the evaluation: it should score E_cut = E_fix = E_weak =
-    E_band = 0 and E_q, E_tau ~ 0.
+    ``l_motor = l_geo(q_ref) - phi^-1(f*)`` within the motor-length bounds (``FaultBounds.motor_length_m``, the
+    commands' own rule): a slack wire's banded motor at its band's lower end (f* = 0 there, any l_motor >= l_geo
+    gives it), no motor above a jam's l_fixed or a band's hi. A yardstick for the evaluation: it should score
+    E_cut = E_fix = E_weak = E_band = 0 and E_q, E_tau ~ 0.
     """
     feasible, f_star = check_feasible(model, cases, spring, **kwargs)
     l_geo, _, _ = model.kinematics(cases.q_ref)
-    l_motor = l_geo - elongation_from_tension(f_star, spring)
-    if cases.l_band is not None:
-        l_motor = np.where(cases.band, np.clip(l_motor, cases.l_band[..., 0], cases.l_band[..., 1]), l_motor)
-    return feasible, l_motor, f_star
+    bounds = FaultBounds.from_faults(cases.faults, spring.f_max_n, spring)
+    return feasible, bounds.motor_length_m(l_geo, f_star), f_star

@@ -5,11 +5,13 @@ Per muscle (``Faults``: cut, jammed, weakened, length-banded; the robot's f_max 
 
 * tensions ``f_lo_n <= f <= f_hi_n``: ``[0, 0]`` cut, ``[0, f_max']`` weakened, ``[0, f_max]`` otherwise;
 * motor lengths ``l_lo_m <= l_motor <= l_hi_m``: a jam's ``l_fixed`` and a band's hi above, a band's lo below;
-* through the spring ``l_motor = l_geo - delta(f)`` (sim/spring.py) at lengths ``l_geo``, ``tension_box``:
+* through the spring ``l_motor = l_geo - delta(f)`` (``sim.spring``: the law written once) at lengths ``l_geo``,
+  ``tension_box``:
   ``l_motor <= l_hi`` is ``f >= k (exp(alpha (l_geo - l_hi)) - 1)`` (the tension the spring gives with the motor at
   ``l_hi``; reeling in, a higher tension, is allowed) and ``l_motor >= l_lo`` is
   ``f <= k (exp(alpha (l_geo - l_lo)) - 1)`` (below ``l_geo`` the wire is slack: f = 0, the motor anywhere above).
-  Where the two cross (lo > hi) no tension meets them.
+  Where the two cross (lo > hi) no tension meets them; ``motor_length_m`` turns a tension in the box back into the
+  motor length of the command.
 
 Every method works on numpy arrays and torch tensors alike (the backend of the fields; torch: any device, float64,
 traceable by ``torch.export``), so the feasibility check (numpy), the adapters and the exported graph (torch) share
@@ -25,48 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from .._arrays import fill, isfinite, isnan, maximum, minimum, namespace, where
+from ..sim.spring import spring_elongation_m, spring_tension_n
 from .faults import fault_rules
-
-
-def _xp(a):
-    """torch for tensors, numpy for arrays (torch is not imported here)."""
-    return sys.modules["torch"] if type(a).__module__.startswith("torch") else np
-
-
-def _fill(like, value):
-    return np.full_like(like, value, dtype=float) if _xp(like) is np else sys.modules["torch"].full_like(like, value)
-
-
-def _where(cond, a, b):
-    xp = _xp(cond)
-    if xp is np:
-        return np.where(cond, a, b)
-    torch = xp
-    return torch.where(cond, a if torch.is_tensor(a) else torch.as_tensor(a, dtype=torch.float64, device=cond.device),
-                       b if torch.is_tensor(b) else torch.as_tensor(b, dtype=torch.float64, device=cond.device))
-
-
-def _minimum(a, b):
-    return (np if _xp(a) is np else sys.modules["torch"]).minimum(a, b)
-
-
-def _maximum(a, b):
-    return (np if _xp(a) is np else sys.modules["torch"]).maximum(a, b)
-
-
-def _isnan(a):
-    return (np if _xp(a) is np else sys.modules["torch"]).isnan(a)
-
-
-def _isfinite(a):
-    return (np if _xp(a) is np else sys.modules["torch"]).isfinite(a)
-
-
-def _phi(delta_m, k_n, alpha_per_m):
-    """The spring's tension [N] at elongation ``delta_m`` (0 when slack), inf where exp overflows."""
-    xp = _xp(delta_m)
-    stretch = np.clip(delta_m, 0.0, None) if xp is np else delta_m.clamp_min(0.0)
-    return k_n * xp.expm1(alpha_per_m * stretch)
 
 
 @dataclass(frozen=True)
@@ -94,8 +57,8 @@ class FaultBounds:
         ``f_weak_n`` (NaN: not weakened), ``band_lo_m``, ``band_hi_m`` (NaN: free) (B, M); ``f_max_n`` the robot's
         limit (scalar or (M,)). Not validated (``fault_rules`` says what is broken)."""
         cut, jam = (m if m.dtype == bool or str(m.dtype) == "torch.bool" else m == 1.0 for m in (cut, jam))
-        weak, band = ~_isnan(f_weak_n), ~(_isnan(band_lo_m) & _isnan(band_hi_m))
-        f_limit = _where(weak, f_weak_n, _fill(f_weak_n, 0.0) + f_max_n)  # the robot's limit broadcast to (B, M)
+        weak, band = ~isnan(f_weak_n), ~(isnan(band_lo_m) & isnan(band_hi_m))
+        f_limit = where(weak, f_weak_n, fill(f_weak_n, 0.0) + f_max_n)  # the robot's limit broadcast to (B, M)
         return cls(cut, jam, weak, band, l_fixed_m, band_lo_m, band_hi_m, f_limit, k_n, alpha_per_m)
 
     @classmethod
@@ -118,9 +81,9 @@ class FaultBounds:
 
     def on_host(self) -> "FaultBounds":
         """The same bounds as numpy arrays (host copies of tensors; itself when already numpy)."""
-        if _xp(self.f_limit_n) is np:
+        if namespace(self.f_limit_n) is np:
             return self
-        as_np = lambda a: a.detach().cpu().numpy() if _xp(a) is not np and a is not None else a  # noqa: E731
+        as_np = lambda a: a.detach().cpu().numpy() if namespace(a) is not np and a is not None else a  # noqa: E731
         return FaultBounds(*(as_np(getattr(self, name)) for name in self.__dataclass_fields__))
 
     def take(self, rows) -> "FaultBounds":
@@ -132,22 +95,22 @@ class FaultBounds:
     @cached_property
     def f_lo_n(self):
         """(B, M) [N]: 0 (a muscle only pulls)."""
-        return _fill(self.f_limit_n, 0.0)
+        return fill(self.f_limit_n, 0.0)
 
     @cached_property
     def f_hi_n(self):
         """(B, M) [N]: 0 where cut, else the muscle's limit."""
-        return _where(self.cut, 0.0, self.f_limit_n)
+        return where(self.cut, 0.0, self.f_limit_n)
 
     @cached_property
     def l_lo_m(self):
         """(B, M) [m]: a band's lo, -inf where free."""
-        return _where(self.band, self.band_lo_m, -np.inf)
+        return where(self.band, self.band_lo_m, -np.inf)
 
     @cached_property
     def l_hi_m(self):
         """(B, M) [m]: the lower of a jam's l_fixed and a band's hi, +inf where free."""
-        return _minimum(_where(self.jam, self.l_fixed_m, np.inf), _where(self.band, self.band_hi_m, np.inf))
+        return minimum(where(self.jam, self.l_fixed_m, np.inf), where(self.band, self.band_hi_m, np.inf))
 
     def tension_box(self, l_geo_m):
         """``(lo, hi)`` (B, M) [N]: the tensions that meet every bound at muscle lengths ``l_geo_m`` (module
@@ -156,24 +119,36 @@ class FaultBounds:
             raise ValueError("FaultBounds without a spring has no tension box")
         l_lo, l_hi = self.l_lo_m, self.l_hi_m
         with np.errstate(over="ignore", invalid="ignore"):  # an absurd stretch overflows to inf: crossed, as it should
-            has_hi, has_lo = _isfinite(l_hi), _isfinite(l_lo)
-            by_hi = _phi(l_geo_m - _where(has_hi, l_hi, 0.0), self.k_n, self.alpha_per_m)
-            by_lo = _phi(l_geo_m - _where(has_lo, l_lo, 0.0), self.k_n, self.alpha_per_m)
-            return (_maximum(self.f_lo_n, _where(has_hi, by_hi, 0.0)),
-                    _minimum(self.f_hi_n, _where(has_lo, by_lo, np.inf)))
+            has_hi, has_lo = isfinite(l_hi), isfinite(l_lo)
+            by_hi = spring_tension_n(l_geo_m - where(has_hi, l_hi, 0.0), self.k_n, self.alpha_per_m)
+            by_lo = spring_tension_n(l_geo_m - where(has_lo, l_lo, 0.0), self.k_n, self.alpha_per_m)
+            return (maximum(self.f_lo_n, where(has_hi, by_hi, 0.0)),
+                    minimum(self.f_hi_n, where(has_lo, by_lo, np.inf)))
+
+    def motor_length_m(self, l_geo_m, f_n):
+        """``l_motor = l_geo - delta(f)`` (B, M) [m]: the motor lengths that give tensions ``f_n`` at muscle lengths
+        ``l_geo_m`` through the spring, within the length bounds: a slack wire's (f <= 0) motor may stand anywhere
+        above l_geo, so at least at its band's lower end; never above ``l_hi_m`` (a tension in the box keeps it
+        there, but for exp/log1p's rounding). NaN tensions give NaN. The one rule of the commands (numpy, torch,
+        the exported graph)."""
+        if self.k_n is None:
+            raise ValueError("FaultBounds without a spring has no motor lengths")
+        l_motor, l_lo = l_geo_m - spring_elongation_m(f_n, self.k_n, self.alpha_per_m), self.l_lo_m
+        l_motor = where((f_n <= 0.0) & isfinite(l_lo), maximum(l_motor, l_lo), l_motor)
+        return minimum(l_motor, self.l_hi_m)
 
     def broken(self, l_motor_m, f_n):
         """``(length_m, cut_n)`` (B, M): how far ``l_motor_m`` lies outside its length bounds (a jam, a band) [m] and
         how hard a cut muscle pulls [N] (``f_n`` as sent: clipped to 0 <= f <= f_limit); 0 where nothing is broken."""
         with np.errstate(invalid="ignore"):  # NaN commands give NaN; +-inf where free gives 0
-            length = _maximum(l_motor_m - self.l_hi_m, self.l_lo_m - l_motor_m)
-            length = np.maximum(length, 0.0) if _xp(length) is np else length.clamp_min(0.0)
-        return length, _where(self.cut, f_n, 0.0)
+            length = maximum(l_motor_m - self.l_hi_m, self.l_lo_m - l_motor_m)
+            length = np.maximum(length, 0.0) if namespace(length) is np else length.clamp_min(0.0)
+        return length, where(self.cut, f_n, 0.0)
 
     def invalid(self, f_max_n=None):
         """(B,) bool: the cases that break a rule of ``fault_rules`` (``Faults.validate`` refuses them)."""
         bad = None
-        for _, mask in fault_rules(self.cut, self.jam, self.l_fixed_m, _where(self.weak, self.f_limit_n, np.nan),
+        for _, mask in fault_rules(self.cut, self.jam, self.l_fixed_m, where(self.weak, self.f_limit_n, np.nan),
                                    self.band_lo_m, self.band_hi_m, f_max_n):
             bad = mask if bad is None else bad | mask
         return bad.any(1)

@@ -21,17 +21,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sim.spring import SpringParams, elongation_from_tension, tension_from_elongation
-from ..solvers import EQUILIBRIUM_TOL_NM, LS_REG, BoxQP, least_squares_weight, solve_box_qp
-from ..status import Status
+from .._arrays import namespace
+from ..sim.spring import SpringParams
+from ..solvers import EQUILIBRIUM_TOL_NM, LS_REG, BoxQP, solve_box_qp
+from ..status import Status, status_array
 from .bounds import FaultBounds
 
 OK, INFEASIBLE_LEARNED = Status.OK, Status.INFEASIBLE_LEARNED
 # proxsuite iterations per command QP the dual Newton leaves: a feasible one converges well within it
 # (BENCHMARKS.md, "Structured schema's command QPs"); one without a solution runs to it
 QP_MAX_ITER = 50
-# a solver's status -> the command's: the learned body cannot hold the posture (``infeasible`` is the true body's)
-_AS_COMMAND = np.array([INFEASIBLE_LEARNED if s is Status.INFEASIBLE else s for s in Status], dtype=object)
+
+
+def learned_body_status(codes):
+    """A solver's status codes on the learned body as the command's (numpy or torch ints, same dtype): no tension
+    balancing the learned torque (``infeasible``) reads ``infeasible_learned``, since ``infeasible`` is the true
+    body's (the physics check's) to say; every other code stays. The one place that renames it (``bounds_command``,
+    the exported ``deploy.structured``)."""
+    return namespace(codes).where(codes == Status.INFEASIBLE.code, INFEASIBLE_LEARNED.code, codes)
+
+
+_AS_COMMAND = status_array(learned_body_status(np.arange(len(Status))))  # code -> the command's member, one lookup
 
 
 def tension_box(l_geo_m, f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> tuple[np.ndarray, np.ndarray]:
@@ -55,15 +65,6 @@ def _bounds_of(f_lo, f_hi, l_lo, l_hi, spring: SpringParams) -> FaultBounds:
                        np.where(has_lo, lo, np.nan), np.where(has_lo, np.inf, np.nan), np.array(f_hi), k, alpha)
 
 
-def least_squares_tensions(G, tau, f_ref, f_lo, f_hi, reg: float = LS_REG, num_threads: int = 1) -> np.ndarray:
-    """``argmin ||G^T f + tau||^2 + reg s ||f - f_ref||^2`` over ``f_lo <= f <= f_hi`` per case (B, M) [N], with
-    ``s`` the mean squared moment arm of the case (``solvers.least_squares_weight``): ``solvers.solve_box_qp`` of
-    that least-squares problem (the dual Newton, proxsuite on the cases it leaves)."""
-    problem = BoxQP.build(G, tau, f_ref, f_lo, f_hi)
-    problem = problem.with_weight(least_squares_weight(problem.G, reg))
-    return solve_box_qp(problem, num_threads=num_threads).f_n.cpu().numpy()
-
-
 def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: SpringParams, reg: float = LS_REG,
                   max_iter: int = QP_MAX_ITER, num_threads: int = 1):
     """Command ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` on the body ``(l_geo_m, G, tau_nm)`` closest to
@@ -72,23 +73,19 @@ def fault_command(l_geo_m, G, tau_nm, f_ref, f_lo, f_hi, l_lo, l_hi, spring: Spr
     (``"not_converged"``: no solver settled the row; ``"bad_input"``: a non-finite body, NaN rows).
     ``max_iter``: proxsuite's iteration limit of an equilibrium QP the dual Newton leaves; ``num_threads``:
     proxsuite's threads (more than 1: its batch API)."""
-    return bounds_command(l_geo_m, G, tau_nm, f_ref, _bounds_of(f_lo, f_hi, l_lo, l_hi, spring), spring, reg,
-                          max_iter, num_threads)
+    return bounds_command(l_geo_m, G, tau_nm, f_ref, _bounds_of(f_lo, f_hi, l_lo, l_hi, spring), reg, max_iter,
+                          num_threads)
 
 
-def bounds_command(l_geo_m, G, tau_nm, f_ref, bounds: FaultBounds, spring: SpringParams, reg: float = LS_REG,
-                   max_iter: int = QP_MAX_ITER, num_threads: int = 1):
-    """``fault_command`` with the bounds as a host ``FaultBounds`` (numpy fields, its spring ``spring``)."""
+def bounds_command(l_geo_m, G, tau_nm, f_ref, bounds: FaultBounds, reg: float = LS_REG, max_iter: int = QP_MAX_ITER,
+                   num_threads: int = 1):
+    """``fault_command`` with the bounds as a host ``FaultBounds`` (numpy fields, with its spring): the motor lengths
+    by ``FaultBounds.motor_length_m``."""
     box_lo, box_hi = bounds.tension_box(np.asarray(l_geo_m, float))
     solution = solve_box_qp(BoxQP.build(G, tau_nm, f_ref, box_lo, box_hi), fallback_max_iter=max_iter, ls_reg=reg,
                             num_threads=num_threads)
     f, codes = solution.f_n.cpu().numpy(), solution.status.cpu().numpy()
-    l_lo, l_hi = bounds.l_lo_m, bounds.l_hi_m
-    l_motor = l_geo_m - elongation_from_tension(f, spring)
-    slack = (f <= 0.0) & np.isfinite(l_lo)  # a slack wire: the motor may stand anywhere above l_geo
-    l_motor = np.where(slack, np.maximum(l_motor, l_lo), l_motor)
-    l_motor = np.minimum(l_motor, l_hi)  # rounding of exp/log1p only: the box already keeps l_motor <= l_hi
-    return l_motor, f, _AS_COMMAND[codes]
+    return bounds.motor_length_m(l_geo_m, f), f, _AS_COMMAND[codes]
 
 
 def balance_residual_nm(G, tau_nm, f) -> np.ndarray:
@@ -96,5 +93,5 @@ def balance_residual_nm(G, tau_nm, f) -> np.ndarray:
     return np.abs(-np.einsum("bmn,bm->bn", G, f) - tau_nm).max(1)
 
 
-__all__ = ["fault_command", "bounds_command", "tension_box", "least_squares_tensions", "balance_residual_nm",
-           "OK", "INFEASIBLE_LEARNED", "EQUILIBRIUM_TOL_NM"]
+__all__ = ["fault_command", "bounds_command", "tension_box", "learned_body_status", "balance_residual_nm", "OK",
+           "INFEASIBLE_LEARNED", "EQUILIBRIUM_TOL_NM"]

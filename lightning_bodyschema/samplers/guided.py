@@ -323,8 +323,8 @@ def _from_stacked(matrices, w_r, scalars, biases, x, penalty, net, projection=No
 def compiled_sampler():
     """``guided_loop`` (through ``_from_stacked``) compiled by inductor with its C++ wrapper, the whole loop as one
     graph. Specialised to a plan and a batch size: the first call for each compiles (a C++ compiler is needed;
-    ``denoise`` says so on stderr; inductor's on-disk cache makes a repeat in a new process quick); later calls
-    skip Python's per-op dispatch and fuse the elementwise ops."""
+    ``denoise`` says so on stderr; inductor's on-disk cache serves a repeat in a new process; BENCHMARKS.md "Figures
+    behind code choices" has the cost); later calls skip Python's per-op dispatch and fuse the elementwise ops."""
     return torch.compile(_from_stacked, fullgraph=True, dynamic=False, options={"cpp_wrapper": True})
 
 

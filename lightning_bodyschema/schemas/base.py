@@ -87,8 +87,9 @@ class BodySchema(SchemaLightningModule):
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
     def adapt_si(self, q_rad: torch.Tensor, bounds, variant: str, **options):
-        """Adapted ``(l_motor_m, f_n)`` (B, M) float64 tensors at postures ``q_rad (B, N)`` [rad] under the faults'
-        SI ``bounds`` (``faults.bounds.FaultBounds``); capability ``adapts_in_si``."""
+        """Adapted ``(l_motor_m, f_n)`` (B, M) float64 tensors or arrays at postures ``q_rad (B, N)`` [rad] under the
+        faults' SI ``bounds`` (``faults.bounds.FaultBounds``), optionally with a (B,) ``Status`` per row (contract.py);
+        capability ``adapts_in_si``."""
         raise NotImplementedError(f"{type(self).__name__} does not implement adaptation")
 
     @property

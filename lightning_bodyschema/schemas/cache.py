@@ -2,8 +2,8 @@
 
 Fast adaptation needs objects derived from the weights: frozen snapshots of the networks (``FrozenMLP``), the
 per-step matrices of a sampling plan, the penalty builder of the normalizer, the shared initial noise. Building
-them costs a few hundred microseconds, a sizeable share of a millisecond adaptation, so they are kept between
-calls. They are never keyed on tensor addresses or version counters (fused optimizers update weights in place
+them is a sizeable share of a prepared adaptation (BENCHMARKS.md "Figures behind code choices"), so they are kept
+between calls. They are never keyed on tensor addresses or version counters (fused optimizers update weights in place
 without bumping ``_version``, so such a key can serve stale weights). Instead the owning ``BodySchema`` clears its cache
 
 * on every ``train()`` / ``eval()`` call (Lightning switches modes around every validation, test and fault

@@ -37,8 +37,9 @@ class DiffusionSchema(BodySchema):
         min_snr_gamma: min-SNR-gamma loss weighting (Hang et al. 2023, ``NoiseSchedule.min_snr_weight``): each
             sample's squared error weighted by min(SNR_t, gamma) in its prediction's units; None: unweighted.
         compile_sampler: run the fast sampling loop through ``torch.compile`` (``samplers.guided.compiled_sampler``;
-            per call: ``compiled=``). The first call per (step plan, batch size) compiles (tens of seconds); later
-            calls save Python's per-op dispatch. Off by default: a controller that restarts pays the compile again.
+            per call: ``compiled=``). The first call per (step plan, batch size) compiles (its cost: BENCHMARKS.md
+            "Figures behind code choices"); later calls save Python's per-op dispatch. Off by default: a
+            controller that restarts pays the compile again.
     The healthy command runs the deterministic denoising eq:diff-1/eq:diff-2 from x_T.
 
     The strided sampler: ``"quad"``-spaced steps (dense at low noise, ending at t = 0, see

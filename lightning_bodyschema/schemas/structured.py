@@ -28,20 +28,18 @@ import torch
 from lightning.pytorch.utilities import rank_zero_info
 
 from .._numpy import to_numpy
-from ..adaptation.command import safe_command
-from ..adaptation.pipeline import Adapter, check_postures
+from ..adaptation.pipeline import Adapter
 from ..errors import BodySchemaInputError
 from ..evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
-from ..faults.qp import OK, bounds_command
+from ..faults.qp import bounds_command
 from ..networks.cells import CELL_JOINTS, CELL_KEEP
 from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.structured import JacobianMLP, check_architecture
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
-from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
 from .host_body import host_body
@@ -423,18 +421,17 @@ class StructuredSchema(BodySchema):
         if bounds is None:
             bounds = FaultBounds.from_faults(Faults.none(*l_geo.shape), self.spring.f_max_n, self.spring)
         reg = self.hparams.qp_reg if reg is None else reg
-        return bounds_command(l_geo, G, tau, 0.5 * f_max, bounds.on_host(), self.spring, reg)
+        return bounds_command(l_geo, G, tau, 0.5 * f_max, bounds.on_host(), reg)
 
+    @torch.inference_mode()  # numpy out: no tensor here needs autograd's version counters
     def adapt_si(self, q_rad: torch.Tensor, bounds, variant: str = "default", reg: Optional[float] = None):
-        """Adapted commands at ``q_rad (B, N)`` [rad] under ``bounds`` (the faults' ``FaultBounds``):
-        ``(l_motor_m (B, M), f_n (B, M))``, float64 tensors on q_rad's device (the contract's ``adapts_in_si``).
-        Rows the learned body cannot hold are NaN (``solve_si`` gives their status and least-squares best effort)."""
+        """Adapted commands at ``q_rad (B, N)`` [rad] under ``bounds`` (the faults' ``FaultBounds``), the contract's
+        ``adapts_in_si`` with the status: ``solve_si``'s ``(l_motor_m (B, M), f_n (B, M), status (B,))``; rows whose
+        status is not ``ok`` (``infeasible_learned``: the learned body cannot hold them) are least-squares best
+        efforts, not commands (``Adapter`` sends them as NaN rows with that status)."""
         if variant not in self.VARIANTS:
             raise BodySchemaInputError(f"unknown adaptation variant {variant!r}; allowed: {list(self.VARIANTS)}")
-        l_motor, f, status = self.solve_si(q_rad, bounds, reg)
-        bad = (status != OK)[:, None]
-        as_tensor = lambda a: torch.as_tensor(np.where(bad, np.nan, a), device=q_rad.device)  # noqa: E731
-        return as_tensor(l_motor), as_tensor(f)
+        return self.solve_si(q_rad, bounds, reg)
 
     def generate(self, q_n):
         """Healthy normalized command: the healthy QP's answer (its least-squares best effort where the learned
@@ -443,35 +440,14 @@ class StructuredSchema(BodySchema):
         x = torch.as_tensor(np.concatenate([l_motor, f], 1), device=q_n.device)
         return self.normalizer.encode_x(x).to(q_n.dtype)
 
+    ADAPT_OPTIONS = ("reg",)  # adapt_si's options (``qp_reg`` by default)
+
     def adapter(self, faults, variant: str = "default", check_physics: bool = True, **options) -> Adapter:
-        """``BodySchema.adapter`` whose results name why a row holds no command (``StructuredAdapter``)."""
-        return StructuredAdapter(self, faults, variant, check_physics, options)
-
-
-class StructuredAdapter(Adapter):
-    """``Adapter`` that runs ``adapt_si`` directly: rows the learned body cannot hold read ``"infeasible_learned"``
-    (NaN, their least-squares answer in ``diagnostics``: ``qp_l_motor_m``, ``qp_f_n``), not
-    ``non_finite``; then the same ``safe_command`` and physics check as every schema. Option: ``reg`` (``qp_reg``)."""
-
-    OPTIONS = ("reg",)
-
-    def __init__(self, schema, faults, variant="default", check_physics=True, options=None):
-        unknown = sorted(set(options or {}) - set(self.OPTIONS))
+        """``BodySchema.adapter``; the one option is ``reg`` (``qp_reg``). Rows the learned body cannot hold read
+        ``"infeasible_learned"`` (NaN; their least-squares answer in ``diagnostics``: ``qp_l_motor_m``,
+        ``qp_f_n``), not ``non_finite``."""
+        unknown = sorted(set(options) - set(self.ADAPT_OPTIONS))
         if unknown:
-            raise BodySchemaInputError(f"unknown adaptation option(s) {unknown} for {type(schema).__name__}; "
-                                       f"allowed: {list(self.OPTIONS)}")
-        super().__init__(schema, faults, variant, check_physics, options)
-
-    @torch.inference_mode()  # numpy out: no tensor here needs autograd's version counters
-    def __call__(self, q_ref):
-        schema = self.schema
-        q = check_postures(schema, q_ref, len(self.faults))
-        l_motor, f, status = schema.solve_si(torch.as_tensor(q), self.bounds, self.options.get("reg"))
-        x_si = np.where((status == OK)[:, None], np.concatenate([l_motor, f], 1), np.nan)
-        result = safe_command(x_si, self.bounds, l_range_m=self.l_range_m)
-        result.status[status != OK] = status[status != OK]
-        result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)
-        result = self._checked(result, q)
-        if self.check_physics and schema.has_physics:  # the physical reason wins
-            result.status[~result.diagnostics["feasible"] & (status != OK)] = Status.INFEASIBLE
-        return result
+            raise BodySchemaInputError(f"unknown adaptation option(s) {unknown} for {type(self).__name__}; "
+                                       f"allowed: {list(self.ADAPT_OPTIONS)}")
+        return Adapter(self, faults, variant, check_physics, options)

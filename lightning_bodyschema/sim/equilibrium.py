@@ -12,8 +12,7 @@ import numpy as np
 import torch
 
 from ..errors import BodySchemaInputError
-from ..solvers import (EQUILIBRIUM_TOL_NM, FALLBACK_MAX_ITER, BoxQP, check_qp_solver, proxsuite_solve,
-                       qpsolvers_solve, solve_box_qp)
+from ..solvers import EQUILIBRIUM_TOL_NM, FALLBACK_MAX_ITER, BoxQP, solve_box_qp
 from ..status import Status
 from .model import MusculoskeletalModel
 from .spring import SpringParams, elongation_from_tension
@@ -29,9 +28,9 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, *, f_hi_n, f_lo_n=0.0, solver: str 
         G: (B, M, N) muscle Jacobians [m/rad]; tau_bias: (B, N) [N m]; f_ref: (B, M) [N].
         f_hi_n, f_lo_n: keyword only, scalars, (M,) or (B, M) tension bounds [N] (a per-case f_hi_n of 0 models a
             cut).
-        solver: ``"newton"`` (``solve_box_qp``: the batched dual Newton, the torque-reach screen, proxsuite where
-            they leave a case: fast, the same bytes in every process), ``"proxqp"`` (proxsuite on every case) or any
-            qpsolvers solver name (one call per case).
+        solver: ``solve_box_qp``'s back-end: ``"newton"`` (the batched dual Newton, the torque-reach screen,
+            proxsuite where they leave a case: fast, the same bytes in every process), ``"proxqp"`` (proxsuite on
+            every case) or any qpsolvers solver name (one call per case).
         max_iter: proxsuite's iteration limit per posture; a posture with no solution runs to it.
         num_threads: proxsuite's threads (more than 1: its batch API).
 
@@ -39,15 +38,9 @@ def solve_equilibrium_qp(G, tau_bias, f_ref, *, f_hi_n, f_lo_n=0.0, solver: str 
         ``f (B, M)`` within the bounds, and ``ok (B,)``: the torque balanced, ``|-G^T f - tau_bias|`` below
         ``EQUILIBRIUM_TOL_NM`` on every joint.
     """
-    problem = BoxQP.build(G, tau_bias, f_ref, f_lo_n, f_hi_n)
-    if check_qp_solver(solver) == "newton":
-        solution = solve_box_qp(problem, fallback_max_iter=max_iter, num_threads=num_threads)
-        f, ok = solution.f_n, solution.status == Status.OK.code
-    else:
-        f, solved = (proxsuite_solve(problem, max_iter, num_threads) if solver == "proxqp"
-                     else qpsolvers_solve(problem, solver))
-        ok = solved & ~problem.crossed & (problem.balance_residual_nm(f) <= EQUILIBRIUM_TOL_NM)
-    return f.cpu().numpy(), ok.cpu().numpy()
+    solution = solve_box_qp(BoxQP.build(G, tau_bias, f_ref, f_lo_n, f_hi_n), solver, fallback_max_iter=max_iter,
+                            num_threads=num_threads)
+    return solution.f_n.cpu().numpy(), (solution.status == Status.OK.code).cpu().numpy()
 
 
 @dataclass

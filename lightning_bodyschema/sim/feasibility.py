@@ -71,9 +71,8 @@ def tension_bounds(l_geo, faults: "Faults", spring: SpringParams, jam_model: str
     if jam_model not in JAM_MODELS:
         raise BodySchemaInputError(f"jam_model={jam_model!r}; allowed: {list(JAM_MODELS)}")
     box_lo, hi = FaultBounds.from_faults(faults, spring.f_max_n, spring).tension_box(l_geo)
-    crossed = np.any(box_lo > hi, axis=1)  # an absurd jam stretch overflows phi to inf: crossed, as it should be
+    lo, crossed = solvers.uncrossed_box(box_lo, hi)  # an absurd jam stretch overflows phi to inf: crossed, as it should
     f_need, fix = box_lo, faults.fix  # phi(d_j) on jammed muscles, raised to phi(l_geo - hi) on banded ones
-    lo = np.minimum(box_lo, hi)  # keep lo <= hi so the QP is well posed; ``crossed`` remembers
     if jam_model == "immobile":
         hi = np.where(fix, lo, hi)
     if not jammed_tension_in_torque:

@@ -464,9 +464,8 @@ def _mark_beyond_limits(out: SettleResult, q_range, tol_rad: float):
     out.status[beyond & out.settled] = SettleStatus.BEYOND_LIMIT
 
 
-# n_threads=None: threads only for models with at least this many degrees of freedom. A small arm's step is too
-# short to hand between threads (paper arm, 120 cases: 1.45 s on 1 thread, 1.59 s on 2); myoArm's is not
-# (32 cases: 5.8 s on 1 thread, 3.4 s on 2).
+# n_threads=None: threads only for models with at least this many degrees of freedom: a small arm's step is too
+# short to hand between threads, a large model's is not (BENCHMARKS.md "Settle check on threads").
 THREADS_MIN_DOF = 10
 
 

@@ -1,15 +1,16 @@
 """The muscle's nonlinear spring (paper eq:nonlinear-spring, eq:muscle-elongation-inv).
 
-``f = k (exp(alpha * delta) - 1)`` with ``delta = max(0, l_geo - l_motor)``. Works on numpy arrays
-and torch tensors alike; k, alpha and f_max may be scalars or per-muscle arrays that broadcast.
+``f = k (exp(alpha * delta) - 1)`` with ``delta = max(0, l_geo - l_motor)``, written once (``spring_tension_n`` and its
+inverse ``spring_elongation_m``). Works on numpy arrays and torch tensors alike; k, alpha and f_max may be scalars or
+per-muscle arrays that broadcast.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import sys
-
 import numpy as np
+
+from .._arrays import clamp_min, namespace
 
 
 @dataclass(frozen=True)
@@ -37,23 +38,26 @@ class SpringParams:
         return {k: np.asarray(v, float).tolist() for k, v in self.__dict__.items()}
 
 
-def _xp(x):
-    """numpy for arrays, torch for tensors, without importing torch here (evaluation stays light)."""
-    return sys.modules["torch"] if type(x).__module__.startswith("torch") else np
+def spring_tension_n(delta_m, k_n, alpha_per_m):
+    """The spring law ``f = k (exp(alpha delta) - 1)`` [N] at elongations ``delta_m`` (eq:nonlinear-spring; slack,
+    ``delta < 0``, gives 0; inf where exp overflows), with ``k_n`` [N] and ``alpha_per_m`` [1/m] scalars or arrays that
+    broadcast. numpy arrays or torch tensors (``_arrays``): the one copy of the law for every caller."""
+    return k_n * namespace(delta_m).expm1(alpha_per_m * clamp_min(delta_m, 0.0))
+
+
+def spring_elongation_m(f_n, k_n, alpha_per_m):
+    """The law's inverse ``delta = log(f/k + 1) / alpha`` [m] (eq:muscle-elongation-inv); negative f counts as 0."""
+    return namespace(f_n).log1p(clamp_min(f_n, 0.0) / k_n) / alpha_per_m
 
 
 def tension_from_elongation(delta_m, spring: SpringParams):
-    """f = k (exp(alpha delta) - 1) for delta >= 0 (eq:nonlinear-spring); slack (delta < 0) gives 0."""
-    xp = _xp(delta_m)
-    delta_m = xp.clip(delta_m, 0.0, None) if xp is np else delta_m.clamp_min(0.0)
-    return spring.k_n * (xp.exp(spring.alpha_per_m * delta_m) - 1.0)
+    """``spring_tension_n`` with ``spring``'s constants."""
+    return spring_tension_n(delta_m, spring.k_n, spring.alpha_per_m)
 
 
 def elongation_from_tension(f_n, spring: SpringParams):
-    """delta = log(f/k + 1) / alpha for f >= 0 (eq:muscle-elongation-inv); negative f counts as 0."""
-    xp = _xp(f_n)
-    f_n = xp.clip(f_n, 0.0, None) if xp is np else f_n.clamp_min(0.0)
-    return xp.log1p(f_n / spring.k_n) / spring.alpha_per_m
+    """``spring_elongation_m`` with ``spring``'s constants."""
+    return spring_elongation_m(f_n, spring.k_n, spring.alpha_per_m)
 
 
 PAPER_K_PER_F_MAX = 1000.0 / 150.0  # the paper's k [N] per its f_max [N]

@@ -94,14 +94,15 @@ def _least_squares(problem: BoxQP, max_iter: int, num_threads: int, eps_abs):
 
 
 def check_qp_solver(solver: str) -> str:
-    """Refuse a QP solver name that is neither ``"newton"``, ``"proxqp"`` nor installed in qpsolvers."""
+    """``solver``, or the error naming it: neither ``"newton"``, ``"proxqp"`` nor installed in qpsolvers."""
     if solver in ("newton", "proxqp"):
         return solver
     import qpsolvers
 
     if solver not in qpsolvers.available_solvers:
         raise BodySchemaInputError(
-            f"unknown QP solver {solver!r}; installed: {sorted(qpsolvers.available_solvers)}")
+            f"unknown QP solver {solver!r}; allowed: 'newton', 'proxqp' or one qpsolvers has installed: "
+            f"{sorted(qpsolvers.available_solvers)}")
     return solver
 
 

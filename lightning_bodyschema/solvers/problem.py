@@ -15,6 +15,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from .._arrays import minimum
 from ..errors import BodySchemaInputError
 
 
@@ -50,8 +51,8 @@ class BoxQP(NamedTuple):
         w = _weight(w_m2, batch, G.device)
         finite = torch.isfinite(torch.cat([G.flatten(1), tau, f_ref], 1)).all(1)
         bad = ~(finite & ((lo < np.inf) & (hi > -np.inf)).all(1))  # NaN bounds compare False
-        crossed = (lo > hi).any(1) & ~bad
-        return cls(G, tau, f_ref, torch.minimum(lo, hi), hi, w, crossed, bad)
+        lo, crossed = uncrossed_box(lo, hi)
+        return cls(G, tau, f_ref, lo, hi, w, crossed & ~bad, bad)
 
     @property
     def batch(self) -> int:
@@ -73,11 +74,30 @@ class BoxQP(NamedTuple):
 class Solution(NamedTuple):
     """``f_n (B, M)`` [N] float64 on the problem's device, within the box (NaN rows where the input was bad);
     ``status (B,)`` int32 codes of ``lightning_bodyschema.status.Status``; ``iterations (B,)`` int32: the dual
-    Newton's steps."""
+    Newton's steps (0 where another back-end solved the case); ``problem``: the ``BoxQP`` it solves, so that the
+    residuals below are the solution's own (qpsolvers' ``Solution`` style)."""
 
     f_n: torch.Tensor
     status: torch.Tensor
     iterations: torch.Tensor
+    problem: BoxQP
+
+    def balance_residual_nm(self) -> torch.Tensor:
+        """``max_j |G^T f + tau|`` per case (B,) [N m]: the equilibrium's residual (0 to the tolerance on an ``ok``
+        equilibrium case; what a least-squares case leaves unbalanced)."""
+        return self.problem.balance_residual_nm(self.f_n)
+
+    def box_residual_n(self) -> torch.Tensor:
+        """``max_m`` of how far ``f`` lies outside ``[lo, hi]`` per case (B,) [N]: 0 on every solved row."""
+        outside = torch.maximum(self.problem.lo_n - self.f_n, self.f_n - self.problem.hi_n)
+        return outside.clamp_min(0.0).amax(1)
+
+
+def uncrossed_box(lo, hi):
+    """``(lo', crossed)``: the crossed-box rule of every tension QP. ``crossed (B,)`` where some ``lo > hi`` in the
+    bounds ``lo, hi (B, M)`` (no tension meets them), and ``lo' = min(lo, hi)`` so the box is never empty and a solver
+    stays well posed (the caller keeps ``crossed``). numpy arrays or torch tensors (``_arrays``)."""
+    return minimum(lo, hi), (lo > hi).any(1)
 
 
 def separation_gap_nm(G, tau, lo, hi, normals) -> torch.Tensor:

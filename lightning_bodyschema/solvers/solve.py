@@ -1,4 +1,8 @@
-"""``solve_box_qp``: every case of a ``BoxQP`` at once, the dual Newton first and the fallbacks on what it leaves.
+"""``solve_box_qp(problem, solver)``: every case of a ``BoxQP`` at once, by the back-end ``solver`` (qpsolvers'
+``solve_problem`` style): ``"newton"`` (the default, below), ``"proxqp"`` (proxsuite on every case) or any solver
+qpsolvers has installed (one call per equilibrium case). The ``Solution`` holds the problem and gives its residuals.
+
+``"newton"``: the dual Newton first and the fallbacks on what it leaves:
 
 1. the batched dual Newton (``solvers.newton``) on every case with an uncrossed box, ``FIRST_PASS`` steps; an
    equilibrium case whose multiplier proves that no tension balances its torque stops there, ``INFEASIBLE``;
@@ -14,6 +18,10 @@
    solvers settle a case nor a proof rules it out. A least-squares problem (``w > 0``) the Newton leaves goes to
    proxsuite.
 
+Another back-end: its answer on every case with valid input (crossed ones in their lowered box); ``OK`` where it
+solved the case and, for an equilibrium case, balanced the torque to ``EQUILIBRIUM_TOL_NM`` in an uncrossed box;
+else ``INFEASIBLE`` where the box crosses or the torque-reach screen proves it, else ``NOT_CONVERGED``.
+
 torch on the problem's device; numpy only inside ``solvers.backends``. Prints nothing.
 """
 from __future__ import annotations
@@ -24,7 +32,7 @@ import torch
 
 from ..errors import BodySchemaInputError
 from ..status import Status
-from .backends import LS_MAX_ITER, proxsuite_solve
+from .backends import LS_MAX_ITER, check_qp_solver, proxsuite_solve, qpsolvers_solve
 from .least_squares import LS_REG, least_squares_weight
 from .newton import FEW_CASES, NEWTON_MAX_ITER, NEWTON_TOL_NM, dual_newton, host_count
 from .problem import BoxQP, Solution
@@ -48,12 +56,17 @@ class _Options(NamedTuple):
     least_squares: bool
 
 
-def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
-                 fallback: str = "proxsuite", fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG,
-                 num_threads: int = 1, fallback_eps_abs: float | None = None, least_squares: bool = True) -> Solution:
-    """The ``Solution`` of every case of ``problem`` (module docstring).
+def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_TOL_NM,
+                 max_iter: int = NEWTON_MAX_ITER, fallback: str = "proxsuite",
+                 fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG, num_threads: int = 1,
+                 fallback_eps_abs: float | None = None, least_squares: bool = True) -> Solution:
+    """The ``Solution`` of every case of ``problem`` by the back-end ``solver`` (module docstring).
 
     Args:
+        solver: ``"newton"``, ``"proxqp"`` or a qpsolvers solver name (equilibrium cases only); anything else is a
+            ``BodySchemaInputError`` naming the installed ones. The options below apply to ``"newton"``; proxsuite
+            (``"proxqp"``, the Newton's fallback) takes ``fallback_max_iter``, ``num_threads`` and
+            ``fallback_eps_abs``.
         tol, max_iter: the dual Newton's stop [N m] and step limit (a case the screen rules out after
             ``FIRST_PASS`` steps stops there).
         fallback: ``"proxsuite"`` or ``"none"`` (the Newton, the screen and the least squares only).
@@ -68,6 +81,8 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
     options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads, fallback_eps_abs,
                        least_squares)
     _check_options(options)
+    if check_qp_solver(solver) != "newton":
+        return Solution(*_external(problem, solver, options), problem)
     f, status, iterations = _solvable_first_pass(problem, tol, max_iter)
     any_least, any_equilibrium, every_equilibrium = _left(status, problem.w_m2)
     if any_least:
@@ -75,13 +90,45 @@ def solve_box_qp(problem: BoxQP, *, tol: float = NEWTON_TOL_NM, max_iter: int = 
         f[least], status[least], iterations[least] = _least_squares_rest(problem.take(least), iterations[least],
                                                                          options)
     if every_equilibrium:  # no gather (a single case that needs more than the first pass)
-        return Solution(*_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options))
+        return Solution(*_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options), problem)
     if any_equilibrium:  # the least-squares rows above have w > 0: not among these
         rows = ((status == _NOT_CONVERGED) | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
                                                                       status[rows] == _INFEASIBLE, iterations[rows],
                                                                       options)
-    return Solution(f, status, iterations)
+    return Solution(f, status, iterations, problem)
+
+
+def _external(problem: BoxQP, solver: str, options: _Options):
+    """``(f, status, iterations)`` of another back-end than the Newton (module docstring): proxsuite or qpsolvers'
+    ``solver`` on the cases with valid input (NaN and ``BAD_INPUT`` on the others)."""
+    f = torch.full_like(problem.f_ref_n, torch.nan)
+    status = torch.full_like(problem.crossed, Status.BAD_INPUT.code, dtype=torch.int32)
+    good = ~problem.bad_input
+    rows = problem.take(good)
+    if solver == "proxqp":
+        f[good], solved = proxsuite_solve(rows, options.fallback_max_iter, options.num_threads,
+                                          options.fallback_eps_abs)
+    elif _some(rows.w_m2 > 0):
+        raise BodySchemaInputError(f"solver={solver!r} solves equilibrium QPs (w_m2 = 0) only; least squares: "
+                                   "'newton' or 'proxqp'")
+    else:
+        f[good], solved = qpsolvers_solve(rows, solver)
+    status[good] = _external_codes(rows, f[good], solved)
+    return f, status, torch.zeros_like(status)
+
+
+def _external_codes(problem: BoxQP, f, solved) -> torch.Tensor:
+    """(B,) int32: OK where ``solved`` (and, for an equilibrium case, balanced to ``EQUILIBRIUM_TOL_NM`` in an
+    uncrossed box), else INFEASIBLE where the box crosses or the torque-reach screen proves it, else NOT_CONVERGED."""
+    equilibrium = problem.w_m2 == 0
+    ok = solved & ~problem.crossed & (~equilibrium | (problem.balance_residual_nm(f) <= EQUILIBRIUM_TOL_NM))
+    outside = problem.crossed.clone()
+    screen = ~ok & equilibrium & ~outside
+    if _some(screen):
+        rows = problem.take(screen)
+        outside[screen] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM)
+    return torch.where(ok, _OK, torch.where(outside, _INFEASIBLE, _NOT_CONVERGED)).to(torch.int32)
 
 
 def _left(status, w_m2) -> list:

@@ -36,8 +36,8 @@ from ..faults.faults import Faults
 from ..faults.bounds import FaultBounds
 from .._numpy import to_numpy
 from ..sim.model import MusculoskeletalModel, check_threads
-from ..sim.spring import elongation_from_tension, spring_for_model
-from ..solvers import EQUILIBRIUM_TOL_NM, BoxQP, outside_torque_reach, proxsuite_solve, solve_box_qp
+from ..sim.spring import spring_for_model
+from ..solvers import BoxQP, solve_box_qp, uncrossed_box
 from ..status import Status, status_array
 from .muscles import MuscleCurves, read_muscle_curves
 
@@ -84,23 +84,12 @@ class StaticResult:
 @torch.inference_mode()  # numpy in and out: no tensor here needs autograd's version counters
 def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str):
     """``argmin ||x - x_ref||^2  s.t.  -G^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,): the
-    one QP call. ``"newton"``: ``solvers.solve_box_qp`` (the dual Newton to ``STATIC_TOL_NM``, the torque-reach
-    screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave); ``"proxqp"``: proxsuite alone to
-    ``PROXQP_EPS`` (a row it does not solve reads ``infeasible`` where the screen proves it, else ``not_converged``)."""
-    problem = BoxQP.build(G, tau_nm, x_ref, lo, hi)
-    if solver == "proxqp":
-        x, solved = proxsuite_solve(problem, PROXQP_MAX_ITER, eps_abs=PROXQP_EPS)
-        out = torch.zeros_like(solved)
-        if not bool(solved.all()):  # what proxsuite leaves: infeasible where the torque-reach screen proves it
-            rows = problem.take(~solved)
-            out[~solved] = outside_torque_reach(rows.G, rows.tau_nm, rows.lo_n, rows.hi_n, EQUILIBRIUM_TOL_NM)
-        status = np.where(to_numpy(solved), Status.OK.code,
-                          np.where(to_numpy(out), Status.INFEASIBLE.code, Status.NOT_CONVERGED.code))
-    else:
-        solution = solve_box_qp(problem, tol=STATIC_TOL_NM, fallback_max_iter=PROXQP_MAX_ITER,
-                                fallback_eps_abs=PROXQP_EPS, least_squares=False)  # rows not ok are NaN
-        x, status = solution.f_n, to_numpy(solution.status)
-    return np.clip(to_numpy(x), lo, hi), status
+    one QP call, ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the
+    torque-reach screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
+    ``PROXQP_EPS``); rows not ``ok`` are NaN."""
+    solution = solve_box_qp(BoxQP.build(G, tau_nm, x_ref, lo, hi), solver, tol=STATIC_TOL_NM,
+                            fallback_max_iter=PROXQP_MAX_ITER, fallback_eps_abs=PROXQP_EPS, least_squares=False)
+    return np.clip(to_numpy(solution.f_n), lo, hi), to_numpy(solution.status)
 
 
 class StaticBody:
@@ -193,7 +182,7 @@ class StaticBody:
             with np.errstate(invalid="ignore"):
                 status[(status == Status.ACTIVATION_ABOVE_ONE) & (activation.max(1) <= 1.0 + 1e-12)] = Status.OK
         return StaticResult(self.model.joint_names, self.model.muscle_names, q, f,
-                            self._motor_lengths(l_geo, f, bounds), activation, status, objective,
+                            bounds.motor_length_m(l_geo, f), activation, status, objective,
                             faults, [] if self.curves is None else list(self.curves.actuators))
 
     def _objective(self, objective):
@@ -214,13 +203,6 @@ class StaticBody:
                                        f"or {shape} [N]")
         return np.broadcast_to(f_ref, shape).copy()
 
-    def _motor_lengths(self, l_geo_m, f, bounds: FaultBounds):
-        """``l_motor = l - delta(f)`` [m]; a slack wire's motor at its band's lower end (as ``faults.qp``)."""
-        l_lo, l_hi = bounds.l_lo_m, bounds.l_hi_m
-        l_motor = l_geo_m - elongation_from_tension(f, self.spring)
-        l_motor = np.where((f <= 0.0) & np.isfinite(l_lo), np.maximum(l_motor, l_lo), l_motor)
-        return np.minimum(l_motor, l_hi)
-
 
 RELAXED_ACTIVATION = 1e3  # the activation cap of the second solve: held above it counts as infeasible
 
@@ -233,7 +215,7 @@ def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status):
     x_lo = np.where(positive, (lo - offset) / unit, np.where(lo <= offset, 0.0, 1.0))  # scale 0: f = offset
     x_hi = np.where(positive, (hi - offset) / unit, np.where(offset <= hi, 0.0, -1.0))
     Gx, tau_x = G * np.where(positive, scale, 0.0)[..., None], tau_nm + np.einsum("bmn,bm->bn", G, offset)
-    crossed = (x_lo > x_hi).any(1)
+    x_lo, crossed = uncrossed_box(x_lo, x_hi)
     x, code = np.full(lo.shape, np.nan), np.full(len(lo), Status.INFEASIBLE.code)  # crossed: infeasible
     if (~crossed).any():
         x[~crossed], code[~crossed] = _solve_box_qp(Gx[~crossed], tau_x[~crossed], x_ref[~crossed], x_lo[~crossed],

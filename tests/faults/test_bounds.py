@@ -122,3 +122,44 @@ def _unchecked(names, cut=(), jam=(), weak=(), band=()):
         for x, v in entry.items():
             faults.l_band_m[0, names.index(x)] = v
     return faults
+
+
+def test_a_tension_in_the_box_gives_a_motor_length_within_every_bound_in_numpy_and_torch_alike():
+    """``motor_length_m``: the spring's inverse at a tension in the box meets the length bounds (to exp/log1p's
+    rounding, ~1e-15 m at these 0.1-0.3 m lengths); a slack banded wire's motor stands at l_geo or, where the band
+    lies above it, at the band's lower end; the
+    torch form (the exported adapter's) is the numpy form to log1p's last bit."""
+    l_geo, faults = _cases()
+    bounds = FaultBounds.from_faults(faults, SPRING.f_max_n, SPRING)
+    lo, hi = bounds.tension_box(l_geo)
+    # rows whose length bounds conflict on their own (a band's lo above a jam's l_fixed, both above l_geo) keep an
+    # uncrossed box [0, 0] of a slack wire: no motor length meets them; the safe command's check refuses those
+    held = (lo <= hi).all(1) & (bounds.l_lo_m <= bounds.l_hi_m).all(1)
+    rng = np.random.default_rng(1)
+    f = np.where(held[:, None], lo + rng.random(lo.shape) * (np.minimum(hi, 1e3) - lo), np.nan)
+    f[:, 0] = np.where(held, lo[:, 0], np.nan)  # a lower end: 0 on a free or banded-slack muscle
+    l_motor = bounds.motor_length_m(l_geo, f)
+    assert np.isfinite(l_motor[held]).all() and np.isnan(l_motor[~(lo <= hi).all(1)]).all()
+    broken_m, _ = bounds.take(held).broken(l_motor[held], f[held])
+    assert broken_m.max() <= 1e-14
+    slack_banded = held[:, None] & (f <= 0) & bounds.band
+    at_band = np.minimum(np.maximum(l_geo, bounds.l_lo_m), bounds.l_hi_m)  # at l_geo, else up at the band's lo
+    assert (l_motor[slack_banded] == at_band[slack_banded]).all()
+    assert (l_motor[slack_banded] > l_geo[slack_banded]).sum() >= 10  # moved up to a band above the slack wire
+    like = torch.zeros((), dtype=torch.float64)
+    on_torch = FaultBounds.from_faults(faults, SPRING.f_max_n, SPRING, like=like)
+    got = on_torch.motor_length_m(torch.as_tensor(l_geo), torch.as_tensor(f)).numpy()
+    np.testing.assert_allclose(got, l_motor, rtol=0, atol=4e-16)  # torch's log1p may round one ulp apart
+
+
+def test_the_learned_body_renames_infeasible_and_nothing_else():
+    from lightning_bodyschema.faults.qp import learned_body_status
+    from lightning_bodyschema.status import Status
+
+    codes = np.arange(len(Status))
+    renamed = learned_body_status(codes)
+    assert renamed[Status.INFEASIBLE.code] == Status.INFEASIBLE_LEARNED.code
+    keep = codes != Status.INFEASIBLE.code
+    np.testing.assert_array_equal(renamed[keep], codes[keep])
+    on_torch = learned_body_status(torch.as_tensor(codes, dtype=torch.int32))
+    assert on_torch.dtype == torch.int32 and on_torch.tolist() == renamed.tolist()

@@ -1,4 +1,5 @@
-"""The body-schema contract: capabilities are declared and held to the class; the adapter dispatches on them.
+"""The body-schema contract: capabilities are declared and held to the class; the adapter dispatches on them; what a
+BodySchema must do (contract.py) is checked on the schemas, and a subclass that breaks one promise fails the check.
 
 The SI path runs a real architecture: ``ExactBodySchema`` answers ``adapt_si`` with the equilibrium QP (proxsuite)
 on the robot's own MuJoCo model, turning each fault constraint into tension bounds through the spring — the
@@ -10,13 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from physics_checks import torque_residual
+from physics_checks import fit_structured, torque_residual
 from torch import nn
 
 from lightning_bodyschema.contract import (ADAPTS_IN_SI, ADAPTS_NORMALIZED, EPOCH_HOOK, REFRESHES_DERIVED_STATE,
-                                           SchemaContract)
+                                           SchemaContract, check_capabilities)
 from lightning_bodyschema.evaluation import make_fault_cases, oracle_commands
-from lightning_bodyschema.schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, VAESchema
+from lightning_bodyschema.schemas import AutoEncoderSchema, BodySchema, DiffusionSchema, StructuredSchema, VAESchema
 from lightning_bodyschema.sim import elongation_from_tension, solve_equilibrium_qp
 
 
@@ -84,8 +85,110 @@ def test_the_architectures_declare_what_they_do():
     assert BodySchema.capabilities == frozenset()
 
 
-def test_a_schema_satisfies_the_declared_contract(dm):
-    assert isinstance(ExactBodySchema(robot=dm.robot), SchemaContract)
+def contract_breaches(schema, q_rad: np.ndarray, x_si: np.ndarray) -> list[str]:
+    """What ``schema`` does against what contract.py says a BodySchema must do, at postures ``q_rad (B, N)`` [rad]
+    with healthy commands ``x_si (B, 2M)`` [m, N]: one line per broken promise (empty: it keeps the contract)."""
+    breaches, cls = [], type(schema)
+    b, m, n = len(q_rad), schema.n_muscles, schema.n_joints
+    try:
+        check_capabilities(cls, BodySchema)
+    except TypeError as error:
+        breaches.append(f"capabilities: {error}")
+    if not isinstance(schema, SchemaContract) or "default" not in schema.VARIANTS:
+        breaches.append("attributes: SchemaContract's names, VARIANTS with 'default'")
+    q = torch.as_tensor(q_rad)
+    q_n, x_n = schema.encode_q(q), schema.normalizer.encode_x(torch.as_tensor(x_si)).to(schema.dtype)
+    loss, logs = schema.training_loss(q_n, x_n)
+    if not (torch.is_tensor(loss) and loss.dim() == 0 and torch.isfinite(loss)):
+        breaches.append(f"training_loss: the loss is {loss!r}, not a finite scalar tensor")
+    if not all(not torch.is_tensor(v) or (v.dim() == 0 and not v.requires_grad) for v in logs.values()):
+        breaches.append("training_loss: logs hold a tensor that is not a detached scalar")
+    with torch.no_grad():
+        shaped = schema.generate(q_n)
+    if tuple(shaped.shape) != (b, 2 * m):
+        breaches.append(f"generate: x_n of shape {tuple(shaped.shape)}, not {(b, 2 * m)}")
+    try:
+        shapes = [getattr(a, "shape", a) for a in schema.infer(q_rad)]
+    except RuntimeError as error:  # the healthy command decoded from a generate of the wrong width
+        shapes = [str(error)]
+    if shapes != [(b, m), (b, m)]:
+        breaches.append(f"infer: not two (B, M) arrays: {shapes}")
+    decoded = schema.decode(x_n)  # back in normalized units (scale 1): the schema dtype's rounding, 8 float32 ulps
+    back = schema.normalizer.encode_x(decoded) if decoded.dtype == torch.float64 else None
+    if back is None or not torch.allclose(back, x_n.to(torch.float64), rtol=0, atol=1e-6):
+        breaches.append("decode: does not give the SI command back in float64")
+    return breaches + _adaptation_breaches(schema, q, b, m, n)
+
+
+def _adaptation_breaches(schema, q, b: int, m: int, n: int) -> list[str]:
+    """The declared adaptation's outputs (contract.py): adapt_si's (B, M) float64 pair (and a (B,) status), or
+    adapt_normalized's (B, 2M) normalized command."""
+    from lightning_bodyschema.faults import Faults
+    from lightning_bodyschema.faults.bounds import FaultBounds
+    from lightning_bodyschema.status import Status
+
+    faults = Faults.none(b, m)
+    if ADAPTS_IN_SI in schema.capabilities:
+        out = schema.adapt_si(q, FaultBounds.from_faults(faults, schema.spring.f_max_n, schema.spring), "default")
+        pair_ok = len(out) in (2, 3) and all(tuple(a.shape) == (b, m) and str(a.dtype).endswith("float64")
+                                               for a in out[:2])
+        status_ok = len(out) == 2 or (len(out[2]) == b and all(isinstance(s, Status) for s in out[2]))
+        return [] if pair_ok and status_ok else ["adapt_si: not (l_motor_m, f_n[, status]) of (B, M) float64"]
+    if ADAPTS_NORMALIZED in schema.capabilities:
+        penalty = schema.penalty_builder("default")(faults.constraints(schema.spring.f_max_n))
+        out = schema.adapt_normalized(schema.encode_q(q), penalty, "default")
+        return [] if tuple(out.shape) == (b, 2 * m) else [f"adapt_normalized: shape {tuple(out.shape)}"]
+    return []
+
+
+class _NarrowCommand(ExactBodySchema):
+    """Breaks ``generate``: the tensions only."""
+
+    def generate(self, q_n):
+        return super().generate(q_n)[:, self.n_muscles:]
+
+
+class _Float32Command(ExactBodySchema):
+    """Breaks ``adapt_si``: float32 tensors."""
+
+    def adapt_si(self, q_rad, bounds, variant, **options):
+        return tuple(t.float() for t in super().adapt_si(q_rad, bounds, variant, **options))
+
+
+class _LossPerSample(ExactBodySchema):
+    """Breaks ``training_loss``: one loss per sample instead of their mean."""
+
+    def training_loss(self, q_n, x_n):
+        return (self.net(q_n) - x_n).pow(2).sum(-1), {}
+
+
+def _postures(dm, b: int = 5):
+    q, x = dm.splits["val"]
+    return q[:b].numpy(), x[:b].numpy()
+
+
+@pytest.mark.parametrize("cls", [ExactBodySchema, DiffusionSchema, StructuredSchema])
+def test_every_kind_of_schema_keeps_the_contract(dm, cls):
+    """A schema that adapts in SI (the test's QP on the true body, the structured schema's on its learned one) and
+    one that adapts normalized commands: every promise of contract.py holds (fresh weights: shapes and units, not
+    accuracy)."""
+    if cls is StructuredSchema:  # its body is fitted, not trained: one epoch fits it
+        schema = fit_structured(dm)[0]
+    else:
+        schema = cls(robot=dm.robot)
+        schema.normalizer.load_state_dict(dm.normalizer.state_dict())
+    assert contract_breaches(schema, *_postures(dm)) == []
+
+
+@pytest.mark.parametrize("cls, promise", [(_NarrowCommand, "generate"), (_Float32Command, "adapt_si"),
+                                          (_LossPerSample, "training_loss")])
+def test_a_subclass_that_breaks_the_contract_fails_it(dm, cls, promise):
+    """The check can fail: a subclass that keeps every declaration (it is a valid class) but breaks one promise."""
+    schema = cls(robot=dm.robot)
+    schema.normalizer.load_state_dict(dm.normalizer.state_dict())
+    breaches = contract_breaches(schema, *_postures(dm))
+    assert breaches and breaches[0].startswith(promise), breaches
+    assert all(b.startswith((promise, "infer")) for b in breaches), breaches  # infer decodes generate's output
 
 
 def test_a_capability_must_match_the_methods():

@@ -143,3 +143,31 @@ def test_the_planar_screen_is_exact_on_known_zonotopes():
     edge = -(G.transpose(1, 2) @ extreme.unsqueeze(-1)).squeeze(-1)
     assert not outside_torque_reach(G, edge, lo, hi, 1e-6).any()
     assert outside_torque_reach(G, edge + 1.0 * u, lo, hi, 1e-6).all()
+
+
+@pytest.mark.parametrize("solver", ["proxqp", "qpsolvers"])
+def test_another_back_end_agrees_with_the_newton_by_name(solver):
+    """``solve_box_qp(problem, solver)``: proxsuite on every case, or a qpsolvers back-end by name (the one installed
+    here), gives the Newton's statuses (holdable OK, unholdable and crossed INFEASIBLE) and its tensions on OK rows
+    to proxsuite's tolerance; the Solution's residuals are its own."""
+    import qpsolvers
+
+    name = "proxqp" if solver == "proxqp" else qpsolvers.available_solvers[0]
+    rng, G, tau = _body(24, seed=3)
+    tau[:6] *= 3.0  # beyond 150 N on these arms
+    hi = np.full((24, M), 150.0)
+    hi[6:9, 0] = -1.0  # crossed bounds
+    problem = BoxQP.build(G, tau, rng.uniform(0.0, 150.0, (24, M)), 0.0, hi)
+    newton, other = solve_box_qp(problem), solve_box_qp(problem, name)
+    assert torch.equal(other.status, newton.status) and (other.status[6:9] == INFEASIBLE).all()
+    ok = other.status == OK
+    assert ok[9:].all() and (other.iterations == 0).all()
+    torch.testing.assert_close(other.f_n[ok], newton.f_n[ok], rtol=0.0, atol=1e-6)  # proxsuite's eps 1e-9 N m
+    assert (other.balance_residual_nm()[ok] <= 1e-6).all() and (other.box_residual_n() == 0).all()
+    assert (newton.balance_residual_nm()[:6][newton.status[:6] == INFEASIBLE] > 1e-3).all()
+
+
+def test_an_unknown_back_end_is_refused_by_name():
+    problem = BoxQP.build(*_body(2, seed=4)[1:], 75.0, 0.0, 150.0)
+    with pytest.raises(BodySchemaInputError, match="unknown QP solver 'gurobi'; allowed: 'newton', 'proxqp'"):
+        solve_box_qp(problem, "gurobi")
