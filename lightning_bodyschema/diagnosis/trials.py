@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..faults import Faults
+from ..sim.settle import SettleParams
 from ..status import Status
 from .explain import diagnose
 from .log import SensorLog
@@ -26,6 +27,7 @@ from .result import BAND, CUT, HEALTHY, JAM, KINDS, WEAK
 from .sensors import noisy, true_readings
 
 FAULT_KINDS = ("cut", "jam", "weak", "band")
+HOLD_S = 10.0  # a held posture's simulated time: a learned command drifts slowly along an arm's soft directions
 
 
 @dataclass
@@ -44,7 +46,7 @@ class Trial:
 
 
 def draw_trial(model, spring, pool, n_logs: int, n_faults: int, rng: np.random.Generator, max_rows: int = 5,
-               kinds=FAULT_KINDS) -> Trial:
+               kinds=FAULT_KINDS, params: SettleParams = SettleParams(max_time_s=HOLD_S)) -> Trial:
     """``n_logs`` logs of 1..max_rows postures drawn from ``pool = (q (P, N), l_cmd (P, M), f_cmd (P, M))`` (reachable
     postures with the healthy command for each), ``n_faults`` (0, 1, 2) faults per log of ``kinds``."""
     q_pool, l_pool, f_pool = pool
@@ -54,7 +56,7 @@ def draw_trial(model, spring, pool, n_logs: int, n_faults: int, rng: np.random.G
     q_ref, l_cmd, f_cmd = q_pool[pick], l_pool[pick], f_pool[pick]
     first = np.r_[0, np.cumsum(n_rows)[:-1]]
     truth, faults = _draw_faults(l_cmd[first], f_cmd[first], n_faults, kinds, rng)
-    readings = true_readings(model, spring, q_ref, l_cmd, f_cmd, faults.take(log_rows))
+    readings = true_readings(model, spring, q_ref, l_cmd, f_cmd, faults.take(log_rows), params)
     at_rest = np.bincount(log_rows, readings.at_rest, n_logs) == n_rows
     return Trial(truth, faults, q_ref, l_cmd, f_cmd, log_rows, readings, at_rest)
 
