@@ -154,13 +154,14 @@ def drill_summary(schema, q_ref, faults, result, settings) -> dict:
                              & (result.t_s <= (result.detected_s if np.isfinite(result.detected_s) else np.inf))]
     identified = None if result.diagnosis is None else faulted_names(result.diagnosis.kind[0], muscles)
     truth = fault_request(faults, 0, muscles)
-    rest = rest_errors(schema, q_ref, faults, None if result.diagnosis is None else result.diagnosis.faults)
+    rest = rest_errors(schema, q_ref, faults, None if result.diagnosis is None else result.diagnosis.union_faults(0))
     return {"q_ref": q_ref.tolist(), "fault": truth, "at_s": settings.at_s,
             "detected_s": None if np.isnan(result.detected_s) else float(result.detected_s),
             "detection_delay_s": None if np.isnan(result.detected_s) else float(result.detected_s - settings.at_s),
             "status": None if result.diagnosis is None else str(result.diagnosis.status[0]),
             "identified": identified, "identified_right": identified == _kinds(truth),
-            "diagnosed_faults": None if result.diagnosis is None else fault_request(result.diagnosis.faults, 0, muscles),
+            "diagnosed_faults": None if result.diagnosis is None else fault_request(result.diagnosis.union_faults(0), 0,
+                                                                                     muscles),
             "adapted_status": result.adapted_status,
             "error_before_fault_rad": float(before[-1]) if before.size else None,
             "error_after_fault_max_rad": float(after.max()) if after.size else None,

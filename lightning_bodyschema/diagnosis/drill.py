@@ -79,7 +79,8 @@ def run_drill(schema, q_ref, faults: Faults, rng, noise: Optional[SensorNoise] =
         rows.append((t, *reading, l_cmd.copy(), f_cmd.copy(), float(np.linalg.norm(q_true - q_ref))))
         if np.isnan(detected) and monitor.declared_diagnosis is not None:
             detected = t
-            adapted = schema.adapt(np.asarray(q_ref, float)[None], diagnosis.faults, check_physics=False)
+            # an ambiguous diagnosis: a command that holds under every candidate explanation
+            adapted = schema.adapt(np.asarray(q_ref, float)[None], diagnosis.union_faults(0), check_physics=False)
             if adapted.status[0] == Status.OK:
                 l_cmd, f_cmd = adapted.l_motor_m[0], adapted.f_n[0]
     cols = list(zip(*rows))
@@ -108,7 +109,7 @@ def rest_errors(schema, q_ref, faults: Faults, diagnosed: Optional[Faults]) -> d
     cases = FaultCases(q, faults.cut, faults.fix, faults.l_fixed_m,
                        condition_of(faults.cut, faults.fix, faults.weak, faults.band), faults.f_max_n, faults.l_band_m)
     commands = {"healthy": schema.infer(q)}
-    for name, given in (("true_faults", faults), ("diagnosed", diagnosed)):
+    for name, given in (("true_faults", faults), ("diagnosed", diagnosed)):  # diagnosed: what the drill adapted to
         if given is not None:
             result = schema.adapt(q, given, check_physics=False)
             commands[name] = (result.l_motor_m, result.f_n) if result.status[0] == Status.OK else None

@@ -42,6 +42,16 @@ class Diagnosis:
     def __len__(self) -> int:
         return len(self.status)
 
+    def union_faults(self, c: int) -> Faults:
+        """Log ``c``'s faults as one ``Faults`` row: for an ``ambiguous`` log every candidate's faults together (a
+        command that meets them all holds under whichever explanation is true; it may ask more than needed), else
+        ``faults``' row."""
+        if self.status[c] != Status.AMBIGUOUS or not self.candidates[c]:
+            return self.faults.take([c])
+        request = merge_requests({}, self.candidates[c])
+        request["cut"] = sorted(set(request.get("cut", [])), key=self.muscles.index)
+        return Faults.from_names(self.muscles, n_cases=1, **{k: [v] if k == "cut" else v for k, v in request.items()})
+
     def kind_names(self) -> np.ndarray:
         """(C, M) the kinds as names."""
         return np.asarray(KINDS, dtype=object)[self.kind]
