@@ -205,6 +205,7 @@ def _random_drills(schema, q_pool, args, settings, noise, load_cells):
         result = run_drill(schema, q_ref, faults, rng, noise, settings, load_cells)
         summary = drill_summary(schema, q_ref, faults, result, settings)
         summary["feasible"] = feasible
+        summary["identifiable"] = _identifiable(schema, q_ref, l_cmd, f_cmd, faults, noise, load_cells)
         summary["as_well_as_true"] = _as_well(summary["rest_error_rad"])
         rows.append(summary)
         print(f"drill {k + 1}/{args.n}: {summary['fault']} -> {summary['status']} {summary['identified']}, delay "
@@ -219,6 +220,27 @@ def _random_drills(schema, q_pool, args, settings, noise, load_cells):
     print(f"wrote {args.out}/drills.json: {args.n} drills in {time.perf_counter() - start:.0f} s")
 
 
+def _identifiable(schema, q_ref, l_cmd, f_cmd, faults, noise, load_cells) -> bool:
+    """The physics oracle's rule (``diagnosis.trials``): the true body's diagnosis of the noise-free readings at the
+    posture the faulted body comes to rest at names exactly the true faults."""
+    from ..diagnosis.trials import Trial, identifiable
+
+    trial = Trial(_truth(faults), faults, q_ref[None], l_cmd, f_cmd, np.zeros(1, int), None, np.ones(1, bool))
+    from ..diagnosis.sensors import true_readings
+
+    trial.readings = true_readings(schema.robot_model, schema.spring, q_ref[None], l_cmd, f_cmd, faults)
+    return bool(identifiable(trial, schema.robot_model, schema.spring, noise, None, load_cells)[0])
+
+
+def _truth(faults) -> np.ndarray:
+    from ..diagnosis.result import BAND, CUT, HEALTHY, JAM, WEAK
+
+    truth = np.full(faults.cut.shape, HEALTHY)
+    for mask, kind in ((faults.cut, CUT), (faults.fix, JAM), (faults.weak, WEAK), (faults.band, BAND)):
+        truth[mask] = kind
+    return truth
+
+
 def _as_well(rest: dict):
     diag, true = rest.get("diagnosed"), rest.get("true_faults")
     if diag is None or true is None:
@@ -229,6 +251,8 @@ def _as_well(rest: dict):
 def drill_table(rows: list) -> dict:
     feasible = [r for r in rows if r["feasible"]]
     good = [r for r in feasible if r["identified_right"] and r["as_well_as_true"]]
+    shown = [r for r in feasible if r["identifiable"]]
+    shown_good = [r for r in shown if r["identified_right"] and r["as_well_as_true"]]
     delays = [r["detection_delay_s"] for r in feasible if r["detection_delay_s"] is not None]
     statuses = {}
     for r in feasible:
@@ -236,5 +260,8 @@ def drill_table(rows: list) -> dict:
     return {"drills": len(rows), "feasible": len(feasible), "identified_right": sum(r["identified_right"] for r in feasible),
             "identified_and_as_well_as_true": len(good),
             "rate": len(good) / len(feasible) if feasible else None, "statuses": statuses,
+            "identifiable": len(shown), "identifiable_identified_and_as_well": len(shown_good),
+            "identifiable_rate": len(shown_good) / len(shown) if shown else None,
+            "as_well_as_true_any_status": sum(r["as_well_as_true"] for r in feasible),
             "detection_delay_s_median": float(np.median(delays)) if delays else None,
             "detection_delay_s_max": float(np.max(delays)) if delays else None}
