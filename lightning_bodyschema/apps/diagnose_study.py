@@ -98,6 +98,36 @@ def end_to_end(schema, model, spring, trial, d, ok) -> dict:
             "ratio_max": _q(ratio, 1.0)}
 
 
+def markdown(report: dict) -> str:
+    """The report's tables for RESULTS.md: one row per condition, then the single faults' confusion table."""
+    def pct(x):
+        return "n/a" if x is None else f"{100 * x:.1f} %"
+
+    rows = ["| condition | logs at rest | identifiable | right | statuses (identifiable) | wrong & `identified` "
+            "(identifiable / all / vs oracle) | false alarms | jam within 0.2 mm | weak within 3 % (median) | "
+            "E_q diagnosed / true (geo. mean ratio) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name in CONDITIONS:
+        r = report.get(name)
+        if r is None:
+            continue
+        p, e = r.get("parameters", {}), r.get("end_to_end", {})
+        statuses = ", ".join(f"{k} {v}" for k, v in r["statuses"].items())
+        alarms = f"{pct(r['false_alarm_rate'])} ({', '.join(f'{k} {v}' for k, v in r['false_alarm_statuses'].items()) or 'none'})" if "false_alarm_rate" in r else ""
+        jam = f"{pct(p.get('jam_within_0.2mm'))} of {p['jam_n']}" if p.get("jam_n") else ""
+        weak = f"{pct(p.get('weak_within_3pct'))} of {p['weak_n']} ({p['weak_err_pct_median']:.2f} %)" if p.get("weak_n") else ""
+        e2e = (f"{e['E_q_diagnosed_median']:.4g} / {e['E_q_true_median']:.4g} ({e['ratio_geometric_mean']:.4f})"
+               if e.get("n") else "")
+        rows.append(f"| {name} | {r['at_rest']} of {r['logs']} | {r['identifiable']} | {r['right']} ({pct(r['right_rate'])}) "
+                    f"| {statuses} | {r['wrong_identified']} / {r['wrong_identified_all_logs']} / "
+                    f"{r.get('wrong_identified_vs_oracle_all_logs', 'n/a')} | {alarms} | {jam} | {weak} | {e2e} |")
+    confusion = report.get("single", {}).get("confusion")
+    if confusion:
+        rows += ["", "| true kind \\ diagnosed | " + " | ".join(LABELS) + " |", "|---" * (len(LABELS) + 1) + "|"]
+        rows += [f"| {kind} | " + " | ".join(str(confusion[kind][label]) for label in LABELS) + " |"
+                 for kind in confusion]
+    return "\n".join(rows)
+
+
 def _rate(hit, among) -> float | None:
     return float(hit.sum() / among.sum()) if among.sum() else None
 
@@ -158,6 +188,7 @@ def diagnose_study_main(argv=None):
                                                      not args.no_load_cells, noise, thresholds)
         if CONDITIONS[name] == 1:
             figures["confusion"] = confusion(trial, d, ident)
+            figures["confusion_all_logs_at_rest"] = confusion(trial, d, trial.at_rest)
         if CONDITIONS[name] > 0:
             figures["parameters"] = parameter_errors(trial, d, ok & ident)
             if args.end_to_end:
@@ -167,4 +198,5 @@ def diagnose_study_main(argv=None):
     from ..npz import atomic_write_bytes
 
     atomic_write_bytes(args.out, (json.dumps(report, indent=1) + "\n").encode())
+    print(markdown(report))
     print(f"wrote {args.out}")
