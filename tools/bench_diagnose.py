@@ -82,7 +82,8 @@ def main():
     one = healthy_log(schema, q_pool[:args.rows], args.rows, rng)
     many = healthy_log(schema, q_pool[:args.rows * args.batch], args.rows, rng)
     q_one, q_many = one.q_rad[one.rows], many.q_rad[many.rows]
-    print(f"{type(schema).__name__}, {schema.n_joints} joints / {schema.n_muscles} muscles; load {os.getloadavg()[0]:.2f}")
+    print(f"{type(schema).__name__}, {schema.n_joints} joints / {schema.n_muscles} muscles; "
+          f"load {os.getloadavg()[0]:.2f}")
     for name, log, q, calls in (("batch 1", one, q_one, 20), (f"batch {args.batch}", many, q_many, 1)):
         total = timed(lambda: schema.diagnose(log), args.repeats, calls)
         body = timed(lambda: schema.learned_body_si(q), args.repeats, calls)

@@ -12,7 +12,8 @@ from .common import argument_parser, check_out, count_values, exits_cleanly, loa
 
 def diagnosis_json(diagnosis, meta: dict) -> str:
     """Strict JSON: a list, one entry per log (``Diagnosis.records``), each with ``meta`` beside it."""
-    return "[\n" + ",\n".join(json.dumps({**record, **meta}, allow_nan=False) for record in diagnosis.records()) + "\n]\n"
+    entries = [json.dumps({**record, **meta}, allow_nan=False) for record in diagnosis.records()]
+    return "[\n" + ",\n".join(entries) + "\n]\n"
 
 
 def _parser():

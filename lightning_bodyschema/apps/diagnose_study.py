@@ -36,8 +36,7 @@ def run_condition(schema, model, spring, pool, n_logs, n_faults, rng, load_cells
            "wrong_identified_all_logs": int((claimed & ~ok & trial.at_rest).sum()),
            # on a log that cannot show the truth (a trace-less fault, a band met only at its upper edge), the physics
            # oracle's own reading is the most any diagnosis can say: a claim that differs from it is a wrong answer
-           "wrong_identified_vs_oracle_all_logs": int((claimed & trial.at_rest & ((d.kind != oracle.kind).any(1)
-                                                                                  | (oracle.status != d.status))).sum()),
+           "wrong_identified_vs_oracle_all_logs": int((claimed & trial.at_rest & _differ(d, oracle)).sum()),
            "statuses": _counts(d.status[ident].astype(str)), "diagnose_ms_per_log": 1e3 * seconds / n_logs}
     if n_faults == 0:
         alarm = d.status != Status.NO_FAULT
@@ -93,7 +92,8 @@ def end_to_end(schema, model, spring, trial, d, ok) -> dict:
         e_q[name] = evaluate_commands(model, cases, result.l_motor_m, result.f_n, spring)["E_q"]
     both = np.isfinite(e_q["true"]) & np.isfinite(e_q["diagnosed"]) & (e_q["true"] > 0)
     ratio = e_q["diagnosed"][both] / e_q["true"][both]
-    return {"n": int(logs.size), "E_q_true_median": _q(e_q["true"], 0.5), "E_q_diagnosed_median": _q(e_q["diagnosed"], 0.5),
+    return {"n": int(logs.size), "E_q_true_median": _q(e_q["true"], 0.5),
+            "E_q_diagnosed_median": _q(e_q["diagnosed"], 0.5),
             "ratio_geometric_mean": float(np.exp(np.mean(np.log(ratio)))) if ratio.size else None,
             "ratio_max": _q(ratio, 1.0)}
 
@@ -112,20 +112,31 @@ def markdown(report: dict) -> str:
             continue
         p, e = r.get("parameters", {}), r.get("end_to_end", {})
         statuses = ", ".join(f"{k} {v}" for k, v in r["statuses"].items())
-        alarms = f"{pct(r['false_alarm_rate'])} ({', '.join(f'{k} {v}' for k, v in r['false_alarm_statuses'].items()) or 'none'})" if "false_alarm_rate" in r else ""
+        alarms = ""
+        if "false_alarm_rate" in r:
+            which = ", ".join(f"{k} {v}" for k, v in r["false_alarm_statuses"].items()) or "none"
+            alarms = f"{pct(r['false_alarm_rate'])} ({which})"
         jam = f"{pct(p.get('jam_within_0.2mm'))} of {p['jam_n']}" if p.get("jam_n") else ""
-        weak = f"{pct(p.get('weak_within_3pct'))} of {p['weak_n']} ({p['weak_err_pct_median']:.2f} %)" if p.get("weak_n") else ""
+        weak = (f"{pct(p.get('weak_within_3pct'))} of {p['weak_n']} ({p['weak_err_pct_median']:.2f} %)"
+                if p.get("weak_n") else "")
         e2e = (f"{e['E_q_diagnosed_median']:.4g} / {e['E_q_true_median']:.4g} ({e['ratio_geometric_mean']:.4f})"
                if e.get("n") else "")
-        rows.append(f"| {name} | {r['at_rest']} of {r['logs']} | {r['identifiable']} | {r['right']} ({pct(r['right_rate'])}) "
+        rows.append(f"| {name} | {r['at_rest']} of {r['logs']} | {r['identifiable']} | {r['right']} "
+                    f"({pct(r['right_rate'])}) "
                     f"| {statuses} | {r['wrong_identified']} / {r['wrong_identified_all_logs']} / "
                     f"{r.get('wrong_identified_vs_oracle_all_logs', 'n/a')} | {alarms} | {jam} | {weak} | {e2e} |")
-    confusion = report.get("single", {}).get("confusion")
-    if confusion:
-        rows += ["", "| true kind \\ diagnosed | " + " | ".join(LABELS) + " |", "|---" * (len(LABELS) + 1) + "|"]
-        rows += [f"| {kind} | " + " | ".join(str(confusion[kind][label]) for label in LABELS) + " |"
-                 for kind in confusion]
+    for key, what in (("confusion", "identifiable logs"), ("confusion_all_logs_at_rest", "every log at rest")):
+        table = report.get("single", {}).get(key)
+        if table:
+            rows += ["", f"| true kind \\ diagnosed ({what}) | " + " | ".join(LABELS) + " |",
+                     "|---" * (len(LABELS) + 1) + "|"]
+            rows += [f"| {kind} | " + " | ".join(str(table[kind][label]) for label in LABELS) + " |" for kind in table]
     return "\n".join(rows)
+
+
+def _differ(d, oracle) -> np.ndarray:
+    """(C,) bool: the diagnosis says something else than the physics oracle's own reading of the log."""
+    return (d.kind != oracle.kind).any(1) | (oracle.status != d.status)
 
 
 def _rate(hit, among) -> float | None:
@@ -145,8 +156,8 @@ def _counts(values) -> dict:
 
 def _parser():
     parser = argument_parser("How well a checkpoint's diagnosis names random faults in logs simulated in MuJoCo "
-                             "(healthy, one and two faults; with and without load cells); writes the figures (.json) and "
-                             "prints the tables.", checkpoint=True)
+                             "(healthy, one and two faults; with and without load cells); writes the figures (.json) "
+                             "and prints the tables.", checkpoint=True)
     parser.add_argument("--ckpt", required=True, help="trained schema checkpoint (.ckpt) of a robot with its MJCF")
     parser.add_argument("--out", required=True, help="figures (.json)")
     parser.add_argument("--n", type=int, default=200, help="logs per condition (default 200)")

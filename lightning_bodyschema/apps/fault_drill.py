@@ -22,7 +22,8 @@ def parse_fault(text: str) -> dict:
     kind, _, rest = text.partition(":")
     name, _, value = rest.partition("=")
     if kind not in KINDS or not name:
-        raise BodySchemaInputError(f"--fault {text!r}: expected cut:NAME, jam:NAME=L_M, weak:NAME=F_N or band:NAME=LO,HI")
+        raise BodySchemaInputError(f"--fault {text!r}: expected cut:NAME, jam:NAME=L_M, weak:NAME=F_N or "
+                                   f"band:NAME=LO,HI")
     if kind == "cut":
         return {"cut": [name]}
     try:
@@ -107,7 +108,8 @@ def fault_drill_main(argv=None):
         return _random_drills(schema, q_pool, args, settings, noise, load_cells)
     q_ref = _q_ref(args.q_ref, q_pool, schema)
     print(f"drill: holding q_ref {np.round(q_ref, 4).tolist()}, {args.fault} at {args.at} s, {args.seconds} s of "
-          f"MuJoCo ({schema.robot_model.n_joints} joints; seconds on the paper arm, a minute on myoArm) ...", flush=True)
+          f"MuJoCo ({schema.robot_model.n_joints} joints; seconds on the paper arm, a minute on myoArm) ...",
+          flush=True)
     _one_drill(schema, q_ref, faults, args, settings, noise, load_cells)
 
 
@@ -257,7 +259,8 @@ def drill_table(rows: list) -> dict:
     statuses = {}
     for r in feasible:
         statuses[str(r["status"])] = statuses.get(str(r["status"]), 0) + 1
-    return {"drills": len(rows), "feasible": len(feasible), "identified_right": sum(r["identified_right"] for r in feasible),
+    return {"drills": len(rows), "feasible": len(feasible),
+            "identified_right": sum(r["identified_right"] for r in feasible),
             "identified_and_as_well_as_true": len(good),
             "rate": len(good) / len(feasible) if feasible else None, "statuses": statuses,
             "identifiable": len(shown), "identifiable_identified_and_as_well": len(shown_good),

@@ -142,9 +142,10 @@ def _column_names(path, columns: dict, joints: list, muscles: list) -> None:
         prefix = next((p for p in SENT + READ if name.startswith(p)), None)
         known = joints if prefix == "q_" else muscles
         if prefix is None or name[len(prefix):] not in known:
-            raise BodySchemaInputError(f"{path}: column {name!r} is not a sensor log column{_did_you_mean(name, prefix, known)}; "
-                                       f"columns: q_<joint>, l_<muscle>, f_<muscle> (optional), l_cmd_<muscle>, "
-                                       f"f_cmd_<muscle>, t, case")
+            hint = _did_you_mean(name, prefix, known)
+            raise BodySchemaInputError(f"{path}: column {name!r} is not a sensor log column{hint}; columns: q_<joint>, "
+                                       f"l_<muscle>, f_<muscle> (optional), l_cmd_<muscle>, f_cmd_<muscle>, t, case, "
+                                       f"x_<yours>")
     required = [f"q_{j}" for j in joints] + [f"{p}{m}" for p in ("l_", "l_cmd_", "f_cmd_") for m in muscles]
     missing = [name for name in required if name not in columns]
     if missing:
