@@ -50,7 +50,7 @@ def load_cell_cuts(ev: Readings, motors: MotorFaults, thr: Thresholds) -> LoadCe
     chi_cut = np.where(ev.mask, f_read ** 2 / ev.sigma_f ** 2, 0.0).sum(1)
     signal = np.where(ev.mask, f_pred ** 2 / var_h, 0.0).sum(1)
     candidate = ev.log.has_f & (motors.kind == NONE)
-    observed = candidate & (signal > thr.z_observed ** 2)
+    observed = candidate & (signal > thr.decisive)
     score = np.where(candidate, chi_healthy - chi_cut, 0.0)
     # a cut reads 0 within the load cell's noise: a reading that is not 0 is no cut, however far the body's
     # prediction is (its own error at that posture), so both verdicts need the cut's explanation to fit
@@ -91,7 +91,7 @@ def balance_cuts(ev: Readings, motors: MotorFaults, cells: LoadCellCuts, thr: Th
     u = np.einsum("crij,crmj->crmi", whiten, ev.G * f_pred[..., None]) * ev.mask[..., None]
     candidate = ~has_f & (motors.kind == NONE)
     signal = (u ** 2).sum((1, 3))
-    observed = candidate & (signal > thr.z_observed ** 2)
+    observed = candidate & (signal > thr.decisive)
     chi0 = (w0 ** 2).sum((1, 2))
     chi1 = ((w0[:, :, None, :] + u) ** 2).sum((1, 3))
     tested = observed.any(1)

@@ -51,7 +51,9 @@ class Thresholds:
 
     z_encoder: an encoder reading this many sigma from its command is a motor that did not follow it (default 6:
         one false flag in ~5e8 readings).
-    z_observed: a fault is observable in a log when its effect on the readings reaches this many sigma (default 5).
+    z_observed: a fault is observable in a log when its effect on the readings reaches this many sigma (default 5);
+        a cut, which the log must tell from a healthy pull, when it reaches ``z_observed + sqrt(margin)`` sigma (9):
+        its evidence then falls on the right side of the margin but for a three-sigma draw of the noise.
     margin: an explanation is preferred over another when its chi-square is lower by this much; within it, both fit
         (``ambiguous``) (default 16, four sigma).
     per_fault: the chi-square price of each fault an explanation adds (default 9): a simpler explanation wins ties.
@@ -66,6 +68,11 @@ class Thresholds:
     per_fault: float = 9.0
     fit_p: float = 1.0 - 1e-6
     max_faults: int = 2
+
+    @property
+    def decisive(self) -> float:
+        """The chi-square a cut's expected evidence must reach for the log to decide it (``z_observed``)."""
+        return (self.z_observed + math.sqrt(self.margin)) ** 2
 
     def fit_limit(self, dof: np.ndarray) -> np.ndarray:
         """The chi-square a fitting explanation stays below, per log (``dof`` (C,) degrees of freedom)."""
