@@ -161,7 +161,7 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     fitted; ``x`` is inside the box, float64. A loop over the groups of muscles that share joints and cell terms (a
     posture's cell and basis are the group's), the postures sorted by cell and each cell's one matrix product (no
     ``(B, muscles, terms)`` gathers); an exported program gathers each muscle's cell coefficients for one basis of
-    every cell term (one path for any batch). Few postures in eager: ``networks.few_postures``."""
+    every cell term (one path for any batch). Few postures in eager: ``networks.snapshot``."""
     k, z = cell_inputs(path, x)
     if torch.compiler.is_exporting():
         cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
@@ -182,7 +182,7 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
 def cell_spread(path) -> torch.Tensor:
     """Every celled muscle's coefficients in each of its cells spread on every cell term, ``(Mc, C, T)``: zero off
     its own terms (a sum: the padding's zeros land on column 0 too). The evaluation at few postures takes a
-    posture's cell's rows (``networks.few_postures``: one index, not a gather and a scatter per call)."""
+    posture's cell's rows (``networks.snapshot.PathSnapshot``: one index, not a gather and a scatter per call)."""
     coef = path.cell_coef
     index = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
     return coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, index, coef)

@@ -36,7 +36,7 @@ from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre
 from .branches import fit_branches, group_system, one_thread, solve_systems
 from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
-from .few_postures import FewCoefficients, evaluate_few, few_coefficients, few_for
+from .snapshot import PathSnapshot, few_for
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -211,22 +211,22 @@ class PerMusclePath(nn.Module):
         """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)`` of every term (``product_basis``)."""
         return product_basis(x, self.exponents, self.degree, slopes)
 
-    def polynomial(self, x: torch.Tensor, slopes: bool = False, dense_coefs: Optional[FewCoefficients] = None):
+    def polynomial(self, x: torch.Tensor, slopes: bool = False, snapshot: Optional[PathSnapshot] = None):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
-        ``dense_coefs``: ``dense_coefficients()`` when the caller keeps them (used at few postures).
+        ``snapshot``: ``snapshot()`` when the caller keeps it (used at few postures).
 
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        At few postures (``few_postures.few_for``) every part from one basis (``networks.few_postures``); above, the
+        At few postures (``snapshot.few_for``) every part from one basis (``networks.snapshot.PathSnapshot``); above, the
         whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay in
         cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
         x64 = x.to(torch.float64)
+        if few_for(self, x64):
+            y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
+            return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         exporting = torch.compiler.is_exporting()
-        if few_for(self, inside):
-            y, dy = evaluate_few(self, x64, inside, self.dense_coefficients() if dense_coefs is None else dense_coefs)
-            return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         derive = slopes or not torch.equal(inside, x64)
         rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
         coefs = self._coefficients(exporting)  # once per call
@@ -243,10 +243,10 @@ class PerMusclePath(nn.Module):
         y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
-    def dense_coefficients(self) -> FewCoefficients:
-        """What the evaluation at few postures reads from the coefficients (``few_postures.few_coefficients``): a
+    def snapshot(self) -> PathSnapshot:
+        """The fitted polynomials frozen for the evaluation at few postures (``networks.snapshot.PathSnapshot``): a
         caller may keep it while they do not change (``StructuredSchema.body``: its inference cache)."""
-        return few_coefficients(self)
+        return PathSnapshot(self)
 
     def _coefficients(self, dense: bool) -> tuple:
         """The whole-box coefficients (masked: exactly zero off each muscle's terms), the branched muscles' gates
@@ -361,7 +361,7 @@ class PerMusclePath(nn.Module):
                                                         device=self.coef.device))
 
     def _set_few_terms(self, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
-        """``few_terms``: the whole-box and the cell terms over the variables of ``few_postures.evaluate_few`` (the
+        """``few_terms``: the whole-box and the cell terms over the variables of ``snapshot.PathSnapshot`` (the
         joints, their cell coordinates, the ``extra`` joints the cells keep whole), each variable's slope into its
         joint's column, times ``few_scale`` (``d local / d x = pieces`` on the cell coordinates)."""
         exponents, n_joints = self._cell_sources[1], self.crossing.shape[1]
@@ -428,10 +428,11 @@ class PerMusclePath(nn.Module):
         y = self.polynomial(x)[0]
         return y + self._network(x, False)[0] if self.n_hidden else y
 
-    def with_jacobian(self, x: torch.Tensor, dense_coefs: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross (``dense_coefs``:
+    def with_jacobian(self, x: torch.Tensor, snapshot: Optional[PathSnapshot] = None) -> tuple[torch.Tensor,
+                                                                                                torch.Tensor]:
+        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross (``snapshot``:
         ``polynomial``'s)."""
-        y, dy = self.polynomial(x, slopes=True, dense_coefs=dense_coefs)
+        y, dy = self.polynomial(x, slopes=True, snapshot=snapshot)
         if self.n_hidden:
             y_net, dy_net = self._network(x, True)
             y, dy = y + y_net, dy + dy_net

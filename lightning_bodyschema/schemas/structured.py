@@ -35,13 +35,13 @@ from ..faults.qp import OK, bounds_command
 from ..networks.cells import CELL_JOINTS, CELL_KEEP
 from ..networks.gravity import GravityTorque
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
+from ..networks.snapshot import BodySnapshot, GravitySnapshot, few_for
 from ..networks.structured import JacobianMLP, check_architecture
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
 from ..status import Status
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
-from .host_body import host_body
 
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
 FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned moment arms, not the optimizer
@@ -49,6 +49,9 @@ TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at mos
 TORQUE_TRIM = 3.0  # its refits drop postures missed by more than this many medians (RESULTS.md "Per-muscle paths")
 TORQUE_TRIM_ROUNDS = 8
 LENGTH_MODELS = ("mlp", "per_muscle")
+# ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``snapshot.few_for``): on myoArm
+# numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation, myoArm")
+HOST_ROWS = 16
 
 
 class StructuredSchema(BodySchema):
@@ -290,8 +293,8 @@ class StructuredSchema(BodySchema):
         in the networks' dtype (``tau`` None with ``lengths_only``). Differentiable in the weights."""
         l_mean, l_std, arm = self._length_scales(q_n.dtype)
         if isinstance(self.length_net, PerMusclePath) and not torch.compiler.is_exporting():  # fitted coefficients
-            coefs = self.inference_cache.get("path_coefficients", self.length_net.dense_coefficients)
-            l_geo_n, dl_n = self.length_net.with_jacobian(q_n, coefs)
+            snapshot = self.inference_cache.get("path_snapshot", self.length_net.snapshot)
+            l_geo_n, dl_n = self.length_net.with_jacobian(q_n, snapshot)
         else:
             l_geo_n, dl_n = self.length_net.with_jacobian(q_n)
         return l_mean + l_std * l_geo_n, dl_n * arm, None if lengths_only else self.torque(q_n)
@@ -311,8 +314,8 @@ class StructuredSchema(BodySchema):
             q = self.normalizer.decode_q(q_n.to(torch.float64))
             if torch.compiler.is_exporting():
                 return self.torque_net(q).to(q_n.dtype)
-            terms = self.inference_cache.get("gravity_coef_terms", self.torque_net.coef_terms)  # coef is fitted
-            return self.torque_net(q, terms).to(q_n.dtype)
+            snapshot = self.inference_cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
+            return self.torque_net(q, snapshot).to(q_n.dtype)
         scale = self.tau_scale_nm.to(q_n.dtype)
         if self.hparams.torque_model in ("direct", "polynomial"):
             return scale * self.torque_net(q_n)
@@ -377,13 +380,30 @@ class StructuredSchema(BodySchema):
     # ------------------------------------------------------------------ commands
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
-        (on the CPU, up to ``schemas.host_body.HOST_ROWS`` postures, in numpy)."""
-        host = host_body(self, q_rad)
-        if host is not None:
-            return host(q_rad.detach().cpu().numpy().astype(np.float64))
+        (a per-muscle path without hidden layers and a gravity torque on the CPU, up to ``HOST_ROWS`` postures: its
+        ``BodySnapshot`` in numpy)."""
+        if self._on_host(q_rad):
+            return self.inference_cache.get("body_snapshot", self._body_snapshot)(
+                q_rad.detach().cpu().numpy().astype(np.float64))
         with torch.no_grad():
             q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
             return tuple(t.cpu().numpy().astype(np.float64) for t in self.body(q_n))  # a copy: the caller owns it
+
+    def _on_host(self, q_rad: torch.Tensor) -> bool:
+        """Whether ``body_si`` at ``q_rad`` takes the numpy ``BodySnapshot``: in eval mode, not exporting, on the CPU,
+        up to ``HOST_ROWS`` postures within the path's few-postures budget, for the body it covers."""
+        path = self.length_net
+        return (not self.training and not torch.compiler.is_exporting() and len(q_rad) <= HOST_ROWS
+                and isinstance(path, PerMusclePath) and not path.n_hidden and few_for(path, q_rad)
+                and self.hparams.torque_model == "gravity" and self.device.type == "cpu")
+
+    def _body_snapshot(self) -> BodySnapshot:
+        """The fitted body frozen in numpy, from the snapshots ``body`` and ``torque`` keep."""
+        cache = self.inference_cache
+        path = cache.get("path_snapshot", self.length_net.snapshot)
+        gravity = cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
+        norm = self.normalizer
+        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype)).numpy()
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:

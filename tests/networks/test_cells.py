@@ -110,14 +110,14 @@ def test_cell_numbering_and_degrees(fitted):
 
 
 def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
-    from lightning_bodyschema.networks import few_postures
+    from lightning_bodyschema.networks import snapshot
     from lightning_bodyschema.networks.basis import DENSE_ROWS
 
     x = _inside(600, 5)
-    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
+    monkeypatch.setattr(snapshot, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
     y, dy = fitted.with_jacobian(x)
-    monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.few_postures)
-    assert few_postures.few_for(fitted, x[:DENSE_ROWS])
+    monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.snapshot)
+    assert snapshot.few_for(fitted, x[:DENSE_ROWS])
     parts = [fitted.with_jacobian(x[i:i + DENSE_ROWS]) for i in range(0, 600, DENSE_ROWS)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=1e-13)
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
@@ -135,7 +135,7 @@ def test_the_cells_spread_coefficients_are_each_muscles_own(fitted):
     used = torch.zeros(3, len(v), dtype=torch.bool).scatter_(1, fitted.cell_order, fitted.cell_valid)
     assert (spread[~used[:, None, :].expand_as(spread)] == 0).all()
     x = _inside(40, 6)  # few postures: the dense basis
-    for ours, theirs in zip(fitted.with_jacobian(x, fitted.dense_coefficients()), fitted.with_jacobian(x)):
+    for ours, theirs in zip(fitted.with_jacobian(x, fitted.snapshot()), fitted.with_jacobian(x)):
         assert torch.equal(ours, theirs)
 
 

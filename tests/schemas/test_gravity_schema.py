@@ -55,14 +55,15 @@ def test_gravity_needs_the_mjcf_and_the_per_muscle_lengths(paper_arm):
 
 
 def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers_as_body(paper_arm, monkeypatch):
-    """Up to HOST_ROWS postures (in eval mode) ``body_si`` takes ``schemas.host_body``: each step and cast of
-    ``StructuredSchema.body`` in numpy; more postures, or training, the torch evaluation."""
-    from lightning_bodyschema.schemas import host_body
+    """Up to HOST_ROWS postures (in eval mode) ``body_si`` takes its numpy ``BodySnapshot``: each step and cast of
+    ``StructuredSchema.body``; more postures, or training, the torch evaluation."""
+    from lightning_bodyschema.networks.snapshot import BodySnapshot
+    from lightning_bodyschema.schemas import structured
 
     schema, _ = paper_arm
     calls = []
-    original = host_body.HostBody.__call__
-    monkeypatch.setattr(host_body.HostBody, "__call__", lambda self, q: calls.append(len(q)) or original(self, q))
+    original = BodySnapshot.__call__
+    monkeypatch.setattr(BodySnapshot, "__call__", lambda self, q: calls.append((len(q), self.xp)) or original(self, q))
     q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(9), 17))
     q[0] += 0.2  # beyond the sampled range: the first-order extension
     for rows in (1, 16, 17):
@@ -71,10 +72,10 @@ def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers
             expected = [t.double().numpy() for t in schema.body(schema.normalizer.encode_q(q[:rows]).to(schema.dtype))]
         for got, want in zip((l_geo, G, tau), expected):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
-    assert calls == [1, 16] and host_body.HOST_ROWS == 16
+    assert calls == [(1, np), (16, np)] and structured.HOST_ROWS == 16
     schema.train()
     try:
         schema.body_si(q[:1])
     finally:
         schema.eval()
-    assert calls == [1, 16]
+    assert calls == [(1, np), (16, np)]
