@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..networks.snapshot import decode_q, encode_q
+from ..networks.arrays import decode_q, encode_q
 
 
 class Normalizer(nn.Module):

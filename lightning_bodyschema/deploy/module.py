@@ -34,7 +34,7 @@ from ..errors import BodySchemaInputError
 from ..faults.bounds import FaultBounds
 from ..faults.penalty import BoundsPenalty
 from ..faults.projection import FaultProjection
-from ..networks.snapshot import encode_q
+from ..networks.arrays import encode_q
 from ..status import STATUS_CODES  # noqa: F401  (re-exported: the package's codes are the vocabulary's)
 
 VARIANT = "default"

@@ -102,7 +102,7 @@ class ProductTerms(nn.Module):
         stacked = np.concatenate([np.zeros((len(slot_joint), 1), np.int64), 1 + columns[slot_joint]], 1)
         for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.reshape(-1), **long),
                                 slot_joint=torch.tensor(slot_joint, **long), exponents=torch.tensor(exponents, **long),
-                                stacked_index=torch.tensor(stacked, **long),  # (P, 1 + slots): ``TermsSnapshot``'s columns
+                                stacked_index=torch.tensor(stacked, **long),  # (P, 1 + slots): ``TermsSnapshot``'s
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):

@@ -23,7 +23,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .snapshot import JUMP_ROWS, GravitySnapshot, horner
+from .arrays import horner
+from .snapshot import JUMP_ROWS, GravitySnapshot
 from .trim import trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)

@@ -218,9 +218,9 @@ class PerMusclePath(nn.Module):
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        At few postures (``snapshot.few_for``) every part from one basis (``networks.snapshot.PathSnapshot``); above, the
-        whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay in
-        cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
+        At few postures (``snapshot.few_for``) every part from one basis (``networks.snapshot.PathSnapshot``); above,
+        the whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay
+        in cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
         x64 = x.to(torch.float64)
         if few_for(self, x64):
             y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)

@@ -60,8 +60,8 @@ def test_contracted_slopes_are_the_autograd_jacobian_and_both_paths_agree(terms,
 
 
 def test_stacked_slopes_follow_the_chain_rule_into_shared_columns():
-    """``TermsSnapshot`` (torch and numpy) over variables ``v = (x, 4 x - 1, x_1)`` whose slopes go into x's columns with their chain-rule
-    factor: column 0 each term, the others its derivative in x, as autograd gives it (float64)."""
+    """``TermsSnapshot`` (torch and numpy) over variables ``v = (x, 4 x - 1, x_1)`` whose slopes go into x's columns
+    with their chain-rule factor: column 0 each term, the others its derivative in x, as autograd gives it."""
     exponents = np.random.default_rng(3).integers(0, 4, (60, 7)) * (np.random.default_rng(4).random((60, 7)) < 0.4)
     product = ProductTerms(exponents, columns=[0, 1, 2, 0, 1, 2, 1])
     scale = torch.tensor([1.0, 1.0, 1.0, 4.0, 4.0, 4.0, 1.0], dtype=torch.float64)
