@@ -1,5 +1,5 @@
 """The few operations whose spelling differs between numpy and torch, for code written once for both (the body's
-snapshots, ``networks.snapshot``), and ``Frozen``: an object of arrays that ``numpy()`` copies to the host. No
+snapshots, ``networks.snapshot``), and ``Frozen``: an object of arrays that ``on_host()`` copies to numpy. No
 Lightning."""
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def take(a, index, axis: int):
 def product(a, b):
     """``a @ b``; numpy's by torch (its BLAS follows ``torch.set_num_threads``, numpy's OpenBLAS starts threads)."""
     if isinstance(a, np.ndarray):
-        return torch.matmul(torch.from_numpy(a), torch.from_numpy(b)).numpy()
+        return torch.matmul(torch.from_numpy(a), torch.from_numpy(b)).cpu().numpy()
     return a @ b
 
 
@@ -73,22 +73,22 @@ def offsets(x, step: int):
 
 
 class Frozen:
-    """Arrays (torch tensors, or numpy arrays after ``numpy()``) and plain values held as attributes; ``xp`` is the
-    array library they belong to."""
+    """Arrays (torch tensors, or numpy arrays after ``on_host()``) and plain values held as attributes; ``xp`` is the
+    array library they belong to (``on_host()``: numpy)."""
 
     xp = torch
 
-    def numpy(self):
-        """A copy over host copies of every tensor (the parts' too); never a view of a module's memory."""
+    def on_host(self):
+        """A copy in numpy over host copies of every tensor (the parts' too); never a view of a module's memory."""
         out = copy.copy(self)
         for name, value in vars(self).items():
             if torch.is_tensor(value):
                 setattr(out, name, value.detach().cpu().numpy().copy())
             elif isinstance(value, Frozen):
-                setattr(out, name, value.numpy())
+                setattr(out, name, value.on_host())
             elif isinstance(value, list) and value and torch.is_tensor(value[0]):
                 setattr(out, name, [v.detach().cpu().numpy().copy() for v in value])
             elif isinstance(value, torch.dtype):
-                setattr(out, name, torch.empty(0, dtype=value).numpy().dtype)
+                setattr(out, name, torch.empty(0, dtype=value).cpu().numpy().dtype)
         out.xp = np
         return out

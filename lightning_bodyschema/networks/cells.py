@@ -43,6 +43,7 @@ from ..errors import BodySchemaInputError
 from .basis import product_basis
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
+from .path_config import CELL_JOINTS
 from .trim import trimmed_refits
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
@@ -50,8 +51,6 @@ CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle
 CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
 CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
 CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kept samples stop changing)
-CELL_JOINTS = ("crossed", "largest_group")  # which joints cut a muscle's box (``cell_cuts``)
-CELL_KEEP = ("median_and_p99", "median")  # what a muscle's cells must improve to be kept (``_kept``)
 
 
 def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 from typing import Optional
 
 import numpy as np
@@ -34,8 +35,9 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
+from .cells import cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
 from .degrees import block_sizes, muscle_degrees
+from .path_config import PathConfig
 from .snapshot import PathSnapshot, few_for
 from .trim import trimmed_refits
 
@@ -111,7 +113,7 @@ def degrees_within_tolerance(crossing, x: torch.Tensor, y: torch.Tensor, scale: 
     ``max_terms`` terms per muscle on ``x (S, N)``, ``y (S, M)``; the muscles whose p99 residual times ``scale (M,)``
     exceeds ``tolerance`` (same units) then share ``budget`` (``muscle_degrees`` with ``eligible``)."""
     crossing = check_crossing(crossing)
-    first = PerMusclePath(crossing, degree, 1, 0, max_terms, blocks=blocks).to(x.device)
+    first = PerMusclePath(crossing, degree=degree, n_hidden=0, max_terms=max_terms, blocks=blocks).to(x.device)
     first.fit_polynomial(x, y)
     p99 = torch.quantile((first(x.to(torch.float64)) - y.to(torch.float64)).abs() * scale.to(x.device), 0.99, dim=0)
     return muscle_degrees(crossing, degree, max_terms, budget, (p99 > tolerance).cpu().numpy(), blocks)
@@ -122,57 +124,23 @@ class PerMusclePath(nn.Module):
 
     Args:
         crossing: ``(M, N)`` bool array (numpy or nested lists), which joints each muscle crosses.
-        degree, max_terms: each muscle's polynomial has the highest total degree ``<= degree`` with at most
-            ``max_terms`` terms over the joints it crosses (``muscle_degrees``).
-        term_budget: None, or the most terms over all muscles together: what ``max_terms`` leaves is spent raising
-            the lowest degrees first (the muscles that cross many joints; ``muscle_degrees``), up to ``degree``.
-        degrees: None, or each muscle's total degree ``(M,)`` (then ``degree``, ``max_terms`` and ``term_budget``
-            are not used; ``degrees_within_tolerance`` chooses them from data).
-        hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
-        branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` where a path jumps.
-        cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst get ``cells ** n`` cells
-            over their ``n`` joints, one polynomial each (``networks.cells``).
-        blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
-            (``check_blocks``; ``sim.separable.separable_blocks`` finds them in an MJCF): no term mixes two
-            groups, so the same number of terms reaches a higher degree.
-        cell_trim: None, or each cell refitted without the samples it misses by more than this many times the kept
-            ones' median (``networks.cells._trimmed``: a jump inside a cell then costs its smaller side, not a ring
-            over the whole cell).
-        cell_joints: which joints cut a celled muscle's box (``networks.cells.cell_cuts``): ``"crossed"`` (every
-            joint it crosses) or ``"largest_group"`` (those of its largest group of ``blocks``; the others stay whole
-            in each cell's polynomial).
-        cell_keep: what a muscle's cells must improve on the fitted samples to be kept (``networks.cells._kept``):
-            ``"median_and_p99"`` (halve the median residual, no larger p99) or ``"median"`` (halve the median).
+        config: the options (``networks.path_config.PathConfig``: degrees and term budgets, the per-muscle MLP,
+            branches, cells, blocks); ``options``: the same by name, instead of or over ``config``.
     """
 
-    def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
-                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
-                 cells: int = 1, cell_degrees=None, blocks=None, cell_trim: Optional[float] = None,
-                 cell_joints: str = "crossed", cell_keep: str = "median_and_p99"):
+    def __init__(self, crossing, config: Optional[PathConfig] = None, **options):
         super().__init__()
-        for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
-                                 ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise BodySchemaInputError(f"{name}={value!r} must be an integer >= {low}")
-        if branches not in (1, 2) or isinstance(branches, bool):
-            raise BodySchemaInputError(f"branches={branches!r}; allowed: 1 (one polynomial per muscle) or 2 (two "
-                                       f"and a gate where a muscle's path jumps)")
+        config = replace(config or PathConfig(), **options).checked()
         crossing = check_crossing(crossing)
-        blocks = check_blocks(crossing, blocks)
+        blocks = check_blocks(crossing, config.blocks)
         n_muscles, n_joints = crossing.shape
-        if cell_trim is not None and (isinstance(cell_trim, bool) or not isinstance(cell_trim, (int, float))
-                                      or not cell_trim > 1):
-            raise BodySchemaInputError(f"cell_trim={cell_trim!r} must be None or a number > 1 (times the median miss)")
-        if cell_joints not in CELL_JOINTS:
-            raise BodySchemaInputError(f"cell_joints={cell_joints!r}; allowed: {list(CELL_JOINTS)}")
-        if cell_keep not in CELL_KEEP:
-            raise BodySchemaInputError(f"cell_keep={cell_keep!r}; allowed: {list(CELL_KEEP)}")
-        self.cell_keep = cell_keep  # the fit's, not the state's
-        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
-        self.cell_trim = None if cell_trim is None else float(cell_trim)  # the fit's, not the state's
+        self.config, self.cell_keep = config, config.cell_keep  # the fit's, not the state's
+        n_hidden, branches, cells = config.n_hidden, config.branches, config.cells
+        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, config.gate_degree, cells
+        self.cell_trim = None if config.cell_trim is None else float(config.cell_trim)  # the fit's, not the state's
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
-        degrees = muscle_degrees(crossing, degree, max_terms, term_budget, blocks=blocks) if degrees is None else \
-            check_degrees(degrees, len(crossing))
+        degrees = muscle_degrees(crossing, config.degree, config.max_terms, config.term_budget, blocks=blocks) \
+            if config.degrees is None else check_degrees(config.degrees, len(crossing))
         self.degree = int(degrees.max())
         exponents = term_exponents(crossing, degrees, blocks)
         self.register_buffer("crossing", torch.tensor(crossing))
@@ -191,12 +159,12 @@ class PerMusclePath(nn.Module):
             self.register_load_state_dict_post_hook(lambda module, _: module._refresh_branched())
         if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
-            self.cell_cut = cell_cuts(crossing, blocks, cell_joints)  # (M, N) numpy: the joints that cut each box
-            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if cell_degrees is None else cell_degrees)
+            self.cell_cut = cell_cuts(crossing, blocks, config.cell_joints)  # (M, N) numpy: the joints that cut boxes
+            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
-        sizes = [n_joints] + [hidden] * n_hidden + [1]
+        sizes = [n_joints] + [config.hidden] * n_hidden + [1]
         self.weights = nn.ParameterList(nn.Parameter(_uniform((n_muscles, a, b), a)) for a, b in
                                         zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
         self.biases = nn.ParameterList(nn.Parameter(_uniform((n_muscles, 1, b), a)) for a, b in

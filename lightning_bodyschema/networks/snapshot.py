@@ -7,9 +7,9 @@ asked for a few dozen postures, stays in torch. Both run the code below: ``PathS
 whole-box rows, one with the posture's cells' rows, one pick of each muscle's candidate), ``GravitySnapshot`` (a
 ``GravityTorque``'s torque by one 4x4 motion per joint and the frames' world poses) and ``BodySnapshot`` (the schema's
 normalizer and unit scales around both: ``StructuredSchema.body_si``'s whole arithmetic). Each is built from the
-modules' tensors (torch) and ``numpy()`` gives the same object over host copies of them; the few operations whose
-spelling differs between the two libraries are ``networks.arrays``' (``xp``: the object's array library). The numpy
-evaluation multiplies the two large matrices by torch (numpy's OpenBLAS threads on its own).
+modules' tensors (torch) and ``on_host()`` gives the same object in numpy over host copies of them; the few
+operations whose spelling differs between the two libraries are ``networks.arrays``' (``xp``: the object's array
+library). The numpy evaluation multiplies the two large matrices by torch (numpy's OpenBLAS threads on its own).
 
 Lifetime: a snapshot holds what it read when built and never follows the module afterwards; a schema keeps its
 snapshots in its inference cache (``schemas/cache.py``: cleared on every weight, dtype or device change). No

@@ -32,8 +32,8 @@ from ..errors import BodySchemaInputError
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import OK, bounds_command
-from ..networks.cells import CELL_JOINTS, CELL_KEEP
 from ..networks.gravity import GravityTorque
+from ..networks.path_config import PathConfig
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.snapshot import BodySnapshot, GravitySnapshot, few_for
 from ..networks.structured import JacobianMLP, check_architecture
@@ -146,18 +146,12 @@ class StructuredSchema(BodySchema):
         if path_separable and length_model != "per_muscle":
             raise BodySchemaInputError("path_separable=True needs length_model='per_muscle'")
         check_architecture(block, norm)
-        if isinstance(path_cells, bool) or not isinstance(path_cells, int) or path_cells < 1:
-            raise BodySchemaInputError(f"path_cells={path_cells!r} must be an integer >= 1 (pieces per joint; 1: no "
-                                       f"cells)")
-        if path_cell_joints not in CELL_JOINTS:
-            raise BodySchemaInputError(f"path_cell_joints={path_cell_joints!r}; allowed: {list(CELL_JOINTS)}")
-        if path_cell_keep not in CELL_KEEP:
-            raise BodySchemaInputError(f"path_cell_keep={path_cell_keep!r}; allowed: {list(CELL_KEEP)}")
         if path_tolerance_mm is not None and (path_term_budget is None or isinstance(path_tolerance_mm, bool) or
                                               not 0.0 < float(path_tolerance_mm) < float("inf")):
             raise BodySchemaInputError(f"path_tolerance_mm={path_tolerance_mm!r} must be a finite number > 0 [mm], "
                                        f"with a path_term_budget to share")
         self.save_hyperparameters()
+        PathConfig.from_schema(self.hparams)  # every path option checked, whichever length model
         if length_model == "per_muscle":
             self.hparams.muscle_joints = resolve_crossing(self.robot_model, robot, muscle_joints)
             if path_separable and path_blocks is None:
@@ -166,7 +160,8 @@ class StructuredSchema(BodySchema):
         else:
             self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
         if torque_model == "polynomial":  # the joints as the "muscles" of a polynomial over every joint
-            self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), torque_degree, 1, 0)
+            self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), degree=torque_degree,
+                                            n_hidden=0)
         elif torque_model == "gravity":  # rebuilt from the robot's XML: a checkpoint carries only the coefficients
             self.torque_net = GravityTorque(gravity_tree(self.robot_model))
         else:
@@ -207,13 +202,7 @@ class StructuredSchema(BodySchema):
 
     def _build_paths(self) -> None:
         """The per-muscle path model for ``hparams.muscle_joints`` (None: every joint until the fit detects them)."""
-        hp = self.hparams
-        self.length_net = PerMusclePath(self._crossing(), hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
-                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
-                                        hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
-                                        hp.get("path_cell_degrees"), hp.get("path_blocks"), hp.get("path_cell_trim"),
-                                        hp.get("path_cell_joints", "crossed"),
-                                        hp.get("path_cell_keep", "median_and_p99"))
+        self.length_net = PerMusclePath(self._crossing(), PathConfig.from_schema(self.hparams))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -403,7 +392,7 @@ class StructuredSchema(BodySchema):
         path = cache.get("path_snapshot", self.length_net.snapshot)
         gravity = cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
         norm = self.normalizer
-        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype)).numpy()
+        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype)).on_host()
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:

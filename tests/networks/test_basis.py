@@ -69,7 +69,7 @@ def test_stacked_slopes_follow_the_chain_rule_into_shared_columns():
     x = _x(5)[:, :3]
     stacked = TermsSnapshot(product)
     got = stacked(variables(x), 0.2 * scale)
-    host = stacked.numpy()(variables(x).numpy(), 0.2 * scale.numpy())  # numpy's own small products: ulps apart
+    host = stacked.on_host()(variables(x).numpy(), 0.2 * scale.numpy())  # numpy's own small products: ulps apart
     np.testing.assert_allclose(host, got.numpy(), rtol=0, atol=1e-14 * np.abs(got.numpy()).max())
     phi = lambda z: product_basis(variables(z), torch.as_tensor(exponents), 3)[0]  # noqa: E731
     jacobian = torch.autograd.functional.jacobian(lambda z: phi(z).sum(0), x)  # (P, B, 3): rows are independent

@@ -44,11 +44,11 @@ def test_fit_on_mujoco_tau_bias_matches_held_out_postures(robot):
 
 
 def test_the_numpy_torque_answers_as_the_torch_one_and_as_mujoco(robot):
-    """``GravitySnapshot.numpy()`` (pointer jumping at any batch) against the torch snapshot (node by node above
+    """``GravitySnapshot.on_host()`` (pointer jumping at any batch) against the torch snapshot (node by node above
     JUMP_ROWS) and the exported program's kinematics: the couplings (myoArm), the slides (myoLegs)."""
     gravity = GravityTorque(gravity_tree(robot))
     gravity.fit_trimmed(*_postures(robot, 300, 0))
-    host = GravitySnapshot(gravity).numpy()
+    host = GravitySnapshot(gravity).on_host()
     q, tau = _postures(robot, 9, 1)
     traced = gravity.features(q) @ gravity.coef  # the features' path, no snapshot
     for rows in (1, 4, 9):

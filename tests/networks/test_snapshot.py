@@ -29,7 +29,7 @@ def _lengths(x):
 @pytest.fixture(scope="module")
 def path():
     x = torch.rand(20000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 1.8 - 0.9
-    path = PerMusclePath(CROSSING, 6, 1, 0, branches=2, gate_degree=2, cells=2)
+    path = PerMusclePath(CROSSING, degree=6, hidden=1, n_hidden=0, branches=2, gate_degree=2, cells=2)
     path.fit_polynomial(x, _lengths(x))
     assert path.branched_index.tolist() == [0] and path.cell_muscles.tolist() == [1]
     path.cell_fitted[0, 0] = False  # a cell the fit left to the whole-box polynomial (a thin cell's fallback)
@@ -74,9 +74,9 @@ def test_few_postures_moment_arms_are_their_lengths_derivative(path):
 
 
 def test_the_numpy_snapshot_answers_as_the_torch_one(path):
-    """``PathSnapshot.numpy()``: the same code on numpy arrays (branches, a celled muscle, its unfitted cell, postures
+    """``PathSnapshot.on_host()``: the same code on numpy arrays (branches, a celled muscle, its unfitted cell, postures
     beyond the box); a NaN posture answers NaN at a valid cell without a warning, in numpy and in torch."""
-    host, x = path.snapshot().numpy(), _postures(120, 4)
+    host, x = path.snapshot().on_host(), _postures(120, 4)
     for rows in (1, 3, 4):
         for i in range(0, 120, rows):
             y, dy = path.with_jacobian(x[i:i + rows])
@@ -94,7 +94,7 @@ def test_the_numpy_snapshot_answers_as_the_torch_one(path):
 
 
 def test_the_host_moment_arms_are_its_lengths_derivative(path):
-    host = path.snapshot().numpy()
+    host = path.snapshot().on_host()
     x = _postures(40, 6).clamp(-0.89, 0.89)
     x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)][:4]
     lengths = lambda rows: torch.as_tensor(host(rows.numpy())[0])  # noqa: E731
@@ -118,7 +118,7 @@ class _IntegerProducts(TorchDispatchMode):
 
 def test_the_fit_and_both_paths_multiply_no_integer_matrices(monkeypatch):
     x = torch.rand(4000, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 1.8 - 0.9
-    path = PerMusclePath(CROSSING, 4, 1, 0, branches=2, gate_degree=2, cells=2)
+    path = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, branches=2, gate_degree=2, cells=2)
     with _IntegerProducts() as products:
         path.fit_polynomial(x, _lengths(x))
         path.with_jacobian(x[:7])  # few postures
