@@ -25,12 +25,9 @@ from torch.nn import functional as F
 from ..errors import BodySchemaInputError
 from .arrays import horner
 from .snapshot import JUMP_ROWS, GravitySnapshot
-from .trim import trimmed_refits
+from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
-ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
-RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's
-# rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
 
 
 def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
@@ -283,9 +280,9 @@ class GravityTorque(nn.Module):
         postures determine only weakly (relative singular values down to 1e-10 on myoArm), which the normal
         equations' squared condition number would lose to rounding."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
-        self.coef.copy_(_solve_triangular(self._triangular(q, tau, chunk)))
+        self.coef.copy_(solve_triangular(self._triangular(q, tau, chunk)))
         def refit(keep, new):
-            self.coef.copy_(_solve_triangular(self._triangular(q[new], tau[new], chunk)))
+            self.coef.copy_(solve_triangular(self._triangular(q[new], tau[new], chunk)))
         return trimmed_refits(self, q, tau, refit, factor, rounds, chunk)
 
     def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
@@ -297,18 +294,3 @@ class GravityTorque(nn.Module):
             R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
         return R
 
-
-def _solve_triangular(R: torch.Tensor) -> torch.Tensor:
-    """The minimum-norm least-squares ``coef`` from ``R`` of ``[Y | tau]``, columns scaled to unit norm first (masses
-    [kg] and moments [kg m] differ in size). Columns at rounding level (``ZERO_COLUMN`` of the largest: a frame whose
-    origin sits on the axis of every joint moving it) get 0, and directions the data does not determine (a moment
-    along a joint axis) are dropped below ``RCOND``: scaled up, either would fit rounding with huge coefficients."""
-    A, b = R[:, :-1], R[:, -1]
-    norm = A.norm(dim=0)  # the features' column norms (Q is orthonormal)
-    used = torch.nonzero(norm > ZERO_COLUMN * norm.max()).flatten()
-    U, S, Vh = torch.linalg.svd(A[:, used] / norm[used], full_matrices=False)
-    kept = S > RCOND * S[0]
-    inverse = torch.where(kept, 1.0 / torch.where(kept, S, torch.ones_like(S)), torch.zeros_like(S))
-    coef = torch.zeros(A.shape[1], dtype=torch.float64, device=R.device)
-    coef[used] = (Vh.T @ (inverse * (U.T @ b))) / norm[used]
-    return coef

@@ -8,7 +8,7 @@ from typing import Any, Optional
 from ..errors import BodySchemaInputError
 
 CELL_JOINTS = ("crossed", "largest_group")  # which joints cut a muscle's box (``cells.cell_cuts``)
-CELL_KEEP = ("median_and_p99", "median")  # what a muscle's cells must improve to be kept (``cells._kept``)
+CELL_KEEP = ("median_and_p99", "median")  # what a muscle's cells must improve to be kept (``cell_fit._kept``)
 # each option's name among ``StructuredSchema``'s arguments (its refusals name those)
 SCHEMA_NAMES = dict(degree="path_degree", hidden="path_hidden", n_hidden="path_layers", max_terms="path_terms",
                     branches="path_branches", gate_degree="path_gate_degree", term_budget="path_term_budget",
@@ -37,9 +37,9 @@ class PathConfig:
     blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
         (``per_muscle.check_blocks``; ``sim.separable.separable_blocks`` finds them in an MJCF).
     cell_trim: None, or each cell refitted without the samples it misses by more than this many times the kept
-        ones' median (``cells._trimmed``).
+        ones' median (``cell_fit._trimmed``).
     cell_joints: which joints cut a celled muscle's box (``cells.cell_cuts``), one of ``CELL_JOINTS``.
-    cell_keep: what a muscle's cells must improve on the fitted samples to be kept (``cells._kept``), one of
+    cell_keep: what a muscle's cells must improve on the fitted samples to be kept (``cell_fit._kept``), one of
         ``CELL_KEEP``.
     """
 

@@ -22,88 +22,26 @@ cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lig
 """
 from __future__ import annotations
 
-import itertools
-import math
 from dataclasses import replace
 from typing import Optional
 
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
-from ..errors import BodySchemaInputError
 from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
-from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
+from .branches import fit_branches, one_thread
+from .cell_fit import fit_cells
+from .cells import cell_cuts, evaluate_cells, set_cell_layout
 from .degrees import block_sizes, muscle_degrees
+from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
+from .polynomial import (check_blocks, check_crossing, check_degrees, normal_equations, solve_normal_equations,
+                         term_exponents, term_mask)
 from .snapshot import PathSnapshot, few_for
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
-
-
-def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[np.ndarray] = None) -> np.ndarray:
-    """``(P, N)`` exponents of every product term some muscle uses (nonzero exponents only on the joints it
-    crosses, all within one of its ``blocks`` when given, total degree at most its own), ordered by total degree
-    then lexicographically, the constant first."""
-    blocks = check_blocks(crossing, blocks)
-    terms = set()
-    for pattern, degree in {(tuple(b), int(d)) for b, d in zip(blocks.tolist(), degrees)}:  # per pattern, once
-        for group in sorted(set(pattern) - {-1}):
-            joints = [j for j, b in enumerate(pattern) if b == group]
-            for e in itertools.product(range(degree + 1), repeat=len(joints)):
-                if sum(e) <= degree:
-                    full = [0] * len(pattern)
-                    for j, k in zip(joints, e):
-                        full[j] = k
-                    terms.add(tuple(full))
-    return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, crossing.shape[1])
-
-
-def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray,
-              blocks: Optional[np.ndarray] = None) -> np.ndarray:
-    """``(M, P)`` bool: the terms each muscle uses (nonzero exponents only on the joints it crosses, all within one
-    of its ``blocks`` when given, total degree at most its own)."""
-    blocks = check_blocks(crossing, blocks).astype(np.int16)
-    support = exponents > 0
-    lowest = np.where(support[None], blocks[:, None, :], np.iinfo(np.int16).max).min(-1)  # (M, P)
-    highest = np.where(support[None], blocks[:, None, :], -1).max(-1)
-    inside = ((lowest == highest) & (lowest >= 0)) | ~support.any(1)[None, :]
-    return inside & (exponents.sum(1)[None, :] <= degrees[:, None])
-
-
-def check_blocks(crossing: np.ndarray, blocks) -> np.ndarray:
-    """``blocks (M, N)`` int: a group id per crossed joint (-1 on the others), the joints whose effects on a muscle's
-    length do not add up sharing one (``sim.separable.separable_blocks``); None: one group of every crossed
-    joint. One ``BodySchemaInputError`` unless it marks exactly the crossed joints."""
-    crossing = np.asarray(crossing, dtype=bool)
-    if blocks is None:
-        return np.where(crossing, 0, -1)
-    values = np.asarray(blocks)
-    if values.shape != crossing.shape or values.dtype.kind not in "iu" or not np.array_equal(values >= 0, crossing) \
-            or (values < -1).any():
-        raise BodySchemaInputError(f"path blocks {blocks!r} must be {crossing.shape[0]} rows of {crossing.shape[1]} "
-                                   f"integers: a group id >= 0 on each joint the muscle crosses, -1 on the others")
-    return values.astype(np.int64)
-
-
-def check_crossing(crossing) -> np.ndarray:
-    """``crossing (M, N)`` as a bool array; one ``BodySchemaInputError`` if a muscle crosses no joint."""
-    crossing = np.asarray(crossing, dtype=bool)
-    if crossing.ndim != 2 or not crossing.any(1).all():
-        raise BodySchemaInputError(f"crossing must be (muscles, joints) with every muscle crossing a joint; got "
-                                   f"shape {crossing.shape}")
-    return crossing
-
-
-def check_degrees(degrees, n_muscles: int) -> np.ndarray:
-    """``degrees`` as an ``(M,)`` int array; one ``BodySchemaInputError`` unless M integers >= 1."""
-    values = np.asarray(degrees)
-    if values.shape != (n_muscles,) or values.dtype.kind not in "iu" or (values < 1).any():
-        raise BodySchemaInputError(f"degrees={degrees!r} must be {n_muscles} integers >= 1, one per muscle")
-    return values.astype(np.int64)
 
 
 @torch.no_grad()
@@ -164,15 +102,7 @@ class PerMusclePath(nn.Module):
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
-        sizes = [n_joints] + [config.hidden] * n_hidden + [1]
-        self.weights = nn.ParameterList(nn.Parameter(_uniform((n_muscles, a, b), a)) for a, b in
-                                        zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
-        self.biases = nn.ParameterList(nn.Parameter(_uniform((n_muscles, 1, b), a)) for a, b in
-                                       zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
-        if n_hidden:
-            with torch.no_grad():  # the network starts at zero: the polynomial alone until it learns
-                self.weights[-1].zero_()
-                self.biases[-1].zero_()
+        self.weights, self.biases = muscle_mlp_parameters(n_muscles, n_joints, config.hidden, n_hidden)
 
     # ------------------------------------------------------------------ the polynomial
     def basis(self, x: torch.Tensor, slopes: bool = False):
@@ -288,58 +218,14 @@ class PerMusclePath(nn.Module):
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
-        mask = self.term_mask
-        order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)  # each muscle's terms first
-        counts, coef = mask.sum(1), torch.zeros_like(self.coef)
-        for k in torch.unique(counts).tolist():  # a loop over groups of equal size; the maths in a group is batched
-            muscles = torch.nonzero(counts == k).flatten()
-            terms = order[muscles, :k]
-            system, b = group_system(gram, rhs, muscles, terms)
-            solution = solve_systems(system, b, torch.ones_like(b, dtype=torch.bool), ridge)
-            coef[muscles] = coef[muscles].scatter(1, terms, solution)
-        self.coef.copy_(coef * mask)
+        coef, order = solve_normal_equations(self.term_mask, gram, rhs, ridge)
+        self.coef.copy_(coef)
         return order
 
     def set_cell_degrees(self, degrees) -> None:
-        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout (``networks.cells.cell_layout``) and zero
-        cell coefficients, none fitted. A checkpoint's skeleton is built from the same degrees."""
-        values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
-        if values.shape != (len(self.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
-            raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
-                                       f"muscle (0: no cells)")
-        *layout, valid, n_cells, extra = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces,
-                                                     self.cell_cut)
-        perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
-        device = self.coef.device  # (a fit sets the cells on its own device, a GPU's too)
-        self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
-                                        for start, _, width in self.cell_group_bounds).to(device)  # each group's
-        self.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
-        self._set_few_terms(layout[2], extra)
-        for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
-                                "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
-            self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
-        unfold = np.eye(self.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
-        self.register_buffer("cell_rows", torch.arange(len(layout[0]), device=device), persistent=False)
-        self.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
-        self.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
-                             persistent=False)
-        self.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
-                                                      device=self.coef.device))
-        self.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
-                                                        device=self.coef.device))
-
-    def _set_few_terms(self, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
-        """``few_terms``: the whole-box and the cell terms over the variables of ``snapshot.PathSnapshot`` (the
-        joints, their cell coordinates, the ``extra`` joints the cells keep whole), each variable's slope into its
-        joint's column, times ``few_scale`` (``d local / d x = pieces`` on the cell coordinates)."""
-        exponents, n_joints = self._cell_sources[1], self.crossing.shape[1]
-        merged = np.zeros((len(exponents) + len(cell_exponents), 2 * n_joints + len(extra)), np.int64)
-        merged[:len(exponents), :n_joints], merged[len(exponents):, n_joints:] = exponents, cell_exponents
-        columns = np.concatenate([np.arange(n_joints), np.arange(n_joints), extra])
-        self.few_terms = ProductTerms(merged, columns).to(self.coef.device)
-        scale = np.ones(len(columns))
-        scale[n_joints:2 * n_joints] = self.pieces
-        self.register_buffer("few_scale", torch.tensor(scale, device=self.coef.device), persistent=False)
+        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout and zero cell coefficients, none fitted
+        (``cells.set_cell_layout``). A checkpoint's skeleton is built from the same degrees."""
+        set_cell_layout(self, degrees)
 
     @torch.no_grad()
     def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3,
@@ -368,33 +254,13 @@ class PerMusclePath(nn.Module):
         return trimmed_refits(self, x, y, refit, factor, rounds, chunk)
 
     def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` summed over chunks of samples (the chunks bound the memory)."""
-        n_terms = self.coef.shape[1]
-        gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
-        rhs = torch.zeros(n_terms, y.shape[1], dtype=torch.float64, device=x.device)
-        for start in range(0, len(x), chunk):
-            phi = self.basis(x[start:start + chunk])[0]
-            gram += phi.T @ phi
-            rhs += phi.T @ y[start:start + chunk]
-        return gram, rhs
+        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` of this path's terms (``polynomial.normal_equations``)."""
+        return normal_equations(lambda rows: self.basis(rows)[0], self.coef.shape[1], x, y, chunk)
 
     # ------------------------------------------------------------------ the network
-    def _network(self, x: torch.Tensor, slopes: bool):
-        """The per-muscle MLPs on masked inputs: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``."""
-        mask = self.crossing.to(x.dtype)  # (M, N)
-        h = torch.einsum("bn,mnk->bmk", x, self.weights[0] * mask[:, :, None]) + self.biases[0].transpose(0, 1)
-        tangent = (self.weights[0] * mask[:, :, None]).unsqueeze(0) if slopes else None  # (1, M, N, K)
-        for w, b in zip(self.weights[1:], self.biases[1:]):
-            a = F.silu(h)
-            if slopes:
-                s = torch.sigmoid(h)
-                tangent = torch.einsum("bmnk,mkj->bmnj", tangent * (s * (1 + h * (1 - s))).unsqueeze(2), w)
-            h = torch.einsum("bmk,mkj->bmj", a, w) + b.transpose(0, 1)
-        return h[..., 0], None if tangent is None else tangent[..., 0].expand(len(x), -1, -1)
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = self.polynomial(x)[0]
-        return y + self._network(x, False)[0] if self.n_hidden else y
+        return y + muscle_mlp(self, x, False)[0] if self.n_hidden else y
 
     def with_jacobian(self, x: torch.Tensor, snapshot: Optional[PathSnapshot] = None) -> tuple[torch.Tensor,
                                                                                                 torch.Tensor]:
@@ -402,12 +268,7 @@ class PerMusclePath(nn.Module):
         ``polynomial``'s)."""
         y, dy = self.polynomial(x, slopes=True, snapshot=snapshot)
         if self.n_hidden:
-            y_net, dy_net = self._network(x, True)
+            y_net, dy_net = muscle_mlp(self, x, True)
             y, dy = y + y_net, dy + dy_net
         return y, dy
 
-
-def _uniform(shape, fan_in: int) -> torch.Tensor:
-    """``nn.Linear``'s default initialization, for batched per-muscle weights."""
-    bound = 1.0 / math.sqrt(fan_in)
-    return torch.empty(shape).uniform_(-bound, bound)

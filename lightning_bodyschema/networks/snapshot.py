@@ -22,6 +22,7 @@ import torch
 
 from .arrays import Frozen, as_dtype, as_index, decode_q, encode_q, horner, offsets, pick, product, scatter_sum, take
 from .basis import _slot_products
+from .cells import cell_spread
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
 
@@ -87,8 +88,6 @@ class PathSnapshot(Frozen):
     scaled by ``pieces`` (its chain rule, exact for a power of two)."""
 
     def __init__(self, path):
-        from .cells import cell_spread
-
         self.x_lo, self.x_hi, self.cells = path.x_lo, path.x_hi, has_cells(path)
         self.terms = TermsSnapshot(path.few_terms if self.cells else path.terms)
         self.n_terms = path.coef.shape[1]

@@ -107,7 +107,7 @@ class StructuredSchema(BodySchema):
         path_cell_keep: what a muscle's cells must improve on the fitted samples to be kept: ``"median_and_p99"``
             (halve its median residual without a larger p99) or ``"median"`` (halve its median: myoArm's LAT1 and
             LAT2, two branches each, then keep cells whose moment arms are far better on all but their jumps' smaller
-            sides; ``networks.cells._kept``).
+            sides; ``networks.cell_fit._kept``).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.

@@ -6,7 +6,7 @@ import torch
 
 from lightning_bodyschema.networks import basis as basis_module
 from lightning_bodyschema.networks.basis import ProductTerms, product_basis
-from lightning_bodyschema.networks.per_muscle import term_exponents
+from lightning_bodyschema.networks.polynomial import term_exponents
 from lightning_bodyschema.networks.snapshot import TermsSnapshot
 
 CROSSING = np.array([[1, 1, 1, 0, 0], [0, 0, 0, 1, 1], [1, 0, 0, 1, 0], [0, 1, 0, 0, 0]], dtype=bool)

@@ -11,9 +11,10 @@ from physics_checks import assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
-from lightning_bodyschema.networks.cells import (_kept, _trimmed, cell_coordinates, cell_cuts, cell_degree,
-                                                 cell_spread, thin_cell_terms)
-from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
+from lightning_bodyschema.networks.cell_fit import _kept, _trimmed, thin_cell_terms
+from lightning_bodyschema.networks.cells import cell_coordinates, cell_cuts, cell_degree, cell_spread
+from lightning_bodyschema.networks.per_muscle import PerMusclePath
+from lightning_bodyschema.networks.polynomial import term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
 
