@@ -78,7 +78,7 @@ def host_rows(schema, q, batch: int, repeats: int):
     out, kept = [], structured.HOST_ROWS
     for label, limit in (("numpy", 10 ** 9), ("torch", 0)):
         structured.HOST_ROWS = limit
-        if label == "numpy" and not schema._on_host(q):
+        if label == "numpy" and schema._host_body(q) is None:
             break
         out.append((f"body_si, {label}", ms_per_call(lambda: schema.body_si(q), batch, repeats)))
     structured.HOST_ROWS = kept

@@ -68,11 +68,16 @@ def has_cells(path) -> bool:
     return path.pieces > 1 and len(path.cell_muscles) > 0
 
 
-def few_for(path, x) -> bool:
-    """Whether ``path`` evaluates postures ``x (B, N)`` by its snapshot: their stacked basis within ``FEW_ELEMENTS``,
-    never in an exported program (one path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
+def few_rows(path) -> int:
+    """The most postures ``path`` evaluates by its snapshot: their stacked basis within ``FEW_ELEMENTS``."""
     terms = len(path.few_terms.exponents) if has_cells(path) else path.coef.shape[1]
-    return not torch.compiler.is_exporting() and len(x) * terms * (1 + x.shape[1]) <= FEW_ELEMENTS
+    return FEW_ELEMENTS // (terms * (1 + path.crossing.shape[1]))
+
+
+def few_for(path, x) -> bool:
+    """Whether ``path`` evaluates postures ``x (B, N)`` by its snapshot (``few_rows``), never in an exported program
+    (one path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
+    return not torch.compiler.is_exporting() and len(x) <= few_rows(path)
 
 
 class PathSnapshot(Frozen):
@@ -85,10 +90,11 @@ class PathSnapshot(Frozen):
     ``alt_col`` and ``gate_col`` (its branch and gate where ``gated``), ``cell_col`` and ``cell_of`` (its cell
     polynomial and row among the celled muscles where ``celled``). A muscle takes its cell's polynomial where that
     cell was fitted, else its gate's branch, else its whole-box polynomial; the slopes of a cell coordinate are
-    scaled by ``pieces`` (its chain rule, exact for a power of two)."""
+    scaled by ``pieces`` (its chain rule, exact for a power of two). ``max_postures``: the most postures it is built
+    for (``few_rows``, with the budget of its build)."""
 
     def __init__(self, path):
-        self.x_lo, self.x_hi, self.cells = path.x_lo, path.x_hi, has_cells(path)
+        self.x_lo, self.x_hi, self.cells, self.max_postures = path.x_lo, path.x_hi, has_cells(path), few_rows(path)
         self.terms = TermsSnapshot(path.few_terms if self.cells else path.terms)
         self.n_terms = path.coef.shape[1]
         self._choices(path)

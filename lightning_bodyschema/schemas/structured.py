@@ -35,7 +35,7 @@ from ..faults.qp import OK, bounds_command
 from ..networks.gravity import GravityTorque
 from ..networks.path_config import PathConfig
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
-from ..networks.snapshot import BodySnapshot, GravitySnapshot, few_for
+from ..networks.snapshot import BodySnapshot, GravitySnapshot
 from ..networks.structured import JacobianMLP, check_architecture
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
@@ -371,28 +371,36 @@ class StructuredSchema(BodySchema):
         """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
         (a per-muscle path without hidden layers and a gravity torque on the CPU, up to ``HOST_ROWS`` postures: its
         ``BodySnapshot`` in numpy)."""
-        if self._on_host(q_rad):
-            return self.inference_cache.get("body_snapshot", self._body_snapshot)(
-                q_rad.detach().cpu().numpy().astype(np.float64))
+        host = self._host_body(q_rad)
+        if host is not None:
+            return host(q_rad.detach().cpu().numpy().astype(np.float64))
         with torch.no_grad():
             q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
             return tuple(t.cpu().numpy().astype(np.float64) for t in self.body(q_n))  # a copy: the caller owns it
 
-    def _on_host(self, q_rad: torch.Tensor) -> bool:
-        """Whether ``body_si`` at ``q_rad`` takes the numpy ``BodySnapshot``: in eval mode, not exporting, on the CPU,
-        up to ``HOST_ROWS`` postures within the path's few-postures budget, for the body it covers."""
-        path = self.length_net
-        return (not self.training and not torch.compiler.is_exporting() and len(q_rad) <= HOST_ROWS
-                and isinstance(path, PerMusclePath) and not path.n_hidden and few_for(path, q_rad)
-                and self.hparams.torque_model == "gravity" and self.device.type == "cpu")
+    def _host_body(self, q_rad: torch.Tensor) -> Optional[BodySnapshot]:
+        """``body_si``'s numpy ``BodySnapshot`` for postures ``q_rad``: in eval mode, not exporting, up to
+        ``HOST_ROWS`` postures within the path's few-postures budget, for the body it covers on the CPU; else None."""
+        if self.training or torch.compiler.is_exporting() or len(q_rad) > HOST_ROWS:
+            return None
+        host = self.inference_cache.get("body_snapshot", self._numpy_body)
+        return host if host is not None and len(q_rad) <= host.path.max_postures else None
 
-    def _body_snapshot(self) -> BodySnapshot:
-        """The fitted body frozen in numpy, from the snapshots ``body`` and ``torque`` keep."""
+    def _numpy_body(self) -> Optional[BodySnapshot]:
+        """``body_snapshot().on_host()``, or None for a body it does not cover (an MLP in the path, another torque
+        model) or off the CPU."""
+        path = self.length_net
+        covered = isinstance(path, PerMusclePath) and not path.n_hidden and self.hparams.torque_model == "gravity"
+        return self.body_snapshot().on_host() if covered and self.device.type == "cpu" else None
+
+    def body_snapshot(self) -> BodySnapshot:
+        """The fitted body (a per-muscle path without hidden layers and a gravity torque) frozen, in torch
+        (``on_host()``: numpy), from the snapshots ``body`` and ``torque`` keep: ``body_si``'s arithmetic."""
         cache = self.inference_cache
         path = cache.get("path_snapshot", self.length_net.snapshot)
         gravity = cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
         norm = self.normalizer
-        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype)).on_host()
+        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype))
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:
