@@ -41,6 +41,14 @@ def product(a, b):
     return a @ b
 
 
+def rows_product(m, w):
+    """``(B, J, C)``: ``m (J, F)`` times each posture's ``w (B, F, C)`` (numpy's broadcast product; torch's one
+    ``(J, F) x (F, B C)`` product by einsum, several times faster at thousands of postures)."""
+    if isinstance(w, np.ndarray):
+        return m @ w
+    return torch.einsum("jf,bfc->bjc", m, w.contiguous())
+
+
 def as_index(a):
     """Whole numbers as int64 indices."""
     return a.astype(np.int64) if isinstance(a, np.ndarray) else a.long()

@@ -20,7 +20,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .arrays import Frozen, as_dtype, as_index, decode_q, encode_q, horner, offsets, pick, product, scatter_sum, take
+from .arrays import (Frozen, as_dtype, as_index, decode_q, encode_q, horner, offsets, pick, product, rows_product,
+                     scatter_sum, take)
 from .basis import _slot_products
 from .cells import cell_spread
 
@@ -203,7 +204,7 @@ class GravitySnapshot(Frozen):
         w = (frames[..., :3, :] @ self.moment_mass)[..., 0]
         anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
         o, a = anchor_axis[..., 0], anchor_axis[..., 1]
-        w_joint = self.moves_frame @ w
+        w_joint = rows_product(self.moves_frame, w)
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * self.mass_joint)
