@@ -8,9 +8,9 @@ float64 arrays), the length model's ``with_jacobian`` (with its coefficients as 
 torque, in ms per call (medians of ``--repeats`` rounds; at batch 1 each round times 100 calls). Only public calls:
 run it from another worktree (its ``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths``
 (a per-muscle checkpoint) also the length model by the few-postures path and by blocks of rows
-(``networks.few_postures.FEW_ELEMENTS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
+(``networks.snapshot.FEW_ELEMENTS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
 by node (``networks.gravity.JUMP_ROWS`` forced), and ``body_si`` in numpy and in torch
-(``schemas.host_body.HOST_ROWS`` forced): the figures behind the three thresholds. One torch thread; the load average
+(``schemas.structured.HOST_ROWS`` forced): the figures behind the three thresholds. One torch thread; the load average
 is printed with the figures.
 """
 import argparse
@@ -44,14 +44,14 @@ def rows(schema, batch: int, repeats: int, paths: bool):
     """``(label, ms)`` pairs at ``batch`` postures."""
     q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(0), batch))
     q_n = schema.normalizer.encode_q(q.to(torch.float64)).to(schema.dtype)
-    kept = getattr(schema.length_net, "dense_coefficients", lambda: None)()  # as the schema keeps them (per-muscle)
+    kept = getattr(schema.length_net, "snapshot", lambda: None)()  # as the schema keeps it (per-muscle)
     lengths = (lambda: schema.length_net.with_jacobian(q_n)) if kept is None else \
         (lambda: schema.length_net.with_jacobian(q_n, kept))
     out = [("body_si", ms_per_call(lambda: schema.body_si(q), batch, repeats)),
            ("lengths and moment arms", ms_per_call(lengths, batch, repeats)),
            ("torque", ms_per_call(lambda: schema.torque(q_n), batch, repeats))]
     if paths:
-        from lightning_bodyschema.networks import few_postures
+        from lightning_bodyschema.networks import snapshot as few_postures
 
         budget = few_postures.FEW_ELEMENTS
         for label, elements in (("few-postures path", 10 ** 18), ("blockwise path", 0)):
@@ -59,7 +59,7 @@ def rows(schema, batch: int, repeats: int, paths: bool):
             out.append((f"lengths, {label}", ms_per_call(lengths, batch, repeats)))
         few_postures.FEW_ELEMENTS = budget
         if schema.hparams.get("torque_model") == "gravity":
-            from lightning_bodyschema.networks import gravity
+            from lightning_bodyschema.networks import snapshot as gravity  # the eager torque's kinematics
 
             kept = gravity.JUMP_ROWS
             for label, rows_jump in (("pointer jumping", 10 ** 9), ("node by node", 0)):
@@ -71,17 +71,17 @@ def rows(schema, batch: int, repeats: int, paths: bool):
 
 
 def host_rows(schema, q, batch: int, repeats: int):
-    """``body_si`` by the numpy evaluation and by torch (``schemas.host_body.HOST_ROWS`` forced), where the
+    """``body_si`` by the numpy evaluation and by torch (``schemas.structured.HOST_ROWS`` forced), where the
     checkpoint's body has a numpy evaluation: the figures behind that threshold."""
-    from lightning_bodyschema.schemas import host_body
+    from lightning_bodyschema.schemas import structured
 
-    if host_body.HostBody.of(schema) is None:
-        return []
-    out, kept = [], host_body.HOST_ROWS
+    out, kept = [], structured.HOST_ROWS
     for label, limit in (("numpy", 10 ** 9), ("torch", 0)):
-        host_body.HOST_ROWS = limit
+        structured.HOST_ROWS = limit
+        if label == "numpy" and schema._host_body(q) is None:
+            break
         out.append((f"body_si, {label}", ms_per_call(lambda: schema.body_si(q), batch, repeats)))
-    host_body.HOST_ROWS = kept
+    structured.HOST_ROWS = kept
     return out
 
 

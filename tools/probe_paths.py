@@ -29,6 +29,7 @@ import torch
 import yaml
 
 from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.networks.path_config import PathConfig
 from lightning_bodyschema.networks.per_muscle import PerMusclePath, degrees_within_tolerance
 
 
@@ -65,8 +66,9 @@ def main(argv=None):
     x_train, y_train = q_n[:args.train], (l_m[:args.train] - mean) / std
     degrees = None if args.tolerance_mm is None else degrees_within_tolerance(
         body.crossing(), x_train, y_train, 1e3 * std, args.degree, args.terms, args.budget, args.tolerance_mm)
-    path = PerMusclePath(body.crossing(), args.degree, 1, 0, args.terms, args.branches, args.gate_degree,
-                         args.budget, degrees, args.cells)
+    path = PerMusclePath(body.crossing(), PathConfig(degree=args.degree, n_hidden=0, max_terms=args.terms,
+                                                     branches=args.branches, gate_degree=args.gate_degree,
+                                                     term_budget=args.budget, degrees=degrees, cells=args.cells))
     path.fit_polynomial(x_train, y_train)
     seconds = time.perf_counter() - start
     y, dy = path.with_jacobian(q_n[args.train:])
@@ -108,7 +110,7 @@ def torque_report(q_n, f, G_hat, G, tau_bias, n_train, names, degree=7):
     ``-G_hat^T f`` and to ``-G^T f``, and the muscles whose ``(G_hat - G)^T f`` is the largest (median [N m])."""
     ref = tau_bias[n_train:].norm(dim=1).median()
     for name, arms in (("learned", G_hat), ("MuJoCo's", G)):
-        torque = PerMusclePath(np.ones((q_n.shape[1],) * 2, bool), degree, 1, 0)
+        torque = PerMusclePath(np.ones((q_n.shape[1],) * 2, bool), degree=degree, n_hidden=0)
         torque.fit_trimmed(q_n[:n_train], -torch.einsum("bmn,bm->bn", arms[:n_train], f[:n_train]))  # as the fit
         error = (torque(q_n[n_train:]) - tau_bias[n_train:]).norm(dim=1)
         print(f"torque fitted to -G^T f with {name} moment arms: median {100 * float(error.median() / ref):.2f} %, "

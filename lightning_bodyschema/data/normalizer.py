@@ -7,6 +7,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..networks.arrays import decode_q, encode_q
+
 
 class Normalizer(nn.Module):
     """x_n = (x - mean) / std per channel; q_n = 2 (q - lo) / (hi - lo) - 1 with the model's joint range."""
@@ -42,9 +44,7 @@ class Normalizer(nn.Module):
         return x_n * self.x_std.to(x_n.dtype) + self.x_mean.to(x_n.dtype)
 
     def encode_q(self, q):
-        lo, hi = self.q_lo.to(q.dtype), self.q_hi.to(q.dtype)
-        return 2.0 * (q - lo) / (hi - lo) - 1.0
+        return encode_q(q, self.q_lo.to(q.dtype), self.q_hi.to(q.dtype))
 
     def decode_q(self, q_n):
-        lo, hi = self.q_lo.to(q_n.dtype), self.q_hi.to(q_n.dtype)
-        return lo + (q_n + 1.0) * 0.5 * (hi - lo)
+        return decode_q(q_n, self.q_lo.to(q_n.dtype), self.q_hi.to(q_n.dtype))

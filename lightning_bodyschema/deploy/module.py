@@ -34,6 +34,7 @@ from ..errors import BodySchemaInputError
 from ..faults.bounds import FaultBounds
 from ..faults.penalty import BoundsPenalty
 from ..faults.projection import FaultProjection
+from ..networks.arrays import encode_q
 from ..status import STATUS_CODES  # noqa: F401  (re-exported: the package's codes are the vocabulary's)
 
 VARIANT = "default"
@@ -120,7 +121,7 @@ class PackageModule(nn.Module):
 
     def normalized_q(self, q, dtype):
         """Postures [rad] -> the schema's normalized postures (``Normalizer.encode_q``) in ``dtype``."""
-        return (2.0 * (q - self.q_norm_lo) / (self.q_norm_hi - self.q_norm_lo) - 1.0).to(dtype)
+        return encode_q(q, self.q_norm_lo, self.q_norm_hi).to(dtype)
 
     def safe(self, x_si, bounds, bad):
         """``command_status`` (the Python adapters' safe command): ``(l_motor_m, f_n, status)``."""

@@ -74,10 +74,10 @@ class ProductTerms(nn.Module):
     exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
     ``forward(x, slopes)`` returns a ``Basis``; ``contract`` applies coefficients given in the terms' original order
-    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). ``stacked(x)``
-    gives each term and its slopes in one tensor at few postures, each variable's slope added into its output
-    column ``columns`` (one per variable; None: its own; several variables may share one: a joint and its cell
-    coordinate in ``networks.few_postures``). Buffers only, none persistent (a checkpoint's state dict is
+    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls).
+    ``stacked_index`` places each term and its slopes for ``networks.snapshot.TermsSnapshot`` (few postures), each
+    variable's slope in its output column ``columns`` (one per variable; None: its own; several variables may share
+    one: a joint and its cell coordinate). Buffers only, none persistent (a checkpoint's state dict is
     unchanged); plain PyTorch.
     """
 
@@ -102,7 +102,7 @@ class ProductTerms(nn.Module):
         stacked = np.concatenate([np.zeros((len(slot_joint), 1), np.int64), 1 + columns[slot_joint]], 1)
         for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.reshape(-1), **long),
                                 slot_joint=torch.tensor(slot_joint, **long), exponents=torch.tensor(exponents, **long),
-                                stacked_index=torch.tensor(stacked, **long),  # (P, 1 + slots): ``stacked``'s columns
+                                stacked_index=torch.tensor(stacked, **long),  # (P, 1 + slots): ``TermsSnapshot``'s
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):
@@ -160,20 +160,6 @@ class ProductTerms(nn.Module):
         index = self.slot_joint.expand(len(values), -1, -1)
         return Basis(phi, phi.new_zeros(*phi.shape, self.n_joints).scatter_add_(2, index, torch.stack(slopes, -1)),
                      False)
-
-    def stacked(self, x: torch.Tensor, scale: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """Every term and its slopes at few postures ``x (B, V)`` (float64) in one tensor ``(B, P, 1 + n_columns)``:
-        column 0 the term, then each variable's slope added into its output column (``columns``; with ``scale (V,)``
-        times ``d variable / d output``): a contraction with coefficients ``(R, P)`` then gives values and slopes in
-        one product (``networks.few_postures``)."""
-        values, derivs = self._legendre(x, True)
-        shape = (len(x), -1, self.n_slots)
-        derivs = derivs if scale is None else derivs * scale[:, None]
-        phi, slopes = _slot_products(self._gather(values).view(shape).unbind(-1),
-                                     self._gather(derivs).view(shape).unbind(-1))
-        parts = torch.stack([phi] + slopes, -1)
-        index = self.stacked_index.expand(len(x), -1, -1)
-        return parts.new_zeros(*phi.shape, 1 + self.n_columns).scatter_add_(2, index, parts)
 
     def _gather(self, table: torch.Tensor) -> torch.Tensor:
         """Every term's factor per slot ``(B, P * slots)`` from ``table (B, N, degree + 1)`` (``gather``: the fastest

@@ -29,7 +29,7 @@ coordinates ``cell_inputs``: every joint's local one, then those joints).
 The length at a posture is its cell's polynomial and the moment arm that polynomial's exact derivative: the learned
 length steps by about the fit's error where a posture crosses into the next cell, and a QP at one posture sees
 that posture's cell only. Joints a muscle does not cross do not cut its box (exactly zero moment arm there).
-Plain PyTorch, no Lightning.
+The fit: ``networks.cell_fit``. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -37,21 +37,15 @@ from typing import Optional
 
 import numpy as np
 import torch
+from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .basis import product_basis
+from .basis import ProductTerms
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
-from .trim import trimmed_refits
+from .path_config import CELL_JOINTS
 
-CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
-CELL_FLOOR = 1e-7  # and this (normalized length units: a fraction of the muscle's length spread)
-CELL_GAIN = 2.0  # kept cells divide the muscle's median residual on the fitted samples at least by this
-CELL_RIDGE = 1e-12  # each cell's ridge, times the mean of its normal equations' diagonal (the basis is local)
-CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kept samples stop changing)
-CELL_JOINTS = ("crossed", "largest_group")  # which joints cut a muscle's box (``cell_cuts``)
-CELL_KEEP = ("median_and_p99", "median")  # what a muscle's cells must improve to be kept (``_kept``)
 
 
 def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -161,7 +155,7 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     fitted; ``x`` is inside the box, float64. A loop over the groups of muscles that share joints and cell terms (a
     posture's cell and basis are the group's), the postures sorted by cell and each cell's one matrix product (no
     ``(B, muscles, terms)`` gathers); an exported program gathers each muscle's cell coefficients for one basis of
-    every cell term (one path for any batch). Few postures in eager: ``networks.few_postures``."""
+    every cell term (one path for any batch). Few postures in eager: ``networks.snapshot``."""
     k, z = cell_inputs(path, x)
     if torch.compiler.is_exporting():
         cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
@@ -182,7 +176,7 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
 def cell_spread(path) -> torch.Tensor:
     """Every celled muscle's coefficients in each of its cells spread on every cell term, ``(Mc, C, T)``: zero off
     its own terms (a sum: the padding's zeros land on column 0 too). The evaluation at few postures takes a
-    posture's cell's rows (``networks.few_postures``: one index, not a gather and a scatter per call)."""
+    posture's cell's rows (``networks.snapshot.PathSnapshot``: one index, not a gather and a scatter per call)."""
     coef = path.cell_coef
     index = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
     return coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, index, coef)
@@ -229,120 +223,45 @@ def _replace(y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):
     return y, dy
 
 
-@torch.no_grad()
-def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None:
-    """Cells for the muscles of a fitted ``PerMusclePath`` that a smooth polynomial fits worst (module docstring):
-    sets the path's cell layout (``PerMusclePath.set_cell_degrees``) and coefficients, and clears ``branched`` where
-    cells replace the branches. ``x (S, N)``, ``y (S, M)`` float64, normalized."""
-    path.set_cell_degrees(torch.zeros_like(path.cell_degrees))
-    r = torch.cat([y[i:i + chunk] - path(x[i:i + chunk]) for i in range(0, len(x), chunk)]).abs()
-    median = r.median(0).values
-    candidates = (median > CELL_MEDIANS * median.median()) & (median > CELL_FLOOR)
-    if not bool(candidates.any()):
-        return
-    total = path.exponents.sum(1)
-    own_degree = (total[None, :] * path.term_mask).amax(1)
-    cuts = path.cell_cut.sum(1).tolist()  # each muscle's cutting joints
-    path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
-                                        for a, d, c, n in zip(path.block_sizes, own_degree, candidates, cuts)],
-                                       device=median.device))
-    _fit_each_cell(path, x, y[:, path.cell_muscles], r[:, path.cell_muscles], chunk)
-    muscles = path.cell_muscles
-    miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])
-    miss, own = miss.abs(), r[:, muscles]
-    keep = _kept(miss, own, path.cell_keep)
-    coef, fitted = path.cell_coef[keep], path.cell_fitted[keep]
-    degrees = path.cell_degrees.clone()
-    degrees[muscles[~keep]] = 0
-    path.set_cell_degrees(degrees)  # the kept muscles' own terms come first in either layout: same columns
-    path.cell_coef.copy_(coef[:, :path.cell_coef.shape[1], :path.cell_coef.shape[2]])
-    path.cell_fitted.copy_(fitted[:, :path.cell_fitted.shape[1]])
-    if hasattr(path, "branched"):
-        path.branched[path.cell_muscles] = False
+def set_cell_layout(path, degrees) -> None:
+    """A ``PerMusclePath``'s cells for each muscle's cell degree ``(M,)`` (0: no cells): the layout
+    (``cell_layout``, ``cell_groups``), each group's cell terms and every cell term (``basis.ProductTerms``), the
+    snapshot's terms (``_set_few_terms``), and zero cell coefficients, none fitted."""
+    values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
+    if values.shape != (len(path.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
+        raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(path.coef)} integers >= 0, one per "
+                                   f"muscle (0: no cells)")
+    *layout, valid, n_cells, extra = cell_layout(*path._cell_sources, values.astype(np.int64), path.pieces,
+                                                 path.cell_cut)
+    perm, path.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
+    device = path.coef.device  # (a fit sets the cells on its own device, a GPU's too)
+    path.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
+                                    for start, _, width in path.cell_group_bounds).to(device)  # each group's
+    path.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
+    _set_few_terms(path, layout[2], extra)
+    for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
+                            "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
+        path.register_buffer(name, torch.as_tensor(value, device=path.coef.device), persistent=False)  # derived
+    unfold = np.eye(path.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
+    path.register_buffer("cell_rows", torch.arange(len(layout[0]), device=device), persistent=False)
+    path.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
+    path.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
+                         persistent=False)
+    path.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
+                                                  device=path.coef.device))
+    path.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
+                                                    device=path.coef.device))
 
 
-def _kept(miss: torch.Tensor, own: torch.Tensor, rule: str) -> torch.Tensor:
-    """``(Mc,)`` which celled muscles keep their cells, from their cells' and their whole-box model's residuals on
-    the fitted samples ``(S, Mc)``: the median divided by ``CELL_GAIN`` at least, and with ``"median_and_p99"`` no
-    larger p99 (cells that ring). ``"median"``: the median alone; where a trimmed cell misses the smaller side of a
-    jump that its whole-box model (two branches) only rings over, the p99 rises while the rest of the muscle's
-    postures, and their moment arms, become far better (myoArm's LAT1 and LAT2: median moment-arm error 0.07 ->
-    0.001 mm/rad)."""
-    keep = miss.median(0).values * CELL_GAIN <= own.median(0).values
-    if rule == "median_and_p99":
-        keep &= torch.quantile(miss, 0.99, dim=0) <= torch.quantile(own, 0.99, dim=0)
-    return keep
-
-
-def _fit_each_cell(path, x, y_m, own, chunk):
-    """Least squares of every celled muscle's cells into ``path.cell_coef (Mc, C, K)`` (0 on padded terms) and
-    ``path.cell_fitted (Mc, C)``: a cell of fewer samples than its terms need takes fewer terms
-    (``thin_cell_terms``), and only where it halves the median miss of the muscle's whole-box model ``own (S, Mc)``
-    on its samples (a plane can be worse than a good whole-box polynomial). Muscles over the same joints with the same
-    cell terms share their cells' normal equations (the shoulder's muscles: one system per cell for all of them, one
-    right-hand side each): a loop over such groups and their cells."""
-    k, z = cell_inputs(path, x)
-    for start, end, width in path.cell_group_bounds:  # a loop over groups of muscles that share joints and terms
-        members = path.cell_perm[start:end]
-        first = int(members[0])
-        exponents = path.cell_exponents[path.cell_order[first, :width]]
-        phi = torch.cat([product_basis(z[i:i + chunk], exponents, int(exponents.max()))[0]
-                         for i in range(0, len(x), chunk)])
-        cell = cell_index(k, path.cell_stride[first])
-        totals = exponents.sum(1).tolist()  # each column's total degree, nondecreasing (the whole-box terms' order)
-        for c in range(path.pieces ** int((path.cell_stride[first] > 0).sum())):  # a loop over the group's cells
-            rows = torch.nonzero(cell == c).flatten()
-            terms = thin_cell_terms(totals, len(rows))
-            if not terms:  # too few samples for a first-degree polynomial: the whole-box polynomial stays
-                continue
-            phi_c, y_c = phi[rows, :terms], y_m[rows][:, members]
-            gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_c
-            eye = torch.eye(terms, dtype=torch.float64, device=x.device)
-            solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
-            if path.cell_trim is not None:
-                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * terms)
-            better = torch.ones(len(members), dtype=torch.bool, device=x.device)
-            if terms < width:  # a thin cell replaces the whole-box polynomial only where it halves its miss there
-                miss = (phi_c @ solution - y_c).abs().median(0).values
-                better = miss * CELL_GAIN <= own[rows][:, members].median(0).values
-            path.cell_coef[members[better], c, :terms] = solution.T[better]
-            path.cell_fitted[members[better], c] = True
-
-
-def thin_cell_terms(totals: list, samples: int) -> int:
-    """How many of a cell's leading terms (``totals``: each term's total degree, nondecreasing) its ``samples`` fit:
-    all of them with ``SAMPLES_PER_TERM`` samples each, else those of the highest total degree >= 1 that leaves as
-    many (a cell thinner than the even spread the cell degree assumed: trimming, a joint sampled unevenly), else 0.
-    Before, such a cell kept the whole-box polynomial, which for a muscle whose path jumps misses by tens of mm
-    (myoArm's LAT1 at 200 000 samples: 11 of 64 cells); ``_fit_each_cell`` keeps such a cell only where it does
-    better."""
-    for degree in sorted(set(totals), reverse=True):
-        count = sum(1 for t in totals if t <= degree)
-        if degree >= 1 and count * SAMPLES_PER_TERM <= samples:
-            return count
-    return 0
-
-
-def _trimmed(phi, y, gram, rhs, solution, factor: float, least: int) -> torch.Tensor:
-    """Each muscle's cell polynomial ``(K, Mg)`` refitted without the samples it misses by more than ``factor`` times
-    the kept ones' median (``trim.trimmed_refits`` per muscle, up to ``CELL_TRIM_ROUNDS`` refits), from
-    ``phi (S, K)``, ``y (S, Mg)``, the whole cell's normal equations ``gram``, ``rhs`` and their ``solution``; each
-    refit updates every muscle's normal equations by the rows whose side changed only (few after the first). A
-    muscle keeps every sample where fewer than ``least`` would stay.
-
-    Where a wrap switches sides inside the cell the length jumps (17 to 20 mm on myoArm's shoulder); one
-    polynomial over both sides rings over the whole cell, millimetres far from the jump. Trimmed, it fits the
-    larger side to the micrometre and misses the smaller by about the jump."""
-    system, b = gram.expand(y.shape[1], -1, -1).clone(), rhs.T.clone()  # (Mg, K, K), (Mg, K)
-    eye = torch.eye(len(gram), dtype=gram.dtype, device=gram.device)
-    fitted = [solution]
-
-    def refit(keep, new):
-        rows = torch.nonzero((new != keep).any(1)).flatten()
-        phi_r, sign = phi[rows], new[rows].to(phi.dtype) - keep[rows].to(phi.dtype)  # +1 back in, -1 dropped
-        system.add_((phi_r.T[None] * sign.T[:, None, :]) @ phi_r)
-        b.add_((sign * y[rows]).T @ phi_r)
-        ridge = CELL_RIDGE * system.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * eye
-        fitted[0] = torch.linalg.solve(system + ridge, b.unsqueeze(-1)).squeeze(-1).T
-    trimmed_refits(lambda p: p @ fitted[0], phi, y, refit, factor, CELL_TRIM_ROUNDS, len(phi), True, least)
-    return fitted[0]
+def _set_few_terms(path, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
+    """``few_terms``: the whole-box and the cell terms over the variables of ``snapshot.PathSnapshot`` (the
+    joints, their cell coordinates, the ``extra`` joints the cells keep whole), each variable's slope into its
+    joint's column, times ``few_scale`` (``d local / d x = pieces`` on the cell coordinates)."""
+    exponents, n_joints = path._cell_sources[1], path.crossing.shape[1]
+    merged = np.zeros((len(exponents) + len(cell_exponents), 2 * n_joints + len(extra)), np.int64)
+    merged[:len(exponents), :n_joints], merged[len(exponents):, n_joints:] = exponents, cell_exponents
+    columns = np.concatenate([np.arange(n_joints), np.arange(n_joints), extra])
+    path.few_terms = ProductTerms(merged, columns).to(path.coef.device)
+    scale = np.ones(len(columns))
+    scale[n_joints:2 * n_joints] = path.pieces
+    path.register_buffer("few_scale", torch.tensor(scale, device=path.coef.device), persistent=False)

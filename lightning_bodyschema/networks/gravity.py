@@ -23,22 +23,11 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .trim import trimmed_refits
+from .arrays import horner
+from .snapshot import JUMP_ROWS, GravitySnapshot
+from .trim import solve_triangular, trimmed_refits
 
-JUMP_ROWS = 4  # up to this many postures the FK jumps pointers (fewest operations); above, a product per node
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
-ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (features are O(g x 1 m))
-RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's
-# rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
-
-
-def horner(columns, x):
-    """A polynomial per column of ``x`` from the rows of ``columns`` (the highest power first), by Horner's rule as
-    numpy's polyval (the same operations); torch tensors (one ``unbind``) or numpy arrays (``networks.host``)."""
-    value, *rest = columns.unbind() if torch.is_tensor(columns) else columns
-    for column in rest:
-        value = value * x + column
-    return value
 
 
 def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
@@ -96,7 +85,7 @@ class GravityTorque(nn.Module):
         self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
         self._register_nodes(tree)
-        self._register_eager()
+        self._register_couplings()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
         self.all_hinges = bool(tree.jnt_type[tree.moving_joint].size) and bool(
             (tree.jnt_type[tree.moving_joint] == _HINGE).all())
@@ -204,31 +193,15 @@ class GravityTorque(nn.Module):
             self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
 
-    def _register_eager(self) -> None:
-        """The constants of the eager ``forward`` (``_eager_torque``), each the value the traced one computes per
-        call: every gather's indices with its constant half (``qpos0`` there), each polynomial's coefficient columns
-        (contiguous, the highest power first), a joint's motion ``(C, 4, 4)`` as
-        ``I + sin M_sin + versine M_versine + angle M_angle`` (the rotation and the anchor's shift of
-        ``_joint_motions``, one matrix per term), the 4x4 columns that give a moving joint's anchor and axis in one
-        product, and the order of ``coef`` that puts a frame's first moment before its mass (``R s + p m`` in one
-        product)."""
+    def _register_couplings(self) -> None:
+        """The couplings' and slopes' gathers with their constant half (``qpos0`` there) and each polynomial's
+        coefficient columns (contiguous, the highest power first), as ``full_q`` and ``_slopes`` take them (and
+        ``networks.snapshot.GravitySnapshot``)."""
         gather = lambda rows: torch.as_tensor(rows, dtype=torch.long, device=self.qpos0.device)  # noqa: E731
-        hinge = self.chain_hinge[:, None]
-        eye = torch.eye(4, dtype=torch.float64, device=self.qpos0.device)
-        terms = torch.zeros(3, *self.chain_cross.shape[:1], 4, 4, dtype=torch.float64, device=self.qpos0.device)
-        terms[0, :, :3, :3], terms[0, :, :3, 3] = self.chain_cross, -hinge * self.chain_cross_pos
-        terms[1, :, :3, :3], terms[1, :, :3, 3] = self.chain_cross2, -hinge * self.chain_cross2_pos
-        terms[2, :, :3, 3] = (1.0 - hinge) * self.chain_axis
-        columns = torch.zeros(len(self.moving_joint), 4, 2, dtype=torch.float64, device=self.qpos0.device)
-        columns[:, :3, 0], columns[:, 3, 0], columns[:, :3, 1] = self.moving_pos, 1.0, self.moving_axis
-        frames = torch.arange(4 * self.n_frames, device=self.qpos0.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
-        buffers = dict(chain_joint_index=gather(self.chain_joint), chain_qpos0=self.qpos0[self.chain_joint],
-                       dep_follows_index=gather(self.dep_follows), dep_follows_qpos0=self.qpos0[self.dep_follows],
+        buffers = dict(dep_follows_index=gather(self.dep_follows), dep_follows_qpos0=self.qpos0[self.dep_follows],
                        dep_index=gather(self.dep_joint), dep_qpos0=self.qpos0[self.dep_joint],
                        dep_horner=self.dep_coef.T.flip(0).contiguous(), slope_index=gather(self.slope_of),
-                       slope_qpos0=self.qpos0[self.slope_of], slope_horner=self.slope_coef.T.flip(0).contiguous(),
-                       motion_eye=eye, motion_terms=terms, anchor_axis=columns, frame_moment_order=frames,
-                       gravity_cross_T=self.gravity_cross.T.contiguous())
+                       slope_qpos0=self.qpos0[self.slope_of], slope_horner=self.slope_coef.T.flip(0).contiguous())
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
 
@@ -274,14 +247,13 @@ class GravityTorque(nn.Module):
         ones = torch.ones_like(q)
         return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
 
-    def forward(self, q: torch.Tensor, terms: Optional[tuple] = None) -> torch.Tensor:
+    def forward(self, q: torch.Tensor, snapshot: Optional[GravitySnapshot] = None) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
         moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features).
-        Eager: ``_eager_torque``, the same numbers in about half the operations (at one posture each costs its
-        dispatch), with ``terms``: ``coef_terms()`` when the caller keeps them; exported: the program traced from
-        ``kinematics``."""
+        Eager: its ``GravitySnapshot`` (``snapshot`` when the caller keeps it: a schema's inference cache), the same
+        numbers in about half the operations; exported: the program traced from ``kinematics``."""
         if not torch.compiler.is_exporting():
-            return self._eager_torque(q.to(torch.float64), self.coef_terms() if terms is None else terms)
+            return (GravitySnapshot(self) if snapshot is None else snapshot)(q.to(torch.float64))
         q = q.to(torch.float64)
         full = self.full_q(q)
         p, R, o, a = self.kinematics(q, full)
@@ -297,40 +269,6 @@ class GravityTorque(nn.Module):
         spring = self.coef[4 * self.n_frames:]
         return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
 
-    def coef_terms(self) -> tuple:
-        """What the eager ``forward`` reads from ``coef``: per frame ``(s, m)`` ``(F, 4, 1)`` (in the order of a
-        pose's columns), each moving joint's mass below it ``(J,)``, the offsets and the spring rates ``(N,)`` (a
-        schema keeps them in its inference cache: ``coef`` is fitted)."""
-        per_frame, spring = self.coef[:4 * self.n_frames].view(self.n_frames, 4), self.coef[4 * self.n_frames:]
-        return (self.coef.index_select(0, self.frame_moment_order).view(-1, 4, 1), self.moves_frame @ per_frame[:, 0],
-                spring[:self.n_free], spring[self.n_free:])
-
-    def _eager_torque(self, q: torch.Tensor, terms: tuple) -> torch.Tensor:
-        """``forward``'s torque at float64 postures ``q (B, N)`` with ``_register_eager``'s constants: every
-        operation on the values the traced one computes, in its order (the same numbers to the bit), fewer of them:
-        gathers by index, constants not rebuilt, each joint's motion in one 4x4 sum, a frame's ``R s + p m`` and a
-        joint's anchor and axis each one product of the pose's top rows."""
-        full = self.full_q(q)
-        angle = (full.index_select(1, self.chain_joint_index) - self.chain_qpos0).unflatten(1, (-1, 1, 1))
-        by_sin, by_versine, by_angle = self.motion_terms.unbind()
-        motion = self.motion_eye + angle.sin() * by_sin + (1.0 - angle.cos()) * by_versine + angle * by_angle
-        frames, before = self._eager_world(motion)
-        moment_mass, mass_joint, offset, rate = terms
-        w = (frames[..., :3, :] @ moment_mass)[..., 0]
-        anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
-        o, a = anchor_axis[..., 0], anchor_axis[..., 1]
-        w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w.contiguous())
-        tau = -((a.contiguous() @ self.gravity_cross_T) * (w_joint - mass_joint[:, None] * o)).sum(-1)
-        if not self.all_hinges:
-            tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * mass_joint)
-        return (tau * self._slopes(full)) @ self.free_scatter + offset + rate * q
-
-    def _eager_world(self, motion: torch.Tensor):
-        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
-        (``_world``, as ``kinematics``)."""
-        world = self._world(motion)
-        return self._pick("frame_node", world), self._pick("before_node", world)
-
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()
     def fit_trimmed(self, q: torch.Tensor, tau: torch.Tensor, factor: float = 3.0, rounds: int = 8,
@@ -342,9 +280,9 @@ class GravityTorque(nn.Module):
         postures determine only weakly (relative singular values down to 1e-10 on myoArm), which the normal
         equations' squared condition number would lose to rounding."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
-        self.coef.copy_(_solve_triangular(self._triangular(q, tau, chunk)))
+        self.coef.copy_(solve_triangular(self._triangular(q, tau, chunk)))
         def refit(keep, new):
-            self.coef.copy_(_solve_triangular(self._triangular(q[new], tau[new], chunk)))
+            self.coef.copy_(solve_triangular(self._triangular(q[new], tau[new], chunk)))
         return trimmed_refits(self, q, tau, refit, factor, rounds, chunk)
 
     def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
@@ -356,18 +294,3 @@ class GravityTorque(nn.Module):
             R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
         return R
 
-
-def _solve_triangular(R: torch.Tensor) -> torch.Tensor:
-    """The minimum-norm least-squares ``coef`` from ``R`` of ``[Y | tau]``, columns scaled to unit norm first (masses
-    [kg] and moments [kg m] differ in size). Columns at rounding level (``ZERO_COLUMN`` of the largest: a frame whose
-    origin sits on the axis of every joint moving it) get 0, and directions the data does not determine (a moment
-    along a joint axis) are dropped below ``RCOND``: scaled up, either would fit rounding with huge coefficients."""
-    A, b = R[:, :-1], R[:, -1]
-    norm = A.norm(dim=0)  # the features' column norms (Q is orthonormal)
-    used = torch.nonzero(norm > ZERO_COLUMN * norm.max()).flatten()
-    U, S, Vh = torch.linalg.svd(A[:, used] / norm[used], full_matrices=False)
-    kept = S > RCOND * S[0]
-    inverse = torch.where(kept, 1.0 / torch.where(kept, S, torch.ones_like(S)), torch.zeros_like(S))
-    coef = torch.zeros(A.shape[1], dtype=torch.float64, device=R.device)
-    coef[used] = (Vh.T @ (inverse * (U.T @ b))) / norm[used]
-    return coef

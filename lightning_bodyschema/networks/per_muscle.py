@@ -22,86 +22,26 @@ cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lig
 """
 from __future__ import annotations
 
-import itertools
-import math
+from dataclasses import replace
 from typing import Optional
 
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
-from ..errors import BodySchemaInputError
 from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
-from .branches import fit_branches, group_system, one_thread, solve_systems
-from .cells import CELL_JOINTS, CELL_KEEP, cell_cuts, cell_groups, cell_layout, evaluate_cells, fit_cells
+from .branches import fit_branches, one_thread
+from .cell_fit import fit_cells
+from .cells import cell_cuts, evaluate_cells, set_cell_layout
 from .degrees import block_sizes, muscle_degrees
-from .few_postures import FewCoefficients, evaluate_few, few_coefficients, few_for
+from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
+from .path_config import PathConfig
+from .polynomial import (check_blocks, check_crossing, check_degrees, normal_equations, solve_normal_equations,
+                         term_exponents, term_mask)
+from .snapshot import PathSnapshot, few_for
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
-
-
-def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[np.ndarray] = None) -> np.ndarray:
-    """``(P, N)`` exponents of every product term some muscle uses (nonzero exponents only on the joints it
-    crosses, all within one of its ``blocks`` when given, total degree at most its own), ordered by total degree
-    then lexicographically, the constant first."""
-    blocks = check_blocks(crossing, blocks)
-    terms = set()
-    for pattern, degree in {(tuple(b), int(d)) for b, d in zip(blocks.tolist(), degrees)}:  # per pattern, once
-        for group in sorted(set(pattern) - {-1}):
-            joints = [j for j, b in enumerate(pattern) if b == group]
-            for e in itertools.product(range(degree + 1), repeat=len(joints)):
-                if sum(e) <= degree:
-                    full = [0] * len(pattern)
-                    for j, k in zip(joints, e):
-                        full[j] = k
-                    terms.add(tuple(full))
-    return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, crossing.shape[1])
-
-
-def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray,
-              blocks: Optional[np.ndarray] = None) -> np.ndarray:
-    """``(M, P)`` bool: the terms each muscle uses (nonzero exponents only on the joints it crosses, all within one
-    of its ``blocks`` when given, total degree at most its own)."""
-    blocks = check_blocks(crossing, blocks).astype(np.int16)
-    support = exponents > 0
-    lowest = np.where(support[None], blocks[:, None, :], np.iinfo(np.int16).max).min(-1)  # (M, P)
-    highest = np.where(support[None], blocks[:, None, :], -1).max(-1)
-    inside = ((lowest == highest) & (lowest >= 0)) | ~support.any(1)[None, :]
-    return inside & (exponents.sum(1)[None, :] <= degrees[:, None])
-
-
-def check_blocks(crossing: np.ndarray, blocks) -> np.ndarray:
-    """``blocks (M, N)`` int: a group id per crossed joint (-1 on the others), the joints whose effects on a muscle's
-    length do not add up sharing one (``sim.separable.separable_blocks``); None: one group of every crossed
-    joint. One ``BodySchemaInputError`` unless it marks exactly the crossed joints."""
-    crossing = np.asarray(crossing, dtype=bool)
-    if blocks is None:
-        return np.where(crossing, 0, -1)
-    values = np.asarray(blocks)
-    if values.shape != crossing.shape or values.dtype.kind not in "iu" or not np.array_equal(values >= 0, crossing) \
-            or (values < -1).any():
-        raise BodySchemaInputError(f"path blocks {blocks!r} must be {crossing.shape[0]} rows of {crossing.shape[1]} "
-                                   f"integers: a group id >= 0 on each joint the muscle crosses, -1 on the others")
-    return values.astype(np.int64)
-
-
-def check_crossing(crossing) -> np.ndarray:
-    """``crossing (M, N)`` as a bool array; one ``BodySchemaInputError`` if a muscle crosses no joint."""
-    crossing = np.asarray(crossing, dtype=bool)
-    if crossing.ndim != 2 or not crossing.any(1).all():
-        raise BodySchemaInputError(f"crossing must be (muscles, joints) with every muscle crossing a joint; got "
-                                   f"shape {crossing.shape}")
-    return crossing
-
-
-def check_degrees(degrees, n_muscles: int) -> np.ndarray:
-    """``degrees`` as an ``(M,)`` int array; one ``BodySchemaInputError`` unless M integers >= 1."""
-    values = np.asarray(degrees)
-    if values.shape != (n_muscles,) or values.dtype.kind not in "iu" or (values < 1).any():
-        raise BodySchemaInputError(f"degrees={degrees!r} must be {n_muscles} integers >= 1, one per muscle")
-    return values.astype(np.int64)
 
 
 @torch.no_grad()
@@ -111,7 +51,7 @@ def degrees_within_tolerance(crossing, x: torch.Tensor, y: torch.Tensor, scale: 
     ``max_terms`` terms per muscle on ``x (S, N)``, ``y (S, M)``; the muscles whose p99 residual times ``scale (M,)``
     exceeds ``tolerance`` (same units) then share ``budget`` (``muscle_degrees`` with ``eligible``)."""
     crossing = check_crossing(crossing)
-    first = PerMusclePath(crossing, degree, 1, 0, max_terms, blocks=blocks).to(x.device)
+    first = PerMusclePath(crossing, degree=degree, n_hidden=0, max_terms=max_terms, blocks=blocks).to(x.device)
     first.fit_polynomial(x, y)
     p99 = torch.quantile((first(x.to(torch.float64)) - y.to(torch.float64)).abs() * scale.to(x.device), 0.99, dim=0)
     return muscle_degrees(crossing, degree, max_terms, budget, (p99 > tolerance).cpu().numpy(), blocks)
@@ -122,57 +62,23 @@ class PerMusclePath(nn.Module):
 
     Args:
         crossing: ``(M, N)`` bool array (numpy or nested lists), which joints each muscle crosses.
-        degree, max_terms: each muscle's polynomial has the highest total degree ``<= degree`` with at most
-            ``max_terms`` terms over the joints it crosses (``muscle_degrees``).
-        term_budget: None, or the most terms over all muscles together: what ``max_terms`` leaves is spent raising
-            the lowest degrees first (the muscles that cross many joints; ``muscle_degrees``), up to ``degree``.
-        degrees: None, or each muscle's total degree ``(M,)`` (then ``degree``, ``max_terms`` and ``term_budget``
-            are not used; ``degrees_within_tolerance`` chooses them from data).
-        hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
-        branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` where a path jumps.
-        cells: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst get ``cells ** n`` cells
-            over their ``n`` joints, one polynomial each (``networks.cells``).
-        blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
-            (``check_blocks``; ``sim.separable.separable_blocks`` finds them in an MJCF): no term mixes two
-            groups, so the same number of terms reaches a higher degree.
-        cell_trim: None, or each cell refitted without the samples it misses by more than this many times the kept
-            ones' median (``networks.cells._trimmed``: a jump inside a cell then costs its smaller side, not a ring
-            over the whole cell).
-        cell_joints: which joints cut a celled muscle's box (``networks.cells.cell_cuts``): ``"crossed"`` (every
-            joint it crosses) or ``"largest_group"`` (those of its largest group of ``blocks``; the others stay whole
-            in each cell's polynomial).
-        cell_keep: what a muscle's cells must improve on the fitted samples to be kept (``networks.cells._kept``):
-            ``"median_and_p99"`` (halve the median residual, no larger p99) or ``"median"`` (halve the median).
+        config: the options (``networks.path_config.PathConfig``: degrees and term budgets, the per-muscle MLP,
+            branches, cells, blocks); ``options``: the same by name, instead of or over ``config``.
     """
 
-    def __init__(self, crossing, degree: int = 6, hidden: int = 32, n_hidden: int = 2, max_terms: int = 10 ** 6,
-                 branches: int = 1, gate_degree: int = 4, term_budget: Optional[int] = None, degrees=None,
-                 cells: int = 1, cell_degrees=None, blocks=None, cell_trim: Optional[float] = None,
-                 cell_joints: str = "crossed", cell_keep: str = "median_and_p99"):
+    def __init__(self, crossing, config: Optional[PathConfig] = None, **options):
         super().__init__()
-        for name, value, low in (("degree", degree, 1), ("hidden", hidden, 1), ("n_hidden", n_hidden, 0),
-                                 ("max_terms", max_terms, 2), ("gate_degree", gate_degree, 1), ("cells", cells, 1)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise BodySchemaInputError(f"{name}={value!r} must be an integer >= {low}")
-        if branches not in (1, 2) or isinstance(branches, bool):
-            raise BodySchemaInputError(f"branches={branches!r}; allowed: 1 (one polynomial per muscle) or 2 (two "
-                                       f"and a gate where a muscle's path jumps)")
+        config = replace(config or PathConfig(), **options).checked()
         crossing = check_crossing(crossing)
-        blocks = check_blocks(crossing, blocks)
+        blocks = check_blocks(crossing, config.blocks)
         n_muscles, n_joints = crossing.shape
-        if cell_trim is not None and (isinstance(cell_trim, bool) or not isinstance(cell_trim, (int, float))
-                                      or not cell_trim > 1):
-            raise BodySchemaInputError(f"cell_trim={cell_trim!r} must be None or a number > 1 (times the median miss)")
-        if cell_joints not in CELL_JOINTS:
-            raise BodySchemaInputError(f"cell_joints={cell_joints!r}; allowed: {list(CELL_JOINTS)}")
-        if cell_keep not in CELL_KEEP:
-            raise BodySchemaInputError(f"cell_keep={cell_keep!r}; allowed: {list(CELL_KEEP)}")
-        self.cell_keep = cell_keep  # the fit's, not the state's
-        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, gate_degree, cells
-        self.cell_trim = None if cell_trim is None else float(cell_trim)  # the fit's, not the state's
+        self.config, self.cell_keep = config, config.cell_keep  # the fit's, not the state's
+        n_hidden, branches, cells = config.n_hidden, config.branches, config.cells
+        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, config.gate_degree, cells
+        self.cell_trim = None if config.cell_trim is None else float(config.cell_trim)  # the fit's, not the state's
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
-        degrees = muscle_degrees(crossing, degree, max_terms, term_budget, blocks=blocks) if degrees is None else \
-            check_degrees(degrees, len(crossing))
+        degrees = muscle_degrees(crossing, config.degree, config.max_terms, config.term_budget, blocks=blocks) \
+            if config.degrees is None else check_degrees(config.degrees, len(crossing))
         self.degree = int(degrees.max())
         exponents = term_exponents(crossing, degrees, blocks)
         self.register_buffer("crossing", torch.tensor(crossing))
@@ -191,42 +97,34 @@ class PerMusclePath(nn.Module):
             self.register_load_state_dict_post_hook(lambda module, _: module._refresh_branched())
         if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
-            self.cell_cut = cell_cuts(crossing, blocks, cell_joints)  # (M, N) numpy: the joints that cut each box
-            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if cell_degrees is None else cell_degrees)
+            self.cell_cut = cell_cuts(crossing, blocks, config.cell_joints)  # (M, N) numpy: the joints that cut boxes
+            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
-        sizes = [n_joints] + [hidden] * n_hidden + [1]
-        self.weights = nn.ParameterList(nn.Parameter(_uniform((n_muscles, a, b), a)) for a, b in
-                                        zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
-        self.biases = nn.ParameterList(nn.Parameter(_uniform((n_muscles, 1, b), a)) for a, b in
-                                       zip(sizes[:-1], sizes[1:])) if n_hidden else nn.ParameterList()
-        if n_hidden:
-            with torch.no_grad():  # the network starts at zero: the polynomial alone until it learns
-                self.weights[-1].zero_()
-                self.biases[-1].zero_()
+        self.weights, self.biases = muscle_mlp_parameters(n_muscles, n_joints, config.hidden, n_hidden)
 
     # ------------------------------------------------------------------ the polynomial
     def basis(self, x: torch.Tensor, slopes: bool = False):
         """``phi (B, P)`` and, with ``slopes``, ``dphi/dx (B, N, P)`` of every term (``product_basis``)."""
         return product_basis(x, self.exponents, self.degree, slopes)
 
-    def polynomial(self, x: torch.Tensor, slopes: bool = False, dense_coefs: Optional[FewCoefficients] = None):
+    def polynomial(self, x: torch.Tensor, slopes: bool = False, snapshot: Optional[PathSnapshot] = None):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
-        ``dense_coefs``: ``dense_coefficients()`` when the caller keeps them (used at few postures).
+        ``snapshot``: ``snapshot()`` when the caller keeps it (used at few postures).
 
         Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
         extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
         high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        At few postures (``few_postures.few_for``) every part from one basis (``networks.few_postures``); above, the
-        whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay in
-        cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
+        At few postures (``snapshot.few_for``) every part from one basis (``networks.snapshot.PathSnapshot``); above,
+        the whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay
+        in cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
         x64 = x.to(torch.float64)
+        if few_for(self, x64):
+            y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
+            return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         exporting = torch.compiler.is_exporting()
-        if few_for(self, inside):
-            y, dy = evaluate_few(self, x64, inside, self.dense_coefficients() if dense_coefs is None else dense_coefs)
-            return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         derive = slopes or not torch.equal(inside, x64)
         rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
         coefs = self._coefficients(exporting)  # once per call
@@ -243,10 +141,10 @@ class PerMusclePath(nn.Module):
         y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
-    def dense_coefficients(self) -> FewCoefficients:
-        """What the evaluation at few postures reads from the coefficients (``few_postures.few_coefficients``): a
+    def snapshot(self) -> PathSnapshot:
+        """The fitted polynomials frozen for the evaluation at few postures (``networks.snapshot.PathSnapshot``): a
         caller may keep it while they do not change (``StructuredSchema.body``: its inference cache)."""
-        return few_coefficients(self)
+        return PathSnapshot(self)
 
     def _coefficients(self, dense: bool) -> tuple:
         """The whole-box coefficients (masked: exactly zero off each muscle's terms), the branched muscles' gates
@@ -320,58 +218,14 @@ class PerMusclePath(nn.Module):
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
-        mask = self.term_mask
-        order = torch.argsort((~mask).to(torch.int8), dim=1, stable=True)  # each muscle's terms first
-        counts, coef = mask.sum(1), torch.zeros_like(self.coef)
-        for k in torch.unique(counts).tolist():  # a loop over groups of equal size; the maths in a group is batched
-            muscles = torch.nonzero(counts == k).flatten()
-            terms = order[muscles, :k]
-            system, b = group_system(gram, rhs, muscles, terms)
-            solution = solve_systems(system, b, torch.ones_like(b, dtype=torch.bool), ridge)
-            coef[muscles] = coef[muscles].scatter(1, terms, solution)
-        self.coef.copy_(coef * mask)
+        coef, order = solve_normal_equations(self.term_mask, gram, rhs, ridge)
+        self.coef.copy_(coef)
         return order
 
     def set_cell_degrees(self, degrees) -> None:
-        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout (``networks.cells.cell_layout``) and zero
-        cell coefficients, none fitted. A checkpoint's skeleton is built from the same degrees."""
-        values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
-        if values.shape != (len(self.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
-            raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(self.coef)} integers >= 0, one per "
-                                       f"muscle (0: no cells)")
-        *layout, valid, n_cells, extra = cell_layout(*self._cell_sources, values.astype(np.int64), self.pieces,
-                                                     self.cell_cut)
-        perm, self.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
-        device = self.coef.device  # (a fit sets the cells on its own device, a GPU's too)
-        self.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
-                                        for start, _, width in self.cell_group_bounds).to(device)  # each group's
-        self.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
-        self._set_few_terms(layout[2], extra)
-        for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
-                                "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
-            self.register_buffer(name, torch.as_tensor(value, device=self.coef.device), persistent=False)  # derived
-        unfold = np.eye(self.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
-        self.register_buffer("cell_rows", torch.arange(len(layout[0]), device=device), persistent=False)
-        self.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
-        self.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
-                             persistent=False)
-        self.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
-                                                      device=self.coef.device))
-        self.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
-                                                        device=self.coef.device))
-
-    def _set_few_terms(self, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
-        """``few_terms``: the whole-box and the cell terms over the variables of ``few_postures.evaluate_few`` (the
-        joints, their cell coordinates, the ``extra`` joints the cells keep whole), each variable's slope into its
-        joint's column, times ``few_scale`` (``d local / d x = pieces`` on the cell coordinates)."""
-        exponents, n_joints = self._cell_sources[1], self.crossing.shape[1]
-        merged = np.zeros((len(exponents) + len(cell_exponents), 2 * n_joints + len(extra)), np.int64)
-        merged[:len(exponents), :n_joints], merged[len(exponents):, n_joints:] = exponents, cell_exponents
-        columns = np.concatenate([np.arange(n_joints), np.arange(n_joints), extra])
-        self.few_terms = ProductTerms(merged, columns).to(self.coef.device)
-        scale = np.ones(len(columns))
-        scale[n_joints:2 * n_joints] = self.pieces
-        self.register_buffer("few_scale", torch.tensor(scale, device=self.coef.device), persistent=False)
+        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout and zero cell coefficients, none fitted
+        (``cells.set_cell_layout``). A checkpoint's skeleton is built from the same degrees."""
+        set_cell_layout(self, degrees)
 
     @torch.no_grad()
     def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3,
@@ -400,45 +254,21 @@ class PerMusclePath(nn.Module):
         return trimmed_refits(self, x, y, refit, factor, rounds, chunk)
 
     def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` summed over chunks of samples (the chunks bound the memory)."""
-        n_terms = self.coef.shape[1]
-        gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
-        rhs = torch.zeros(n_terms, y.shape[1], dtype=torch.float64, device=x.device)
-        for start in range(0, len(x), chunk):
-            phi = self.basis(x[start:start + chunk])[0]
-            gram += phi.T @ phi
-            rhs += phi.T @ y[start:start + chunk]
-        return gram, rhs
+        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` of this path's terms (``polynomial.normal_equations``)."""
+        return normal_equations(lambda rows: self.basis(rows)[0], self.coef.shape[1], x, y, chunk)
 
     # ------------------------------------------------------------------ the network
-    def _network(self, x: torch.Tensor, slopes: bool):
-        """The per-muscle MLPs on masked inputs: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``."""
-        mask = self.crossing.to(x.dtype)  # (M, N)
-        h = torch.einsum("bn,mnk->bmk", x, self.weights[0] * mask[:, :, None]) + self.biases[0].transpose(0, 1)
-        tangent = (self.weights[0] * mask[:, :, None]).unsqueeze(0) if slopes else None  # (1, M, N, K)
-        for w, b in zip(self.weights[1:], self.biases[1:]):
-            a = F.silu(h)
-            if slopes:
-                s = torch.sigmoid(h)
-                tangent = torch.einsum("bmnk,mkj->bmnj", tangent * (s * (1 + h * (1 - s))).unsqueeze(2), w)
-            h = torch.einsum("bmk,mkj->bmj", a, w) + b.transpose(0, 1)
-        return h[..., 0], None if tangent is None else tangent[..., 0].expand(len(x), -1, -1)
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = self.polynomial(x)[0]
-        return y + self._network(x, False)[0] if self.n_hidden else y
+        return y + muscle_mlp(self, x, False)[0] if self.n_hidden else y
 
-    def with_jacobian(self, x: torch.Tensor, dense_coefs: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross (``dense_coefs``:
+    def with_jacobian(self, x: torch.Tensor, snapshot: Optional[PathSnapshot] = None) -> tuple[torch.Tensor,
+                                                                                                torch.Tensor]:
+        """``(y (B, M), dy/dx (B, M, N))``, exact; zero on every joint a muscle does not cross (``snapshot``:
         ``polynomial``'s)."""
-        y, dy = self.polynomial(x, slopes=True, dense_coefs=dense_coefs)
+        y, dy = self.polynomial(x, slopes=True, snapshot=snapshot)
         if self.n_hidden:
-            y_net, dy_net = self._network(x, True)
+            y_net, dy_net = muscle_mlp(self, x, True)
             y, dy = y + y_net, dy + dy_net
         return y, dy
 
-
-def _uniform(shape, fan_in: int) -> torch.Tensor:
-    """``nn.Linear``'s default initialization, for batched per-muscle weights."""
-    bound = 1.0 / math.sqrt(fan_in)
-    return torch.empty(shape).uniform_(-bound, bound)

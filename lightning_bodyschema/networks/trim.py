@@ -1,12 +1,16 @@
 """Trimmed least squares: refits without the samples a fit misses by far (the per-muscle polynomial torque and the
 gravity torque: where a learned moment arm swings, at a jump or a cell's edge, its torque is no smooth function and
 would pull the whole least squares; the path cells of ``PerMusclePath(cell_trim=...)``: a wrap's jump inside a cell).
-Plain PyTorch, no Lightning."""
+``solve_triangular``: the gravity torque's minimum-norm least squares from a QR. Plain PyTorch, no Lightning."""
 from __future__ import annotations
 
 from typing import Callable
 
 import torch
+
+ZERO_COLUMN = 1e-10  # a column norm below this times the largest is rounding (gravity's features are O(g x 1 m))
+RCOND = 1e-10  # singular values of the column-scaled features below this times the largest are dropped (as lstsq's
+# rcond: myoArm's weakest determined direction is at 3e-10, its undetermined ones at 1e-16)
 
 
 def trimmed_refits(model: Callable, x: torch.Tensor, y: torch.Tensor, refit: Callable, factor: float, rounds: int,
@@ -28,3 +32,19 @@ def trimmed_refits(model: Callable, x: torch.Tensor, y: torch.Tensor, refit: Cal
         refit(keep, new)
         keep = new
     return keep
+
+
+def solve_triangular(R: torch.Tensor) -> torch.Tensor:
+    """The minimum-norm least-squares ``coef`` from ``R`` of ``[Y | tau]``, columns scaled to unit norm first (masses
+    [kg] and moments [kg m] differ in size). Columns at rounding level (``ZERO_COLUMN`` of the largest: a frame whose
+    origin sits on the axis of every joint moving it) get 0, and directions the data does not determine (a moment
+    along a joint axis) are dropped below ``RCOND``: scaled up, either would fit rounding with huge coefficients."""
+    A, b = R[:, :-1], R[:, -1]
+    norm = A.norm(dim=0)  # the features' column norms (Q is orthonormal)
+    used = torch.nonzero(norm > ZERO_COLUMN * norm.max()).flatten()
+    U, S, Vh = torch.linalg.svd(A[:, used] / norm[used], full_matrices=False)
+    kept = S > RCOND * S[0]
+    inverse = torch.where(kept, 1.0 / torch.where(kept, S, torch.ones_like(S)), torch.zeros_like(S))
+    coef = torch.zeros(A.shape[1], dtype=torch.float64, device=R.device)
+    coef[used] = (Vh.T @ (inverse * (U.T @ b))) / norm[used]
+    return coef

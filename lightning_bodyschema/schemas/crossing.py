@@ -34,7 +34,7 @@ def resolve_crossing(robot_model, robot: dict, muscle_joints: Optional[dict]) ->
 def data_arms_m(q_n: torch.Tensor, length_n: torch.Tensor, arm_scale: torch.Tensor) -> torch.Tensor:
     """``(M, N)`` RMS over the samples of each muscle's length slope on each joint [m/rad], from a least-squares
     cubic over every joint (``length_n``: normalized lengths; ``arm_scale (M, N)``: see ``StructuredSchema``)."""
-    probe = PerMusclePath(np.ones((length_n.shape[1], q_n.shape[1]), bool), _DETECT_DEGREE, 1, 0)
+    probe = PerMusclePath(np.ones((length_n.shape[1], q_n.shape[1]), bool), degree=_DETECT_DEGREE, n_hidden=0)
     probe = probe.to(q_n.device, torch.float64)
     probe.fit_polynomial(q_n, length_n)
     slope = probe.with_jacobian(q_n.to(torch.float64))[1]

@@ -34,15 +34,15 @@ from ..evaluation.body_errors import bad_regions, bad_regions_table, summary, wo
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import bounds_command
-from ..networks.cells import CELL_JOINTS, CELL_KEEP
 from ..networks.gravity import GravityTorque
+from ..networks.path_config import PathConfig
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
+from ..networks.snapshot import BodySnapshot, GravitySnapshot
 from ..networks.structured import JacobianMLP, check_architecture
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
 from .base import BodySchema
 from .crossing import crossing_from_data, resolve_crossing
-from .host_body import host_body
 
 BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s on myoArm
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
@@ -51,6 +51,9 @@ TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at mos
 TORQUE_TRIM = 3.0  # its refits drop postures missed by more than this many medians (RESULTS.md "Per-muscle paths")
 TORQUE_TRIM_ROUNDS = 8
 LENGTH_MODELS = ("mlp", "per_muscle")
+# ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``snapshot.few_for``): on myoArm
+# numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation, myoArm")
+HOST_ROWS = 16
 
 
 class StructuredSchema(BodySchema):
@@ -106,7 +109,7 @@ class StructuredSchema(BodySchema):
         path_cell_keep: what a muscle's cells must improve on the fitted samples to be kept: ``"median_and_p99"``
             (halve its median residual without a larger p99) or ``"median"`` (halve its median: myoArm's LAT1 and
             LAT2, two branches each, then keep cells whose moment arms are far better on all but their jumps' smaller
-            sides; ``networks.cells._kept``).
+            sides; ``networks.cell_fit._kept``).
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -145,18 +148,12 @@ class StructuredSchema(BodySchema):
         if path_separable and length_model != "per_muscle":
             raise BodySchemaInputError("path_separable=True needs length_model='per_muscle'")
         check_architecture(block, norm)
-        if isinstance(path_cells, bool) or not isinstance(path_cells, int) or path_cells < 1:
-            raise BodySchemaInputError(f"path_cells={path_cells!r} must be an integer >= 1 (pieces per joint; 1: no "
-                                       f"cells)")
-        if path_cell_joints not in CELL_JOINTS:
-            raise BodySchemaInputError(f"path_cell_joints={path_cell_joints!r}; allowed: {list(CELL_JOINTS)}")
-        if path_cell_keep not in CELL_KEEP:
-            raise BodySchemaInputError(f"path_cell_keep={path_cell_keep!r}; allowed: {list(CELL_KEEP)}")
         if path_tolerance_mm is not None and (path_term_budget is None or isinstance(path_tolerance_mm, bool) or
                                               not 0.0 < float(path_tolerance_mm) < float("inf")):
             raise BodySchemaInputError(f"path_tolerance_mm={path_tolerance_mm!r} must be a finite number > 0 [mm], "
                                        f"with a path_term_budget to share")
         self.save_hyperparameters()
+        PathConfig.from_schema(self.hparams)  # every path option checked, whichever length model
         if length_model == "per_muscle":
             self.hparams.muscle_joints = resolve_crossing(self.robot_model, robot, muscle_joints)
             if path_separable and path_blocks is None:
@@ -165,7 +162,8 @@ class StructuredSchema(BodySchema):
         else:
             self.length_net = JacobianMLP(self.n_joints, self.n_muscles, hidden, n_hidden, block, norm)
         if torque_model == "polynomial":  # the joints as the "muscles" of a polynomial over every joint
-            self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), torque_degree, 1, 0)
+            self.torque_net = PerMusclePath(np.ones((self.n_joints, self.n_joints), bool), degree=torque_degree,
+                                            n_hidden=0)
         elif torque_model == "gravity":  # rebuilt from the robot's XML: a checkpoint carries only the coefficients
             self.torque_net = GravityTorque(gravity_tree(self.robot_model))
         else:
@@ -206,13 +204,7 @@ class StructuredSchema(BodySchema):
 
     def _build_paths(self) -> None:
         """The per-muscle path model for ``hparams.muscle_joints`` (None: every joint until the fit detects them)."""
-        hp = self.hparams
-        self.length_net = PerMusclePath(self._crossing(), hp.path_degree, hp.path_hidden, hp.path_layers, hp.path_terms,
-                                        hp.get("path_branches", 1), hp.get("path_gate_degree", 8),
-                                        hp.get("path_term_budget"), hp.get("path_degrees"), hp.get("path_cells", 1),
-                                        hp.get("path_cell_degrees"), hp.get("path_blocks"), hp.get("path_cell_trim"),
-                                        hp.get("path_cell_joints", "crossed"),
-                                        hp.get("path_cell_keep", "median_and_p99"))
+        self.length_net = PerMusclePath(self._crossing(), PathConfig.from_schema(self.hparams))
 
     # ------------------------------------------------------------------ units
     def setup(self, stage: str):
@@ -292,8 +284,8 @@ class StructuredSchema(BodySchema):
         in the networks' dtype (``tau`` None with ``lengths_only``). Differentiable in the weights."""
         l_mean, l_std, arm = self._length_scales(q_n.dtype)
         if isinstance(self.length_net, PerMusclePath) and not torch.compiler.is_exporting():  # fitted coefficients
-            coefs = self.inference_cache.get("path_coefficients", self.length_net.dense_coefficients)
-            l_geo_n, dl_n = self.length_net.with_jacobian(q_n, coefs)
+            snapshot = self.inference_cache.get("path_snapshot", self.length_net.snapshot)
+            l_geo_n, dl_n = self.length_net.with_jacobian(q_n, snapshot)
         else:
             l_geo_n, dl_n = self.length_net.with_jacobian(q_n)
         return l_mean + l_std * l_geo_n, dl_n * arm, None if lengths_only else self.torque(q_n)
@@ -313,8 +305,8 @@ class StructuredSchema(BodySchema):
             q = self.normalizer.decode_q(q_n.to(torch.float64))
             if torch.compiler.is_exporting():
                 return self.torque_net(q).to(q_n.dtype)
-            terms = self.inference_cache.get("gravity_coef_terms", self.torque_net.coef_terms)  # coef is fitted
-            return self.torque_net(q, terms).to(q_n.dtype)
+            snapshot = self.inference_cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
+            return self.torque_net(q, snapshot).to(q_n.dtype)
         scale = self.tau_scale_nm.to(q_n.dtype)
         if self.hparams.torque_model in ("direct", "polynomial"):
             return scale * self.torque_net(q_n)
@@ -399,8 +391,9 @@ class StructuredSchema(BodySchema):
     # ------------------------------------------------------------------ commands
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
-        (on the CPU, up to ``schemas.host_body.HOST_ROWS`` postures, in numpy)."""
-        host = host_body(self, q_rad)
+        (a per-muscle path without hidden layers and a gravity torque on the CPU, up to ``HOST_ROWS`` postures: its
+        ``BodySnapshot`` in numpy)."""
+        host = self._host_body(q_rad)
         if host is not None:
             return host(q_rad.detach().cpu().numpy().astype(np.float64))
         with torch.no_grad():
@@ -410,6 +403,30 @@ class StructuredSchema(BodySchema):
     def learned_body_si(self, q_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``body_si``: the learned body itself (``BodySchema.learned_body_si``'s contract)."""
         return self.body_si(torch.as_tensor(np.asarray(q_rad, np.float64)))
+
+    def _host_body(self, q_rad: torch.Tensor) -> Optional[BodySnapshot]:
+        """``body_si``'s numpy ``BodySnapshot`` for postures ``q_rad``: in eval mode, not exporting, up to
+        ``HOST_ROWS`` postures within the path's few-postures budget, for the body it covers on the CPU; else None."""
+        if self.training or torch.compiler.is_exporting() or len(q_rad) > HOST_ROWS:
+            return None
+        host = self.inference_cache.get("body_snapshot", self._numpy_body)
+        return host if host is not None and len(q_rad) <= host.path.max_postures else None
+
+    def _numpy_body(self) -> Optional[BodySnapshot]:
+        """``body_snapshot().on_host()``, or None for a body it does not cover (an MLP in the path, another torque
+        model) or off the CPU."""
+        path = self.length_net
+        covered = isinstance(path, PerMusclePath) and not path.n_hidden and self.hparams.torque_model == "gravity"
+        return self.body_snapshot().on_host() if covered and self.device.type == "cpu" else None
+
+    def body_snapshot(self) -> BodySnapshot:
+        """The fitted body (a per-muscle path without hidden layers and a gravity torque) frozen, in torch
+        (``on_host()``: numpy), from the snapshots ``body`` and ``torque`` keep: ``body_si``'s arithmetic."""
+        cache = self.inference_cache
+        path = cache.get("path_snapshot", self.length_net.snapshot)
+        gravity = cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
+        norm = self.normalizer
+        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype))
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:

@@ -6,7 +6,8 @@ import torch
 
 from lightning_bodyschema.networks import basis as basis_module
 from lightning_bodyschema.networks.basis import ProductTerms, product_basis
-from lightning_bodyschema.networks.per_muscle import term_exponents
+from lightning_bodyschema.networks.polynomial import term_exponents
+from lightning_bodyschema.networks.snapshot import TermsSnapshot
 
 CROSSING = np.array([[1, 1, 1, 0, 0], [0, 0, 0, 1, 1], [1, 0, 0, 1, 0], [0, 1, 0, 0, 0]], dtype=bool)
 BLOCKS = np.array([[0, 0, 0, -1, -1], [-1, -1, -1, 0, 0], [0, -1, -1, 1, -1], [-1, 0, -1, -1, -1]])
@@ -59,14 +60,17 @@ def test_contracted_slopes_are_the_autograd_jacobian_and_both_paths_agree(terms,
 
 
 def test_stacked_slopes_follow_the_chain_rule_into_shared_columns():
-    """``stacked`` over variables ``v = (x, 4 x - 1, x_1)`` whose slopes go into x's columns with their chain-rule
-    factor: column 0 each term, the others its derivative in x, as autograd gives it (float64)."""
+    """``TermsSnapshot`` (torch and numpy) over variables ``v = (x, 4 x - 1, x_1)`` whose slopes go into x's columns
+    with their chain-rule factor: column 0 each term, the others its derivative in x, as autograd gives it."""
     exponents = np.random.default_rng(3).integers(0, 4, (60, 7)) * (np.random.default_rng(4).random((60, 7)) < 0.4)
     product = ProductTerms(exponents, columns=[0, 1, 2, 0, 1, 2, 1])
     scale = torch.tensor([1.0, 1.0, 1.0, 4.0, 4.0, 4.0, 1.0], dtype=torch.float64)
     variables = lambda x: torch.cat([x, 4 * x - 1, x[:, 1:2]], 1) * 0.2  # noqa: E731 (inside [-1, 1])
     x = _x(5)[:, :3]
-    got = product.stacked(variables(x), 0.2 * scale)
+    stacked = TermsSnapshot(product)
+    got = stacked(variables(x), 0.2 * scale)
+    host = stacked.on_host()(variables(x).numpy(), 0.2 * scale.numpy())  # numpy's own small products: ulps apart
+    np.testing.assert_allclose(host, got.numpy(), rtol=0, atol=1e-14 * np.abs(got.numpy()).max())
     phi = lambda z: product_basis(variables(z), torch.as_tensor(exponents), 3)[0]  # noqa: E731
     jacobian = torch.autograd.functional.jacobian(lambda z: phi(z).sum(0), x)  # (P, B, 3): rows are independent
     torch.testing.assert_close(got[..., 0], phi(x), atol=1e-13, rtol=0)

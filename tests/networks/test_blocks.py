@@ -35,7 +35,7 @@ def _samples(n, seed):
 @pytest.fixture(scope="module")
 def fitted():
     x = _samples(4000, 0)
-    path = PerMusclePath(CROSSING, 10, 1, 0, TERMS, blocks=BLOCKS)
+    path = PerMusclePath(CROSSING, degree=10, hidden=1, n_hidden=0, max_terms=TERMS, blocks=BLOCKS)
     path.fit_polynomial(x, _lengths(x))
     return path
 
@@ -52,7 +52,7 @@ def test_a_sum_of_high_degree_parts_is_recovered_with_few_terms(fitted):
     assert int(fitted.term_mask[0].sum()) == TERMS
     x = _samples(2000, 1).clamp(-0.999, 0.999)
     np.testing.assert_allclose(fitted(x), _lengths(x), atol=1e-9)
-    mixed = PerMusclePath(CROSSING, 10, 1, 0, TERMS)  # the same terms mixing every joint: degree 5 (can fail)
+    mixed = PerMusclePath(CROSSING, degree=10, hidden=1, n_hidden=0, max_terms=TERMS)  # the same terms mixing every joint: degree 5 (can fail)
     mixed.fit_polynomial(_samples(4000, 0), _lengths(_samples(4000, 0)))
     assert (mixed(x) - _lengths(x))[:, 0].abs().max() > 1e-3
 
@@ -80,7 +80,7 @@ def test_moment_arms_are_the_learned_lengths_derivative_and_zero_off_the_crossed
 
 def test_blocks_that_mark_an_uncrossed_joint_are_refused():
     with pytest.raises(BodySchemaInputError, match="a group id >= 0 on each joint the muscle crosses"):
-        PerMusclePath(CROSSING, 4, 1, 0, blocks=np.array([[0, 0, 1], [0, 0, 0], [-1, 0, -1]]))
+        PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, blocks=np.array([[0, 0, 1], [0, 0, 0], [-1, 0, -1]]))
 
 
 def test_joint_groups_are_the_connected_parts_of_the_links():

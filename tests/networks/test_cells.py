@@ -11,9 +11,10 @@ from physics_checks import assert_exports_with_a_dynamic_batch
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
-from lightning_bodyschema.networks.cells import (_kept, _trimmed, cell_coordinates, cell_cuts, cell_degree,
-                                                 cell_spread, thin_cell_terms)
-from lightning_bodyschema.networks.per_muscle import PerMusclePath, term_exponents
+from lightning_bodyschema.networks.cell_fit import _kept, _trimmed, thin_cell_terms
+from lightning_bodyschema.networks.cells import cell_coordinates, cell_cuts, cell_degree, cell_spread
+from lightning_bodyschema.networks.per_muscle import PerMusclePath
+from lightning_bodyschema.networks.polynomial import term_exponents
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1], [1, 0, 0]], dtype=bool)
 
@@ -31,7 +32,7 @@ def _lengths(x):
 @pytest.fixture(scope="module")
 def fitted():
     x = torch.rand(6000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1
-    path = PerMusclePath(CROSSING, 4, 1, 0, cells=2)
+    path = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2)
     path.fit_polynomial(x, _lengths(x))
     return path
 
@@ -46,7 +47,7 @@ def test_a_path_smooth_in_pieces_is_recovered_cell_by_cell(fitted):
     assert fitted.cell_muscles.tolist() == [0, 1, 3]  # only the muscles a smooth polynomial cannot fit get cells
     x = _inside(2000, 1)
     np.testing.assert_allclose(fitted(x), _lengths(x), atol=1e-9)
-    whole = PerMusclePath(CROSSING, 4, 1, 0)  # one polynomial over the box: the kink costs ~1e-2 (test can fail)
+    whole = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0)  # one polynomial over the box: the kink costs ~1e-2 (test can fail)
     whole.fit_polynomial(_inside(6000, 0, 0.0), _lengths(_inside(6000, 0, 0.0)))
     assert ((whole(x) - _lengths(x))[:, [0, 1, 3]].abs().amax(0) > 1e-3).all()
 
@@ -74,11 +75,11 @@ def test_a_thin_cell_takes_the_degree_its_samples_allow():
     generator = torch.Generator().manual_seed(3)
     x = torch.rand(3000, 3, generator=generator, dtype=torch.float64) * 2 - 1
     x = x[(x[:, 0] < 0) | (x[:, 1] < 0) | (torch.rand(3000, generator=generator, dtype=torch.float64) < 0.05)]
-    path = PerMusclePath(CROSSING, 4, 1, 0, cells=2)
+    path = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2)
     path.fit_polynomial(x, _lengths(x))
     assert path.cell_muscles[0] == 0 and path.cell_fitted[0].all()
     assert path.cell_coef[0, 3, 10:].abs().max() == 0 and path.cell_coef[0, 3, :10].abs().max() > 0
-    whole = PerMusclePath(CROSSING, 4, 1, 0)
+    whole = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0)
     whole.fit_polynomial(x, _lengths(x))
     thin = torch.tensor([[0.5, 0.9, 0.0], [0.2, 0.5, -0.3], [0.9, 0.1, 0.7]], dtype=torch.float64)
     np.testing.assert_allclose(path(thin)[:, 0], _lengths(thin)[:, 0], atol=1e-9)
@@ -88,7 +89,7 @@ def test_a_thin_cell_takes_the_degree_its_samples_allow():
 
 
 def test_cells_survive_a_state_dict_round_trip(fitted):
-    loaded = PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_degrees=fitted.cell_degrees.tolist())
+    loaded = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2, cell_degrees=fitted.cell_degrees.tolist())
     loaded.load_state_dict(fitted.state_dict())
     x = _inside(100, 4)
     assert torch.equal(loaded.with_jacobian(x)[1], fitted.with_jacobian(x)[1])
@@ -101,23 +102,23 @@ def test_cell_numbering_and_degrees(fitted):
     assert cell_degree(5, 9, 2, 80000) == 7  # C(12, 5) = 792 terms x 3 samples x 32 cells <= 80 000
     assert cell_degree(3, 16, 2, 80000) == 16
     with pytest.raises(BodySchemaInputError, match="cells=0 must be an integer >= 1"):
-        PerMusclePath(CROSSING, 4, 1, 0, cells=0)
+        PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=0)
     with pytest.raises(BodySchemaInputError, match=r"cell_degrees=\[1, 2\] must be 7 integers >= 0"):
-        PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_degrees=[1, 2])
+        PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2, cell_degrees=[1, 2])
     for bad in (1, 0.5, True, "10"):
         with pytest.raises(BodySchemaInputError, match=f"cell_trim={bad!r} must be None or a number > 1"):
-            PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_trim=bad)
+            PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2, cell_trim=bad)
 
 
 def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
-    from lightning_bodyschema.networks import few_postures
+    from lightning_bodyschema.networks import snapshot
     from lightning_bodyschema.networks.basis import DENSE_ROWS
 
     x = _inside(600, 5)
-    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
+    monkeypatch.setattr(snapshot, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
     y, dy = fitted.with_jacobian(x)
-    monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.few_postures)
-    assert few_postures.few_for(fitted, x[:DENSE_ROWS])
+    monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.snapshot)
+    assert snapshot.few_for(fitted, x[:DENSE_ROWS])
     parts = [fitted.with_jacobian(x[i:i + DENSE_ROWS]) for i in range(0, 600, DENSE_ROWS)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=1e-13)
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
@@ -135,7 +136,7 @@ def test_the_cells_spread_coefficients_are_each_muscles_own(fitted):
     used = torch.zeros(3, len(v), dtype=torch.bool).scatter_(1, fitted.cell_order, fitted.cell_valid)
     assert (spread[~used[:, None, :].expand_as(spread)] == 0).all()
     x = _inside(40, 6)  # few postures: the dense basis
-    for ours, theirs in zip(fitted.with_jacobian(x, fitted.dense_coefficients()), fitted.with_jacobian(x)):
+    for ours, theirs in zip(fitted.with_jacobian(x, fitted.snapshot()), fitted.with_jacobian(x)):
         assert torch.equal(ours, theirs)
 
 
@@ -181,7 +182,7 @@ def test_a_path_with_cell_trim_fits_around_a_jump_inside_a_cell():
     held_out = held_out[~_corner(held_out)]
     errors = []
     for trim in (None, 10.0):
-        path = PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_trim=trim)
+        path = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2, cell_trim=trim)
         path.fit_polynomial(x, _jumping(x))
         assert 0 in path.cell_muscles.tolist()
         errors.append((path(held_out) - _jumping(held_out))[:, 0].abs().max())
@@ -206,7 +207,7 @@ def test_four_cells_per_joint_follow_a_path_with_four_pieces():
     held_out = held_out[((held_out[:, :1] - torch.tensor([-0.5, 0.0, 0.5], dtype=torch.float64)).abs() > 1e-3).all(1)]
     errors = {}
     for pieces in (2, 4):
-        path = PerMusclePath(crossing, 4, 1, 0, cells=pieces)
+        path = PerMusclePath(crossing, degree=4, hidden=1, n_hidden=0, cells=pieces)
         path.fit_polynomial(x, _four_pieces(x))
         assert path.cell_muscles.tolist() == [0]
         y, dy = path.with_jacobian(held_out)
@@ -240,7 +241,7 @@ def test_cells_over_the_largest_group_leave_the_other_joints_whole():
     held_out = held_out[(held_out[:, 0].abs() > 1e-3)]  # central differences must not straddle x0 = 0
     errors, paths = {}, {}
     for rule in ("crossed", "largest_group"):
-        paths[rule] = path = PerMusclePath(crossing, 4, 1, 0, cells=2, blocks=BLOCKED, cell_joints=rule)
+        paths[rule] = path = PerMusclePath(crossing, degree=4, hidden=1, n_hidden=0, cells=2, blocks=BLOCKED, cell_joints=rule)
         path.fit_polynomial(x, _grouped_lengths(x))
         assert path.cell_muscles.tolist() == [0] and bool(path.cell_fitted.all())
         errors[rule] = float((path(held_out) - _grouped_lengths(held_out))[:, 0].abs().max())
@@ -269,7 +270,7 @@ def test_which_joints_cut_a_box():
     assert (cell_cuts(crossing, blocks, "crossed") == crossing).all()
     assert cell_degree((3, 2), 16, 2, 80000, cut=3) == 16  # myoArm's BIClong: 8 cells, not 32 (degree 14)
     with pytest.raises(BodySchemaInputError, match=r"cell_joints='shoulder'; allowed: \['crossed', 'largest_group'\]"):
-        PerMusclePath(crossing, 4, 1, 0, cells=2, blocks=blocks, cell_joints="shoulder")
+        PerMusclePath(crossing, degree=4, hidden=1, n_hidden=0, cells=2, blocks=blocks, cell_joints="shoulder")
 
 
 def test_which_cells_are_kept():
@@ -284,7 +285,7 @@ def test_which_cells_are_kept():
     assert _kept(miss, own, "median").tolist() == [True, False, True]
     assert _kept(miss, own, "median_and_p99").tolist() == [False, False, True]
     with pytest.raises(BodySchemaInputError, match=r"cell_keep='p99'; allowed: \['median_and_p99', 'median'\]"):
-        PerMusclePath(CROSSING, 4, 1, 0, cells=2, cell_keep="p99")
+        PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2, cell_keep="p99")
 
 
 def test_a_thin_cell_worse_than_the_whole_box_polynomial_is_not_used():
@@ -301,9 +302,9 @@ def test_a_thin_cell_worse_than_the_whole_box_polynomial_is_not_used():
         kinked = x[:, 0] ** 2 + x[:, 1] ** 2 + 0.05 * x[:, 0].abs() * (x[:, 1] < 0)
         return torch.stack([kinked, x[:, 1] * x[:, 2], x[:, 0] * x[:, 2]], 1)
     crossing = np.array([[1, 1, 0], [0, 1, 1], [1, 0, 1]], dtype=bool)
-    path = PerMusclePath(crossing, 4, 1, 0, cells=2)
+    path = PerMusclePath(crossing, degree=4, hidden=1, n_hidden=0, cells=2)
     path.fit_polynomial(x, lengths(x))
-    whole = PerMusclePath(crossing, 4, 1, 0)
+    whole = PerMusclePath(crossing, degree=4, hidden=1, n_hidden=0)
     whole.fit_polynomial(x, lengths(x))
     assert path.cell_muscles.tolist() == [0] and path.cell_fitted[0].tolist() == [True, True, True, False]
     inside = torch.tensor([[0.5, 0.5, 0.0], [0.2, 0.8, -0.3]], dtype=torch.float64)

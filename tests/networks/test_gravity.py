@@ -8,7 +8,7 @@ import torch
 import yaml
 
 from lightning_bodyschema.networks.gravity import GravityTorque
-from lightning_bodyschema.networks.host import HostGravity
+from lightning_bodyschema.networks.snapshot import GravitySnapshot
 from lightning_bodyschema.sim import MusculoskeletalModel
 from lightning_bodyschema.sim.gravity_tree import gravity_tree
 
@@ -43,14 +43,17 @@ def test_fit_on_mujoco_tau_bias_matches_held_out_postures(robot):
     assert _relative(gravity.features(q_new) @ gravity.coef, tau_new) < 1e-9
 
 
-def test_the_host_torque_answers_as_the_torch_one_and_as_mujoco(robot):
-    """networks.host.HostGravity (numpy, pointer jumping): the couplings (myoArm), the slides (myoLegs)."""
+def test_the_numpy_torque_answers_as_the_torch_one_and_as_mujoco(robot):
+    """``GravitySnapshot.on_host()`` (pointer jumping at any batch) against the torch snapshot (node by node above
+    JUMP_ROWS) and the exported program's kinematics: the couplings (myoArm), the slides (myoLegs)."""
     gravity = GravityTorque(gravity_tree(robot))
     gravity.fit_trimmed(*_postures(robot, 300, 0))
-    host = HostGravity(gravity, gravity.coef_terms())
-    q, tau = _postures(robot, 4, 1)
-    for rows in (1, 4):
+    host = GravitySnapshot(gravity).on_host()
+    q, tau = _postures(robot, 9, 1)
+    traced = gravity.features(q) @ gravity.coef  # the features' path, no snapshot
+    for rows in (1, 4, 9):
         assert _relative(torch.as_tensor(host(q[:rows].numpy())), gravity(q[:rows])) < 1e-12
+        assert _relative(gravity(q[:rows]), traced[:rows]) < 1e-12
     assert _relative(torch.as_tensor(host(q.numpy())), tau) < 1e-9
 
 

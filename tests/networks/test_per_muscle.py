@@ -101,7 +101,7 @@ torch.set_num_threads(2)
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 x = torch.rand(3000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1
 y = torch.stack([x[:, 0] ** 3 - x[:, 1] * x[:, 2], x.prod(1) + x[:, 2] ** 5], 1)
-path = PerMusclePath(np.ones((2, 3), bool), 11, 1, 0)  # one batched solve of two 364-term systems
+path = PerMusclePath(np.ones((2, 3), bool), degree=11, n_hidden=0)  # one batched solve of two 364-term systems
 path.fit_polynomial(x, y)
 print(torch.get_num_threads(), float((path(x) - y).abs().max()))
 """

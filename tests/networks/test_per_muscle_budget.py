@@ -85,9 +85,9 @@ def test_a_schema_checkpoint_from_before_the_budget_answers_as_before(tmp_path):
 
 
 def test_a_large_batch_evaluated_in_blocks_gives_the_same_body(monkeypatch):
-    from lightning_bodyschema.networks import basis, few_postures, per_muscle
+    from lightning_bodyschema.networks import basis, per_muscle, snapshot
 
-    monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 0)  # 50 postures in blocks of rows, not the few-postures path
+    monkeypatch.setattr(snapshot, "FEW_ELEMENTS", 0)  # 50 postures in blocks of rows, not the few-postures path
     monkeypatch.setattr(basis, "DENSE_ROWS", 0)  # every block through the same (grouped) basis: the blocks alone
     path = PerMusclePath(CROSSING, degree=14, n_hidden=0, max_terms=20, term_budget=200).double()
     with torch.no_grad():

@@ -54,15 +54,41 @@ def test_gravity_needs_the_mjcf_and_the_per_muscle_lengths(paper_arm):
         StructuredSchema(robot=paper_arm[0].hparams.robot, torque_model="gravity")
 
 
+def test_the_body_snapshot_answers_the_same_in_numpy_and_in_torch_and_as_body(paper_arm, monkeypatch):
+    """``StructuredSchema.body_snapshot()``: one code on torch tensors and (``on_host()``) on numpy arrays, within a
+    few roundings of the schema's dtype of each other and of ``body`` (the per-muscle path's blocks of rows, the
+    gravity torque), inside the sampled range and beyond it."""
+    from lightning_bodyschema.networks import snapshot as snapshot_module
+
+    schema, _ = paper_arm
+    q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(3), 16))
+    q[:4] += 0.2  # beyond the sampled range: the first-order extension
+    snapshot = schema.body_snapshot()
+    eps = torch.finfo(schema.dtype).eps
+    with torch.no_grad():
+        on_torch = snapshot(q)
+        monkeypatch.setattr(snapshot_module, "FEW_ELEMENTS", 0)  # body's path by blocks of rows, not the snapshot
+        schema.clear_caches()
+        expected = schema.body(schema.normalizer.encode_q(q).to(schema.dtype))
+    monkeypatch.undo()
+    schema.clear_caches()  # the snapshots keep the budget they were built with
+    for rows in (1, 16):
+        for got, same, want in zip(snapshot.on_host()(q[:rows].numpy()), on_torch, expected):
+            scale = float(want.abs().max())
+            np.testing.assert_allclose(got, same[:rows].numpy(), rtol=0, atol=4 * eps * scale)
+            np.testing.assert_allclose(got, want[:rows].double().numpy(), rtol=0, atol=64 * eps * scale)
+
+
 def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers_as_body(paper_arm, monkeypatch):
-    """Up to HOST_ROWS postures (in eval mode) ``body_si`` takes ``schemas.host_body``: each step and cast of
-    ``StructuredSchema.body`` in numpy; more postures, or training, the torch evaluation."""
-    from lightning_bodyschema.schemas import host_body
+    """Up to HOST_ROWS postures (in eval mode) ``body_si`` takes its numpy ``BodySnapshot``: each step and cast of
+    ``StructuredSchema.body``; more postures, or training, the torch evaluation."""
+    from lightning_bodyschema.networks.snapshot import BodySnapshot
+    from lightning_bodyschema.schemas import structured
 
     schema, _ = paper_arm
     calls = []
-    original = host_body.HostBody.__call__
-    monkeypatch.setattr(host_body.HostBody, "__call__", lambda self, q: calls.append(len(q)) or original(self, q))
+    original = BodySnapshot.__call__
+    monkeypatch.setattr(BodySnapshot, "__call__", lambda self, q: calls.append((len(q), self.xp)) or original(self, q))
     q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(9), 17))
     q[0] += 0.2  # beyond the sampled range: the first-order extension
     for rows in (1, 16, 17):
@@ -71,10 +97,10 @@ def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers
             expected = [t.double().numpy() for t in schema.body(schema.normalizer.encode_q(q[:rows]).to(schema.dtype))]
         for got, want in zip((l_geo, G, tau), expected):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
-    assert calls == [1, 16] and host_body.HOST_ROWS == 16
+    assert calls == [(1, np), (16, np)] and structured.HOST_ROWS == 16
     schema.train()
     try:
         schema.body_si(q[:1])
     finally:
         schema.eval()
-    assert calls == [1, 16]
+    assert calls == [(1, np), (16, np)]

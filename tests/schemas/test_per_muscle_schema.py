@@ -14,7 +14,7 @@ from physics_checks import fit_structured as _fit
 from lightning_bodyschema.apps.dataset_tool import make_dataset_main
 from lightning_bodyschema.data import EquilibriumDataModule, RecordedDataModule
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.networks import cells
+from lightning_bodyschema.networks import cell_fit as cells
 from lightning_bodyschema.schemas import StructuredSchema, load_schema
 from lightning_bodyschema.sim import MusculoskeletalModel
 from lightning_bodyschema.sim.robot import check_muscle_joints

@@ -1,6 +1,6 @@
-"""networks.few_postures: a per-muscle path at few postures (one basis for the whole-box polynomials, the branches and
-the cells, one gather of each muscle's choice) answers as the blockwise evaluation of many postures, with moment arms
-that are its lengths' derivative, in float64."""
+"""networks.snapshot.PathSnapshot: a per-muscle path at few postures (one basis for the whole-box polynomials, the
+branches and the cells, one gather of each muscle's choice), the same code in torch and in numpy, answers as the
+blockwise evaluation of many postures, with moment arms that are its lengths' derivative, in float64."""
 from __future__ import annotations
 
 import warnings
@@ -11,8 +11,7 @@ import torch
 from physics_checks import central_differences
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from lightning_bodyschema.networks import few_postures
-from lightning_bodyschema.networks.host import HostPath
+from lightning_bodyschema.networks import snapshot as few_postures
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 
 CROSSING = np.array([[1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]], dtype=bool)
@@ -30,7 +29,7 @@ def _lengths(x):
 @pytest.fixture(scope="module")
 def path():
     x = torch.rand(20000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 1.8 - 0.9
-    path = PerMusclePath(CROSSING, 6, 1, 0, branches=2, gate_degree=2, cells=2)
+    path = PerMusclePath(CROSSING, degree=6, hidden=1, n_hidden=0, branches=2, gate_degree=2, cells=2)
     path.fit_polynomial(x, _lengths(x))
     assert path.branched_index.tolist() == [0] and path.cell_muscles.tolist() == [1]
     path.cell_fitted[0, 0] = False  # a cell the fit left to the whole-box polynomial (a thin cell's fallback)
@@ -74,10 +73,10 @@ def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
 
 
-def test_the_host_evaluation_answers_as_the_few_postures_path(path):
-    """networks.host.HostPath: numpy, the same operations in the same order (branches, a celled muscle, its unfitted
-    cell, postures beyond the box); a NaN posture answers NaN without a warning."""
-    host, x = HostPath(path, path.dense_coefficients()), _postures(120, 4)
+def test_the_numpy_snapshot_answers_as_the_torch_one(path):
+    """``PathSnapshot.on_host()``: the same code on numpy arrays (branches, a celled muscle, its unfitted cell, postures
+    beyond the box); a NaN posture answers NaN at a valid cell without a warning, in numpy and in torch."""
+    host, x = path.snapshot().on_host(), _postures(120, 4)
     for rows in (1, 3, 4):
         for i in range(0, 120, rows):
             y, dy = path.with_jacobian(x[i:i + rows])
@@ -90,10 +89,12 @@ def test_the_host_evaluation_answers_as_the_few_postures_path(path):
         warnings.simplefilter("error")
         y_host, _ = host(bad.numpy())
     assert np.isnan(y_host[0, [1, 2]]).all() and np.isfinite(y_host[1]).all()
+    y_torch, _ = path.snapshot()(bad)
+    np.testing.assert_array_equal(y_torch.numpy(), y_host)
 
 
 def test_the_host_moment_arms_are_its_lengths_derivative(path):
-    host = HostPath(path, path.dense_coefficients())
+    host = path.snapshot().on_host()
     x = _postures(40, 6).clamp(-0.89, 0.89)
     x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)][:4]
     lengths = lambda rows: torch.as_tensor(host(rows.numpy())[0])  # noqa: E731
@@ -117,7 +118,7 @@ class _IntegerProducts(TorchDispatchMode):
 
 def test_the_fit_and_both_paths_multiply_no_integer_matrices(monkeypatch):
     x = torch.rand(4000, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 1.8 - 0.9
-    path = PerMusclePath(CROSSING, 4, 1, 0, branches=2, gate_degree=2, cells=2)
+    path = PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, branches=2, gate_degree=2, cells=2)
     with _IntegerProducts() as products:
         path.fit_polynomial(x, _lengths(x))
         path.with_jacobian(x[:7])  # few postures
