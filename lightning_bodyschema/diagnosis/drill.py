@@ -36,7 +36,8 @@ class DrillSettings:
 @dataclass
 class DrillResult:
     """The trace (one row per tick) and what happened: ``detected_s`` (NaN: never), ``diagnosis`` (the declared
-    one, or None), ``adapted_status`` (the re-command's status, or None), posture errors [rad]."""
+    one that the adapter re-commanded for, or None), ``adapted_status`` (that command's status, or None), posture
+    errors [rad]."""
 
     t_s: np.ndarray
     q_rad: np.ndarray  # (T, N) joint readings
@@ -85,7 +86,8 @@ def run_drill(schema, q_ref, faults: Faults, rng, noise: Optional[SensorNoise] =
                 l_cmd, f_cmd = adapted.l_motor_m[0], adapted.f_n[0]
     cols = list(zip(*rows))
     return DrillResult(np.array(cols[0]), np.array(cols[1]), np.array(cols[2]), np.array(cols[3]), np.array(cols[4]),
-                       np.array(cols[5]), np.array(cols[6]), detected, monitor.declared_diagnosis,
+                       np.array(cols[5]), np.array(cols[6]), detected,
+                       monitor.declarations[0][1] if monitor.declarations else None,
                        None if adapted is None else str(adapted.status[0]))
 
 

@@ -55,6 +55,7 @@ class Monitor:
         self._streak, self._last = 0, None
         self.declared: Optional[np.ndarray] = None  # (M,) kinds once a fault is declared
         self.declared_diagnosis = None
+        self.declarations: list = []  # (tick, Diagnosis) each time a fault was declared
         self.ticks_seen = 0
         self._anchor = None  # (q0, l_geo, G, tau) where the body was last evaluated
 
@@ -103,10 +104,12 @@ class Monitor:
         faulted = raw.status[0] in (Status.IDENTIFIED, Status.AMBIGUOUS)
         self._streak = self._streak + 1 if faulted and key == self._last else int(faulted)
         self._last = key
-        if faulted and self._streak >= self.confirm:
-            self.declared = raw.kind[0].copy() if self.declared is None else np.where(
-                raw.kind[0] != HEALTHY, raw.kind[0], self.declared)
+        new = raw.kind[0] != HEALTHY if self.declared is None else (raw.kind[0] != HEALTHY) & (self.declared == HEALTHY)
+        if faulted and self._streak >= self.confirm and (self.declared is None or new.any()):
+            # a declaration only adds: after adapting, a jam the new command no longer asks to pay out reads healthy
+            self.declared = raw.kind[0].copy() if self.declared is None else np.where(new, raw.kind[0], self.declared)
             self.declared_diagnosis = raw
+            self.declarations.append((self.ticks_seen, raw))
         raw.pending = self._streak
         if self.declared_diagnosis is not None:
             return self._latched(raw)
@@ -116,7 +119,7 @@ class Monitor:
         return raw
 
     def _latched(self, raw):
-        """The declared diagnosis, its faults kept (and new ones added) whatever the window now shows."""
+        """The latest declaration, kept whatever the window now shows (``declarations`` has every one)."""
         out = self.declared_diagnosis
         out.pending = raw.pending
         return out
