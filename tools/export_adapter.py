@@ -37,6 +37,8 @@ def main(argv=None):
                         help="diffusion: x_T draws the package may pick by its seed input (default: the schema's "
                         "sample_seed)")
     args = parser.parse_args(argv)
+    # torch's note that its pytree LeafSpec is deprecated, raised as Lightning's and torch.export's specs are copied
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
     from lightning_bodyschema.deploy.package import export_package, file_sha256, parse_batch
     from lightning_bodyschema.schemas import StructuredSchema
 
