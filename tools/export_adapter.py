@@ -7,10 +7,11 @@ controllers.
 
 One package serves every fault set (faults are inputs); see README "Deploy in a C++ controller" and
 ``lightning_bodyschema.deploy``. ``--steps`` and ``--seeds`` are the diffusion sampler's. Compiling needs a C++
-compiler and takes tens of seconds. The file is written atomically; its SHA-256 is printed (pin it when loading:
+compiler and takes minutes on 2 cores. The file is written atomically; its SHA-256 is printed (pin it when loading:
 a package runs compiled code). Bad input exits with code 2 and one line on stderr.
 """
 import time
+import warnings
 
 from lightning_bodyschema.apps.common import (argument_parser, check_out, exits_cleanly, load_checked_schema,
                                               torch_one_thread)
