@@ -128,8 +128,9 @@ class BodySchemaCLI(LightningCLI):
                                                   default_hp_metric=False)]
 
     def after_fit(self):
+        outputs = fit_outputs(self.trainer)  # on every rank: trainer.log_dir is a collective under DDP
         if self.trainer.is_global_zero:
-            print(fit_outputs(self.trainer))
+            print(outputs)
 
 
 def fit_outputs(trainer) -> str:

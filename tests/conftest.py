@@ -3,9 +3,15 @@ import os
 import sys
 import tempfile
 
-import numpy as np
-import pytest
-import torch
+# inductor's on-disk cache does not key on ATEN_CPU_CAPABILITY: a kernel cached under one capability returns NaN
+# (avx2) or does not build (default) under another. Tests run under a capability compile into a cache of its own.
+if os.environ.get("ATEN_CPU_CAPABILITY"):
+    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", os.path.join(
+        tempfile.gettempdir(), f"torchinductor_{os.getuid()}_aten_{os.environ['ATEN_CPU_CAPABILITY']}"))
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 torch.set_num_threads(1)
 torch.set_flush_denormal(True)

@@ -7,10 +7,11 @@ controllers.
 
 One package serves every fault set (faults are inputs); see README "Deploy in a C++ controller" and
 ``lightning_bodyschema.deploy``. ``--steps`` and ``--seeds`` are the diffusion sampler's. Compiling needs a C++
-compiler and takes tens of seconds. The file is written atomically; its SHA-256 is printed (pin it when loading:
+compiler and takes minutes on 2 cores. The file is written atomically; its SHA-256 is printed (pin it when loading:
 a package runs compiled code). Bad input exits with code 2 and one line on stderr.
 """
 import time
+import warnings
 
 from lightning_bodyschema.apps.common import (argument_parser, check_out, exits_cleanly, load_checked_schema,
                                               torch_one_thread)
@@ -37,6 +38,8 @@ def main(argv=None):
                         help="diffusion: x_T draws the package may pick by its seed input (default: the schema's "
                         "sample_seed)")
     args = parser.parse_args(argv)
+    # torch's note that its pytree LeafSpec is deprecated, raised as Lightning's and torch.export's specs are copied
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
     from lightning_bodyschema.deploy.package import export_package, file_sha256, parse_batch
     from lightning_bodyschema.schemas import StructuredSchema
 

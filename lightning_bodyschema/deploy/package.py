@@ -14,6 +14,7 @@ refused before anything in it is loaded.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -89,6 +90,16 @@ def package_module(schema, n_steps: int = 20, seeds=None):
     return AdapterModule(schema, n_steps, seeds)
 
 
+@contextlib.contextmanager
+def _torch_notes_silenced():
+    """torch's FutureWarnings about its own internals (the deprecated pytree ``LeafSpec`` its exported programs hold
+    and copy, deprecated helpers its compiler calls): nothing a user of the package can act on."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\.")
+        warnings.filterwarnings("ignore", category=FutureWarning, message=".*LeafSpec.*")
+        yield
+
+
 def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:
     """Write the AOTInductor package of ``schema``'s adapter (``package_module``) to ``out`` (atomically: a
     temporary file in the same folder, then a rename). Returns ``out``."""
@@ -101,8 +112,7 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
     if batch == "dynamic":
         dim = Dim("batch", min=1, max=MAX_BATCH)
         shapes = tuple({0: dim} for _ in INPUTS[:-1]) + (None,)
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\.")  # as for the compile below
+    with torch.no_grad(), _torch_notes_silenced():
         try:
             program = export(module, example, dynamic_shapes=shapes, strict=False)
         except torch._dynamo.exc.UserError as error:  # a dynamic batch the traced code fixed to one size
@@ -117,8 +127,7 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
     handle, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt2", dir=folder)
     os.close(handle)
     try:
-        with warnings.catch_warnings():  # torch's notes to itself (its internals' deprecations): nothing a user can do
-            warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\.")
+        with _torch_notes_silenced():
             torch._inductor.aoti_compile_and_package(program, package_path=tmp,
                                                      inductor_configs={"aot_inductor.metadata": metadata})
         os.chmod(tmp, default_file_mode())  # as open() would make it: a controller running as another user reads it
@@ -188,7 +197,8 @@ def load_exported(path: str, muscle_names=None, joint_names=None, expected_sha25
     if broken is not None:
         raise BodySchemaInputError(f"{path!r} is corrupt: member {broken!r} fails its CRC check")
     try:
-        runner = torch._inductor.aoti_load_package(path)
+        with _torch_notes_silenced():
+            runner = torch._inductor.aoti_load_package(path)
         metadata = runner.get_metadata()
     except Exception as error:  # noqa: BLE001  (torch raises RuntimeError and others; one line for all)
         raise BodySchemaInputError(f"{path!r} could not be loaded as an AOTInductor package: "

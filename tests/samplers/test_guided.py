@@ -4,8 +4,6 @@ Equality is checked in float64 (1e-5, measured ~1e-12) and, with the float32 mod
 within tolerances a few times the reference's own float32 error. Nothing here is timed
 (tools/bench_adaptation.py measures speed).
 """
-import os
-
 import numpy as np
 import pytest
 import torch
@@ -134,14 +132,6 @@ def _compiled_commands(schema, q, faults, **options):
     return result
 
 
-# torch 2.13's inductor writes float64 vector code (at::vec::VectorizedN<double, 2>) that it then compiles without
-# a vector ISA when ATEN_CPU_CAPABILITY=default: the C++ does not build (a torch defect; the eager sampler is tested
-# under that setting, and the compiled one on every vector ISA)
-SCALAR_INDUCTOR = pytest.mark.skipif(os.environ.get("ATEN_CPU_CAPABILITY") == "default",
-                                     reason="torch inductor cannot build float64 C++ without a vector ISA")
-
-
-@SCALAR_INDUCTOR
 def test_the_compiled_sampler_returns_the_reference_commands_float64(diff60_f64, dm):
     """torch.compile (inductor, C++) of the one loop body, 20 guided steps: the autograd reference's commands."""
     q, faults = _paper_faults(diff60_f64, dm)
@@ -150,7 +140,6 @@ def test_the_compiled_sampler_returns_the_reference_commands_float64(diff60_f64,
 
 
 @pytest.mark.slow
-@SCALAR_INDUCTOR
 def test_the_compiled_sampler_returns_the_reference_commands_200_steps_and_unguided(diff60_f64, dm):
     q, faults = _paper_faults(diff60_f64, dm)
     assert_same_commands(_compiled_commands(diff60_f64, q, faults),
