@@ -244,16 +244,17 @@ def _truth(faults) -> np.ndarray:
 
 
 def _as_well(rest: dict):
+    """True / False, or None where either command never came to rest (no rest posture to compare)."""
     diag, true = rest.get("diagnosed"), rest.get("true_faults")
     if diag is None or true is None:
-        return False
+        return None
     return bool(diag <= (1 + TOLERANCE) * true or diag - true <= FLOOR_RAD)
 
 
 def drill_table(rows: list) -> dict:
     feasible = [r for r in rows if r["feasible"]]
     good = [r for r in feasible if r["identified_right"] and r["as_well_as_true"]]
-    shown = [r for r in feasible if r["identifiable"]]
+    shown = [r for r in feasible if r["identifiable"] and r["as_well_as_true"] is not None]
     shown_good = [r for r in shown if r["identified_right"] and r["as_well_as_true"]]
     delays = [r["detection_delay_s"] for r in feasible if r["detection_delay_s"] is not None]
     statuses = {}
@@ -263,8 +264,9 @@ def drill_table(rows: list) -> dict:
             "identified_right": sum(r["identified_right"] for r in feasible),
             "identified_and_as_well_as_true": len(good),
             "rate": len(good) / len(feasible) if feasible else None, "statuses": statuses,
-            "identifiable": len(shown), "identifiable_identified_and_as_well": len(shown_good),
+            "identifiable_compared": len(shown), "identifiable_identified_and_as_well": len(shown_good),
+            "identifiable_not_at_rest": sum(r["identifiable"] and r["as_well_as_true"] is None for r in feasible),
             "identifiable_rate": len(shown_good) / len(shown) if shown else None,
-            "as_well_as_true_any_status": sum(r["as_well_as_true"] for r in feasible),
+            "as_well_as_true_any_status": sum(bool(r["as_well_as_true"]) for r in feasible),
             "detection_delay_s_median": float(np.median(delays)) if delays else None,
             "detection_delay_s_max": float(np.max(delays)) if delays else None}

@@ -21,6 +21,9 @@ from .result import HEALTHY
 from .sensors import sensor_model
 
 
+REST_S = 10.0  # the rest comparison's simulated time: a learned command drifts slowly along an arm's soft directions
+
+
 @dataclass
 class DrillSettings:
     """at_s: when the fault strikes [s]; seconds: the drill's length [s]; tick_s: the controller's period [s] (the
@@ -120,7 +123,8 @@ def rest_errors(schema, q_ref, faults: Faults, diagnosed: Optional[Faults]) -> d
         if command is None:
             out[name] = None
             continue
-        res = settle(schema.robot_model, command[0], command[1], cases, spring=schema.spring)
+        res = settle(schema.robot_model, command[0], command[1], cases, spring=schema.spring,
+                     params=SettleParams(max_time_s=REST_S))
         out[name] = float(res.E_q_phys[0]) if res.settled[0] else None
     return out
 
