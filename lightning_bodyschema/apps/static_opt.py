@@ -106,13 +106,13 @@ def postures_of(columns: dict, free: list, path: str) -> np.ndarray:
     return np.stack([np.asarray(named[name], dtype=np.float64) for name in free], axis=1)
 
 
-def check_fault_names(faults: dict, muscles: list) -> None:
+def check_fault_names(faults: dict, muscles: list, what: str = "the body's muscles") -> None:
     """Every muscle a fault names is one of ``muscles`` (what ``StaticBody.fault_batch`` checks, with a body)."""
     named = list(faults["cut"]) + [name for key in ("jam", "weak", "band") for name in faults[key]]
     for name in named:
         if isinstance(name, str) and name not in muscles:
-            raise BodySchemaInputError(f"unknown muscle {name!r}{did_you_mean(name, muscles)}; the body's muscles "
-                                       f"are {list(muscles)}")
+            raise BodySchemaInputError(f"unknown muscle {name!r}{did_you_mean(name, muscles)}; {what} are "
+                                       f"{list(muscles)}")
 
 
 def _csv_text(result) -> str:
@@ -201,6 +201,8 @@ def static_opt_main(argv=None):
     if known is not None:
         postures_of(columns, known["joints"], args.postures)
         check_fault_names(faults, known["muscles"])
+    else:  # a first run: every tendon of the parsed MJCF (seconds, no compile) bounds the muscles a fault may name
+        check_fault_names(faults, _spec_tendons(data), "the model's tendons")
     print("building the body (MuJoCo model, muscle paths; a MyoSuite body takes ~15-60 s on 2 cores)", flush=True)
     body = _body(data, locks, args)
     _remember_names(data, args, body.model)
@@ -223,6 +225,15 @@ def _solve(body, q, faults, args):
             parts.append(body.solve(q[start:start + CHUNK], faults, args.objective, solver=args.solver))
             bar.update(len(parts[-1].q))
     return _concatenate(parts)
+
+
+def _spec_tendons(data: dict) -> list:
+    """The names of every tendon of the MJCF ``data["model"]`` names, parsed without compiling it: a superset of the
+    body's muscles (the build leaves out those that cross no free joint, which its own check then names)."""
+    from ..sim.mjcf import load_spec, quiet_attach_warnings
+
+    with quiet_attach_warnings():
+        return [tendon.name for tendon in load_spec(data["model"]).tendons]
 
 
 def _names_file(data: dict, args) -> str:

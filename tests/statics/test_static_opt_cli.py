@@ -109,6 +109,21 @@ def test_a_misspelt_muscle_is_refused_before_the_body_is_built_once_the_body_is_
     assert not (tmp_path / "b.csv").exists()
 
 
+def test_a_misspelt_muscle_is_refused_before_the_first_build(tmp_path, capsys, monkeypatch):
+    """No remembered names (a fresh cache): the parsed MJCF's tendons bound the names, so a misspelt one is refused
+    without building the body."""
+    import lightning_bodyschema.statics as statics
+
+    monkeypatch.setenv("BODYSCHEMA_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(statics, "StaticBody", lambda *a, **k: pytest.fail("the body was built"))
+    postures = _postures_csv(tmp_path / "q.csv", [[0.0, 1.0]])
+    with pytest.raises(SystemExit) as stop:
+        static_opt_main(ELBOW + ["--postures", postures, "--cut", "BRA", "--out", str(tmp_path / "b.csv")])
+    out, err = capsys.readouterr()
+    assert stop.value.code == 2 and "building the body" not in out and "did you mean 'BRA_tendon'?" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "b.csv").exists()
+
+
 def test_help_has_an_example():
     result = subprocess.run([sys.executable, str(ROOT / "tools" / "static_opt.py"), "--help"], capture_output=True,
                             text=True, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, timeout=120)
