@@ -5,7 +5,7 @@ ticks (the body evaluated once per tick, at its reading) and diagnoses them as o
 when ``confirm`` consecutive ticks give the same explanation (the false-alarm guard); a declared fault stays declared
 (after the controller adapts, a cut muscle is commanded slack and its log no longer shows the cut) until ``reset``.
 A fault that strikes mid-window shows first as a log no explanation fits (rows before and after it disagree); it is
-declared once the window holds only rows after it: the detection delay is about ``window + confirm - 1`` ticks.
+declared once the window holds only rows after it: the detection delay is about ``window + confirm - 2`` tick periods.
 
 A robot holding a posture reads nearly the same joint angles every tick: within ``reuse_rad`` of the posture where the
 body was last evaluated, the body is carried over to first order (``l_geo(q) = l_geo(q0) + G(q0) (q - q0)``; the
