@@ -93,3 +93,19 @@ def test_the_monitor_declares_a_fault_after_its_guard_and_keeps_it(structured):
     assert tick(healthy, 0).status[0] == Status.IDENTIFIED  # latched until reset
     monitor.reset()
     assert tick(healthy, 1).status[0] == Status.NO_FAULT
+
+
+def test_an_autoencoder_schema_diagnoses_through_the_body_its_commands_imply(latent60, dm):
+    """AE and VAE have no explicit body: the one their healthy commands imply (l_motor + delta(f), central
+    differences, -G^T f) serves; its lengths are the commands' own, its torques what the commands balance."""
+    from lightning_bodyschema.sim.spring import elongation_from_tension
+
+    q = dm.splits["val"][0].numpy()[:6]
+    l_geo, G, tau = latent60.learned_body_si(q)
+    l_motor, f = latent60.infer(q)
+    np.testing.assert_allclose(l_geo, l_motor + elongation_from_tension(f, latent60.spring), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tau, -np.einsum("bmn,bm->bn", G, f), rtol=1e-12, atol=1e-12)
+    log = SensorLog.from_rows(latent60.robot_model.joint_names, latent60.robot_model.muscle_names, q, l_motor, l_motor,
+                              f, f)
+    d = latent60.diagnose(log)  # the readings are the commands at q_ref: nothing to find
+    assert d.status[0] == Status.NO_FAULT and (d.kind == HEALTHY).all()
