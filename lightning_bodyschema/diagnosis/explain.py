@@ -49,7 +49,7 @@ def diagnose(log: SensorLog, body, spring: SpringParams, noise: Optional[SensorN
     score = np.where(motors.flagged.any(1), motors.score, np.where(ev.log.has_f, cells.score, balance.evidence))
     observed = motors.flagged.any(1) | cells.observed | balance.observed
     band = np.stack([motors.lo_m, motors.hi_m], -1)
-    faults = _certain_faults(kind, motors, status)
+    faults = _certain_faults(kind, motors, status, spring)
     out = Diagnosis(status, kind, score, observed, motors.l_fixed_m, motors.f_weak_n, band, faults, list(log.muscles),
                     [[] for _ in range(len(kind))], log.cases)
     for c in np.flatnonzero(status == Status.AMBIGUOUS):
@@ -76,8 +76,9 @@ def _cut_sets(sets: np.ndarray, n_muscles: int) -> np.ndarray:
     return out[..., :n_muscles]
 
 
-def _certain_faults(kind, motors, status) -> Faults:
-    """The faults every explanation agrees on, as ``Faults`` (none for ``no_fault``/``not_identifiable``)."""
+def _certain_faults(kind, motors, status, spring) -> Faults:
+    """The faults every explanation agrees on, as ``Faults`` (none for ``no_fault``/``not_identifiable``), valid for
+    ``adapt`` (a band whose noisy edges crossed is closed at their mean)."""
     keep = np.isin(status, [Status.IDENTIFIED, Status.AMBIGUOUS])[:, None]
     faults = Faults.none(*kind.shape)
     faults.cut = keep & (kind == CUT)
@@ -85,11 +86,14 @@ def _certain_faults(kind, motors, status) -> Faults:
     faults.l_fixed_m = np.where(faults.fix, motors.l_fixed_m, np.nan)
     weak = keep & (kind == WEAK)
     if weak.any():
-        faults.f_max_n = np.where(weak, motors.f_weak_n, np.nan)
+        faults.f_max_n = np.where(weak, motors.f_weak_n, np.nan)  # within [0, f_max) (motors)
     band = keep & (kind == BAND)
     if band.any():
-        faults.l_band_m = np.where(band[..., None], _closed_band(motors.lo_m, motors.hi_m), np.nan)
-    return faults
+        edges = _closed_band(motors.lo_m, motors.hi_m)
+        mean = edges.mean(-1, keepdims=True)
+        edges = np.where(edges[..., :1] > edges[..., 1:], mean, edges)
+        faults.l_band_m = np.where(band[..., None], edges, np.nan)
+    return faults.validate(kind.shape[1], spring.f_max_n)
 
 
 def _closed_band(lo, hi) -> np.ndarray:

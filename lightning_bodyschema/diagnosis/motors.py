@@ -71,7 +71,10 @@ def _weak_limit(ev: Readings, slipped: np.ndarray, followed: np.ndarray, z_limit
     weight = 1.0 / cell_var + 1.0 / np.maximum(spring_var, 1e-30)
     f_seen = (np.nan_to_num(log.f_n) / cell_var + from_spring / np.maximum(spring_var, 1e-30)) / weight
     sigma = np.sqrt(1.0 / weight)
-    f_weak = np.maximum(masked_mean(f_seen * weight, slipped) / masked_mean(weight, slipped), 0.0)  # noise: >= 0
+    f_weak = masked_mean(f_seen * weight, slipped) / masked_mean(weight, slipped)
+    # a limit lies in [0, f_max): a noisy estimate outside it is kept at the nearest valid value
+    f_max = np.broadcast_to(np.asarray(ev.spring.f_max_n, float), f_weak.shape[1:])
+    f_weak = np.clip(f_weak, 0.0, np.nextafter(f_max, 0.0))
     held = np.where(log.has_f, np.nan_to_num(log.f_n), ev.tension(log.l_cmd_m))
     held_sigma = np.sqrt(np.where(log.has_f, ev.sigma_f ** 2, spring_var) + 1e-30)
     with np.errstate(invalid="ignore"):
