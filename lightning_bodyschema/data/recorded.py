@@ -18,6 +18,9 @@ data's min/max, tension limits to [0, f_max] (``f_max_n``, paper: 150 N). A file
 table (missing column, unknown muscle, text in a number column, empty, other units) is refused with one
 ``BodySchemaInputError`` naming the problem.
 
+A sensor log (``diagnosis.log``: which muscles failed) is this table plus the commands sent, ``l_cmd_<muscle>`` and
+``f_cmd_<muscle>``, with optional ``t`` and ``case`` columns; there noisy readings are kept, not filtered.
+
 The robot such a file describes is a ``sim.robot.ModelFreeRobot``: names, limits and spring constants, a
 ``RobotModel`` without physics (infer, adapt, checkpoints); everything that needs physics (the feasibility check,
 evaluation, inverse kinematics) needs an MJCF, given separately.
