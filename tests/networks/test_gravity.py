@@ -24,6 +24,8 @@ def robot(request):
     data = yaml.safe_load(open(config))["data"]
     return MusculoskeletalModel(data["model"], **{k: data[k] for k in ("locked_joints", "fixed_base") if k in data})
 
+_CHAIN_ROUNDINGS = 8192  # roundings allowed along a kinematic chain of a few tens of frames (~1.8e-12 at 1 m)
+
 
 def _postures(robot, n, seed):
     q = robot.sample_q(np.random.default_rng(seed), n)
@@ -77,10 +79,13 @@ def test_kinematics_and_features_match_mujoco(robot, jump, monkeypatch):
         data.qpos[:] = full[i]
         mujoco.mj_kinematics(m, data)
         mujoco.mj_comPos(m, data)
-        np.testing.assert_allclose(p[i], data.xpos[bodies], atol=1e-12)
-        np.testing.assert_allclose(R[i], data.xmat[bodies].reshape(-1, 3, 3), atol=1e-12)
-        np.testing.assert_allclose(o[i], data.xanchor[tree.moving_joint], atol=1e-12)
-        np.testing.assert_allclose(a[i], data.xaxis[tree.moving_joint], atol=1e-12)
+        # the same chain of frame products in another order: each a few roundings per joint of the chain, on
+        # positions of up to ~1 m and unit rotations
+        tol = _CHAIN_ROUNDINGS * np.finfo(float).eps * max(1.0, np.abs(data.xpos[bodies]).max())
+        np.testing.assert_allclose(p[i], data.xpos[bodies], rtol=0, atol=tol)
+        np.testing.assert_allclose(R[i], data.xmat[bodies].reshape(-1, 3, 3), rtol=0, atol=tol)
+        np.testing.assert_allclose(o[i], data.xanchor[tree.moving_joint], rtol=0, atol=tol)
+        np.testing.assert_allclose(a[i], data.xaxis[tree.moving_joint], rtol=0, atol=tol)
         for f, body in enumerate(bodies):
             mujoco.mj_jacBody(m, data, jp, jr, body)
             # d(-g . p)/dq = -J_p^T g and d(-g . R[:, k])/dq = -g . (w x R[:, k]) = J_r^T (g x R[:, k])
