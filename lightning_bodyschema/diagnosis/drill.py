@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 
 from ..faults import Faults
-from ..sim.settle import SettleParams, _Simulator, settle
+from ..sim.settle import SettleParams, SettleSimulator, settle
 from ..sim.settle_inputs import _force_laws
 from ..status import Status
 from .noise import SensorNoise
@@ -61,8 +61,8 @@ def run_drill(schema, q_ref, faults: Faults, rng, noise: Optional[SensorNoise] =
     noise = noise or SensorNoise()
     model, spring = schema.robot_model, schema.spring
     params = SettleParams()
-    sim = _Simulator(model, spring, params)
-    data = sim._start(np.asarray(q_ref, float)[None])
+    sim = SettleSimulator(model, spring, params)
+    data = sim.start(np.asarray(q_ref, float)[None])
     l_cmd, f_cmd = (a[0] for a in schema.infer(np.asarray(q_ref, float)[None]))
     monitor = schema.monitor(noise, window=settings.window, confirm=settings.confirm, load_cells=load_cells)
     has_f = np.ones(model.n_muscles, bool) if load_cells is None else np.asarray(load_cells, bool)

@@ -3,20 +3,43 @@ actuators put back (``statics.muscles.actuated_model``), and MuJoCo's own forces
 
 Contacts are off (the equilibrium has none, as in ``sim.settle``); a cut muscle's actuator is held at zero force
 (``forcerange [0, 0]``: a ruptured muscle pulls neither actively nor passively); locked joints and couplings are held
-as ``sim.settle`` holds them. MuJoCo steps one posture at a time: these are checks, not a hot path.
+by MuJoCo's own constraints made near-hard (``_hold_couplings_and_locks``: this check steps MuJoCo's muscle
+actuators, while ``sim.settle`` holds them exactly in its own step). MuJoCo steps one posture at a time: these are
+checks, not a hot path.
 """
 from __future__ import annotations
-
-import copy
-from types import SimpleNamespace
 
 import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
-from ..sim.settle import SOLVER_TOLERANCE, _Simulator
+from ..sim.settle import SOLVER_TOLERANCE
 from .muscles import actuated_model
 from .optimize import StaticBody, StaticResult
+
+
+LOCK_ARMATURE = 1e6  # [kg m^2] added to a locked joint: it does not accelerate
+COUPLING_IMPEDANCE = 0.9999  # MuJoCo solimp d of a coupling: near-hard (MuJoCo's largest d)
+
+
+def _hold_couplings_and_locks(m: mujoco.MjModel, joint_map) -> tuple[np.ndarray, np.ndarray]:
+    """Hold ``m``'s locks and couplings with MuJoCo itself; returns the locked joints and their values. Locks: the
+    equality is switched off and the joint gets a huge armature, so it does not accelerate while the rest of the body
+    moves as if it were welded (M_jj -> inf), and the caller puts it back each step. Couplings: MuJoCo's equality
+    constraint made stiff (time constant 2 steps, impedance COUPLING_IMPEDANCE): at rest a follower misses its
+    polynomial by ~(1 - d) a / (d k), and its constraint force is the one the body needs. (``sim.settle`` holds both
+    exactly in its own step; this check steps MuJoCo's own muscle actuators, so MuJoCo must hold them.)"""
+    locked = np.array(sorted(joint_map.locked), dtype=int)
+    m.dof_armature[locked] += LOCK_ARMATURE
+    for e in range(m.neq):
+        if int(m.eq_type[e]) != int(mujoco.mjtEq.mjEQ_JOINT):
+            continue
+        if m.eq_obj2id[e] < 0:
+            m.eq_active0[e] = 0
+        else:
+            m.eq_solref[e] = [2.0 * m.opt.timestep, 1.0]
+            m.eq_solimp[e, :2] = COUPLING_IMPEDANCE
+    return locked, np.array([joint_map.locked[j] for j in locked])
 
 
 class _MuJoCoBody:
@@ -28,8 +51,7 @@ class _MuJoCoBody:
         m = actuated_model(body.model, body.curves)
         m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
         m.opt.tolerance = min(m.opt.tolerance, SOLVER_TOLERANCE)
-        self.hold = SimpleNamespace(m=m, joint_map=body.model.joint_map)
-        _Simulator._hold_couplings_and_locks(self.hold)  # sim.settle's treatment of locks and couplings
+        self.locked, self.locked_values = _hold_couplings_and_locks(m, body.model.joint_map)
         self.m, self.d, self.model = m, mujoco.MjData(m), body.model
 
     def start(self, q_free, activation, cut):
@@ -80,7 +102,7 @@ def mujoco_drift_rad(body: StaticBody, result: StaticResult, duration_s: float =
         worst = 0.0
         for _ in range(steps):
             mujoco.mj_step(sim.m, sim.d)
-            _Simulator._project(sim.hold, [sim.d])
+            sim.d.qpos[sim.locked], sim.d.qvel[sim.locked] = sim.locked_values, 0.0  # locks back, at rest
             worst = max(worst, float(np.abs(sim.free_q() - result.q[b]).max()))
         drift[b] = worst
     return drift

@@ -279,7 +279,7 @@ def test_equilibrium_commands_settle_at_their_posture_on_the_coupled_arm(coupled
 
 def test_locked_joint_never_moves_in_the_settle_simulation():
     from lightning_bodyschema.sim import SpringParams
-    from lightning_bodyschema.sim.settle import SettleParams, _force_laws, _Simulator
+    from lightning_bodyschema.sim.settle import SettleParams, SettleSimulator, _force_laws
 
     model = MusculoskeletalModel(COUPLED_ARM, locked_joints={"elbow": 0.3})
     assert model.joint_names == ["shoulder"] and model.locked_joints["elbow"] == pytest.approx(0.3)
@@ -287,10 +287,10 @@ def test_locked_joint_never_moves_in_the_settle_simulation():
     q = np.array([[0.2], [-0.4]])
     l_geo = model.kinematics(q)[0]
     l_motor = l_geo - 0.01  # every muscle pulls hard: the elbow's muscles too
-    sim = _Simulator(model, spring, params)
+    sim = SettleSimulator(model, spring, params)
     laws = _force_laws(l_motor, np.zeros_like(l_motor), np.zeros(l_motor.shape, bool), np.zeros(l_motor.shape, bool),
                        np.full(l_motor.shape, np.nan), params)
-    datas = sim._start(q)
+    datas = sim.start(q)
     elbow = model.all_joint_names.index("elbow")
     moved = []
     for _ in range(200):

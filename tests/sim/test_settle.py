@@ -161,10 +161,10 @@ def test_a_singular_step_is_that_cases_alone():
     """A spring stiffness of ~1e36 N/m (tools/reproduce_paper.py --quick's barely trained commands) left a case's
     implicit system exactly singular in floats: numpy's batched solve raised for the whole chunk. Now that case's
     row is NaN (reported UNSTABLE by the step) and the others are solved."""
-    from lightning_bodyschema.sim.settle import _solve_or_nan
+    from lightning_bodyschema.sim.settle import solve_or_nan
 
     a = np.stack([np.eye(2) * 2.0, np.ones((2, 2)) * 1e29, np.full((2, 2), np.inf)])  # regular, singular, overflow
-    out = _solve_or_nan(a, np.ones((3, 2, 1)))
+    out = solve_or_nan(a, np.ones((3, 2, 1)))
     np.testing.assert_array_equal(out[0], 0.5)
     assert np.isnan(out[1:]).all()
 
