@@ -12,22 +12,8 @@ with, re-classified at every iterate (E = taut set, see ``classify_muscles``):
 * ruptured muscles:                 excluded
 * torque imbalance tau(q) = -G(q)^T f_eff - tau_bias(q), ``f_eff = f`` on E and 0 elsewhere.
 
-The two faults beyond the paper enter as ``sim.settle`` models them (``sim/settle_inputs.py``), by
-rewriting the command before the solve:
-
-* a banded motor (``l_band_m`` [lo, hi]) stops at its band: ``l_motor`` becomes ``clip(l_motor, lo, hi)``
-  and a jammed one's ``l_fixed`` becomes ``clip(l_fixed, lo, hi)`` (clip is monotone, so this is
-  settle's ``clip(min(l_motor, l_fixed), lo, hi)``);
-* a weakened muscle (``f_max_n`` = f_max') never pulls more than f_max' (tension ``min(spring, f_max')``):
-  its motor slips once the wire is stretched past phi^-1(f_max'). So ``f`` becomes ``min(f, f_max')`` in
-  every term, and each of its overstretch residuals (``-r_eq``, ``r_slack``, ``r_fix``) is capped at the
-  slip margin ``phi^-1(f_max') - phi^-1(f)``: beyond it the wire pulls a constant f_max', so the
-  residual stays constant and d r/dq is 0 (no length stiffness). A command above its limit (*saturated*)
-  has margin 0: it pulls f_max' and only its under-stretched side ``max(0, r_eq)`` counts. The cap is
-  continuous in f (a command at its limit up to rounding scores as one just below it), and a muscle
-  whose stretch stays inside its margin scores as a healthy one.
-
-Without weakened or banded muscles every array is the paper's, bit for bit.
+The two faults beyond the paper (weakened muscles, banded motors) rewrite the command before the solve
+(``posture_command.prepare_command``); without them every array is the paper's, bit for bit.
 
 The paper writes the length terms as ``sum w_i (r_i/s_l)^2`` solved by IRLS "minimizing the Huber
 loss"; we take the Huber loss itself, ``rho(u) = u^2 (|u| <= d), 2 d |u| - d^2 (otherwise)``, as the
@@ -62,7 +48,8 @@ import numpy as np
 
 from ..errors import BodySchemaInputError
 from ..sim.model import MusculoskeletalModel
-from ..sim.spring import SpringParams, elongation_from_tension
+from ..sim.spring import SpringParams
+from .posture_command import PostureCommand, prepare_command
 
 
 class SolverStatus(enum.IntEnum):
@@ -154,23 +141,6 @@ class PostureResult:
         return [SolverStatus(int(s)).name for s in self.status]
 
 
-class _Command(NamedTuple):
-    """One batch of commands and faults, pre-processed (NaN l_fixed replaced, bands and limits applied, phi^-1
-    taken): the command as the faulty body can realize it (module docstring)."""
-
-    l_motor: np.ndarray  # (B, M) [m], clipped to a banded motor's band
-    f: np.ndarray  # (B, M) [N], min(f, f_max') on a weakened muscle
-    delta: np.ndarray  # (B, M) phi^-1(f) [m]
-    q_ref: np.ndarray  # (B, N) [rad]
-    cut: np.ndarray  # (B, M) bool
-    fix: np.ndarray  # (B, M) bool
-    l_fixed: np.ndarray  # (B, M) [m], 0 where not jammed (clipped to a motor's band)
-    slip_m: np.ndarray  # (B, M) [m] phi^-1(f_max') - phi^-1(f): overstretch at which a weakened motor slips; inf
-
-    def take(self, idx):
-        return _Command(*(a[idx] for a in self))
-
-
 class _Point(NamedTuple):
     """Objective, residuals and Jacobians at a batch of postures."""
 
@@ -196,7 +166,7 @@ def huber_weight(u: np.ndarray, delta: float) -> np.ndarray:
     return np.minimum(1.0, delta / np.maximum(np.abs(u), 1e-300))
 
 
-def classify_muscles(l_geo, cmd: _Command, params: ForwardSolverParams):
+def classify_muscles(l_geo, cmd: PostureCommand, params: ForwardSolverParams):
     """Taut set E, length residuals and their Jacobian signs (all (B, M)).
 
     E = {i not cut, not jammed | f_i > 0, l_geo_i - l_motor_i >= -eps_slack} (paper, verbatim).
@@ -219,7 +189,7 @@ def classify_muscles(l_geo, cmd: _Command, params: ForwardSolverParams):
     return taut, r, sign
 
 
-def effective_tension(l_geo, taut, cmd: _Command, params: ForwardSolverParams):
+def effective_tension(l_geo, taut, cmd: PostureCommand, params: ForwardSolverParams):
     """f_eff (B, M) [N]: f on E (paper); optionally also on taut jammed muscles.
 
     ``jammed_tension_in_torque`` is not the paper: a jammed wire still pulls on the joints. Its motor
@@ -248,7 +218,7 @@ def _stacked_kinematics(model: MusculoskeletalModel, q, h):
     return shape(l_geo)[0], shape(G), shape(bias)
 
 
-def _evaluate(model, q, cmd: _Command, params: ForwardSolverParams) -> _Point:
+def _evaluate(model, q, cmd: PostureCommand, params: ForwardSolverParams) -> _Point:
     """Objective, residuals and Jacobians at q (B, N).
 
     d tau / d q by forward differences of MuJoCo's G and tau_bias with f_eff held fixed: G varies
@@ -271,7 +241,7 @@ def _evaluate(model, q, cmd: _Command, params: ForwardSolverParams) -> _Point:
 
 
 # ---------------------------------------------------------------------------- one LM step
-def _normal_equations(p: _Point, cmd: _Command, params: ForwardSolverParams):
+def _normal_equations(p: _Point, cmd: PostureCommand, params: ForwardSolverParams):
     """Gauss-Newton Hessian H (B, N, N) and half-gradient g (B, N) of the IRLS-weighted objective."""
     w_irls = huber_weight(p.r, params.huber_delta)  # w r = rho'(r)/2: the gradient in both variants
     if params.curvature == "irls":
@@ -298,79 +268,6 @@ def _lm_step(H, g, free, mu, max_step):
     dq = np.linalg.solve(A, -np.where(free, g, 0.0)[..., None])[..., 0]
     norm = np.linalg.norm(dq, axis=1, keepdims=True)
     return dq * np.minimum(1.0, max_step / np.maximum(norm, 1e-300))
-
-
-# ---------------------------------------------------------------------------- input checks
-def _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed) -> tuple[_Command, np.ndarray]:
-    """Validate shapes and faults; returns the command and (B,) finite-command mask."""
-    q_ref = model.check_q(q_ref)
-    batch, n_m = q_ref.shape[0], model.n_muscles
-    arrays = {"l_motor": l_motor, "f": f, "cut": cut, "fix": fix, "l_fixed": l_fixed}
-    arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    for name, a in arrays.items():
-        if a.shape != (batch, n_m):
-            raise BodySchemaInputError(f"{name} has shape {a.shape}; expected ({batch}, {n_m})")
-    cut, fix = arrays["cut"].astype(bool), arrays["fix"].astype(bool)
-    if np.any(cut & fix):
-        raise BodySchemaInputError("a muscle is both cut and jammed; cut and fix must not overlap")
-    l_fixed = arrays["l_fixed"].astype(float)
-    if not np.all(np.isfinite(l_fixed[fix])):
-        raise BodySchemaInputError("l_fixed is NaN/inf for a jammed muscle")
-    l_motor, f = arrays["l_motor"].astype(float), arrays["f"].astype(float)
-    finite = np.all(np.isfinite(l_motor) & np.isfinite(f), axis=1)
-    l_motor, f = np.where(finite[:, None], l_motor, 0.0), np.where(finite[:, None], f, 0.0)
-    lo, hi = model.q_range.T
-    cmd = _Command(l_motor, f, None, np.clip(q_ref, lo, hi), cut, fix, np.where(fix, l_fixed, 0.0),
-                   np.full((batch, n_m), np.inf))
-    return cmd, finite
-
-
-def _check_new_faults(shape, f_max_n, l_band_m):
-    """f_max' (B, M) [N] and the band (B, M, 2) [m] as float arrays (NaN: no such fault), or None; one clear
-    error for a wrong shape or value."""
-    if f_max_n is not None:
-        f_max_n = np.asarray(f_max_n, float)
-        if f_max_n.shape != shape:
-            raise BodySchemaInputError(f"f_max_n has shape {f_max_n.shape}; expected {shape}")
-        bad = np.isinf(f_max_n) | (f_max_n < 0)
-        if bad.any():
-            raise BodySchemaInputError(f"f_max_n has the limit {float(f_max_n[bad][0])!r} N; a weakened muscle's "
-                                       "limit is finite and >= 0 N, NaN where not weakened")
-    if l_band_m is not None:
-        l_band_m = np.asarray(l_band_m, float)
-        if l_band_m.shape != shape + (2,):
-            raise BodySchemaInputError(f"l_band_m has shape {l_band_m.shape}; expected {shape + (2,)}")
-        banded = ~np.isnan(l_band_m).all(-1)
-        lo, hi = l_band_m[..., 0][banded], l_band_m[..., 1][banded]
-        if not (np.all(np.isfinite(lo) & np.isfinite(hi)) and np.all(lo <= hi)):
-            raise BodySchemaInputError("l_band_m has a band with a NaN/inf bound or lo > hi; a banded motor needs "
-                                       "finite lo <= hi [m], NaN for both where the motor is free")
-    return f_max_n, l_band_m
-
-
-def _apply_new_faults(cmd: _Command, f_max_n, l_band_m, spring: SpringParams) -> _Command:
-    """The command as weakened muscles and banded motors realize it (module docstring): l_motor / l_fixed clipped
-    to a band, f capped at f_max' and its slip margin set. Untouched entries keep their exact values."""
-    if l_band_m is not None:
-        banded = ~np.isnan(l_band_m).all(-1)
-        lo, hi = l_band_m[..., 0], l_band_m[..., 1]
-        cmd = cmd._replace(l_motor=np.where(banded, np.clip(cmd.l_motor, lo, hi), cmd.l_motor),
-                           l_fixed=np.where(banded & cmd.fix, np.clip(cmd.l_fixed, lo, hi), cmd.l_fixed))
-    if f_max_n is not None:
-        weak = ~np.isnan(f_max_n)
-        f = np.where(weak & (cmd.f > f_max_n), f_max_n, cmd.f)
-        margin = elongation_from_tension(np.where(weak, f_max_n, 0.0), spring) - elongation_from_tension(f, spring)
-        cmd = cmd._replace(f=f, slip_m=np.where(weak, margin, np.inf))
-    return cmd
-
-
-def prepare_command(model, l_motor, f, q_ref, cut, fix, l_fixed, spring: SpringParams = SpringParams(),
-                    f_max_n=None, l_band_m=None) -> tuple[_Command, np.ndarray]:
-    """The validated command as the faulty body realizes it, phi^-1 taken, and the (B,) finite-command mask
-    (``solve_posture``'s arguments)."""
-    cmd, finite = _check_inputs(model, l_motor, f, q_ref, cut, fix, l_fixed)
-    cmd = _apply_new_faults(cmd, *_check_new_faults(cmd.f.shape, f_max_n, l_band_m), spring)
-    return cmd._replace(delta=elongation_from_tension(cmd.f, spring)), finite
 
 
 # ---------------------------------------------------------------------------- the solver
@@ -407,12 +304,12 @@ def _finish(out: PostureResult, idx, p: _Point, mask, status):
         out.status[rows] = status
 
 
-def _keep(p: _Point, cmd: _Command, idx, mu, keep):
+def _keep(p: _Point, cmd: PostureCommand, idx, mu, keep):
     """Drop finished cases from every per-case array, so later iterates cost only the running ones."""
     return _Point(*(a[keep] for a in p)), cmd.take(keep), idx[keep], mu[keep]
 
 
-def _run(model, cmd: _Command, idx, params: ForwardSolverParams, out: PostureResult):
+def _run(model, cmd: PostureCommand, idx, params: ForwardSolverParams, out: PostureResult):
     """Batched Levenberg-Marquardt; ``idx`` maps the rows of ``cmd`` to rows of ``out``."""
     p = _evaluate(model, cmd.q_ref, cmd, params)
     mu = np.full(len(idx), params.mu_min)

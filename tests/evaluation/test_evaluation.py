@@ -118,11 +118,11 @@ def test_solver_stays_inside_joint_limits(model, data):
 def test_forward_difference_torque_jacobian_matches_central_differences(model, data):
     """The solver's d(sqrt(lambda_tau) tau / s_tau)/dq (forward differences) against central ones."""
     from lightning_bodyschema.evaluation import forward_solver as fs
+    from lightning_bodyschema.evaluation.posture_command import prepare_command
 
     n, params = 8, ForwardSolverParams()
-    cmd, _ = fs._check_inputs(model, data.l_motor[:n], data.f[:n], data.q[:n], np.zeros((n, 6), bool),
-                              np.zeros((n, 6), bool), np.full((n, 6), np.nan))
-    cmd = cmd._replace(delta=elongation_from_tension(cmd.f, SpringParams()))
+    cmd, _ = prepare_command(model, data.l_motor[:n], data.f[:n], data.q[:n], np.zeros((n, 6), bool),
+                             np.zeros((n, 6), bool), np.full((n, 6), np.nan))
     q = data.q[:n] * 0.9  # off the data postures, all muscles keep their class for small steps
     point = fs._evaluate(model, q, cmd, params)
     h = 1e-5

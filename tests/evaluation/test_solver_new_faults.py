@@ -5,7 +5,8 @@ import pytest
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import FaultCases, ForwardSolverParams, evaluate_commands, solve_posture
-from lightning_bodyschema.evaluation.forward_solver import classify_muscles, prepare_command
+from lightning_bodyschema.evaluation.forward_solver import classify_muscles
+from lightning_bodyschema.evaluation.posture_command import prepare_command
 from lightning_bodyschema.sim.settle import settle
 
 N_CASES = 12
