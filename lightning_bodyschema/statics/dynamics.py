@@ -137,7 +137,7 @@ def _times(t, batch: int, timestep_s: float) -> np.ndarray:
     return t
 
 
-def _controls(body: StaticBody, activation, t) -> tuple[np.ndarray, np.ndarray]:
+def frame_controls(body: StaticBody, activation, t) -> tuple[np.ndarray, np.ndarray]:
     """The excitations from each frame's activations to the next's (``statics.activation``), the last frame held."""
     target = np.vstack([activation[1:], activation[-1:]])
     dt = np.append(np.diff(t), np.diff(t)[-1] if len(t) > 1 else body.model.mj_model.opt.timestep)
@@ -163,7 +163,7 @@ def solve_motion(body: StaticBody, q, qvel, qacc, faults=None, tau_nm=None, resi
     factor = None if body.curves is None else body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel))
     result, residual_nm = body.solve_torque(q, l_geo, G, tau, faults, objective, f_ref, solver, factor, residual,
                                             device)
-    control, clipped = (None, None) if result.activation is None else _controls(body, result.activation, t)
+    control, clipped = (None, None) if result.activation is None else frame_controls(body, result.activation, t)
     fields = {k: getattr(result, k) for k in StaticResult.__dataclass_fields__}
     return MotionResult(**fields, qvel=qvel, qacc=qacc, tau_nm=tau, control=control, control_clipped=clipped,
                         residual_nm=residual_nm, residual_dofs=names, t=t)
