@@ -14,9 +14,8 @@ import io
 
 import numpy as np
 
-from ..errors import BodySchemaInputError
 from ..status import status_codes, status_names
-from .common import write_npz
+from .common import write_bytes, write_npz
 
 CHUNK = 256  # frames per solve: the progress bar's step
 
@@ -75,14 +74,8 @@ def _csv_text(result) -> str:
 
 def write_motion(path: str, result) -> None:
     """The result as ``.csv`` or ``.npz`` (module docstring), atomically."""
-    from ..npz import atomic_write_bytes
-
     if path.endswith(".csv"):
-        try:
-            atomic_write_bytes(path, _csv_text(result).encode())
-        except OSError as err:
-            raise BodySchemaInputError(f"cannot write --out {path!r}: {err.strerror or err}") from None
-        return
+        return write_bytes(path, _csv_text(result).encode())
     arrays = {k: getattr(result, k) for k in ("t", "q", "qvel", "qacc", "tau_nm", "tension_n", "l_motor_m",
                                               "activation", "control", "control_clipped", "residual_nm")}
     arrays = {k: v for k, v in arrays.items() if v is not None}
@@ -99,8 +92,6 @@ def plot_activations(result, path: str, top: int = 8) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..npz import atomic_write_bytes
-
     values = result.activation if result.activation is not None else result.tension_n
     order = np.argsort(-np.nan_to_num(np.nanmax(np.abs(values), axis=0, initial=0.0)))[:top]
     fig, ax = plt.subplots(figsize=(9, 3.6), constrained_layout=True)
@@ -116,10 +107,7 @@ def plot_activations(result, path: str, top: int = 8) -> None:
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)
     plt.close(fig)
-    try:
-        atomic_write_bytes(path, buffer.getvalue())
-    except OSError as err:
-        raise BodySchemaInputError(f"cannot write --plot {path!r}: {err.strerror or err}") from None
+    write_bytes(path, buffer.getvalue(), "--plot")
 
 
 def track_file(body, result, faults, args) -> str:

@@ -17,10 +17,10 @@ import numpy as np
 
 from ..errors import BodySchemaInputError, did_you_mean
 from ..status import status_codes, status_names
-from .common import argument_parser, config_data, exits_cleanly, robot_options, write_npz
+from .common import argument_parser, config_data, exits_cleanly, robot_options, write_bytes, write_npz
 from .posture_files import concatenate, postures_of, read_posture_columns
 
-EXAMPLE = """examples:
+EXAMPLE = """example:
   python tools/static_opt.py --config configs/myoarm.yaml --postures reach.csv --cut BIClong_tendon \\
       --out reach_tensions.csv
   python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz \\
@@ -99,14 +99,8 @@ def _csv_text(result) -> str:
 
 def write_result(path: str, result) -> None:
     """The result as ``.csv`` or ``.npz`` (module docstring), atomically."""
-    from ..npz import atomic_write_bytes
-
     if path.endswith(".csv"):
-        try:
-            atomic_write_bytes(path, _csv_text(result).encode())
-        except OSError as err:
-            raise BodySchemaInputError(f"cannot write --out {path!r}: {err.strerror or err}") from None
-        return
+        return write_bytes(path, _csv_text(result).encode())
     arrays = {"q": result.q, "tension_n": result.tension_n, "l_motor_m": result.l_motor_m,
               "status": status_names(result.status), "status_code": status_codes(result.status),
               "joints": np.array(result.joints, dtype=str), "muscles": np.array(result.muscles, dtype=str),
@@ -212,7 +206,8 @@ def _check_motion_options(args) -> None:
     given = [flag for flag, value in (("--residual", args.residual), ("--plot", args.plot), ("--track", args.track),
                                       ("--control-step", args.control_step)) if value]
     if given and not args.motion:
-        raise BodySchemaInputError(f"{', '.join(given)} need{'s' if len(given) == 1 else ''} --motion (a motion file), not --postures")
+        verb = "needs" if len(given) == 1 else "need"
+        raise BodySchemaInputError(f"{', '.join(given)} {verb} --motion (a motion file), not --postures")
     if args.motion and not os.path.isfile(args.motion):
         raise BodySchemaInputError(f"--motion {args.motion!r} does not exist")
 

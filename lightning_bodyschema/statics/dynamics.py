@@ -80,8 +80,10 @@ class InverseBody:
         full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
         m, d, model = self.m, self.d, self.body.model
         rows, cols, entries = model._dense_index  # the same sparsity as the model this copies
-        lengths, jac, force = np.empty((len(q), m.ntendon)), np.zeros((len(q), m.ntendon, m.nv)), np.empty((len(q), m.nv))
-        for b in range(len(q)):  # MuJoCo evaluates one state per call
+        batch = len(q)
+        lengths, jac = np.empty((batch, m.ntendon)), np.zeros((batch, m.ntendon, m.nv))
+        force = np.empty((batch, m.nv))
+        for b in range(batch):  # MuJoCo evaluates one state per call
             d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
             mujoco.mj_inverse(m, d)
             lengths[b], force[b] = d.ten_length, d.qfrc_inverse

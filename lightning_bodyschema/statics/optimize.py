@@ -229,7 +229,8 @@ class _Columns:
     the joints, ``-G^T`` of it the torque: their G rows are ``-direction``)."""
 
     def __init__(self, G, tau_nm, lo, scale, offset, x_ref, residual):
-        self.G, self.tau, self.lo, self.scale, self.offset, self.x_ref, self.n_extra = G, tau_nm, lo, scale, offset, x_ref, 0
+        self.G, self.tau, self.lo, self.scale, self.offset, self.x_ref = G, tau_nm, lo, scale, offset, x_ref
+        self.n_extra = 0
         if residual is not None:
             directions, unit = (np.asarray(a, float) for a in residual)
             batch, self.n_extra = len(G), len(unit)

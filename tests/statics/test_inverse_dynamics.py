@@ -26,7 +26,8 @@ def sine_motion(body, seconds=1.0, step=0.002, speed=1.0):
     t = np.arange(0.0, seconds, step)
     lo, hi = body.model.q_range.T
     mid, amp, w = (lo + hi) / 2, (hi - lo) / 4, 2 * np.pi * speed * np.array([0.7, 1.1])
-    return t, mid + amp * np.sin(w * t[:, None]), amp * w * np.cos(w * t[:, None]), -amp * w ** 2 * np.sin(w * t[:, None])
+    phase = w * t[:, None]
+    return t, mid + amp * np.sin(phase), amp * w * np.cos(phase), -amp * w ** 2 * np.sin(phase)
 
 
 @pytest.fixture(scope="module")
