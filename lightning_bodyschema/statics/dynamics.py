@@ -139,6 +139,21 @@ def _times(t, batch: int, timestep_s: float) -> np.ndarray:
     return t
 
 
+def _device(device):
+    """``device`` as a torch device (None stays None: the CPU, nothing initialized); refused when absent here."""
+    if device is None:
+        return None
+    import torch
+
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise BodySchemaInputError(f"device={device!r}; give a torch device such as 'cpu' or 'cuda'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise BodySchemaInputError(f"device={str(device)!r}, but torch sees no CUDA device here; use 'cpu'")
+    return device
+
+
 def frame_controls(body: StaticBody, activation, t) -> tuple[np.ndarray, np.ndarray]:
     """The excitations from each frame's activations to the next's (``statics.activation``), the last frame held."""
     target = np.vstack([activation[1:], activation[-1:]])
@@ -159,6 +174,7 @@ def solve_motion(body: StaticBody, q, qvel, qacc, faults=None, tau_nm=None, resi
     check_solver(solver)
     names, residual = _residual(body, residual_dofs, residual_weight)
     t = _times(t, len(q), body.model.mj_model.opt.timestep)
+    device = _device(device)
     l_geo, G, tau = _inverse_body(body).inverse(q, qvel, qacc)
     if tau_nm is not None:
         tau = tau_nm

@@ -204,6 +204,7 @@ def test_muscles_for_torque_make_that_torque(elbow, motion):
     (lambda b, m: inverse_dynamics(b, m[1], m[2], m[3], t=m[0][::-1]), "strictly increasing"),
     (lambda b, m: inverse_dynamics(b, m[1], m[2], m[3], residual_weight=0.0), "residual_weight=0.0"),
     (lambda b, m: muscles_for_torque(b, m[1], m[2][:3]), r"tau_nm has shape \(3, 2\)"),
+    (lambda b, m: inverse_dynamics(b, m[1], m[2], m[3], device="tpu:9"), "device='tpu:9'"),
 ])
 def test_bad_input_is_one_clear_error(elbow, motion, call, match):
     with pytest.raises(BodySchemaInputError, match=match):
