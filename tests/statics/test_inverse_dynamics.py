@@ -216,3 +216,22 @@ def test_top_level_export():
 
     assert package.inverse_dynamics is inverse_dynamics and package.muscles_for_torque is muscles_for_torque
     assert Status.OK.name == "OK"
+
+
+@pytest.mark.slow
+def test_readme_example(monkeypatch):
+    """README "Muscles for a motion": the Python block runs from the repository root and its answers are physical:
+    the cut muscle carries nothing, most frames are ok, and the torque form returns the first frame's activations."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
+    from test_readme_examples import ROOT, block
+
+    monkeypatch.chdir(ROOT)
+    namespace = {}
+    exec(block("python", "inverse_dynamics(arm"), namespace)
+    motion, held = namespace["motion"], namespace["held"]
+    assert motion.activation.shape == (1001, 50) and motion.ok.mean() > 0.9
+    assert (motion.tension_n[:, motion.muscles.index("BIClong_tendon")] == 0).all()
+    np.testing.assert_allclose(held.activation[0], motion.activation[0], atol=1e-9)
