@@ -219,18 +219,10 @@ def test_top_level_export():
 
 
 @pytest.mark.slow
-def test_readme_example(monkeypatch):
+def test_readme_example(readme_block):
     """README "Muscles for a motion": the Python block runs from the repository root and its answers are physical:
     the cut muscle carries nothing, most frames are ok, and the torque form returns the first frame's activations."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
-    from test_readme_examples import ROOT, block
-
-    monkeypatch.chdir(ROOT)
-    namespace = {}
-    exec(block("python", "inverse_dynamics(arm"), namespace)
+    namespace = readme_block("inverse_dynamics(arm")
     motion, held = namespace["motion"], namespace["held"]
     assert motion.activation.shape == (1001, 50) and motion.ok.mean() > 0.9
     assert (motion.tension_n[:, motion.muscles.index("BIClong_tendon")] == 0).all()
