@@ -57,13 +57,14 @@ class MotionResult(StaticResult):
 
 
 class InverseBody:
-    """MuJoCo's inverse dynamics of a ``StaticBody``'s model, one ``MjData``: a private copy of the model with its
-    constraints off (locks and couplings are carried by the free coordinates; contacts play no part)."""
+    """MuJoCo's inverse dynamics of a ``StaticBody``'s model: a private copy of the model with its constraints off
+    (locks and couplings are carried by the free coordinates; contacts play no part), one ``MjData`` per thread
+    (``body.threads``; the same numbers whatever the count)."""
 
     def __init__(self, body: StaticBody):
         self.body, self.m = body, copy.copy(body.model.mj_model)
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
-        self.d = mujoco.MjData(self.m)
+        self.datas = [mujoco.MjData(self.m) for _ in range(body.threads)]
 
     def full_state(self, q, qvel, qacc):
         """Every joint's position, velocity and acceleration (B, nq) from the free joints' (B, N), and ``E``."""
@@ -77,19 +78,35 @@ class InverseBody:
     def inverse(self, q, qvel, qacc):
         """``(l_geo (B, M), G (B, M, N), tau (B, N))``: tendon lengths, moment arms and the generalized force
         ``E^T qfrc_inverse`` [N m] the motion needs in the free joints (module docstring)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from ..sim.model import _thread_count
+
         full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
-        m, d, model = self.m, self.d, self.body.model
-        rows, cols, entries = model._dense_index  # the same sparsity as the model this copies
-        batch = len(q)
-        lengths, jac = np.empty((batch, m.ntendon)), np.zeros((batch, m.ntendon, m.nv))
-        force = np.empty((batch, m.nv))
-        for b in range(batch):  # MuJoCo evaluates one state per call
+        m, batch = self.m, len(q)
+        out = np.empty((batch, m.ntendon)), np.zeros((batch, m.ntendon, m.nv)), np.empty((batch, m.nv))
+        state = (full, qvel_full, qacc_full)
+        threads = _thread_count(len(self.datas), batch)
+        if threads == 1:
+            self._fill(state, range(batch), self.datas[0], out)
+        else:  # MuJoCo releases the GIL inside its calls
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(self._fill, [state] * threads, np.array_split(np.arange(batch), threads),
+                              self.datas[:threads], [out] * threads))
+        lengths, jac, force = out
+        idx = self.body.model.muscle_ids
+        return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, force)
+
+    def _fill(self, state, rows, d, out) -> None:
+        """``mj_inverse`` of the frames ``rows``: tendon lengths, dense tendon Jacobians and forces into ``out``."""
+        full, qvel_full, qacc_full = state
+        (lengths, jac, force), m = out, self.m
+        tendons, cols, entries = self.body.model._dense_index  # the same sparsity as the model this copies
+        for b in rows:  # MuJoCo evaluates one state per call
             d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
             mujoco.mj_inverse(m, d)
             lengths[b], force[b] = d.ten_length, d.qfrc_inverse
-            jac[b, rows, cols] = d.ten_J[entries]
-        idx = model.muscle_ids
-        return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, force)
+            jac[b, tendons, cols] = d.ten_J[entries]
 
 
 def _inverse_body(body: StaticBody) -> InverseBody:

@@ -85,6 +85,15 @@ def test_zero_motion_is_static_optimization(elbow):
     np.testing.assert_array_equal(static.activation, motion.activation)
 
 
+def test_threads_give_the_same_numbers(elbow, motion):
+    """MuJoCo's per-frame calls on 2 threads (each its own MjData) answer bit for bit as on one."""
+    t, q, qvel, qacc = motion
+    one = inverse_dynamics(elbow, q, qvel, qacc, t=t)
+    two = inverse_dynamics(StaticBody(ELBOW, threads=2), q, qvel, qacc, t=t)
+    np.testing.assert_array_equal(one.activation, two.activation)
+    np.testing.assert_array_equal(one.tau_nm, two.tau_nm)
+
+
 @pytest.mark.parametrize("faults", [None, {"cut": ["BRA_tendon"]}])
 def test_mujoco_follows_the_motion(elbow, motion, faults):
     """MuJoCo's forward acceleration with the activations is the requested one where ok; activations computed
