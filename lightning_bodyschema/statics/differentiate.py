@@ -6,7 +6,7 @@ What it costs in accuracy, measured on a known analytic motion (``tools/bench_st
 ``q = 0.5 sin(2 pi t)`` [rad] over 2 s sampled every 2 ms, the default 0.05 s window (25 frames) and degree 3, misses
 the velocity by up to 1.2e-4 rad/s and the acceleration by up to 0.035 rad/s^2 (0.18 % of its 19.7 rad/s^2 peak);
 with 1e-5 rad of white noise on the positions the acceleration misses by up to 0.085 rad/s^2 (a second difference
-would miss by ~5 rad/s^2). A wider window or a lower degree smooths more and bends fast motions more. Give
+misses by 20.9 rad/s^2). A wider window or a lower degree smooths more and bends fast motions more. Give
 ``qvel_<joint>``/``qacc_<joint>`` columns to use a motion's own derivatives instead. numpy and scipy.
 """
 from __future__ import annotations
