@@ -65,6 +65,7 @@ class InverseBody:
         self.body, self.m = body, copy.copy(body.model.mj_model)
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
         self.datas = [mujoco.MjData(self.m) for _ in range(body.threads)]
+        self.index = self._muscle_index()
 
     def full_state(self, q, qvel, qacc):
         """Every joint's position, velocity and acceleration (B, nq) from the free joints' (B, N), and ``E``."""
@@ -83,8 +84,8 @@ class InverseBody:
         from ..sim.model import _thread_count
 
         full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
-        m, batch = self.m, len(q)
-        out = np.empty((batch, m.ntendon)), np.zeros((batch, m.ntendon, m.nv)), np.empty((batch, m.nv))
+        m, batch, (rows, cols, entries) = self.m, len(q), self.index
+        out = np.empty((batch, m.ntendon)), np.empty((batch, len(entries))), np.empty((batch, m.nv))
         state = (full, qvel_full, qacc_full)
         threads = _thread_count(len(self.datas), batch)
         if threads == 1:
@@ -93,20 +94,27 @@ class InverseBody:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(self._fill, [state] * threads, np.array_split(np.arange(batch), threads),
                               self.datas[:threads], [out] * threads))
-        lengths, jac, force = out
-        idx = self.body.model.muscle_ids
-        return lengths[:, idx], jac[:, idx, :] @ tangent, np.einsum("bjn,bj->bn", tangent, force)
+        lengths, values, force = out
+        jac = np.zeros((batch, len(self.body.model.muscle_ids), m.nv))
+        jac[:, rows, cols] = values  # one scatter of every frame's sparse rows
+        return lengths[:, self.body.model.muscle_ids], jac @ tangent, np.einsum("bjn,bj->bn", tangent, force)
+
+    def _muscle_index(self):
+        """``(rows, cols, entries)``: the muscles' entries of MuJoCo's sparse ``ten_J`` (the same sparsity as the
+        model this copies), their muscle (row) and joint (column)."""
+        tendons, cols, entries = self.body.model._dense_index
+        order = {int(t): k for k, t in enumerate(self.body.model.muscle_ids)}
+        keep = np.array([int(t) in order for t in tendons], dtype=bool)
+        return np.array([order[int(t)] for t in tendons[keep]], dtype=int), cols[keep], entries[keep]
 
     def _fill(self, state, rows, d, out) -> None:
-        """``mj_inverse`` of the frames ``rows``: tendon lengths, dense tendon Jacobians and forces into ``out``."""
+        """``mj_inverse`` of the frames ``rows``: tendon lengths, the muscles' ``ten_J`` entries and the forces."""
         full, qvel_full, qacc_full = state
-        (lengths, jac, force), m = out, self.m
-        tendons, cols, entries = self.body.model._dense_index  # the same sparsity as the model this copies
+        (lengths, values, force), m, entries = out, self.m, self.index[2]
         for b in rows:  # MuJoCo evaluates one state per call
             d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
             mujoco.mj_inverse(m, d)
-            lengths[b], force[b] = d.ten_length, d.qfrc_inverse
-            jac[b, tendons, cols] = d.ten_J[entries]
+            lengths[b], force[b], values[b] = d.ten_length, d.qfrc_inverse, d.ten_J[entries]
 
 
 def _inverse_body(body: StaticBody) -> InverseBody:
