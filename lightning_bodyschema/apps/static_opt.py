@@ -5,7 +5,8 @@ joint), SI units (rad, m). A column is a free joint of the body, named bare (``e
 recorded-data format does (``q_elbow_flexion_r``). Faults from flags or a JSON/YAML file. Output: ``.csv`` (the
 posture, ``status``, ``status_code``, then ``<muscle>.tension_n``, ``<muscle>.activation``, ``<muscle>.l_motor_m``
 per muscle) or ``.npz`` (arrays ``q``, ``tension_n``, ``activation``, ``l_motor_m``, ``status``, ``status_code``,
-``joints``, ``muscles``, ``objective``), written to a temporary name and renamed.
+``joints``, ``muscles``, ``objective``), written to a temporary name and renamed. ``--motion`` (a motion file instead
+of postures): ``apps.motion_opt``.
 """
 from __future__ import annotations
 
