@@ -37,6 +37,8 @@ def differentiate(t, q, window_s: float = WINDOW_S, polyorder: int = POLYORDER) 
     the window is ``window_s`` rounded to an odd number of frames, at least ``polyorder + 2``."""
     from scipy.signal import savgol_filter
 
+    if not np.isfinite(window_s) or window_s <= 0:
+        raise BodySchemaInputError(f"the differentiator's window is {window_s} s; give a positive number of seconds")
     step = frame_step_s(t)
     frames = max(polyorder + 2, int(round(window_s / step)))
     frames += 1 - frames % 2  # odd: centred on its frame

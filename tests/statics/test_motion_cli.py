@@ -108,6 +108,7 @@ def test_tracking_follows_the_motion_and_a_fall_is_reported(elbow):
     (["--motion", "HALF_QVEL"], r"qvel_<joint> columns miss \['r_elbow_flex'\]"),
     (["--motion", "UNEVEN"], "not evenly spaced"),
     (["--motion", "M", "--residual", "pelvis_tx"], r"residual_dofs \['pelvis_tx'\]"),
+    (["--motion", "M", "--smooth-window", "-1"], "window is -1.0 s"),
 ])
 def test_bad_input_is_one_line_and_no_file(tmp_path, capsys, args, match):
     t, q, qvel, _ = swing(seconds=0.2)
