@@ -1,13 +1,23 @@
 #!/usr/bin/env python
-"""Static optimization speed and checks on myoArm and myoLegs (issue 34), and the README's trajectory figure.
+"""Static optimization speed and checks on myoArm and myoLegs (issue 34), and the README's trajectory figure; with
+``--motion``, inverse dynamics on two held-out motions (issue 50).
 
     python tools/bench_static_opt.py --n 2000 --repeats 3 [--bodies myoArm myoLegs] [--plot docs/static_opt.png]
+    python tools/bench_static_opt.py --motion [--bodies myoArm myoLegs] [--plot docs/motion_opt.png]
 
 Per body: the median time per posture of ``StaticBody.solve`` on ``--n`` seeded postures in one batch, of one
 posture at a time (``--singles`` calls), and side by side the MuJoCo kinematics alone and the dataset's equilibrium
 QP (``sim.equilibrium.solve_equilibrium_qp``, f_ref uniform in [0, f_max]) on the same postures; the status counts;
 on myoArm the largest MuJoCo residual (``statics.check.mujoco_residual_nm``) of a sample of ok rows. The machine's
 load average is printed with the timings: they depend on it. One torch thread.
+
+``--motion``: a myoArm reach (elbow and shoulder, minimum jerk, 2 s) and a myoLegs squat (hips, knees, ankles, 4 s
+per squat, repeated to ``--frames`` frames), frames 2 ms apart, analytic velocities and accelerations. Per body: the
+time per frame of ``inverse_dynamics`` on the whole motion, side by side (alternating) with per-frame SLSQP on the
+same problem as a MuJoCo user writes it (per frame: ``mj_inverse``, then scipy's SLSQP on ``min sum a^2`` with the
+same muscle curves; on ``--slsqp-frames`` frames); the statuses; MuJoCo's forward check on a sample of frames
+(``statics.check.mujoco_motion_error``); on myoArm the tracking in MuJoCo (``statics.track``); the Savitzky-Golay
+differentiator's accuracy on an analytic motion (``statics.differentiate``).
 """
 import argparse
 import copy
@@ -121,6 +131,144 @@ def plot(body, path, cut):
     print(f"wrote {path}")
 
 
+def minimum_jerk(t, start, end, duration_s):
+    """Positions, velocities, accelerations (B, N) from ``start`` to ``end`` over ``duration_s``, held after."""
+    s = np.clip(t / duration_s, 0.0, 1.0)[:, None]
+    pos, vel = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5, (30 * s ** 2 - 60 * s ** 3 + 30 * s ** 4) / duration_s
+    acc = (60 * s - 180 * s ** 2 + 120 * s ** 3) / duration_s ** 2
+    span = np.asarray(end) - np.asarray(start)
+    return start + span * pos, span * vel, span * acc
+
+
+def reach(body, step_s=0.002):
+    """myoArm: shoulder elevation 0.3 -> 1.2 rad, elevation plane 0 -> 0.6, elbow 1.6 -> 0.4 in 2 s."""
+    names, (lo, hi) = body.model.joint_names, body.model.q_range.T
+    start = np.clip(np.zeros(len(names)), lo, hi)
+    end = start.copy()
+    for joint, a, b in (("shoulder_elv_r", 0.3, 1.2), ("elv_angle_r", 0.0, 0.6), ("elbow_flexion_r", 1.6, 0.4)):
+        start[names.index(joint)], end[names.index(joint)] = a, b
+    t = np.arange(0.0, 2.0 + step_s / 2, step_s)
+    return (t, *minimum_jerk(t, start, end, 2.0))
+
+
+def squat(body, frames, step_s=0.002):
+    """myoLegs: both hips 0 -> 1.0 rad, knees 0 -> 1.4, ankles 0 -> 0.35 and back, 4 s per squat, ``frames`` frames
+    (a raised cosine: 0.5 (1 - cos(2 pi t / 4 s)))."""
+    names = body.model.joint_names
+    depth = np.zeros(len(names))
+    for side in "rl":
+        for joint, value in (("hip_flexion", 1.0), ("knee_angle", 1.4), ("ankle_angle", 0.35)):
+            depth[names.index(f"{joint}_{side}")] = value
+    t = step_s * np.arange(frames)
+    w = 2 * np.pi / 4.0
+    shape = 0.5 * (1 - np.cos(w * t))[:, None], 0.5 * w * np.sin(w * t)[:, None], 0.5 * w ** 2 * np.cos(w * t)[:, None]
+    return (t, *(depth * x for x in shape))
+
+
+def slsqp_frames(body, q, qvel, qacc, jacobians=True):
+    """Per frame as a MuJoCo user writes it: mj_inverse (``statics.dynamics.InverseBody`` on that frame), then SLSQP
+    on ``min sum a^2``, ``0 <= a <= 1``, ``-G^T (FV s a + p) = tau``, with the objective's and the constraints'
+    Jacobians given (``jacobians``) or left to scipy's finite differences (as scipy's examples and most scripts
+    do). Returns the activations (NaN: SLSQP failed)."""
+    from scipy.optimize import minimize
+
+    from lightning_bodyschema.statics.dynamics import InverseBody
+
+    inverse, out = InverseBody(body), np.full((len(q), body.model.n_muscles), np.nan)
+    for b in range(len(q)):
+        l_geo, G, tau = inverse.inverse(q[b:b + 1], qvel[b:b + 1], qacc[b:b + 1])
+        s, p = body.curves.affine(l_geo)
+        s = (s * body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel[b:b + 1])))[0]
+        A, need = -(G[0] * s[:, None]).T, tau[0] + G[0].T @ p[0]
+        constraint = {"type": "eq", "fun": lambda a: A @ a - need} | ({"jac": lambda a: A} if jacobians else {})
+        solution = minimize(lambda a: a @ a, np.full(len(s), 0.1), jac=(lambda a: 2 * a) if jacobians else None,
+                            method="SLSQP", bounds=[(0.0, 1.0)] * len(s), options={"ftol": 1e-12, "maxiter": 500},
+                            constraints=constraint)
+        if solution.success:
+            out[b] = solution.x
+    return out
+
+
+def bench_motion(name, body, motion, slsqp_frames_n, repeats):
+    import time
+
+    from lightning_bodyschema.statics import inverse_dynamics
+    from lightning_bodyschema.statics.check import mujoco_motion_error
+
+    t, q, qvel, qacc = motion
+    result = inverse_dynamics(body, q, qvel, qacc, t=t)
+    pick = np.linspace(0, len(t) - 1, slsqp_frames_n).astype(int)
+    batched, per_frame, finite = [], [], []
+    for _ in range(repeats):  # alternating, so that a change in the machine's load falls on each
+        start = time.perf_counter()
+        inverse_dynamics(body, q, qvel, qacc, t=t)
+        batched.append((time.perf_counter() - start) / len(t))
+        start = time.perf_counter()
+        reference = slsqp_frames(body, q[pick], qvel[pick], qacc[pick])
+        per_frame.append((time.perf_counter() - start) / len(pick))
+        start = time.perf_counter()
+        slsqp_frames(body, q[pick[:10]], qvel[pick[:10]], qacc[pick[:10]], jacobians=False)
+        finite.append((time.perf_counter() - start) / 10)
+    ours, theirs, plain = (statistics.median(x) for x in (batched, per_frame, finite))
+    both = result.ok[pick] & np.isfinite(reference).all(1)
+    gap = np.abs(result.activation[pick][both] - reference[both]).max() if both.any() else np.nan
+    sample = result.take(pick)
+    error = np.abs(mujoco_motion_error(body, sample))[sample.ok]
+    clipped = result.control_clipped.any(1).mean()
+    print(f"\n{name}: {len(t)} frames over {t[-1] - t[0]:.3g} s, {body.model.n_joints} free joints, "
+          f"{body.model.n_muscles} muscles; status {count_values(status_names(result.status))}; load average "
+          f"{os.getloadavg()[0]:.1f}\n  inverse_dynamics batched {1e3 * ours:.3f} ms per frame ({len(t) * ours:.2f} s "
+          f"in all); per-frame mj_inverse + SLSQP {1e3 * theirs:.2f} ms per frame ({theirs / ours:.0f}x) on "
+          f"{len(pick)} frames, activations differ by {gap:.1e} at most on {both.sum()} frames both solve; with "
+          f"finite-difference Jacobians {1e3 * plain:.1f} ms per frame ({plain / ours:.0f}x) on 10 frames\n"
+          f"  MuJoCo forward check on {len(error)} ok frames: |qacc - requested| <= {error.max():.1e} rad/s^2; frames "
+          f"with an excitation clipped to [0, 1]: {100 * clipped:.0f} %")
+    return result
+
+
+def differentiator_accuracy():
+    """The Savitzky-Golay differentiator's default on q = 0.5 sin(2 pi t) over 2 s, 2 ms frames, with and without
+    1e-5 rad noise, beside the second difference on the noisy positions."""
+    from lightning_bodyschema.statics.differentiate import differentiate
+
+    t = np.arange(0.0, 2.0 + 1e-9, 0.002)
+    w = 2 * np.pi
+    q = 0.5 * np.sin(w * t)[:, None]
+    noisy = q + 1e-5 * np.random.default_rng(0).standard_normal(q.shape)
+    qvel, qacc = differentiate(t, q)
+    acc_noisy = differentiate(t, noisy)[1]
+    second = np.diff(noisy[:, 0], 2) / 0.002 ** 2
+    exact_acc = -0.5 * w ** 2 * np.sin(w * t)
+    print(f"\nSavitzky-Golay (0.05 s, degree 3) on 0.5 sin(2 pi t), 2 ms frames: velocity error "
+          f"{np.abs(qvel[:, 0] - 0.5 * w * np.cos(w * t)).max():.1e} rad/s, acceleration error "
+          f"{np.abs(qacc[:, 0] - exact_acc).max():.3f} rad/s^2 (peak {0.5 * w ** 2:.1f}); with 1e-5 rad noise "
+          f"{np.abs(acc_noisy[:, 0] - exact_acc).max():.3f} (second difference: "
+          f"{np.abs(second - exact_acc[1:-1]).max():.1f})")
+
+
+def plot_motion(body, result, path):
+    from lightning_bodyschema.apps.motion_opt import plot_activations
+
+    plot_activations(result, path)
+    print(f"wrote {path}")
+
+
+def motion_main(args):
+    from lightning_bodyschema.statics.track import track_motion
+
+    differentiator_accuracy()
+    for name, build in bodies().items():
+        if name not in args.bodies:
+            continue
+        body = build()
+        motion = reach(body) if name == "myoArm" else squat(body, args.frames)
+        result = bench_motion(name, body, motion, args.slsqp_frames, args.repeats)
+        if name == "myoArm":
+            print("  " + track_motion(body, *motion).summary())
+            if args.plot:
+                plot_motion(body, result, args.plot)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--n", type=int, default=2000)
@@ -128,8 +276,13 @@ def main():
     parser.add_argument("--singles", type=int, default=30)
     parser.add_argument("--plot", help="write the README's trajectory figure (myoArm) to this path")
     parser.add_argument("--bodies", nargs="+", choices=["myoArm", "myoLegs"], default=["myoArm", "myoLegs"])
+    parser.add_argument("--motion", action="store_true", help="inverse dynamics on the held-out motions (issue 50)")
+    parser.add_argument("--frames", type=int, default=10000, help="--motion: frames of the myoLegs squat")
+    parser.add_argument("--slsqp-frames", type=int, default=50, help="--motion: frames of the per-frame SLSQP")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.motion:
+        return motion_main(args)
     cuts = {"myoArm": "BIClong_tendon", "myoLegs": "soleus_r_tendon"}
     for name, build in bodies().items():
         if name not in args.bodies:

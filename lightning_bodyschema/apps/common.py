@@ -117,6 +117,16 @@ def check_out(path: str, ckpt: str):
         raise BodySchemaInputError(f"--out {path!r} is the checkpoint itself; give another file")
 
 
+def write_bytes(path: str, data: bytes, flag: str = "--out"):
+    """Atomic write of ``data``; an OS failure is a one-line error naming ``flag``."""
+    from ..npz import atomic_write_bytes
+
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as err:
+        raise BodySchemaInputError(f"cannot write {flag} {path!r}: {err.strerror or err}") from None
+
+
 def write_npz(path: str, arrays: dict):
     """Atomic, deterministic write; an OS failure (permissions, disk full) is a one-line error."""
     from ..npz import save_npz

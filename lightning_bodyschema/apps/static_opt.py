@@ -5,7 +5,8 @@ joint), SI units (rad, m). A column is a free joint of the body, named bare (``e
 recorded-data format does (``q_elbow_flexion_r``). Faults from flags or a JSON/YAML file. Output: ``.csv`` (the
 posture, ``status``, ``status_code``, then ``<muscle>.tension_n``, ``<muscle>.activation``, ``<muscle>.l_motor_m``
 per muscle) or ``.npz`` (arrays ``q``, ``tension_n``, ``activation``, ``l_motor_m``, ``status``, ``status_code``,
-``joints``, ``muscles``, ``objective``), written to a temporary name and renamed.
+``joints``, ``muscles``, ``objective``), written to a temporary name and renamed. ``--motion`` (a motion file instead
+of postures): ``apps.motion_opt``.
 """
 from __future__ import annotations
 
@@ -17,13 +18,16 @@ import numpy as np
 
 from ..errors import BodySchemaInputError, did_you_mean
 from ..status import status_codes, status_names
-from .common import argument_parser, config_data, exits_cleanly, robot_options, write_npz
+from .common import argument_parser, config_data, exits_cleanly, robot_options, write_bytes, write_npz
+from .posture_files import concatenate, postures_of, read_posture_columns
 
 EXAMPLE = """example:
   python tools/static_opt.py --config configs/myoarm.yaml --postures reach.csv --cut BIClong_tendon \\
       --out reach_tensions.csv
   python tools/static_opt.py --model myo:myolegs --fixed-base --postures squat.npz \\
       --weak soleus_r_tendon=800 --out legs.npz
+  python tools/static_opt.py --config configs/myoarm.yaml --motion reach.csv --cut BIClong_tendon \
+      --out reach_motion.csv --plot reach_activations.png --track
 """
 CHUNK = 256  # postures per solve: the progress bar's step
 _EXAMPLES = {"--jam": "BIClong_tendon=0.21", "--weak": "BIClong_tendon=300", "--lock": "elbow_flexion_r=1.2"}
@@ -72,40 +76,6 @@ def read_postures(path: str, model) -> np.ndarray:
     return postures_of(read_posture_columns(path), model.joint_names, path)
 
 
-def read_posture_columns(path: str) -> dict:
-    """``{column: (B,) values}`` of a posture file, checked for what needs no body: it exists, parses, has rows,
-    and every value is finite (rows counted from 1, the first posture after the header)."""
-    from ..column_files import read_csv_columns, read_npz_columns
-
-    if not os.path.isfile(path):
-        raise BodySchemaInputError(f"--postures {path!r} does not exist")
-    columns = (read_npz_columns(path) if path.endswith(".npz") else read_csv_columns(path))[0]
-    names = list(columns)
-    q = np.stack([np.asarray(columns[name], dtype=np.float64) for name in names], axis=1) if names else np.zeros((0, 0))
-    if not len(q):
-        raise BodySchemaInputError(f"{path} has no posture rows")
-    bad = np.argwhere(~np.isfinite(q))
-    if bad.size:
-        row, col = bad[0]
-        raise BodySchemaInputError(f"{path}: posture row {row + 1} (counted from 1 after the header), joint "
-                                   f"{names[col]!r} is {q[row, col]}; every value must be a finite number "
-                                   f"({len(np.unique(bad[:, 0]))} row(s) affected)")
-    return columns
-
-
-def postures_of(columns: dict, free: list, path: str) -> np.ndarray:
-    """(B, N) postures in the order of the free joints ``free`` from ``read_posture_columns``' columns."""
-    named = {(name[2:] if name.startswith("q_") and name[2:] in free else name): v for name, v in columns.items()}
-    unknown = [name for name in columns if (name[2:] if name.startswith("q_") else name) not in free]
-    if unknown:
-        raise BodySchemaInputError(f"{path}: columns {unknown} are not free joints of the body"
-                                   f"{did_you_mean(unknown[0].removeprefix('q_'), free)}; allowed: {free}")
-    missing = [name for name in free if name not in named]
-    if missing:
-        raise BodySchemaInputError(f"{path}: missing columns {missing}; the body's free joints are {free}")
-    return np.stack([np.asarray(named[name], dtype=np.float64) for name in free], axis=1)
-
-
 def check_fault_names(faults: dict, muscles: list, what: str = "the body's muscles") -> None:
     """Every muscle a fault names is one of ``muscles`` (what ``StaticBody.fault_batch`` checks, with a body)."""
     named = list(faults["cut"]) + [name for key in ("jam", "weak", "band") for name in faults[key]]
@@ -130,14 +100,8 @@ def _csv_text(result) -> str:
 
 def write_result(path: str, result) -> None:
     """The result as ``.csv`` or ``.npz`` (module docstring), atomically."""
-    from ..npz import atomic_write_bytes
-
     if path.endswith(".csv"):
-        try:
-            atomic_write_bytes(path, _csv_text(result).encode())
-        except OSError as err:
-            raise BodySchemaInputError(f"cannot write --out {path!r}: {err.strerror or err}") from None
-        return
+        return write_bytes(path, _csv_text(result).encode())
     arrays = {"q": result.q, "tension_n": result.tension_n, "l_motor_m": result.l_motor_m,
               "status": status_names(result.status), "status_code": status_codes(result.status),
               "joints": np.array(result.joints, dtype=str), "muscles": np.array(result.muscles, dtype=str),
@@ -160,7 +124,10 @@ def _parser():
     parser.add_argument("--fixed-base", action="store_true", help="weld a floating base (e.g. myo:myolegs's pelvis)")
     parser.add_argument("--lock", action="append", default=[], metavar="JOINT=VALUE",
                         help="lock a joint at a value [rad or m]; repeatable")
-    parser.add_argument("--postures", required=True, help="CSV or NPZ, one column per free joint (SI units)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--postures", help="CSV or NPZ, one column per free joint (SI units)")
+    source.add_argument("--motion", help="a motion: CSV or NPZ with a t column [s] and one column per free joint "
+                        "(optional qvel_<joint>, qacc_<joint> columns), or an OpenSim .mot; inverse dynamics per frame")
     parser.add_argument("--out", required=True, help="output file: .csv, else .npz")
     parser.add_argument("--cut", action="append", default=[], metavar="MUSCLE", help="a ruptured muscle; repeatable")
     parser.add_argument("--jam", action="append", default=[], metavar="MUSCLE=L_FIXED_M",
@@ -172,6 +139,21 @@ def _parser():
                         "muscle actuators) or min sum f^2 (default otherwise)")
     parser.add_argument("--solver", choices=["newton", "proxqp"], default="newton")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    motion = parser.add_argument_group("motions (--motion)")
+    motion.add_argument("--residual", action="append", default=[], metavar="JOINT",
+                        help="a residual actuator on this free joint (reported per frame); repeatable")
+    motion.add_argument("--residual-weight", type=float, default=1.0,
+                        help="objective weight per (N m)^2 of residual torque (default 1: 1 N m costs as much as one "
+                             "muscle at full activation)")
+    motion.add_argument("--smooth-window", type=float, default=0.05, metavar="SECONDS",
+                        help="the Savitzky-Golay differentiator's window for velocities and accelerations the file "
+                             "does not give (degree 3)")
+    motion.add_argument("--plot", help="write a plot of the activations over time (PNG)")
+    motion.add_argument("--track", action="store_true", help="simulate the motion in MuJoCo by computed muscle "
+                        "control and open loop; print the tracking error and the per-step solve cost")
+    motion.add_argument("--control-step", type=float, metavar="SECONDS",
+                        help="--track's control step (default the model's timestep)")
+    motion.add_argument("--device", default=None, help="the QP's torch device, e.g. cuda (default the CPU)")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                         help="threads for MuJoCo's kinematics (default: every core; the same answers for any count)")
     return parser
@@ -195,17 +177,21 @@ def static_opt_main(argv=None):
         raise BodySchemaInputError(f"--out {args.out!r} is a directory; give a file path such as tensions.csv")
     faults = read_faults(args)
     locks = dict(_name_value(t, "--lock") for t in args.lock)
-    columns = read_posture_columns(args.postures)
+    _check_motion_options(args)
+    columns = read_posture_columns(args.postures) if args.postures else None
     data = config_data(args.config) if args.config else {"model": args.model, "fixed_base": args.fixed_base}
     known = _remembered_names(data, args)  # the names of this body when it was built before: checked at once
     if known is not None:
-        postures_of(columns, known["joints"], args.postures)
+        if columns is not None:
+            postures_of(columns, known["joints"], args.postures)
         check_fault_names(faults, known["muscles"])
     else:  # a first run: every tendon of the parsed MJCF (seconds, no compile) bounds the muscles a fault may name
         check_fault_names(faults, _spec_tendons(data), "the model's tendons")
     print("building the body (MuJoCo model, muscle paths; a MyoSuite body takes ~15-60 s on 2 cores)", flush=True)
     body = _body(data, locks, args)
     _remember_names(data, args, body.model)
+    if args.motion:
+        return _motion(body, faults, args)
     q = postures_of(columns, body.model.joint_names, args.postures)
     body.model.check_q(q, within_range=True)
     body.fault_batch(faults, 1)  # names checked before any solve
@@ -216,6 +202,35 @@ def static_opt_main(argv=None):
           + ", ".join(f"{k} {int(v)}" for k, v in counts.items()))
 
 
+def _check_motion_options(args) -> None:
+    """Motion options need --motion; checked before the body is built."""
+    given = [flag for flag, value in (("--residual", args.residual), ("--plot", args.plot), ("--track", args.track),
+                                      ("--control-step", args.control_step)) if value]
+    if given and not args.motion:
+        verb = "needs" if len(given) == 1 else "need"
+        raise BodySchemaInputError(f"{', '.join(given)} {verb} --motion (a motion file), not --postures")
+    if args.motion and not os.path.isfile(args.motion):
+        raise BodySchemaInputError(f"--motion {args.motion!r} does not exist")
+
+
+def _motion(body, faults, args):
+    from .motion_opt import plot_activations, solve_file, track_file, write_motion
+
+    body.fault_batch(faults, 1)  # names checked before any solve
+    result = solve_file(body, args, faults)
+    write_motion(args.out, result)
+    counts = dict(zip(*np.unique(status_names(result.status), return_counts=True)))
+    clipped = 0 if result.control_clipped is None else int(result.control_clipped.any(1).sum())
+    print(f"wrote {args.out}: {len(result.q)} frames over {result.t[-1] - result.t[0]:.4g} s, {len(result.muscles)} "
+          f"muscles, objective {result.objective}; " + ", ".join(f"{k} {int(v)}" for k, v in counts.items())
+          + f"; {clipped} frames with an excitation clipped to [0, 1]")
+    if args.plot:
+        plot_activations(result, args.plot)
+        print(f"wrote {args.plot}")
+    if args.track:
+        print(track_file(body, result, faults, args))
+
+
 def _solve(body, q, faults, args):
     from tqdm.auto import tqdm
 
@@ -224,7 +239,7 @@ def _solve(body, q, faults, args):
         for start in range(0, len(q), CHUNK):
             parts.append(body.solve(q[start:start + CHUNK], faults, args.objective, solver=args.solver))
             bar.update(len(parts[-1].q))
-    return _concatenate(parts)
+    return concatenate(parts)
 
 
 def _spec_tendons(data: dict) -> list:
@@ -292,18 +307,3 @@ def _remember_names(data: dict, args, model) -> None:
         atomic_write_bytes(path, text.encode())
     except OSError:
         pass
-
-
-def _concatenate(parts):
-    """One ``StaticResult`` of the chunks' rows, in order."""
-    from dataclasses import replace
-
-    from ..faults.faults import Faults
-
-    def join(objects, name):
-        values = [getattr(o, name) for o in objects]
-        return None if values[0] is None else np.concatenate(values)
-
-    faults = Faults(*(join([p.faults for p in parts], k) for k in ("cut", "fix", "l_fixed_m", "f_max_n", "l_band_m")))
-    return replace(parts[0], faults=faults,
-                   **{k: join(parts, k) for k in ("q", "tension_n", "l_motor_m", "activation", "status")})

@@ -17,6 +17,9 @@ differ only in the materials dropped here); two different classes under one name
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import functools
+import glob
 import os
 import re
 import sys
@@ -85,6 +88,126 @@ def quiet_attach_warnings():
         mujoco.set_mju_user_warning(previous)
 
 
+_FULL_DIGITS = 17  # a double printed with 17 significant digits reads back as the same double
+# a number MuJoCo printed with 17 digits; 16 or more digits mark one that is not short already
+_LONG_NUMBER = re.compile(r"(?<![\w.])[-+]?\d*\.?\d+(?:[eE][-+]?\d+)?(?![\w.])")
+
+
+@functools.lru_cache(maxsize=1)
+def _mujoco_precision_hooks():
+    """MuJoCo's exported ``_mjPRIVATE__get/set_xml_precision`` (the XML writer's significant digits, 6 by default,
+    thread-local), or None where this MuJoCo build lacks them or they have another signature (older builds took a
+    printf format): the getter must answer a digit count before the setter is trusted."""
+    folder = os.path.dirname(mujoco.__file__)
+    for path in sorted(glob.glob(os.path.join(folder, "*mujoco*.so*")) + glob.glob(os.path.join(folder, "*mujoco*.dylib"))
+                       + glob.glob(os.path.join(folder, "mujoco*.dll"))):
+        try:
+            lib = ctypes.CDLL(path)
+            get, put = lib._mjPRIVATE__get_xml_precision, lib._mjPRIVATE__set_xml_precision
+        except (OSError, AttributeError):
+            continue
+        get.restype, get.argtypes, put.restype, put.argtypes = ctypes.c_int, [], None, [ctypes.c_int]
+        return (get, put) if 1 <= get() <= 30 else None
+    return None
+
+
+@contextlib.contextmanager
+def full_precision_xml():
+    """``MjSpec.to_xml`` writes every number so that it reads back as the same double (17 significant digits)
+    inside this block; outside it MuJoCo keeps 6, which moves a MyoSuite body's compiled masses and frames by up
+    to 5e-6 relative. Yields False (and warns once) where MuJoCo offers no way to raise the precision."""
+    hooks = _mujoco_precision_hooks()
+    if hooks is None:
+        warnings.warn("this MuJoCo build cannot write XML at full precision: the stored model keeps 6 significant "
+                      "digits of its compiled numbers", RuntimeWarning, stacklevel=3)
+        yield False
+        return
+    get, put = hooks
+    previous = get()
+    put(_FULL_DIGITS)
+    try:
+        yield True
+    finally:
+        put(previous)
+
+
+def _shortest_number(text: str, single: bool) -> str:
+    """The shortest text that reads back as the number ``text`` (a double; a float where ``single``)."""
+    digits = len(re.sub(r"[eE].*|[^0-9]", "", text).lstrip("0"))
+    if digits < 16 or not re.search(r"[.eE]", text):  # short already, or an integer
+        return text
+    value = float(text)
+    if single and float(np.float32(value)) == value:
+        return str(np.float32(value))
+    return repr(value)
+
+
+def _shortest_numbers(xml: str) -> str:
+    """Every number printed at full precision rewritten as the shortest text that reads back as the same value:
+    0.10000000000000001 becomes 0.1 again, so a hand-written model keeps its text. MuJoCo stores colours
+    (``rgba``) and everything under ``<visual>`` as floats: 0.699999988079071 becomes 0.7."""
+    def numbers(text: str, single: bool) -> str:
+        return _LONG_NUMBER.sub(lambda m: _shortest_number(m.group(0), single), text)
+
+    def attribute(match: re.Match) -> str:
+        return f'{match.group(1)}="{numbers(match.group(2), match.group(1) == "rgba")}"'
+
+    parts = re.split(r"(<visual>.*?</visual>)", xml, maxsplit=1, flags=re.S)
+    return "".join(numbers(part, True) if part.startswith("<visual>")
+                   else re.sub(r'(?<=\s)([\w:-]+)="([^"]*)"', attribute, part) for part in parts)
+
+
+def exact_xml(spec: mujoco.MjSpec) -> str:
+    """``spec.to_xml()`` with every number exact (see ``full_precision_xml``) and as short as it can be."""
+    with full_precision_xml():
+        return _shortest_numbers(spec.to_xml())
+
+
+def stored_xml(spec: mujoco.MjSpec) -> str:
+    """The XML text that stores ``spec`` (compiled): MuJoCo's own 6-digit text where it compiles to the model the
+    exact text compiles to (``same_compiled_model``), else the exact text. The 6-digit text is what every stored
+    body was before, so a body that rounding never moved (a packaged arm, a body read back from a checkpoint)
+    keeps its text and its hash."""
+    exact, rounded = exact_xml(spec), spec.to_xml()
+    if rounded == exact:
+        return exact
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        same = same_compiled_model(mujoco.MjModel.from_xml_string(exact), mujoco.MjModel.from_xml_string(rounded))
+    return rounded if same else exact
+
+
+SAME_MODEL_RTOL = 1e-15  # a few units in the last place of a double: what recompiling a normalized quaternion moves
+
+
+def same_compiled_model(a: mujoco.MjModel, b: mujoco.MjModel, rtol: float = SAME_MODEL_RTOL) -> bool:
+    """Every numeric array of two compiled models equal within ``rtol`` of its row's magnitude (integers and the
+    options exactly). A spring's rest length counts only where its stiffness is non-zero: it acts nowhere else."""
+    arrays = [n for n in dir(a) if not n.startswith("_") and isinstance(getattr(a, n), np.ndarray)]
+    if any(np.shape(getattr(a, n)) != np.shape(getattr(b, n)) for n in arrays):
+        return False
+    idle = {"tendon_lengthspring": (a.tendon_stiffness == 0) & (b.tendon_stiffness == 0)}
+    for name in arrays:
+        x, y = np.array(getattr(a, name)), np.array(getattr(b, name))
+        if name in idle:
+            x[idle[name]], y[idle[name]] = 0, 0
+        if not _rows_agree(x, y, rtol):
+            return False
+    options = [n for n in dir(a.opt) if not n.startswith("_")]
+    return all(np.array_equal(getattr(a.opt, n), getattr(b.opt, n)) for n in options
+               if isinstance(getattr(a.opt, n), (int, float, np.ndarray)))
+
+
+def _rows_agree(x: np.ndarray, y: np.ndarray, rtol: float) -> bool:
+    if x.dtype.kind != "f" or x.size == 0:
+        return np.array_equal(x, y)
+    if not np.array_equal(np.isnan(x), np.isnan(y)):
+        return False
+    x, y = np.nan_to_num(x), np.nan_to_num(y)
+    scale = np.maximum(np.abs(x), np.abs(y)).max(axis=-1, keepdims=True) if x.ndim else np.maximum(abs(x), abs(y))
+    return bool(np.all(np.abs(x - y) <= rtol * scale))
+
+
 def load_myo_spec(name: str) -> mujoco.MjSpec:
     """A MyoSuite model by ``myo_sim`` name (``myoelbow_2dof``, ``myoarm``, ``myohand``, ...)."""
     myo_sim = _myo_sim()
@@ -139,7 +262,7 @@ def self_contained_xml(spec: mujoco.MjSpec) -> str:
     """
     if not _needs_stripping(spec):
         compile_spec(spec)
-        return spec.to_xml()
+        return stored_xml(spec)
     compiled = compile_spec(spec)
     for body in spec.bodies:
         i = mujoco.mj_name2id(compiled, mujoco.mjtObj.mjOBJ_BODY, body.name)
@@ -161,10 +284,10 @@ def self_contained_xml(spec: mujoco.MjSpec) -> str:
     compile_spec(spec)  # to_xml writes the compiled state
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        xml = re.sub(r'\s(material|mesh|hfield|texture)="[^"]*"', "", spec.to_xml())
+        xml = re.sub(r'\s(material|mesh|hfield|texture)="[^"]*"', "", exact_xml(spec))
     xml = _dedupe_default_classes(xml)
     try:
-        return mujoco.MjSpec.from_string(xml).to_xml()
+        return stored_xml(mujoco.MjSpec.from_string(xml))
     except Exception as err:
         raise BodySchemaInputError(f"model could not be made self-contained: {str(err).strip()}") from None
 

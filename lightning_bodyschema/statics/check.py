@@ -106,3 +106,35 @@ def mujoco_drift_rad(body: StaticBody, result: StaticResult, duration_s: float =
             worst = max(worst, float(np.abs(sim.free_q() - result.q[b]).max()))
         drift[b] = worst
     return drift
+
+
+def mujoco_motion_error(body: StaticBody, result) -> np.ndarray:
+    """(B, N) MuJoCo's free-joint acceleration minus the requested ``result.qacc`` [rad/s^2 or m/s^2] per frame of a
+    ``statics.dynamics.MotionResult``: ``mj_forward`` of the body with its muscle actuators at the frame's state
+    (positions and velocities of every joint through the couplings, ``act`` = the activations, ``ctrl`` = the
+    controls, cut muscles at zero force, residual torques as ``qfrc_applied`` on their joints), its constraints off
+    and the locks and couplings held exactly instead: the free joints' acceleration is
+    ``(E^T M E)^-1 E^T M (qacc - (dE/dt) qvel)`` of MuJoCo's unconstrained ``qacc`` (that very ``qacc`` where every
+    joint is free). NaN on rows without activations."""
+    from .dynamics import InverseBody
+
+    m = actuated_model(body.model, body.curves)
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    d, error = mujoco.MjData(m), np.full(result.q.shape, np.nan)
+    full, qvel_full, _, tangent = InverseBody(body).full_state(result.q, result.qvel, result.qacc)
+    rate = body.model.joint_map.tangent_rate(result.q, result.qvel, full)
+    mass, free_dofs = np.zeros((m.nv, m.nv)), body.model.joint_map.free
+    m.actuator_forcerange[:] = 0.0
+    for b in _rows(result):
+        m.actuator_forcelimited[:] = result.faults.cut[b]
+        d.qpos[:], d.qvel[:], d.act[:], d.ctrl[:] = full[b], qvel_full[b], result.activation[b], result.control[b]
+        d.qfrc_applied[:] = 0.0
+        if result.residual_nm is not None:
+            d.qfrc_applied[free_dofs[[body.model.joint_names.index(n) for n in result.residual_dofs]]] = \
+                result.residual_nm[b]
+        mujoco.mj_forward(m, d)
+        mujoco.mj_fullM(m, d, mass)
+        E = tangent[b]
+        reduced = np.linalg.solve(E.T @ mass @ E, E.T @ mass @ (d.qacc - rate[b]))
+        error[b] = reduced - result.qacc[b]
+    return error

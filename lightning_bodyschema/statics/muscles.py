@@ -1,4 +1,4 @@
-"""MuJoCo's muscle curves at zero velocity, batched: each muscle's tendon tension is affine in its activation.
+"""MuJoCo's muscle curves, batched: each muscle's tendon tension is affine in its activation.
 
 For a ``<muscle>`` actuator (gain, bias and dynamics of type muscle) on a tendon with gear ``g``, MuJoCo's actuator
 force is ``gain * act + bias`` with ``gain = -F0 FL(L) FV(V)`` (``mju_muscleGain``) and ``bias = -F0 FP(L)``
@@ -9,8 +9,9 @@ tension [N] is
 
 with ``l`` the tendon length [m], ``lr`` the actuator's length range, ``r`` its operating range (gainprm[0:2]) and
 ``F0`` its peak force (gainprm[2], or scale / acc0 where MuJoCo derives it). ``FL`` and ``FP`` below are the same
-piecewise quadratics as MuJoCo's (tests compare them with ``mju_muscleGain`` / ``mju_muscleBias``). numpy and MuJoCo
-only.
+piecewise quadratics as MuJoCo's (tests compare them with ``mju_muscleGain`` / ``mju_muscleBias``). At a tendon
+velocity ``v`` the active part is multiplied by MuJoCo's force-velocity factor ``FV(g v / (L0 vmax))``
+(``MuscleCurves.velocity_factor``); the passive part has none. numpy and MuJoCo only.
 """
 from __future__ import annotations
 
@@ -47,6 +48,14 @@ def _passive_length(L, lmax, fpmax):
     return fpmax * np.where(L <= 1.0, 0.0, np.where(L <= b, 0.5 * x ** 2, 0.5 + y))
 
 
+def _gain_velocity(V, fvmax):
+    """MuJoCo's force-velocity curve FV(V) (``mju_muscleGain``): 0 at V <= -1 (shortening at vmax), (V + 1)^2 up to
+    V = 0, then rising to ``fvmax`` at V = fvmax - 1 (lengthening) and flat beyond."""
+    y = fvmax - 1.0
+    lengthening = fvmax - (y - V) ** 2 / np.maximum(MJMINVAL, y)
+    return np.where(V <= -1.0, 0.0, np.where(V <= 0.0, (V + 1.0) ** 2, np.where(V <= y, lengthening, fvmax)))
+
+
 @dataclass(frozen=True)
 class MuscleCurves:
     """The muscle actuator of each muscle (in the model's muscle order), with what its curves need.
@@ -63,10 +72,20 @@ class MuscleCurves:
     biasprm: np.ndarray
     dynprm: np.ndarray
 
+    def _optimal_length(self, prm):
+        """MuJoCo's L0 [m of actuator length]: the length range over the operating range."""
+        return (self.lengthrange_m[:, 1] - self.lengthrange_m[:, 0]) / np.maximum(MJMINVAL, prm[:, 1] - prm[:, 0])
+
     def _normalized_length(self, l_geo_m, prm):
-        lr0, lr1 = self.lengthrange_m[:, 0], self.lengthrange_m[:, 1]
-        l0 = (lr1 - lr0) / np.maximum(MJMINVAL, prm[:, 1] - prm[:, 0])
-        return prm[:, 0] + (self.gear * l_geo_m - lr0) / np.maximum(MJMINVAL, l0)
+        l0 = self._optimal_length(prm)
+        return prm[:, 0] + (self.gear * l_geo_m - self.lengthrange_m[:, 0]) / np.maximum(MJMINVAL, l0)
+
+    def velocity_factor(self, v_geo_m_s) -> np.ndarray:
+        """(B, M) MuJoCo's force-velocity factor FV at tendon velocities ``v_geo_m_s`` (B, M) [m/s]: the active force
+        at that velocity is FV times ``affine``'s ``s a``. The velocity is normalized as MuJoCo does:
+        ``V = g v / (L0 vmax)``."""
+        g, l0 = self.gainprm, self._optimal_length(self.gainprm)
+        return _gain_velocity(self.gear * v_geo_m_s / np.maximum(MJMINVAL, l0 * g[:, 6]), g[:, 8])
 
     def affine(self, l_geo_m) -> tuple[np.ndarray, np.ndarray]:
         """``(s, p)`` (B, M) [N] with tension ``f = s a + p`` at tendon lengths ``l_geo_m`` (B, M), zero velocity."""

@@ -81,13 +81,18 @@ class StaticResult:
         return np.array([s is Status.OK for s in self.status], dtype=bool)
 
 
+def check_solver(solver: str) -> None:
+    if solver not in ("newton", "proxqp"):
+        raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
+
+
 @torch.inference_mode()  # numpy in and out: no tensor here needs autograd's version counters
-def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str):
+def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str, device=None):
     """``argmin ||x - x_ref||^2  s.t.  -G^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,): the
     one QP call, ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the
     torque-reach screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
-    ``PROXQP_EPS``); rows not ``ok`` are NaN."""
-    solution = solve_box_qp(BoxQP.build(G, tau_nm, x_ref, lo, hi), solver, tol=STATIC_TOL_NM,
+    ``PROXQP_EPS``) on torch ``device`` (None: the CPU); rows not ``ok`` are NaN."""
+    solution = solve_box_qp(BoxQP.build(G, tau_nm, x_ref, lo, hi, device=device), solver, tol=STATIC_TOL_NM,
                             fallback_max_iter=PROXQP_MAX_ITER, fallback_eps_abs=PROXQP_EPS, least_squares=False)
     return np.clip(to_numpy(solution.f_n), lo, hi), to_numpy(solution.status)
 
@@ -160,30 +165,42 @@ class StaticBody:
         objective = self._objective(objective)
         q = self.model.check_q(q, within_range=True)
         faults = self.fault_batch(faults, len(q))
-        if solver not in ("newton", "proxqp"):
-            raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
+        check_solver(solver)
         l_geo, G, tau = self.model.kinematics(q, self.threads)
+        return self.solve_torque(q, l_geo, G, tau, faults, objective, f_ref, solver)[0]
+
+    def solve_torque(self, q, l_geo, G, tau_nm, faults: Faults, objective: str, f_ref=None, solver: str = "newton",
+                     active_factor=None, residual=None, device=None):
+        """``(StaticResult, residual (B, R) [N m] or None)``: the optimization of ``solve`` on given kinematics, the
+        muscles holding ``-G^T f = tau_nm`` (B, N) at tendon lengths ``l_geo`` (B, M) with moment arms ``G`` (B, M, N)
+        (``statics.dynamics`` passes the torque a motion needs). ``active_factor`` (B, M): a factor on each muscle's
+        active force (MuJoCo's force-velocity curve; None: 1). ``residual``: ``(directions (R, N), unit (R,))``
+        residual actuators, each adding ``unit x`` [N m] along its direction with ``x^2`` in the objective, unbounded.
+        ``device``: the QP's torch device (None: the CPU). ``faults`` validated, ``objective`` checked by the caller."""
         bounds = self.fault_bounds(faults)
         lo, hi, s, p = self.tension_bounds(l_geo, faults, bounds)
+        if s is not None and active_factor is not None:
+            s = s * active_factor
         # the QP's variable: activations, or tensions in units of the mean f_max (the same argmin, and proxsuite's
         # absolute tolerance then means the same as on activations)
         unit = float(np.mean(self.spring.f_max_n))
         scale, offset = (s, p) if objective == "activation" else (np.full(lo.shape, unit), np.zeros_like(lo))
         x_ref = np.zeros_like(lo) if objective == "activation" else self._f_ref(f_ref, lo.shape) / unit
         capped = hi if s is None else np.minimum(hi, p + s)
-        f, status = _held(G, tau, lo, capped, scale, offset, x_ref, solver, Status.OK)
+        columns = _Columns(G, tau_nm, lo, scale, offset, x_ref, residual)
+        f, status = _held(*columns.args(capped), solver, Status.OK, device)
         if s is not None and (status != Status.OK).any():
             rest = status != Status.OK
             relaxed = np.minimum(hi, p + RELAXED_ACTIVATION * s)
-            f[rest], status[rest] = _held(G[rest], tau[rest], lo[rest], relaxed[rest], scale[rest], offset[rest],
-                                          x_ref[rest], solver, Status.ACTIVATION_ABOVE_ONE)
+            f[rest], status[rest] = _held(*columns.args(relaxed, rest), solver, Status.ACTIVATION_ABOVE_ONE, device)
+        f, residual_nm = f[:, :lo.shape[1]], (f[:, lo.shape[1]:] if residual is not None else None)
         activation = None if s is None else np.where(s > 0, (f - p) / np.where(s > 0, s, 1.0), f * 0.0)  # NaN stays
         if activation is not None:  # a relaxed answer within the cap is the capped problem's answer too
             with np.errstate(invalid="ignore"):
                 status[(status == Status.ACTIVATION_ABOVE_ONE) & (activation.max(1) <= 1.0 + 1e-12)] = Status.OK
         return StaticResult(self.model.joint_names, self.model.muscle_names, q, f,
                             bounds.motor_length_m(l_geo, f), activation, status, objective,
-                            faults, [] if self.curves is None else list(self.curves.actuators))
+                            faults, [] if self.curves is None else list(self.curves.actuators)), residual_nm
 
     def _objective(self, objective):
         objective = objective or self.default_objective
@@ -207,7 +224,28 @@ class StaticBody:
 RELAXED_ACTIVATION = 1e3  # the activation cap of the second solve: held above it counts as infeasible
 
 
-def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status):
+class _Columns:
+    """The QP's columns: the muscles, then any residual actuators (unbounded, ``unit x`` [N m] along a direction of
+    the joints, ``-G^T`` of it the torque: their G rows are ``-direction``)."""
+
+    def __init__(self, G, tau_nm, lo, scale, offset, x_ref, residual):
+        self.G, self.tau, self.lo, self.scale, self.offset, self.x_ref = G, tau_nm, lo, scale, offset, x_ref
+        self.n_extra = 0
+        if residual is not None:
+            directions, unit = (np.asarray(a, float) for a in residual)
+            batch, self.n_extra = len(G), len(unit)
+            extra = lambda value: np.broadcast_to(value, (batch, self.n_extra))  # noqa: E731
+            self.G = np.concatenate([G, np.broadcast_to(-directions, (batch, *directions.shape))], axis=1)
+            self.lo, self.scale = np.hstack([lo, extra(-np.inf)]), np.hstack([scale, extra(unit)])
+            self.offset, self.x_ref = np.hstack([offset, extra(0.0)]), np.hstack([x_ref, extra(0.0)])
+
+    def args(self, hi, rows=slice(None)):
+        """``_held``'s arrays with the muscles' upper bounds ``hi`` (B, M), of ``rows``."""
+        hi = np.hstack([hi, np.full((len(hi), self.n_extra), np.inf)])
+        return tuple(a[rows] for a in (self.G, self.tau, self.lo, hi, self.scale, self.offset, self.x_ref))
+
+
+def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status, device=None):
     """Tensions ``f = scale x + offset`` (B, M) [N] in ``[lo, hi]`` holding each posture, the QP in x, and the status:
     ``held`` where it holds, else ``infeasible`` (crossed bounds, a torque out of reach) or ``not_converged``."""
     positive = scale > 0
@@ -219,7 +257,7 @@ def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status):
     x, code = np.full(lo.shape, np.nan), np.full(len(lo), Status.INFEASIBLE.code)  # crossed: infeasible
     if (~crossed).any():
         x[~crossed], code[~crossed] = _solve_box_qp(Gx[~crossed], tau_x[~crossed], x_ref[~crossed], x_lo[~crossed],
-                                                    x_hi[~crossed], solver)
+                                                    x_hi[~crossed], solver, device)
     ok = code == Status.OK.code
     status = status_array(code)
     status[ok] = held

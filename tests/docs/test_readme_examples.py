@@ -40,7 +40,9 @@ REQUESTS, OWN_ROBOT = ("- q_ref:", "model: path/to/my_robot.xml")
 RUN = {"python": (FROM_PYTHON, INFEASIBLE, ADAPTER, NEW_SCHEMA, ADAPTING_SCHEMA, DIAGNOSE), "yaml": (REQUESTS, OWN_ROBOT)}
 # marker -> why a block cannot run here
 NOT_RUN: dict[str, str] = {"static_optimization(arm": "needs myo-sim and two MyoSuite builds: run by "
-                                                     "tests/statics/test_static_opt.py::test_readme_example (slow)"}
+                                                     "tests/statics/test_static_opt.py::test_readme_example (slow)",
+                            "inverse_dynamics(arm": "needs myo-sim and a MyoSuite build: run by "
+                                                    "tests/statics/test_inverse_dynamics.py::test_readme_example (slow)"}
 
 
 def readme_blocks(language: str) -> list[str]:

@@ -182,17 +182,9 @@ def test_myoarm_postures_hold_in_mujoco():
 
 
 @pytest.mark.slow
-def test_readme_example(monkeypatch):
+def test_readme_example(readme_block):
     """README "Static optimization": the Python block runs from the repository root and its answers are physical."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
-    from test_readme_examples import ROOT, block
-
-    monkeypatch.chdir(ROOT)
-    namespace = {}
-    exec(block("python", "static_optimization(arm"), namespace)
+    namespace = readme_block("static_optimization(arm")
     ruptured, standing = namespace["ruptured"], namespace["standing"]
     assert ruptured.tension_n.shape == (1000, 50) and ruptured.ok.mean() > 0.3
     assert (ruptured.tension_n[ruptured.ok, ruptured.muscles.index("BIClong_tendon")] == 0).all()

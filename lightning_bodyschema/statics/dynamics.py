@@ -1,0 +1,258 @@
+"""Muscles for a motion: inverse dynamics with faults on the true body, batched over frames.
+
+Per frame (free joints ``q``, ``qvel``, ``qacc``; every joint of the model from them through the locks and couplings,
+``qacc_full = E qacc + (dE/dt) qvel``, ``sim/joints.py``), MuJoCo's ``mj_inverse`` (constraints off: the free
+coordinates carry the locks and couplings exactly) gives the generalized force the motion needs, ``M qacc + bias -
+passive`` (gravity, Coriolis, joint damping and springs), and in the free joints ``tau = E^T qfrc_inverse``. The
+muscles must supply it: ``-G^T f = tau`` with ``f = FV(v) s(l) a + p(l)`` at each muscle's tendon velocity
+``v = G qvel`` (MuJoCo's force-velocity curve, ``statics.muscles``). Then the static optimization's QP per frame
+(``StaticBody.solve_torque``: ``min sum a^2`` or the tension objective, faults, statuses), all frames in one batch.
+
+Residual actuators (``residual_dofs``: free joints, e.g. one the muscles cannot drive) add a torque ``r`` [N m] there
+with ``residual_weight r^2`` in the objective (in the objective's units: activation^2, or (f / mean f_max)^2),
+unbounded, reported per frame. ``control``: the excitations MuJoCo's activation dynamics turn from each frame's
+activations into the next frame's over the frame step (``statics.activation``); the last frame holds its activation.
+numpy, MuJoCo and torch (the QP, on any device); never imports Lightning.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field, replace
+from typing import Optional, Sequence
+
+import mujoco
+import numpy as np
+
+from ..errors import BodySchemaInputError
+from .activation import excitation
+from .optimize import StaticBody, StaticResult, check_solver
+
+DEFAULT_RESIDUAL_WEIGHT = 1.0  # 1 N m of residual costs as much as one muscle at full activation
+
+
+@dataclass
+class MotionResult(StaticResult):
+    """``StaticResult`` of B frames of a motion, plus: ``qvel``, ``qacc`` (B, N) [rad/s, rad/s^2] the frames' velocities
+    and accelerations; ``tau_nm`` (B, N) the generalized force the motion needs (free joints); ``control`` (B, M)
+    MuJoCo excitations in [0, 1] (None without muscle actuators; NaN where a frame or the next one has no
+    activations); ``control_clipped`` (B, M) True where no excitation in [0, 1] reaches the next activation (the
+    nearest is given); ``residual_nm`` (B, R) residual actuator torques on ``residual_dofs`` (None without);
+    ``t`` (B,) [s]."""
+
+    qvel: Optional[np.ndarray] = None
+    qacc: Optional[np.ndarray] = None
+    tau_nm: Optional[np.ndarray] = None
+    control: Optional[np.ndarray] = None
+    control_clipped: Optional[np.ndarray] = None
+    residual_nm: Optional[np.ndarray] = None
+    residual_dofs: list = field(default_factory=list)
+    t: Optional[np.ndarray] = None
+
+    def take(self, idx) -> "MotionResult":
+        """The rows ``idx`` (indices or a (B,) bool mask); controls stay those computed on the whole motion."""
+        pick = lambda a: None if a is None else np.asarray(a)[idx]  # noqa: E731
+        rows = {k: pick(getattr(self, k)) for k in ("qvel", "qacc", "tau_nm", "control", "control_clipped",
+                                                     "residual_nm", "t")}
+        return replace(super().take(idx), **rows)
+
+
+class InverseBody:
+    """MuJoCo's inverse dynamics of a ``StaticBody``'s model: a private copy of the model with its constraints off
+    (locks and couplings are carried by the free coordinates; contacts play no part), one ``MjData`` per thread
+    (``body.threads``; the same numbers whatever the count)."""
+
+    def __init__(self, body: StaticBody):
+        self.body, self.m = body, copy.copy(body.model.mj_model)
+        self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+        self.datas = [mujoco.MjData(self.m) for _ in range(body.threads)]
+        self.index = self._muscle_index()
+
+    def full_state(self, q, qvel, qacc):
+        """Every joint's position, velocity and acceleration (B, nq) from the free joints' (B, N), and ``E``."""
+        jm = self.body.model.joint_map
+        full = jm.full_q(q)
+        tangent = jm.tangent(q, full)
+        qvel_full = np.einsum("bin,bn->bi", tangent, qvel)
+        qacc_full = np.einsum("bin,bn->bi", tangent, qacc) + jm.tangent_rate(q, qvel, full)
+        return full, qvel_full, qacc_full, tangent
+
+    def inverse(self, q, qvel, qacc):
+        """``(l_geo (B, M), G (B, M, N), tau (B, N))``: tendon lengths, moment arms and the generalized force
+        ``E^T qfrc_inverse`` [N m] the motion needs in the free joints (module docstring)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        from ..sim.model import _thread_count
+
+        full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
+        m, batch, (rows, cols, entries) = self.m, len(q), self.index
+        out = np.empty((batch, m.ntendon)), np.empty((batch, len(entries))), np.empty((batch, m.nv))
+        state = (full, qvel_full, qacc_full)
+        threads = _thread_count(len(self.datas), batch)
+        if threads == 1:
+            self._fill(state, range(batch), self.datas[0], out)
+        else:  # MuJoCo releases the GIL inside its calls
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(self._fill, [state] * threads, np.array_split(np.arange(batch), threads),
+                              self.datas[:threads], [out] * threads))
+        lengths, values, force = out
+        jac = np.zeros((batch, len(self.body.model.muscle_ids), m.nv))
+        jac[:, rows, cols] = values  # one scatter of every frame's sparse rows
+        return lengths[:, self.body.model.muscle_ids], jac @ tangent, np.einsum("bjn,bj->bn", tangent, force)
+
+    def _muscle_index(self):
+        """``(rows, cols, entries)``: the muscles' entries of MuJoCo's sparse ``ten_J`` (the same sparsity as the
+        model this copies), their muscle (row) and joint (column)."""
+        tendons, cols, entries = self.body.model._dense_index
+        order = {int(t): k for k, t in enumerate(self.body.model.muscle_ids)}
+        keep = np.array([int(t) in order for t in tendons], dtype=bool)
+        return np.array([order[int(t)] for t in tendons[keep]], dtype=int), cols[keep], entries[keep]
+
+    def _fill(self, state, rows, d, out) -> None:
+        """``mj_inverse`` of the frames ``rows``: tendon lengths, the muscles' ``ten_J`` entries and the forces."""
+        full, qvel_full, qacc_full = state
+        (lengths, values, force), m, entries = out, self.m, self.index[2]
+        for b in rows:  # MuJoCo evaluates one state per call
+            d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
+            mujoco.mj_inverse(m, d)
+            lengths[b], force[b], values[b] = d.ten_length, d.qfrc_inverse, d.ten_J[entries]
+
+
+def _inverse_body(body: StaticBody) -> InverseBody:
+    """The body's ``InverseBody``, made once."""
+    if getattr(body, "_inverse_body", None) is None:
+        body._inverse_body = InverseBody(body)
+    return body._inverse_body
+
+
+def _frames(body: StaticBody, q, qvel, qacc):
+    """The three (B, N) arrays checked: postures within range, finite velocities and accelerations of that shape."""
+    q = body.model.check_q(q, within_range=True)
+    out = [q]
+    for name, x in (("qvel", qvel), ("qacc", qacc)):
+        x = np.zeros_like(q) if x is None else np.atleast_2d(np.asarray(x, dtype=np.float64))
+        if x.shape != q.shape:
+            raise BodySchemaInputError(f"{name} has shape {x.shape}; expected {q.shape}, one row per posture of q "
+                                       f"(free joints {body.model.joint_names})")
+        if not np.isfinite(x).all():
+            raise BodySchemaInputError(f"{name} contains NaN or inf (row {int(np.argwhere(~np.isfinite(x))[0, 0])})")
+        out.append(x)
+    return out
+
+
+def _residual(body: StaticBody, residual_dofs, weight: float):
+    """``(names, (directions (R, N), unit (R,)) or None)`` of the residual actuators on the free joints named."""
+    names = list(residual_dofs or [])
+    free = body.model.joint_names
+    unknown = [n for n in names if n not in free]
+    if unknown:
+        raise BodySchemaInputError(f"residual_dofs {unknown} are not free joints of the body; allowed: {free}")
+    if not np.isfinite(weight) or weight <= 0:
+        raise BodySchemaInputError(f"residual_weight={weight!r}; give a positive number (objective weight per N m^2)")
+    if not names:
+        return names, None
+    directions = np.eye(len(free))[[free.index(n) for n in names]]
+    return names, (directions, np.full(len(names), 1.0 / np.sqrt(weight)))
+
+
+def _times(t, batch: int, timestep_s: float) -> np.ndarray:
+    """(B,) frame times [s]: ``t`` checked (finite, strictly increasing), or frames one model timestep apart."""
+    if t is None:
+        return timestep_s * np.arange(batch)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    if t.shape != (batch,) or not np.isfinite(t).all() or (np.diff(t) <= 0).any():
+        raise BodySchemaInputError(f"t has shape {t.shape}; give ({batch},) finite times [s], strictly increasing")
+    return t
+
+
+def _device(device):
+    """``device`` as a torch device (None stays None: the CPU, nothing initialized); refused when absent here."""
+    if device is None:
+        return None
+    import torch
+
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise BodySchemaInputError(f"device={device!r}; give a torch device such as 'cpu' or 'cuda'") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise BodySchemaInputError(f"device={str(device)!r}, but torch sees no CUDA device here; use 'cpu'")
+    return device
+
+
+def frame_controls(body: StaticBody, activation, t) -> tuple[np.ndarray, np.ndarray]:
+    """The excitations from each frame's activations to the next's (``statics.activation``), the last frame held."""
+    target = np.vstack([activation[1:], activation[-1:]])
+    dt = np.append(np.diff(t), np.diff(t)[-1] if len(t) > 1 else body.model.mj_model.opt.timestep)
+    control, clipped = excitation(activation, target, body.curves.dynprm, dt, body.model.mj_model.opt.timestep)
+    missing = np.isnan(activation) | np.isnan(target)
+    return np.where(missing, np.nan, control), clipped & ~missing
+
+
+def solve_motion(body: StaticBody, q, qvel, qacc, faults=None, tau_nm=None, residual_dofs=None,
+                 residual_weight: float = DEFAULT_RESIDUAL_WEIGHT, objective=None, f_ref=None, solver="newton",
+                 t=None, device=None) -> MotionResult:
+    """``inverse_dynamics`` on a built body; ``tau_nm`` (B, N) given: the actuators' generalized force instead of
+    the motion's (``muscles_for_torque``)."""
+    objective = body._objective(objective)
+    q, qvel, qacc = _frames(body, q, qvel, qacc)
+    faults = body.fault_batch(faults, len(q))
+    check_solver(solver)
+    names, residual = _residual(body, residual_dofs, residual_weight)
+    t = _times(t, len(q), body.model.mj_model.opt.timestep)
+    device = _device(device)
+    l_geo, G, tau = _inverse_body(body).inverse(q, qvel, qacc)
+    if tau_nm is not None:
+        tau = tau_nm
+    factor = None if body.curves is None else body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel))
+    result, residual_nm = body.solve_torque(q, l_geo, G, tau, faults, objective, f_ref, solver, factor, residual,
+                                            device)
+    control, clipped = (None, None) if result.activation is None else frame_controls(body, result.activation, t)
+    fields = {k: getattr(result, k) for k in StaticResult.__dataclass_fields__}
+    return MotionResult(**fields, qvel=qvel, qacc=qacc, tau_nm=tau, control=control, control_clipped=clipped,
+                        residual_nm=residual_nm, residual_dofs=names, t=t)
+
+
+def _body(model, body_options) -> StaticBody:
+    body = model if isinstance(model, StaticBody) else StaticBody(model, **body_options)
+    if isinstance(model, StaticBody) and body_options:
+        raise BodySchemaInputError(f"options {sorted(body_options)} build a body; this StaticBody is already built")
+    return body
+
+
+def inverse_dynamics(model, q, qvel, qacc, faults=None, residual_dofs: Optional[Sequence[str]] = None,
+                     residual_weight: float = DEFAULT_RESIDUAL_WEIGHT, objective: Optional[str] = None, f_ref=None,
+                     solver: str = "newton", t=None, device=None, **body_options) -> MotionResult:
+    """Muscle activations, tensions and MuJoCo excitations that make the body move through frames ``q``, ``qvel``,
+    ``qacc`` (B, N) [rad, rad/s, rad/s^2] of its free joints, with faults (module docstring).
+
+    ``model``, ``faults``, ``objective``, ``f_ref``, ``solver``: as ``static_optimization``'s. ``residual_dofs``:
+    free joints given a residual actuator, weighted ``residual_weight`` per N m^2. ``t`` (B,) [s]: frame times (the
+    control's frame step; default: one model timestep apart). ``device``: the QP's torch device (e.g. ``"cuda"``;
+    MuJoCo's part stays on the CPU). Returns a ``MotionResult``; with ``qvel = qacc = 0`` it is
+    ``static_optimization``'s answer.
+
+        >>> body = StaticBody("myo:myoelbow_2dof")
+        >>> motion = inverse_dynamics(body, q, qvel, qacc, faults={"cut": ["BIClong_tendon"]}, t=t)
+        >>> motion.activation, motion.control, motion.status
+    """
+    body = _body(model, body_options)
+    return solve_motion(body, q, qvel, qacc, faults, None, residual_dofs, residual_weight, objective, f_ref, solver,
+                        t, device)
+
+
+def muscles_for_torque(model, q, tau_nm, qvel=None, faults=None, residual_dofs: Optional[Sequence[str]] = None,
+                       residual_weight: float = DEFAULT_RESIDUAL_WEIGHT, objective: Optional[str] = None,
+                       f_ref=None, solver: str = "newton", device=None, **body_options) -> MotionResult:
+    """The muscle activations and tensions whose MuJoCo actuator force is the generalized force ``tau_nm`` (B, N)
+    [N m] on the free joints (``E^T qfrc_actuator``: e.g. what ``mj_inverse`` says a motion needs, gravity included)
+    at postures ``q`` (B, N), tendon velocities from ``qvel`` (default 0: MuJoCo's force-velocity factor 1). Options
+    as ``inverse_dynamics``'; ``control`` holds each frame's activation (no frame step is known)."""
+    body = _body(model, body_options)
+    q = body.model.check_q(q, within_range=True)
+    tau_nm = np.atleast_2d(np.asarray(tau_nm, dtype=np.float64))
+    if tau_nm.shape != q.shape or not np.isfinite(tau_nm).all():
+        raise BodySchemaInputError(f"tau_nm has shape {tau_nm.shape}; expected finite {q.shape} [N m], one row per "
+                                   f"posture (free joints {body.model.joint_names})")
+    result = solve_motion(body, q, qvel, None, faults, tau_nm, residual_dofs, residual_weight, objective, f_ref,
+                          solver, None, device)
+    return replace(result, control=result.activation, control_clipped=None, t=None)
