@@ -42,7 +42,7 @@ def _hold_couplings_and_locks(m: mujoco.MjModel, joint_map) -> tuple[np.ndarray,
     return locked, np.array([joint_map.locked[j] for j in locked])
 
 
-class _MuJoCoBody:
+class MuJoCoBody:
     """A private copy of the actuated model with locks and couplings held, and one MjData."""
 
     def __init__(self, body: StaticBody):
@@ -64,6 +64,10 @@ class _MuJoCoBody:
         d.act[:], d.ctrl[:] = activation, activation
         mujoco.mj_forward(m, d)
 
+    def hold_locks(self):
+        """Locked joints back at their value and at rest (after each MuJoCo step)."""
+        self.d.qpos[self.locked], self.d.qvel[self.locked] = self.locked_values, 0.0
+
     def free_q(self) -> np.ndarray:
         return self.d.qpos[self.model.joint_map.free].copy()
 
@@ -78,7 +82,7 @@ def mujoco_residual_nm(body: StaticBody, result: StaticResult) -> tuple[np.ndarr
     """``(residual (B,) [N m], tension_miss (B,) [N])`` by MuJoCo at rest: the largest free-joint torque of
     ``qfrc_actuator + qfrc_passive - qfrc_bias`` (through couplings), and the largest difference between MuJoCo's
     tendon tension ``-gear * actuator_force`` and ``result.tension_n``. NaN on rows without activations."""
-    sim = _MuJoCoBody(body)
+    sim = MuJoCoBody(body)
     residual, miss = np.full(len(result.q), np.nan), np.full(len(result.q), np.nan)
     gear = body.curves.gear
     for b in _rows(result):
@@ -94,7 +98,7 @@ def mujoco_drift_rad(body: StaticBody, result: StaticResult, duration_s: float =
     """(B,) largest ``|q(t) - q|`` [rad] over the free joints while MuJoCo simulates ``duration_s`` from rest at
     each posture with the result's activations held (the settle check's question: does the body stay?). NaN on
     rows without activations."""
-    sim = _MuJoCoBody(body)
+    sim = MuJoCoBody(body)
     drift = np.full(len(result.q), np.nan)
     steps = max(1, int(round(duration_s / sim.m.opt.timestep)))
     for b in _rows(result):
@@ -102,7 +106,7 @@ def mujoco_drift_rad(body: StaticBody, result: StaticResult, duration_s: float =
         worst = 0.0
         for _ in range(steps):
             mujoco.mj_step(sim.m, sim.d)
-            sim.d.qpos[sim.locked], sim.d.qvel[sim.locked] = sim.locked_values, 0.0  # locks back, at rest
+            sim.hold_locks()
             worst = max(worst, float(np.abs(sim.free_q() - result.q[b]).max()))
         drift[b] = worst
     return drift

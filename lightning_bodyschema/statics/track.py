@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import BodySchemaInputError
 from .activation import excitation
-from .check import _MuJoCoBody
+from .check import MuJoCoBody
 from .dynamics import inverse_dynamics, solve_motion
 from .optimize import StaticBody
 
@@ -73,7 +73,7 @@ def resample(t, *arrays, step_s: float):
     return grid, [np.stack([np.interp(grid, t, a[:, j]) for j in range(a.shape[1])], axis=1) for a in arrays]
 
 
-class _Simulation(_MuJoCoBody):
+class _Simulation(MuJoCoBody):
     """The MuJoCo body of ``statics.check`` with the faults of one case held by the actuators' force ranges."""
 
     def __init__(self, body: StaticBody, faults, control_step_s: float):
@@ -107,13 +107,8 @@ class _Simulation(_MuJoCoBody):
         self.d.ctrl[:] = control
         for _ in range(self.substeps):
             mujoco.mj_step(self.m, self.d)
-            self._hold()
+            self.hold_locks()
         mujoco.mj_forward(self.m, self.d)
-
-    def _hold(self):
-        from ..sim.settle import _Simulator
-
-        _Simulator._project(self.hold, [self.d])
 
 
 def _closed_loop(body, sim, grid, ref, faults, h, options):
