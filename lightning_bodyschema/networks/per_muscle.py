@@ -138,7 +138,7 @@ class PerMusclePath(nn.Module):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
-        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
+        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product: fewer operations than einsum's reshapes
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def snapshot(self) -> PathSnapshot:
