@@ -23,6 +23,7 @@ import torch
 
 from .arrays import Frozen, as_dtype, as_index, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
 from .basis import TermsSnapshot
+from .branched import branch_parts
 from .cells import cell_spread
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
@@ -89,9 +90,10 @@ class PathSnapshot(Frozen):
         self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
         rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
             torch.zeros(n, **long)
-        if path.branches == 2 and len(path.branched_index):
-            branched, count = path.branched_index, len(path.branched_index)
-            rows += [path.coef_alt[branched] * path.term_mask[branched], path.gate[branched]]
+        branches = branch_parts(path)
+        if branches is not None:
+            branched, count = branches[0], len(branches[0])
+            rows += list(branches[1:])
             self.alt_col[branched] = len(box_muscles) + torch.arange(count, **long)
             self.gate_col[branched] = len(box_muscles) + count + torch.arange(count, **long)
         self.box = torch.cat(rows)
