@@ -21,10 +21,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .arrays import Frozen, as_dtype, as_index, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
+from .arrays import Frozen, as_dtype, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
 from .basis import TermsSnapshot
 from .branched import branch_parts
-from .cells import cell_spread
+from .cells import cell_index, cell_inputs, cell_spread
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
 
@@ -70,10 +70,9 @@ class PathSnapshot(Frozen):
         self.n_terms = path.coef.shape[1]
         self._choices(path)
         if self.cells:
-            self.pieces, self.extra, self.scale = path.pieces, path.cell_extra, path.few_scale
+            self.pieces, self.cell_extra, self.scale = path.pieces, path.cell_extra, path.few_scale
             self.stride, self.rows, self.fitted = path.cell_stride, path.cell_rows, path.cell_fitted
             self.spread = cell_spread(path)
-            self.first_piece, self.last_piece = (path.x_lo.new_tensor(float(v)) for v in (0, path.pieces - 1))
 
     def _choices(self, path) -> None:
         """The rows of ``box`` and each muscle's candidates (class docstring), from the coefficients masked to each
@@ -104,7 +103,7 @@ class PathSnapshot(Frozen):
         xp = self.xp
         inside = xp.minimum(xp.maximum(x64, self.x_lo), self.x_hi)
         if self.cells:  # the variables: every joint, then the cells' coordinates (its local one, the joints kept whole)
-            piece, z = self._cell_inputs(inside)
+            piece, z = cell_inputs(self, inside)
             basis = self.terms(xp.concatenate([inside, z], 1), self.scale)
         else:
             basis = self.terms(inside)  # (B, P, 1 + N)
@@ -112,7 +111,7 @@ class PathSnapshot(Frozen):
         gate = candidates[:, :, 0][:, self.gate_col]
         choice = xp.where((gate > 0) & self.gated, self.alt_col, self.box_col)
         if self.cells:
-            cell = (piece[:, None, :] * self.stride).sum(-1)  # (B, Mc): each celled muscle's cell
+            cell = cell_index(piece, self.stride)  # (B, Mc): each celled muscle's cell
             at_cell = self.spread[self.rows[None, :], cell]  # (B, Mc, T)
             candidates = xp.concatenate([candidates, product(at_cell, basis[:, self.n_terms:])], 1)
             fitted = self.fitted[self.rows[None, :], cell][:, self.cell_of]
@@ -120,13 +119,6 @@ class PathSnapshot(Frozen):
         picked = pick(candidates, choice)  # (B, M, 1 + N)
         y, dy = picked[..., 0], picked[..., 1:]
         return y + (dy @ (x64 - inside)[:, :, None])[..., 0], dy
-
-    def _cell_inputs(self, x):
-        """Each joint's piece ``(B, N)`` and the cells' coordinates (``cells.cell_inputs``); a NaN posture gets piece
-        0 (a NaN answer at a valid index)."""
-        scaled = self.pieces * (x + 1)
-        k = self.xp.fmin(self.xp.fmax(self.xp.floor(scaled / 2), self.first_piece), self.last_piece)
-        return as_index(k), self.xp.concatenate([scaled - 2 * k - 1, take(x, self.extra, 1)], 1)
 
 
 def _box_product(box, basis):
