@@ -23,8 +23,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .arrays import horner
-from .snapshot import JUMP_ROWS, GravitySnapshot, world_poses
+from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_slopes, world_poses
 from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
@@ -84,6 +83,8 @@ class GravityTorque(nn.Module):
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
         self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
+        self.coupled = bool(self.dep_joint)
+        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of)
         self._register_nodes(tree)
         self._register_couplings()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
@@ -107,19 +108,15 @@ class GravityTorque(nn.Module):
 
     # ------------------------------------------------------------------ kinematics
     def full_q(self, q: torch.Tensor) -> torch.Tensor:
-        """Every joint (B, nq) from the free joints (B, N): locks, then couplings (``sim.joints.JointMap.full_q``)."""
-        full = q @ self.free_select + self.full_base
-        if not self.dep_joint:
-            return full
-        value = horner(self.dep_horner, self._columns(full, self.dep_follows, self.dep_follows_index)
-                       - self.dep_follows_qpos0)
-        return full + (value + self.dep_qpos0 - self._columns(full, self.dep_joint, self.dep_index)) @ self.dep_scatter
+        """Every joint (B, nq) from the free joints (B, N) (``snapshot.full_posture``)."""
+        return full_posture(self, q, self._columns)
 
-    @staticmethod
-    def _columns(full: torch.Tensor, joints: list, index: torch.Tensor) -> torch.Tensor:
-        """``full[:, joints]``: ``index_select`` by the precomputed ``index`` (fewest operations), or in an exported
-        program indexing by the list (as traced before)."""
-        return full[:, joints] if torch.compiler.is_exporting() else full.index_select(1, index)
+    def _columns(self, full: torch.Tensor, name: str) -> torch.Tensor:
+        """``full``'s columns at the index buffer ``name``: ``index_select``, or in an exported program indexing by
+        the list of joints (as traced before)."""
+        if torch.compiler.is_exporting():
+            return full[:, self.index_lists[name]]
+        return full.index_select(1, getattr(self, name))
 
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
@@ -218,8 +215,8 @@ class GravityTorque(nn.Module):
         return rot, shift
 
     def _slopes(self, full: torch.Tensor) -> torch.Tensor:
-        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""
-        return horner(self.slope_horner, self._columns(full, self.slope_of, self.slope_index) - self.slope_qpos0)
+        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint (``snapshot.joint_slopes``)."""
+        return joint_slopes(self, full, self._columns)
 
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:

@@ -140,7 +140,7 @@ class GravitySnapshot(Frozen):
         self.__dict__.update(gravity.named_buffers(recurse=False))
         self.pointers = [getattr(gravity, f"node_pointer{k}_index") for k in range(gravity.n_rounds)]
         self.node_parent, self.node_chain, self.n_rounds = gravity.node_parent, gravity.node_chain, gravity.n_rounds
-        self.coupled, self.all_hinges = bool(gravity.dep_joint), gravity.all_hinges
+        self.coupled, self.all_hinges = gravity.coupled, gravity.all_hinges
         f64, hinge = dict(dtype=torch.float64, device=gravity.coef.device), gravity.chain_hinge[:, None]
         terms = torch.zeros(3, len(gravity.chain_cross), 4, 4, **f64)
         terms[0, :, :3, :3], terms[0, :, :3, 3] = gravity.chain_cross, -hinge * gravity.chain_cross_pos
@@ -159,7 +159,7 @@ class GravitySnapshot(Frozen):
         self.offset, self.rate = coef[4 * n_frames:4 * n_frames + n_free], coef[4 * n_frames + n_free:]
 
     def __call__(self, q):
-        xp, full = self.xp, self._full_q(q)
+        xp, full = self.xp, full_posture(self, q, self._columns)
         angle = (take(full, self.chain_joint_index, 1) - self.chain_qpos0)[:, :, None, None]
         by_sin, by_versine, by_angle = self.motion_terms
         motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
@@ -171,16 +171,11 @@ class GravitySnapshot(Frozen):
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * self.mass_joint)
-        slopes = horner(self.slope_horner, take(full, self.slope_index, 1) - self.slope_qpos0)
-        return (tau * slopes) @ self.free_scatter + self.offset + self.rate * q
+        return (tau * joint_slopes(self, full, self._columns)) @ self.free_scatter + self.offset + self.rate * q
 
-    def _full_q(self, q):
-        """Every joint from the free ones (locks, then couplings: ``GravityTorque.full_q``)."""
-        full = q @ self.free_select + self.full_base
-        if not self.coupled:
-            return full
-        value = horner(self.dep_horner, take(full, self.dep_follows_index, 1) - self.dep_follows_qpos0)
-        return full + (value + self.dep_qpos0 - take(full, self.dep_index, 1)) @ self.dep_scatter
+    def _columns(self, full, name: str):
+        """``full``'s columns at the index ``name``."""
+        return take(full, getattr(self, name), 1)
 
     def _world(self, motion):
         """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
@@ -188,6 +183,23 @@ class GravitySnapshot(Frozen):
         jump = self.xp is np or len(motion) <= JUMP_ROWS
         world = world_poses(self, motion, lambda k, poses: take(poses, self.pointers[k], 1), jump)
         return take(world, self.frame_node_index, 1), take(world, self.before_node_index, 1)
+
+
+def full_posture(tree, q, columns):
+    """Every joint ``(B, nq)`` of a ``GravityTorque``'s tree (the module or its snapshot) from the free joints
+    ``q (B, N)``: locks, then couplings (``sim.joints.JointMap.full_q``); ``columns(full, name)``: ``full``'s columns
+    at the index ``name``."""
+    full = q @ tree.free_select + tree.full_base
+    if not tree.coupled:
+        return full
+    value = horner(tree.dep_horner, columns(full, "dep_follows_index") - tree.dep_follows_qpos0)
+    return full + (value + tree.dep_qpos0 - columns(full, "dep_index")) @ tree.dep_scatter
+
+
+def joint_slopes(tree, full, columns):
+    """``(B, J)`` ``d q_full[j] / d q[free_column[j]]`` of each moving joint of a ``GravityTorque``'s tree at every
+    joint's ``full (B, nq)``: 1, or its coupling's slope (``columns``: ``full_posture``'s)."""
+    return horner(tree.slope_horner, columns(full, "slope_index") - tree.slope_qpos0)
 
 
 def world_poses(tree, motion, pick, jump: bool):
