@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .arrays import Frozen, namespace, offsets, scatter_sum, take
+from .arrays import Frozen, namespace, scatter_columns, take_columns, unbind
 
 DENSE_ROWS = 48  # up to this many postures ``ProductTerms`` gathers every factor at once (BENCHMARKS.md)
 
@@ -100,11 +100,12 @@ class ProductTerms(nn.Module):
         flat = slot_joint * (self.degree + 1) + np.take_along_axis(exponents, slot_joint, 1)
         columns = np.arange(self.n_joints) if columns is None else np.asarray(columns, dtype=np.int64)
         self.n_columns, self.n_terms = int(columns.max(initial=-1)) + 1, len(exponents)
-        stacked = np.concatenate([np.zeros((len(slot_joint), 1), np.int64), 1 + columns[slot_joint]], 1)
-        flat_index = np.arange(self.n_terms)[:, None] * (1 + self.n_columns) + stacked  # into (P, 1 + columns)
+        slot_column = columns[slot_joint]  # (P, slots): each slot's slope's output column
+        flat_index = np.arange(self.n_terms)[:, None] * self.n_columns + slot_column  # its place in (P, columns)
         for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.T.reshape(-1), **long),
                                 exponents=torch.tensor(exponents, **long),
-                                flat_index=torch.tensor(flat_index.T.copy(), **long),  # (1 + slots, P)
+                                slot_column=torch.tensor(slot_column, **long),
+                                flat_index=torch.tensor(flat_index.T.copy(), **long),  # (slots, P)
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):
@@ -139,8 +140,8 @@ class ProductTerms(nn.Module):
             phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
             return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
         if dense_for(x) if dense is None else dense:
-            stacked = dense_terms(self, x)
-            return Basis(stacked[..., 0], stacked[..., 1:] if slopes else None, False)
+            phi, dphi = dense_terms(self, x)
+            return Basis(phi, dphi if slopes else None, False)
         powers = F.pad(x.T[:, None, :].expand(-1, self.degree, -1).cumprod(1), (0, 0, 1, 0), value=1.0)
         # (N, degree + 1, B): each joint's rows contiguous
         return self._grouped(self.to_values.T @ powers, (self.to_slopes.T @ powers) if slopes else None)
@@ -196,8 +197,8 @@ class ProductTerms(nn.Module):
 
 
 def dense_terms(terms, x, scale=None):
-    """``(B, P, 1 + columns)`` at postures ``x (B, V)`` (numpy or torch): column 0 each term of ``terms`` (a
-    ``ProductTerms`` or its ``TermsSnapshot``), then each variable's slope added into its output column (with
+    """``phi (B, P)`` and ``dphi (B, P, columns)`` at postures ``x (B, V)`` (numpy or torch): each term of ``terms``
+    (a ``ProductTerms`` or its ``TermsSnapshot``) and each variable's slope added into its output column (with
     ``scale (V,)``: times ``d variable / d output``). The Legendre values from the powers of x (repeated products:
     pow rounds differently) times a fixed matrix; each slot's factors a contiguous row; one scatter adds each term's
     slots in their order."""
@@ -207,26 +208,24 @@ def dense_terms(terms, x, scale=None):
     values, derivs = powers @ terms.to_values, powers @ terms.to_slopes
     derivs = derivs if scale is None else derivs * scale[:, None]
     shape = (n, terms.n_slots, terms.n_terms)
-    factors = take(values.reshape(n, -1), terms.slot_index, 1).reshape(shape)
-    slopes = take(derivs.reshape(n, -1), terms.slot_index, 1).reshape(shape)
-    phi, slopes = _slot_products(tuple(factors[:, s] for s in range(terms.n_slots)),
-                                 tuple(slopes[:, s] for s in range(terms.n_slots)))
-    width = terms.n_terms * (1 + terms.n_columns)
-    parts = xp.stack([phi] + slopes, 1)  # (B, 1 + slots, P)
-    index = terms.flat_index + offsets(x, width)
-    return scatter_sum(index.ravel(), parts.ravel(), n * width).reshape(n, terms.n_terms, -1)
+    factors = take_columns(values.reshape(n, -1), terms.slot_index).reshape(shape)
+    slopes = take_columns(derivs.reshape(n, -1), terms.slot_index).reshape(shape)
+    phi, slopes = _slot_products(unbind(factors, 1), unbind(slopes, 1))
+    return phi, scatter_columns(slopes, terms.slot_column, terms.flat_index, terms.n_columns)
 
 
 class TermsSnapshot(Frozen):
-    """A ``ProductTerms``' tables frozen for ``dense_terms`` (``on_host()``: in numpy)."""
+    """A ``ProductTerms``' tables frozen for ``dense_terms`` (``on_host()``: in numpy); a call gives
+    ``(B, P, 1 + columns)``: each term, then its slopes."""
 
     def __init__(self, terms: ProductTerms):
         for name in ("degree", "n_slots", "n_columns", "n_terms", "to_values", "to_slopes", "slot_index",
-                     "flat_index"):
+                     "slot_column", "flat_index"):
             setattr(self, name, getattr(terms, name))
 
     def __call__(self, x, scale=None):
-        return dense_terms(self, x, scale)
+        phi, dphi = dense_terms(self, x, scale)
+        return namespace(x).concatenate([phi[..., None], dphi], -1)
 
 
 def _slot_products(factors: tuple, derivs: Optional[tuple]) -> tuple:
