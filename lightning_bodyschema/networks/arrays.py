@@ -41,7 +41,7 @@ def take(a, index, axis: int):
 
 def unbind(a, axis: int) -> tuple:
     """The slices of ``a`` along ``axis`` (torch's one ``unbind``; numpy's views)."""
-    return a.unbind(axis) if torch.is_tensor(a) else tuple(np.moveaxis(a, axis, 0))
+    return a.unbind(axis) if torch.is_tensor(a) else tuple(a.swapaxes(0, axis))
 
 
 def take_columns(a, index):
