@@ -140,8 +140,9 @@ class ProductTerms(nn.Module):
             phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
             return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
         if dense_for(x) if dense is None else dense:
-            phi, dphi = dense_terms(self, x)
-            return Basis(phi, dphi if slopes else None, False)
+            phi, parts = dense_terms(self, x)
+            dphi = scatter_columns(parts, self.slot_column, self.flat_index, self.n_columns) if slopes else None
+            return Basis(phi, dphi, False)
         powers = F.pad(x.T[:, None, :].expand(-1, self.degree, -1).cumprod(1), (0, 0, 1, 0), value=1.0)
         # (N, degree + 1, B): each joint's rows contiguous
         return self._grouped(self.to_values.T @ powers, (self.to_slopes.T @ powers) if slopes else None)
@@ -197,11 +198,11 @@ class ProductTerms(nn.Module):
 
 
 def dense_terms(terms, x, scale=None):
-    """``phi (B, P)`` and ``dphi (B, P, columns)`` at postures ``x (B, V)`` (numpy or torch): each term of ``terms``
-    (a ``ProductTerms`` or its ``TermsSnapshot``) and each variable's slope added into its output column (with
-    ``scale (V,)``: times ``d variable / d output``). The Legendre values from the powers of x (repeated products:
-    pow rounds differently) times a fixed matrix; each slot's factors a contiguous row; one scatter adds each term's
-    slots in their order."""
+    """``phi (B, P)`` and per slot ``(B, P)`` (a list) its variable's slope times the other slots' factors, at
+    postures ``x (B, V)`` (numpy or torch), of ``terms`` (a ``ProductTerms`` or its ``TermsSnapshot``; with
+    ``scale (V,)`` the slopes times ``d variable / d output``). The Legendre values from the powers of x (repeated
+    products: pow rounds differently) times a fixed matrix; each slot's factors a contiguous row. The caller adds the
+    slot slopes into their columns (``arrays.scatter_columns``)."""
     xp, n = namespace(x), len(x)
     rising = xp.cumprod(xp.broadcast_to(x[..., None], (*x.shape, terms.degree)), -1)
     powers = xp.concatenate([xp.ones_like(rising[..., :1]), rising], -1)
@@ -210,22 +211,23 @@ def dense_terms(terms, x, scale=None):
     shape = (n, terms.n_slots, terms.n_terms)
     factors = take_columns(values.reshape(n, -1), terms.slot_index).reshape(shape)
     slopes = take_columns(derivs.reshape(n, -1), terms.slot_index).reshape(shape)
-    phi, slopes = _slot_products(unbind(factors, 1), unbind(slopes, 1))
-    return phi, scatter_columns(slopes, terms.slot_column, terms.flat_index, terms.n_columns)
+    return _slot_products(unbind(factors, 1), unbind(slopes, 1))
 
 
 class TermsSnapshot(Frozen):
     """A ``ProductTerms``' tables frozen for ``dense_terms`` (``on_host()``: in numpy); a call gives
-    ``(B, P, 1 + columns)``: each term, then its slopes."""
+    ``(B, P, 1 + columns)``: each term, then its slopes (one scatter of both)."""
 
     def __init__(self, terms: ProductTerms):
-        for name in ("degree", "n_slots", "n_columns", "n_terms", "to_values", "to_slopes", "slot_index",
-                     "slot_column", "flat_index"):
+        for name in ("degree", "n_slots", "n_columns", "n_terms", "to_values", "to_slopes", "slot_index"):
             setattr(self, name, getattr(terms, name))
+        self.column = torch.cat([torch.zeros_like(terms.slot_column[:, :1]), 1 + terms.slot_column], 1)
+        rows = torch.arange(self.n_terms, device=self.column.device)[:, None]
+        self.flat_index = (rows * (1 + self.n_columns) + self.column).T.contiguous()
 
     def __call__(self, x, scale=None):
-        phi, dphi = dense_terms(self, x, scale)
-        return namespace(x).concatenate([phi[..., None], dphi], -1)
+        phi, slopes = dense_terms(self, x, scale)
+        return scatter_columns([phi] + slopes, self.column, self.flat_index, 1 + self.n_columns)
 
 
 def _slot_products(factors: tuple, derivs: Optional[tuple]) -> tuple:
