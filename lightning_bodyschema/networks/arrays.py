@@ -47,7 +47,7 @@ def unbind(a, axis: int) -> tuple:
 def take_columns(a, index):
     """``a (B, K)``'s columns ``index``: numpy's ``take``, torch's ``gather`` (at hundreds of columns several times
     faster than ``index_select``)."""
-    return a.take(index, 1) if isinstance(a, np.ndarray) else a.gather(1, index.expand(len(a), -1))
+    return a.take(index, 1) if isinstance(a, np.ndarray) else a.gather(1, index.expand(a.shape[0], -1))
 
 
 def product(a, b):

@@ -203,7 +203,7 @@ def dense_terms(terms, x, scale=None):
     ``scale (V,)`` the slopes times ``d variable / d output``). The Legendre values from the powers of x (repeated
     products: pow rounds differently) times a fixed matrix; each slot's factors a contiguous row. The caller adds the
     slot slopes into their columns (``arrays.scatter_columns``)."""
-    xp, n = namespace(x), len(x)
+    xp, n = namespace(x), x.shape[0]  # (a symbolic batch stays symbolic in an exported program)
     rising = xp.cumprod(xp.broadcast_to(x[..., None], (*x.shape, terms.degree)), -1)
     powers = xp.concatenate([xp.ones_like(rising[..., :1]), rising], -1)
     values, derivs = powers @ terms.to_values, powers @ terms.to_slopes

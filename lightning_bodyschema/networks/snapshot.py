@@ -71,6 +71,7 @@ class PathSnapshot(Frozen):
         self._choices(path)
         if self.cells:
             self.pieces, self.cell_extra, self.scale = path.pieces, path.cell_extra, path.few_scale
+            self.cell_unfold = path.cell_unfold  # (``cells.cell_inputs`` in an exported program)
             self.stride, self.rows, self.fitted = path.cell_stride, path.cell_rows, path.cell_fitted
             self.spread = cell_spread(path)
 
@@ -125,7 +126,7 @@ def _box_product(box, basis):
     """``(B, R, K)``: rows ``box (R, P)`` times ``basis (B, P, K)``, as one ``(R, P) x (P, B K)`` product."""
     xp = namespace(box)
     flat = xp.swapaxes(basis, 0, 1).reshape(basis.shape[1], -1)
-    return xp.swapaxes(product(box, flat).reshape(len(box), len(basis), -1), 0, 1)
+    return xp.swapaxes(product(box, flat).reshape(len(box), basis.shape[0], -1), 0, 1)
 
 
 class GravitySnapshot(Frozen):
@@ -180,7 +181,7 @@ class GravitySnapshot(Frozen):
     def _world(self, motion):
         """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
         from the chain joints' motions ``(B, C, 4, 4)``."""
-        jump = self.xp is np or len(motion) <= JUMP_ROWS
+        jump = self.xp is np or torch.compiler.is_exporting() or motion.shape[0] <= JUMP_ROWS  # exported: any batch
         world = world_poses(self, motion, lambda k, poses: take(poses, self.pointers[k], 1), jump)
         return take(world, self.frame_node_index, 1), take(world, self.before_node_index, 1)
 
@@ -216,7 +217,7 @@ def world_poses(tree, motion, pick, jump: bool):
     xp, nodes = namespace(motion), []
     for i, (parent, chain) in enumerate(zip(tree.node_parent, tree.node_chain)):
         T = tree.node_const[i] if chain < 0 else motion[:, chain]
-        nodes.append(xp.broadcast_to(T, (len(motion), 4, 4)) if parent < 0 else nodes[parent] @ T)
+        nodes.append(xp.broadcast_to(T, (motion.shape[0], 4, 4)) if parent < 0 else nodes[parent] @ T)
     return xp.stack(nodes, 1)
 
 
