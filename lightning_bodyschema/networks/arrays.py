@@ -100,6 +100,16 @@ def pick(candidates, choice):
     return candidates.gather(1, choice[..., None].expand(-1, -1, candidates.shape[-1]))
 
 
+def apply_keeping_dtype(module, names, apply, *args, **kwargs):
+    """``apply(*args, **kwargs)`` (the module's ``nn.Module._apply``) with its buffers ``names`` moved to the new device
+    but kept in their dtype: a schema cast to float32 keeps its float64 coefficients and tables."""
+    kept = {name: module._buffers[name] for name in names if module._buffers.get(name) is not None}
+    out = apply(*args, **kwargs)
+    for name, value in kept.items():
+        module._buffers[name] = value.to(module._buffers[name].device)
+    return out
+
+
 class Frozen:
     """Arrays (torch tensors, or numpy arrays after ``on_host()``) and plain values held as attributes; ``xp`` is the
     array library they belong to (``on_host()``: numpy)."""

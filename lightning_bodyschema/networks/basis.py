@@ -8,7 +8,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .arrays import Frozen, namespace, scatter_columns, take_columns, unbind
+from .arrays import Frozen, apply_keeping_dtype, namespace, scatter_columns, take_columns, unbind
 
 DENSE_ROWS = 48  # up to this many postures ``ProductTerms`` gathers every factor at once (BENCHMARKS.md)
 
@@ -126,11 +126,7 @@ class ProductTerms(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):
         """Dtype casts leave the float64 tables alone (device moves apply)."""
-        kept = {n: getattr(self, n) for n in ("to_values", "to_slopes")}
-        out = super()._apply(fn, *args, **kwargs)
-        for name, value in kept.items():
-            self._buffers[name] = value.to(self._buffers[name].device)
-        return out
+        return apply_keeping_dtype(self, ("to_values", "to_slopes"), super()._apply, fn, *args, **kwargs)
 
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
         """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: by the number

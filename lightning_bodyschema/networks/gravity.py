@@ -23,6 +23,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
+from .arrays import apply_keeping_dtype
 from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_slopes, world_poses
 from .trim import solve_triangular, trimmed_refits
 
@@ -100,11 +101,7 @@ class GravityTorque(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
-        kept = {name: value for name, value in self._buffers.items() if value is not None}
-        out = super()._apply(fn, *args, **kwargs)
-        for name, value in kept.items():
-            self._buffers[name] = value.to(self._buffers[name].device)
-        return out
+        return apply_keeping_dtype(self, list(self._buffers), super()._apply, fn, *args, **kwargs)
 
     # ------------------------------------------------------------------ kinematics
     def full_q(self, q: torch.Tensor) -> torch.Tensor:

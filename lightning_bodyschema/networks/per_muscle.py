@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .arrays import apply_keeping_dtype
 from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
 from .branched import add_branches, branch_parts, refresh_branches, replace_where
 from .branches import fit_branches, one_thread
@@ -163,12 +164,7 @@ class PerMusclePath(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
-        names = [n for n in ("coef", "coef_alt", "gate", "cell_coef") if hasattr(self, n)]
-        kept = [getattr(self, n) for n in names]
-        out = super()._apply(fn, *args, **kwargs)
-        for name, value in zip(names, kept):
-            setattr(self, name, value.to(getattr(self, name).device))
-        return out
+        return apply_keeping_dtype(self, ("coef", "coef_alt", "gate", "cell_coef"), super()._apply, fn, *args, **kwargs)
 
     @torch.no_grad()
     def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-12, chunk: int = 8192) -> None:
