@@ -9,6 +9,11 @@ import numpy as np
 import torch
 
 
+def namespace(a):
+    """The array library of ``a``: numpy for a numpy array, else torch."""
+    return np if isinstance(a, np.ndarray) else torch
+
+
 def encode_q(q, lo, hi):
     """Postures ``q`` [rad] within ``[lo, hi]`` to ``[-1, 1]`` (the schemas' normalized postures; numpy arrays or
     tensors, ``lo``, ``hi`` in q's dtype)."""
@@ -34,6 +39,17 @@ def take(a, index, axis: int):
     return a.take(index, axis) if isinstance(a, np.ndarray) else a.index_select(axis, index)
 
 
+def unbind(a, axis: int) -> tuple:
+    """The slices of ``a`` along ``axis`` (torch's one ``unbind``; numpy's views)."""
+    return a.unbind(axis) if torch.is_tensor(a) else tuple(a.swapaxes(0, axis))
+
+
+def take_columns(a, index):
+    """``a (B, K)``'s columns ``index``: numpy's ``take``, torch's ``gather`` (at hundreds of columns several times
+    faster than ``index_select``)."""
+    return a.take(index, 1) if isinstance(a, np.ndarray) else a.gather(1, index.expand(a.shape[0], -1))
+
+
 def product(a, b):
     """``a @ b``; numpy's by torch (its BLAS follows ``torch.set_num_threads``, numpy's OpenBLAS starts threads)."""
     if isinstance(a, np.ndarray):
@@ -49,6 +65,13 @@ def rows_product(m, w):
     return torch.einsum("jf,bfc->bjc", m, w.contiguous())
 
 
+def clip(a, lo: float, hi: float):
+    """``a`` within ``[lo, hi]``, a NaN at ``lo`` (numpy's fmax and fmin; torch's clamp of ``nan_to_num``)."""
+    if isinstance(a, np.ndarray):
+        return np.fmin(np.fmax(a, lo), hi)
+    return torch.nan_to_num(a, nan=lo).clamp(lo, hi)
+
+
 def as_index(a):
     """Whole numbers as int64 indices."""
     return a.astype(np.int64) if isinstance(a, np.ndarray) else a.long()
@@ -59,12 +82,15 @@ def as_dtype(a, dtype):
     return a.astype(dtype) if isinstance(a, np.ndarray) else a.to(dtype)
 
 
-def scatter_sum(index, values, size: int):
-    """``(size,)``: the sum of ``values`` at each ``index``, added in their order (numpy's weighted bincount,
-    torch's ``scatter_add``: the same bits; the latter also under ``torch.vmap``)."""
-    if isinstance(values, np.ndarray):
-        return np.bincount(index, values, size)
-    return values.new_zeros(size).scatter_add_(0, index, values)
+def scatter_columns(values: list, column, flat_index, width: int):
+    """``(B, P, width)``: every entry of ``values`` (K arrays ``(B, P)``) added into its column ``column (P, K)`` of
+    its posture and term, in the order of the list, onto zeros (numpy: one weighted bincount over ``flat_index
+    (K, P)``, each entry's place in a ``(P, width)`` row; torch: one ``scatter_add``; the same bits)."""
+    n, p = values[0].shape
+    if isinstance(values[0], np.ndarray):
+        index = flat_index + (p * width) * np.arange(n)[:, None, None]
+        return np.bincount(index.ravel(), np.stack(values, 1).ravel(), n * p * width).reshape(n, p, width)
+    return values[0].new_zeros(n, p, width).scatter_add_(2, column.expand(n, -1, -1), torch.stack(values, -1))
 
 
 def pick(candidates, choice):
@@ -74,10 +100,14 @@ def pick(candidates, choice):
     return candidates.gather(1, choice[..., None].expand(-1, -1, candidates.shape[-1]))
 
 
-def offsets(x, step: int):
-    """``(B, 1, 1)``: ``step`` times each row's number of ``x (B, ...)``, an integer array on x's device."""
-    rows = np.arange(len(x)) if isinstance(x, np.ndarray) else torch.arange(len(x), device=x.device)
-    return (step * rows)[:, None, None]
+def apply_keeping_dtype(module, names, apply, *args, **kwargs):
+    """``apply(*args, **kwargs)`` (the module's ``nn.Module._apply``) with its buffers ``names`` moved to the new device
+    but kept in their dtype: a schema cast to float32 keeps its float64 coefficients and tables."""
+    kept = {name: module._buffers[name] for name in names if module._buffers.get(name) is not None}
+    out = apply(*args, **kwargs)
+    for name, value in kept.items():
+        module._buffers[name] = value.to(module._buffers[name].device)
+    return out
 
 
 class Frozen:

@@ -41,26 +41,29 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
+from .arrays import as_index, clip, namespace, take
 from .basis import ProductTerms
+from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 from .path_config import CELL_JOINTS
 
 
 
-def cell_coordinates(x: torch.Tensor, pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each joint's piece ``k (B, N)`` (long, 0..pieces-1, of [-1, 1] cut evenly) and the local coordinate
-    ``x_local (B, N)`` in [-1, 1] within it; ``d x_local / d x = pieces``."""
+def cell_coordinates(x, pieces: int):
+    """Each joint's piece ``k (B, N)`` (int64, 0..pieces-1, of [-1, 1] cut evenly) and the local coordinate
+    ``x_local (B, N)`` in [-1, 1] within it, ``d x_local / d x = pieces``, at ``x`` (numpy or torch); a NaN
+    coordinate gets piece 0 (a NaN answer at a valid index)."""
     scaled = pieces * (x + 1)
-    k = torch.clamp(torch.floor(scaled / 2), 0, pieces - 1)
-    return k.to(torch.long), scaled - 2 * k - 1
+    k = clip(namespace(x).floor(scaled / 2), 0, pieces - 1)
+    return as_index(k), scaled - 2 * k - 1
 
 
 def cell_index(piece: torch.Tensor, stride: torch.Tensor) -> torch.Tensor:
     """Each posture's cell ``(B,)`` or ``(B, Mc)`` from its joints' pieces ``piece (B, N)`` (long) and a muscle's
     ``stride (N,)`` or every celled muscle's ``(Mc, N)``: a product and a sum, not a matrix product (CUDA has none for
     integers)."""
-    return (piece[:, None, :] * stride).sum(-1) if stride.dim() == 2 else (piece * stride).sum(-1)
+    return (piece[:, None, :] * stride).sum(-1) if stride.ndim == 2 else (piece * stride).sum(-1)
 
 
 def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[int] = None) -> int:
@@ -129,17 +132,18 @@ def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tu
     return perm, [(int(a), int(b), int(valid[perm[a]].sum())) for a, b in zip(starts, ends)]
 
 
-def cell_inputs(path, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)``: every joint's
-    local coordinate (``cell_coordinates``), then the joints ``cell_extra`` some celled muscle crosses uncut, as they
-    are (in an exported program by padding and a one-hot product: a concatenation specializes the batch in
-    torch.export; the same values)."""
+def cell_inputs(path, x):
+    """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)`` (numpy or torch)
+    of a ``PerMusclePath`` or its snapshot (``pieces``, ``cell_extra``): every joint's local coordinate
+    (``cell_coordinates``), then the joints ``cell_extra`` some celled muscle crosses uncut, as they are (in an
+    exported program by padding and a one-hot product: a concatenation specializes the batch in torch.export; the
+    same values)."""
     k, x_local = cell_coordinates(x, path.pieces)
     extra = len(path.cell_extra)
     if not extra:
         return k, x_local
     if not torch.compiler.is_exporting():  # two operations, not five (at one posture each costs its dispatch)
-        return k, torch.cat([x_local, x.index_select(1, path.cell_extra)], 1)
+        return k, namespace(x).concatenate([x_local, take(x, path.cell_extra, 1)], 1)
     return k, F.pad(x_local, (0, extra)) + F.pad(x @ path.cell_unfold.T, (x.shape[1], 0))
 
 
@@ -162,14 +166,14 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         basis = path.cell_terms_all(z, dy is not None, dense=True)
         y_cell, dy_cell = _contract(path, basis, cell)
         dy_cell = None if dy is None else _fold(path, dy_cell)
-        return _replace(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
+        return replace_where(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
         y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
-        y, dy = _replace(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
-                         None if dy_cell is None else _fold(path, dy_cell), copy=False)
+        y, dy = replace_where(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
+                            None if dy_cell is None else _fold(path, dy_cell), copy=False)
     return y, dy
 
 
@@ -210,17 +214,6 @@ def _by_cell(terms, coef, z, cell, slopes):
             start += count
     inverse = torch.argsort(order)
     return y[inverse], None if dy is None else dy[inverse]
-
-
-def _replace(y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):
-    """``y``, ``dy`` with the cells' ``y_cell (B, Mc)``, ``dy_cell (B, Mc, N)`` (d/dx, ``_fold``) of ``muscles`` where
-    their cell was ``fitted (B, Mc)`` (copies, or with ``copy=False`` written in place)."""
-    y = y.clone() if copy else y
-    y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
-    if dy is not None:
-        dy = dy.clone() if copy else dy
-        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell, dy[:, muscles])
-    return y, dy
 
 
 def set_cell_layout(path, degrees) -> None:

@@ -23,8 +23,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
-from .arrays import horner
-from .snapshot import JUMP_ROWS, GravitySnapshot
+from .arrays import apply_keeping_dtype
+from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_slopes, world_poses
 from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
@@ -84,6 +84,8 @@ class GravityTorque(nn.Module):
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
         self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
+        self.coupled = bool(self.dep_joint)
+        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of)
         self._register_nodes(tree)
         self._register_couplings()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
@@ -99,27 +101,19 @@ class GravityTorque(nn.Module):
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
-        kept = {name: value for name, value in self._buffers.items() if value is not None}
-        out = super()._apply(fn, *args, **kwargs)
-        for name, value in kept.items():
-            self._buffers[name] = value.to(self._buffers[name].device)
-        return out
+        return apply_keeping_dtype(self, list(self._buffers), super()._apply, fn, *args, **kwargs)
 
     # ------------------------------------------------------------------ kinematics
     def full_q(self, q: torch.Tensor) -> torch.Tensor:
-        """Every joint (B, nq) from the free joints (B, N): locks, then couplings (``sim.joints.JointMap.full_q``)."""
-        full = q @ self.free_select + self.full_base
-        if not self.dep_joint:
-            return full
-        value = horner(self.dep_horner, self._columns(full, self.dep_follows, self.dep_follows_index)
-                       - self.dep_follows_qpos0)
-        return full + (value + self.dep_qpos0 - self._columns(full, self.dep_joint, self.dep_index)) @ self.dep_scatter
+        """Every joint (B, nq) from the free joints (B, N) (``snapshot.full_posture``)."""
+        return full_posture(self, q, self._columns)
 
-    @staticmethod
-    def _columns(full: torch.Tensor, joints: list, index: torch.Tensor) -> torch.Tensor:
-        """``full[:, joints]``: ``index_select`` by the precomputed ``index`` (fewest operations), or in an exported
-        program indexing by the list (as traced before)."""
-        return full[:, joints] if torch.compiler.is_exporting() else full.index_select(1, index)
+    def _columns(self, full: torch.Tensor, name: str) -> torch.Tensor:
+        """``full``'s columns at the index buffer ``name``: ``index_select``, or in an exported program indexing by
+        the list of joints (as traced before)."""
+        if torch.compiler.is_exporting():
+            return full[:, self.index_lists[name]]
+        return full.index_select(1, getattr(self, name))
 
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
@@ -143,18 +137,9 @@ class GravityTorque(nn.Module):
 
     def _world(self, motion: torch.Tensor) -> torch.Tensor:
         """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``
-        (``kinematics``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program, else one product
-        per node (parents first; a body offset's a single matrix product)."""
-        if torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS:
-            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
-            for k in range(self.n_rounds):
-                world = self._pick(f"node_pointer{k}", world) @ world
-            return world
-        nodes = []
-        for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
-            T = self.node_const[i] if chain < 0 else motion[:, chain]
-            nodes.append(T.expand(len(motion), 4, 4) if parent < 0 else nodes[parent] @ T)
-        return torch.stack(nodes, 1)
+        (``snapshot.world_poses``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program."""
+        jump = torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS
+        return world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
 
     def _register_nodes(self, tree) -> None:
         """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation
@@ -227,8 +212,8 @@ class GravityTorque(nn.Module):
         return rot, shift
 
     def _slopes(self, full: torch.Tensor) -> torch.Tensor:
-        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint: 1, or its coupling's slope."""
-        return horner(self.slope_horner, self._columns(full, self.slope_of, self.slope_index) - self.slope_qpos0)
+        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint (``snapshot.joint_slopes``)."""
+        return joint_slopes(self, full, self._columns)
 
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:

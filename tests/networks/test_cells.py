@@ -124,6 +124,28 @@ def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=1e-12)
 
 
+def test_a_nan_posture_answers_nan_in_its_row_only_in_the_blocks_and_the_snapshot(fitted, monkeypatch):
+    """A NaN coordinate takes piece 0 (``cell_coordinates``): its row answers NaN, every other row as without it, in
+    the blocks (a cell at a time) as in the snapshot (an index cast from NaN is garbage: bincount refused it)."""
+    from lightning_bodyschema.networks import snapshot
+
+    x = _inside(300, 7)
+    k, _ = cell_coordinates(torch.tensor([[float("nan"), -0.5]], dtype=torch.float64), 2)
+    assert k.tolist() == [[0, 0]]
+    assert cell_coordinates(np.array([[np.nan, 0.5]]), 2)[0].tolist() == [[0, 1]]  # numpy alike
+    bad = x.clone()
+    bad[5, 0] = float("nan")
+    for elements in (0, snapshot.FEW_ELEMENTS):  # the blocks, then the snapshot (few postures)
+        monkeypatch.setattr(snapshot, "FEW_ELEMENTS", elements)
+        rows = slice(None) if elements == 0 else slice(0, 20)
+        y, dy = fitted.with_jacobian(x[rows])
+        y_bad, dy_bad = fitted.with_jacobian(bad[rows])
+        keep = torch.arange(len(y)) != 5  # the other rows to a few roundings (a cell's rows in another block)
+        torch.testing.assert_close(y_bad[keep], y[keep], rtol=0, atol=1e-13)
+        torch.testing.assert_close(dy_bad[keep], dy[keep], rtol=0, atol=1e-12)
+        assert y_bad[5].isnan().all()  # the first-order extension's (x - inside) is NaN on every muscle's row
+
+
 def test_the_cells_spread_coefficients_are_each_muscles_own(fitted):
     """``cell_spread``: in each cell, a muscle's coefficients on the cell terms it uses and zero elsewhere, so a
     product with any basis row equals the product with that muscle's own columns; the kept ones answer as the

@@ -96,6 +96,24 @@ def test_the_numpy_snapshot_answers_as_the_torch_one(path):
     np.testing.assert_allclose(y_torch.numpy(), y_host, rtol=0, atol=1e-13)
 
 
+def test_the_snapshot_exports_with_a_dynamic_batch(path):
+    """``torch.export`` of the torch snapshot itself (as the exported package evaluates the body: every posture at
+    once, no vmap) keeps the batch symbolic and answers as the eager snapshot, beyond the box too."""
+    from torch.export import Dim, export
+
+    snapshot = path.snapshot()
+
+    class Frozen(torch.nn.Module):
+        def forward(self, x):
+            return snapshot(x)
+
+    x = _postures(9, 5)
+    program = export(Frozen(), (x[:2],), dynamic_shapes=({0: Dim("batch", min=1, max=4096)},), strict=False)
+    for rows in (x[:1], x):
+        for exported, eager in zip(program.module()(rows), snapshot(rows)):
+            torch.testing.assert_close(exported, eager, atol=1e-13, rtol=0)  # lengths and arms of order 1
+
+
 def test_the_host_moment_arms_are_its_lengths_derivative(path):
     host = path.snapshot().on_host()
     x = _postures(40, 6).clamp(-0.89, 0.89)
