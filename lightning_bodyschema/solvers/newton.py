@@ -17,7 +17,8 @@ meets Armijo's condition (or, for ``t = 1``, keeps the free set and lowers ``max
 quadratic the step maximises, and Armijo's test may fail on the rounding of the dual value alone), else a gradient
 step ``F / L`` (``L`` a bound on the dual gradient's Lipschitz constant), which always ascends.
 A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
-cannot hold has no root) is reported as not converged.
+cannot hold has no root) is reported as not converged; after the last step, a residual within the rounding of
+computing it counts as below ``tol`` (``_unsettled``: on a badly scaled case no iterate can do better).
 
 ``fixed_iterations=True`` runs the steps on every case at once, every trial on every case, masked where a case has
 converged, in a ``torch.while_loop`` that ends when every case has converged or after ``max_iter`` steps: no host
@@ -40,6 +41,7 @@ NEWTON_TOL_NM = 1e-9
 # trial steps 1, 1/2, ..., 1/2048 (after the exact maximiser); where none is accepted, the gradient step (ascent)
 LINE_SEARCH_HALVINGS = 12
 _ARMIJO = 1e-4
+_UNIT_ROUNDOFF = torch.finfo(torch.float64).eps / 2
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 # the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
 # spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
@@ -47,9 +49,9 @@ _CERTIFY_STEPS, _CERTIFY_STEPS_FEW, FEW_CASES = frozenset(range(3, 64, 2)), froz
 
 
 class NewtonResult(NamedTuple):
-    """``f (B, M)`` [N] in the box; ``converged (B,)`` bool: ``max |F(lam)| <= tol`` (then f balances ``tau`` to
-    ``tol`` plus ``w |lam|``); ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)``
-    bool: proven to have no tension in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``)."""
+    """``f (B, M)`` [N] in the box; ``converged (B,)`` bool: every ``|F_n(lam)| <= tol``, or after the last step
+    within the rounding of computing it (``_unsettled``; then f balances ``tau`` to that plus ``w |lam|``);
+    ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)`` bool: proven to have no tension in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``)."""
 
     f: torch.Tensor
     converged: torch.Tensor
@@ -304,6 +306,26 @@ def _separated(problem, lam, tol_nm: float) -> torch.Tensor:
     return (gap > math.sqrt(G.shape[2]) * tol_nm) & (w == 0)
 
 
+def _unsettled(problem, state: _State, residual, tol: float) -> torch.Tensor:
+    """(B,) True where some joint's residual ``|F_n|`` exceeds both ``tol`` and the rounding floor of evaluating it
+    in float64 (u the unit roundoff): a free tension ``f_m = f_ref_m - sum_n G_mn lam_n`` errs by up to ``(N + 1) u
+    (|f_ref_m| + sum_n |G_mn lam_n|)``, and ``F_n = sum_m G_mn f_m + tau_n - w lam_n`` adds ``(M + 2) u (sum_m |G_mn
+    f_m| + |tau_n| + w |lam_n|)``. A smaller residual is zero to the arithmetic. On a badly scaled case (activations
+    near a lifted cap of 1000 on moment arms of 40 N m, the multiplier large where the free muscles are weak) that
+    floor lies above a tolerance of 1e-12 N m, which no iterate can then meet: the steps run to their limit (they
+    do not leave the floor) and the case counts as converged. Tested once, after the last step."""
+    G, tau, f_ref, _, _, w = problem
+    m, n = G.shape[1], G.shape[2]
+    abs_G = G.abs()
+    abs_Gt = abs_G.transpose(1, 2)
+    free_f = torch.baddbmm(f_ref.abs().unsqueeze(-1), abs_G, state.lam.abs().unsqueeze(-1)).squeeze(-1)
+    error_f = (n + 1) * _UNIT_ROUNDOFF * free_f * state.free  # a clipped tension is a bound: exact
+    terms = torch.baddbmm(tau.abs().unsqueeze(-1), abs_Gt, state.f.abs().unsqueeze(-1)).squeeze(-1)
+    floor = (m + 2) * _UNIT_ROUNDOFF * torch.addcmul(terms, w.unsqueeze(1), state.lam.abs())
+    floor = torch.baddbmm(floor.unsqueeze(-1), abs_Gt, error_f.unsqueeze(-1)).squeeze(-1)
+    return ((residual.abs() > tol) & (residual.abs() > floor)).any(1)
+
+
 def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
                 fixed_iterations: bool = False, infeasible_tol: float | None = None) -> NewtonResult:
     """The problem of the module docstring for ``G (B, M, N)``, ``tau (B, N)``, ``f_ref, lo, hi (B, M)`` (float64
@@ -347,10 +369,10 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
                                shift[idx], True)
             state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
-    size = _residual(state, w, w_col).abs().amax(1)
+    unsettled = _unsettled(problem, state, _residual(state, w, w_col), tol)
     if infeasible_tol is not None:  # what the last step leaves
-        infeasible = infeasible | ((size > tol) & _separated(problem, state.lam, infeasible_tol))
-    return NewtonResult(state.f, size <= tol, iterations, infeasible)
+        infeasible = infeasible | (unsettled & _separated(problem, state.lam, infeasible_tol))
+    return NewtonResult(state.f, ~unsettled, iterations, infeasible)
 
 
 def _masked_steps(problem, state: _State, shift, iterations, tol: float, max_iter: int):
