@@ -22,7 +22,6 @@ import functools
 import glob
 import os
 import re
-import sys
 import warnings
 import xml.etree.ElementTree as ET
 from importlib import resources
@@ -31,6 +30,7 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from ..notes import note
 from .install import MYO_SIM_INSTALL, mujoco_broken_message
 
 MYO_PREFIX = "myo:"
@@ -70,7 +70,7 @@ def _myo_sim():
 def quiet_attach_warnings():
     """MuJoCo's "Attaching a spec with an empty prefix may prevent the model from being saved correctly", which
     myo-sim's composition of bodies triggers on every load, silenced (we save the compiled model's own XML, not the
-    spec); MuJoCo's other warnings go to stderr as before."""
+    spec); MuJoCo's other warnings become notes (``notes.note``: stderr, or a tool's log when its run is refused)."""
     previous = mujoco.get_mju_user_warning()
 
     def warn(message: str):
@@ -79,7 +79,7 @@ def quiet_attach_warnings():
         if previous is not None:
             previous(message)
         else:
-            print(f"WARNING: {message}", file=sys.stderr)
+            note(f"MuJoCo warning: {message.strip()}")
 
     mujoco.set_mju_user_warning(warn)
     try:
