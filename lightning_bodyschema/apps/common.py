@@ -15,65 +15,6 @@ from ..errors import BodySchemaInputError
 from ..variants import check_variant
 
 
-def cache_root() -> str:
-    """``$BODYSCHEMA_CACHE_DIR``, else ``$XDG_CACHE_HOME/lightning_bodyschema`` (``~/.cache/lightning_bodyschema``):
-    what the tools remember between runs, and their logs."""
-    if os.environ.get("BODYSCHEMA_CACHE_DIR"):
-        return os.environ["BODYSCHEMA_CACHE_DIR"]
-    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
-                        "lightning_bodyschema")
-
-
-def notes_held(tool: str):
-    """Decorator for a tool's main (inside ``exits_cleanly``): the library's notes (``notes.note``: a joint locked,
-    muscles left out) are held while it runs, then printed to stderr when it returns, or appended to the tool's log
-    ``<cache_root>/logs/<tool>.log`` when a refused input ends it, so that the error is the one line on stderr."""
-
-    def decorate(main):
-        @functools.wraps(main)
-        def wrapper(argv=None):
-            from ..notes import held_notes
-
-            with held_notes() as notes:
-                try:
-                    result = main(argv)
-                except BodySchemaInputError as err:
-                    _log_notes(tool, notes, err)
-                    raise
-                except BaseException:
-                    _print_notes(notes)  # a crash keeps them beside its traceback
-                    raise
-            _print_notes(notes)
-            return result
-
-        return wrapper
-
-    return decorate
-
-
-def _print_notes(notes: list) -> None:
-    for line in notes:
-        print(line, file=sys.stderr)
-
-
-def _log_notes(tool: str, notes: list, err: BaseException) -> None:
-    """Append the run's notes and its error to the tool's log (best effort: a log that cannot be written is
-    skipped, the error line stays the user's answer)."""
-    import time
-
-    if not notes:
-        return
-    path = os.path.join(cache_root(), "logs", f"{tool}.log")
-    stamp = time.strftime("%Y-%m-%d %H:%M:%S")
-    try:
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        with open(path, "a") as fh:
-            fh.write(f"{stamp} {' '.join(sys.argv)}\n" + "".join(f"  note: {line}\n" for line in notes)
-                     + f"  error: {' '.join(str(err).split())}\n")
-    except OSError:
-        pass
-
-
 def exits_cleanly(main):
     """Turn a user error into ``error: ...`` on stderr and exit code 2."""
 

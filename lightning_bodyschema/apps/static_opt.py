@@ -16,8 +16,9 @@ import os
 import numpy as np
 
 from ..errors import BodySchemaInputError, did_you_mean
+from ..notes import notes_held
 from ..status import status_codes, status_names
-from .common import argument_parser, cache_root, config_data, exits_cleanly, notes_held, robot_options, write_npz
+from .common import argument_parser, config_data, exits_cleanly, robot_options, write_npz
 
 EXAMPLE = """example:
   python tools/static_opt.py --config configs/myoarm.yaml --postures reach.csv --cut BIClong_tendon \\
@@ -189,7 +190,7 @@ def _body(data: dict, locks: dict, args):
 
 
 @exits_cleanly
-@notes_held("static_opt")
+@notes_held(lambda: os.path.join(_cache_root(), "logs", "static_opt.log"))
 def static_opt_main(argv=None):
     args = _parser().parse_args(argv)
     if os.path.isdir(args.out):
@@ -257,7 +258,15 @@ def _names_file(data: dict, args) -> str:
     key = json.dumps([{k: data.get(k) for k in ("model", "muscles", "gravity", "locked_joints", "fixed_base")},
                       args.fixed_base, sorted(args.lock), hashlib.sha256(model_bytes).hexdigest(), __version__,
                       installed("mujoco"), installed("myo-sim")], sort_keys=True, default=str)
-    return os.path.join(cache_root(), "body_names", hashlib.sha256(key.encode()).hexdigest() + ".json")
+    return os.path.join(_cache_root(), "body_names", hashlib.sha256(key.encode()).hexdigest() + ".json")
+
+
+def _cache_root() -> str:
+    """``$BODYSCHEMA_CACHE_DIR``, else ``$XDG_CACHE_HOME/lightning_bodyschema`` (``~/.cache/lightning_bodyschema``)."""
+    if os.environ.get("BODYSCHEMA_CACHE_DIR"):
+        return os.environ["BODYSCHEMA_CACHE_DIR"]
+    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+                        "lightning_bodyschema")
 
 
 def _remembered_names(data: dict, args):

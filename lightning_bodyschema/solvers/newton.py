@@ -51,12 +51,15 @@ _CERTIFY_STEPS, _CERTIFY_STEPS_FEW, FEW_CASES = frozenset(range(3, 64, 2)), froz
 class NewtonResult(NamedTuple):
     """``f (B, M)`` [N] in the box; ``converged (B,)`` bool: every ``|F_n(lam)| <= tol``, or after the last step
     within the rounding of computing it (``_unsettled``; then f balances ``tau`` to that plus ``w |lam|``);
-    ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)`` bool: proven to have no tension in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``)."""
+    ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)`` bool: proven to have no tension
+    in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``); ``direction (B, N)``: the unit
+    multiplier direction that proved it (a Farkas-type certificate, ``problem.separation_gap_nm``), NaN elsewhere."""
 
     f: torch.Tensor
     converged: torch.Tensor
     iterations: torch.Tensor
     infeasible: torch.Tensor
+    direction: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -295,15 +298,15 @@ def _start(G, tau, f_ref, w, traceable: bool = False, views: _Views | None = Non
     return lam, ridge + w.view(-1, 1, 1) * eye
 
 
-def _separated(problem, lam, tol_nm: float) -> torch.Tensor:
-    """(B,) True where the multiplier's direction proves that no tension in the box balances ``tau`` to ``tol_nm``
-    on every joint (an equilibrium case, ``w = 0``). Along ``u = lam / |lam|`` the dual grows by ``u . tau -
-    max_f u . (-G^T f)`` per unit of ``|lam|``: where that is positive the dual is unbounded and the QP has no
-    solution (``problem.separation_gap_nm``; exact, a case with a solution is never marked)."""
+def _separated(problem, lam, tol_nm: float):
+    """``(separated (B,), u (B, N))``: True where the multiplier's direction ``u = lam / |lam|`` proves that no
+    tension in the box balances ``tau`` to ``tol_nm`` on every joint (an equilibrium case, ``w = 0``). Along u the
+    dual grows by ``u . tau - max_f u . (-G^T f)`` per unit of ``|lam|``: where that is positive the dual is unbounded
+    and the QP has no solution (``problem.separation_gap_nm``; exact, a case with a solution is never marked)."""
     G, tau, _, lo, hi, w = problem
     u = lam / torch.clamp(torch.linalg.vector_norm(lam, dim=1, keepdim=True), min=1e-300)
     gap = separation_gap_nm(G, tau, lo, hi, u.unsqueeze(1)).squeeze(1)
-    return (gap > math.sqrt(G.shape[2]) * tol_nm) & (w == 0)
+    return (gap > math.sqrt(G.shape[2]) * tol_nm) & (w == 0), u
 
 
 def _unsettled(problem, state: _State, residual, tol: float) -> torch.Tensor:
@@ -341,8 +344,10 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     w = _f64(w, G.device)
     w = w if w.shape == (batch,) else w.expand(batch)  # a BoxQP's (B,) weight as it is: no expand to dispatch
     infeasible = torch.zeros(batch, dtype=torch.bool, device=G.device)
+    direction = torch.full_like(tau, torch.nan)
     if batch == 0 and not fixed_iterations:
-        return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible)
+        return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible,
+                            direction)
     problem = (G, tau, f_ref, lo, hi, w)
     views = None if fixed_iterations else _views(G, tau, f_ref, w)  # the traced graph as it was: views per use
     w_col = None if views is None else views.w
@@ -356,11 +361,11 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         size = residual.abs().amax(1)
         active = size > tol
         if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > FEW_CASES else _CERTIFY_STEPS_FEW):
-            infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
+            infeasible, direction = _proven(problem, state, active, infeasible, direction, infeasible_tol)
             active = active & ~infeasible
         running = host_count(active)  # one host read; the indices only where some cases have stopped
         if running == 0:
-            return NewtonResult(state.f, size <= tol, iterations, infeasible)
+            return NewtonResult(state.f, size <= tol, iterations, infeasible, direction)
         if running == batch:  # every case still runs: no gather
             state = _newton_step(problem, state, residual, shift, True, views=views)
         else:
@@ -371,8 +376,15 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         iterations += active
     unsettled = _unsettled(problem, state, _residual(state, w, w_col), tol)
     if infeasible_tol is not None:  # what the last step leaves
-        infeasible = infeasible | (unsettled & _separated(problem, state.lam, infeasible_tol))
-    return NewtonResult(state.f, ~unsettled, iterations, infeasible)
+        infeasible, direction = _proven(problem, state, unsettled, infeasible, direction, infeasible_tol)
+    return NewtonResult(state.f, ~unsettled, iterations, infeasible, direction)
+
+
+def _proven(problem, state: _State, running, infeasible, direction, tol_nm: float):
+    """``(infeasible, direction)`` with the ``running`` cases that ``_separated`` proves added, each with its u."""
+    separated, u = _separated(problem, state.lam, tol_nm)
+    new = running & separated & ~infeasible
+    return infeasible | new, torch.where(new.unsqueeze(1), u, direction)
 
 
 def _masked_steps(problem, state: _State, shift, iterations, tol: float, max_iter: int):

@@ -96,7 +96,7 @@ def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_
     _check_options(options)
     if check_qp_solver(solver) != "newton":
         return _certified(problem, *_external(problem, solver, options), options.certify)
-    f, status, iterations = _solvable_first_pass(problem, tol, max_iter)
+    f, status, iterations, direction = _solvable_first_pass(problem, tol, max_iter)
     any_least, any_equilibrium, every_equilibrium = _left(status, problem.w_m2)
     if any_least:
         least = (status == _NOT_CONVERGED) & (problem.w_m2 > 0)
@@ -104,37 +104,42 @@ def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_
                                                                          options)
     if every_equilibrium:  # no gather (a single case that needs more than the first pass)
         return _certified(problem, *_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options),
-                          options.certify)
+                          options.certify, direction)
     if any_equilibrium:  # the least-squares rows above have w > 0: not among these
         rows = ((status == _NOT_CONVERGED) | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
                                                                       status[rows] == _INFEASIBLE, iterations[rows],
                                                                       options)
-    return _certified(problem, f, status, iterations, options.certify)
+    return _certified(problem, f, status, iterations, options.certify, direction)
 
 
-def _certified(problem: BoxQP, f, status, iterations, certify: bool) -> Solution:
+def _certified(problem: BoxQP, f, status, iterations, certify: bool, direction=None) -> Solution:
     """The ``Solution`` with ``INFEASIBLE`` only where a checked certificate proves it (``Solution.certificate``,
     ``separating_direction``) or the box crosses: an equilibrium case claimed ``INFEASIBLE`` without one becomes
-    ``NOT_CONVERGED`` (nothing proved it), one left ``NOT_CONVERGED`` with one becomes ``INFEASIBLE``."""
+    ``NOT_CONVERGED`` (nothing proved it), one left ``NOT_CONVERGED`` with one becomes ``INFEASIBLE``.
+    ``direction (B, N)``: the Newton's own proofs (``NewtonResult.direction``, NaN where none), tried first."""
     certificate = torch.full_like(problem.tau_nm, torch.nan)
     claim = ((status == _INFEASIBLE) | (status == _NOT_CONVERGED)) & ~problem.crossed & (problem.w_m2 == 0)
     if not certify or not _some(claim):
         return Solution(f, status, iterations, problem, certificate)
-    certificate[claim] = separating_direction(problem.take(claim), f[claim])
+    certificate[claim] = separating_direction(problem.take(claim), f[claim],
+                                              None if direction is None else direction[claim])
     proven = ~torch.isnan(certificate[:, 0])
     status = torch.where(claim, torch.where(proven, _INFEASIBLE, _NOT_CONVERGED), status).to(torch.int32)
     return Solution(f, status, iterations, problem, certificate)
 
 
-def separating_direction(problem: BoxQP, f_n) -> torch.Tensor:
+def separating_direction(problem: BoxQP, f_n, direction=None) -> torch.Tensor:
     """(B, N) per equilibrium case a unit direction u along which no tension in the box reaches ``tau``: its
     ``separation_gap_nm`` exceeds ``sqrt(N) EQUILIBRIUM_TOL_NM`` (checked here); NaN where none is found. Tried: the
     residual of the case's tensions ``f_n``, the screen's directions, then the residuals of box least squares whose
     balance weighs ever more (``CERTIFY_REGS``): their tensions near the torque zonotope's point nearest ``-tau``, whose
-    residual is the sharpest separating direction there is."""
-    direction, found = _best_direction(problem, torch.cat(
-        [residual_direction(problem.G, problem.tau_nm, f_n).unsqueeze(1), screen_normals(problem.G)], 1))
+    residual is the sharpest separating direction there is. ``direction (B, N)``: a candidate of the caller's own
+    (the Newton's multiplier direction; NaN where none), tried with the others."""
+    candidates = [residual_direction(problem.G, problem.tau_nm, f_n).unsqueeze(1), screen_normals(problem.G)]
+    if direction is not None:
+        candidates.append(torch.nan_to_num(direction, nan=0.0).unsqueeze(1))  # a zero direction proves nothing
+    direction, found = _best_direction(problem, torch.cat(candidates, 1))
     for reg in CERTIFY_REGS:
         if _every(found):
             break
@@ -212,28 +217,29 @@ def _some(mask) -> bool:
 
 
 def _solvable_first_pass(problem: BoxQP, tol: float, max_iter: int):
-    """``(f, status, iterations)``: ``_first_pass`` on the cases with valid input and an uncrossed box; the others
-    NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled later)."""
+    """``(f, status, iterations, direction)``: ``_first_pass`` on the cases with valid input and an uncrossed box;
+    the others NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled
+    later), and no direction (NaN)."""
     skip = problem.bad_input | problem.crossed
     if not _some(skip):  # every case: no gather
         return _first_pass(problem, tol, max_iter)
     f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
     f = torch.where(problem.bad_input.unsqueeze(1), torch.nan, f)
     status = torch.where(problem.bad_input, Status.BAD_INPUT.code, _NOT_CONVERGED).to(torch.int32)
-    iterations = torch.zeros_like(status)
+    iterations, direction = torch.zeros_like(status), torch.full_like(problem.tau_nm, torch.nan)
     if not _every(skip):
         run = (~skip).nonzero().squeeze(1)
-        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
-    return f, status, iterations
+        f[run], status[run], iterations[run], direction[run] = _first_pass(problem.take(run), tol, max_iter)
+    return f, status, iterations, direction
 
 
 def _first_pass(problem: BoxQP, tol: float, max_iter: int):
-    """``(f, status, iterations)`` after the dual Newton's first ``FIRST_PASS`` steps: OK where it converged,
-    INFEASIBLE where its multiplier proves an equilibrium case without a solution (``dual_newton``'s
-    ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``)."""
+    """``(f, status, iterations, direction)`` after the dual Newton's first ``FIRST_PASS`` steps: OK where it
+    converged, INFEASIBLE where its multiplier proves an equilibrium case without a solution (``dual_newton``'s
+    ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``), with that multiplier's direction."""
     newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS),
                          infeasible_tol=max(tol, EQUILIBRIUM_TOL_NM))
-    return newton.f, _codes(newton.converged, newton.infeasible), newton.iterations
+    return newton.f, _codes(newton.converged, newton.infeasible), newton.iterations, newton.direction
 
 
 def _codes(converged, infeasible) -> torch.Tensor:

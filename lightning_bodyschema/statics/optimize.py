@@ -82,15 +82,13 @@ class StaticResult:
 
 
 @torch.inference_mode()  # numpy in and out: no tensor here needs autograd's version counters
-def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str, final: bool = True):
+def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str):
     """``argmin ||x - x_ref||^2  s.t.  -G^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,): the
     one QP call, ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the
     torque-reach screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
-    ``PROXQP_EPS``); rows not ``ok`` are NaN. ``final``: these statuses are the answer (``infeasible`` then carries
-    its checked certificate); else the rows not ``ok`` are solved again in a wider box, and none is certified."""
+    ``PROXQP_EPS``); rows not ``ok`` are NaN."""
     solution = solve_box_qp(BoxQP.build(G, tau_nm, x_ref, lo, hi), solver, tol=STATIC_TOL_NM,
-                            fallback_max_iter=PROXQP_MAX_ITER, fallback_eps_abs=PROXQP_EPS, least_squares=False,
-                            certify=final)
+                            fallback_max_iter=PROXQP_MAX_ITER, fallback_eps_abs=PROXQP_EPS, least_squares=False)
     return np.clip(to_numpy(solution.f_n), lo, hi), to_numpy(solution.status)
 
 
@@ -173,7 +171,7 @@ class StaticBody:
         scale, offset = (s, p) if objective == "activation" else (np.full(lo.shape, unit), np.zeros_like(lo))
         x_ref = np.zeros_like(lo) if objective == "activation" else self._f_ref(f_ref, lo.shape) / unit
         capped = hi if s is None else np.minimum(hi, p + s)
-        f, status = _held(G, tau, lo, capped, scale, offset, x_ref, solver, Status.OK, final=s is None)
+        f, status = _held(G, tau, lo, capped, scale, offset, x_ref, solver, Status.OK)
         if s is not None and (status != Status.OK).any():
             rest = status != Status.OK
             relaxed = np.minimum(hi, p + RELAXED_ACTIVATION * s)
@@ -209,10 +207,9 @@ class StaticBody:
 RELAXED_ACTIVATION = 1e3  # the activation cap of the second solve: held above it counts as infeasible
 
 
-def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status, final: bool = True):
+def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status):
     """Tensions ``f = scale x + offset`` (B, M) [N] in ``[lo, hi]`` holding each posture, the QP in x, and the status:
-    ``held`` where it holds, else ``infeasible`` (crossed bounds, a torque out of reach) or ``not_converged``
-    (``final``: see ``_solve_box_qp``)."""
+    ``held`` where it holds, else ``infeasible`` (crossed bounds, a torque out of reach) or ``not_converged``."""
     positive = scale > 0
     unit = np.where(positive, scale, 1.0)
     x_lo = np.where(positive, (lo - offset) / unit, np.where(lo <= offset, 0.0, 1.0))  # scale 0: f = offset
@@ -222,7 +219,7 @@ def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status, fi
     x, code = np.full(lo.shape, np.nan), np.full(len(lo), Status.INFEASIBLE.code)  # crossed: infeasible
     if (~crossed).any():
         x[~crossed], code[~crossed] = _solve_box_qp(Gx[~crossed], tau_x[~crossed], x_ref[~crossed], x_lo[~crossed],
-                                                    x_hi[~crossed], solver, final)
+                                                    x_hi[~crossed], solver)
     ok = code == Status.OK.code
     status = status_array(code)
     status[ok] = held
