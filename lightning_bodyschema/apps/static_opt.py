@@ -17,6 +17,7 @@ import os
 import numpy as np
 
 from ..errors import BodySchemaInputError, did_you_mean
+from ..notes import notes_held
 from ..status import status_codes, status_names
 from .common import argument_parser, config_data, exits_cleanly, robot_options, write_bytes, write_npz
 from .posture_files import concatenate, postures_of, read_posture_columns
@@ -171,6 +172,7 @@ def _body(data: dict, locks: dict, args):
 
 
 @exits_cleanly
+@notes_held(lambda: os.path.join(_cache_root(), "logs", "static_opt.log"))
 def static_opt_main(argv=None):
     args = _parser().parse_args(argv)
     if os.path.isdir(args.out):

@@ -22,7 +22,6 @@ import functools
 import glob
 import os
 import re
-import sys
 import warnings
 import xml.etree.ElementTree as ET
 from importlib import resources
@@ -31,6 +30,7 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from ..notes import note
 from .install import MYO_SIM_INSTALL, mujoco_broken_message
 
 MYO_PREFIX = "myo:"
@@ -70,7 +70,7 @@ def _myo_sim():
 def quiet_attach_warnings():
     """MuJoCo's "Attaching a spec with an empty prefix may prevent the model from being saved correctly", which
     myo-sim's composition of bodies triggers on every load, silenced (we save the compiled model's own XML, not the
-    spec); MuJoCo's other warnings go to stderr as before."""
+    spec); MuJoCo's other warnings become notes (``notes.note``: stderr, or a tool's log when its run is refused)."""
     previous = mujoco.get_mju_user_warning()
 
     def warn(message: str):
@@ -79,7 +79,7 @@ def quiet_attach_warnings():
         if previous is not None:
             previous(message)
         else:
-            print(f"WARNING: {message}", file=sys.stderr)
+            note(f"MuJoCo warning: {message.strip()}")
 
     mujoco.set_mju_user_warning(warn)
     try:
@@ -89,7 +89,7 @@ def quiet_attach_warnings():
 
 
 _FULL_DIGITS = 17  # a double printed with 17 significant digits reads back as the same double
-# a number MuJoCo printed with 17 digits; 16 or more digits mark one that is not short already
+# a number in an attribute value (not a digit inside a name such as "r_0.5")
 _LONG_NUMBER = re.compile(r"(?<![\w.])[-+]?\d*\.?\d+(?:[eE][-+]?\d+)?(?![\w.])")
 
 
@@ -115,7 +115,7 @@ def _mujoco_precision_hooks():
 def full_precision_xml():
     """``MjSpec.to_xml`` writes every number so that it reads back as the same double (17 significant digits)
     inside this block; outside it MuJoCo keeps 6, which moves a MyoSuite body's compiled masses and frames by up
-    to 5e-6 relative. Yields False (and warns once) where MuJoCo offers no way to raise the precision."""
+    to 5e-6 relative. Yields False (and warns) where MuJoCo offers no way to raise the precision."""
     hooks = _mujoco_precision_hooks()
     if hooks is None:
         warnings.warn("this MuJoCo build cannot write XML at full precision: the stored model keeps 6 significant "
@@ -199,6 +199,8 @@ def same_compiled_model(a: mujoco.MjModel, b: mujoco.MjModel, rtol: float = SAME
 
 
 def _rows_agree(x: np.ndarray, y: np.ndarray, rtol: float) -> bool:
+    """Floats: each element within ``rtol`` of the largest magnitude in its row (last axis), NaN where the other is
+    NaN, an infinite bound where the other's is; anything else exactly equal."""
     if x.dtype.kind != "f" or x.size == 0:
         return np.array_equal(x, y)
     if not np.array_equal(np.isnan(x), np.isnan(y)):

@@ -8,7 +8,6 @@ Tensions act on the joints as ``-G^T f``; static equilibrium is ``-G^T f = tau_b
 from __future__ import annotations
 
 import hashlib
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from typing import Mapping, Sequence
 
@@ -16,6 +15,7 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError, did_you_mean
+from ..notes import note
 from .joints import JointMap
 from .mjcf import (compile_spec, load_spec, packaged_model_names, packaged_model_xml, quiet_attach_warnings,
                    self_contained_xml)
@@ -191,9 +191,8 @@ class MusculoskeletalModel:
         _add_locks(spec, locks)
         self._build(spec)
         self.muscle_ids = self._select_muscles(muscles)
-        print(f"locked {len(locks)} joint(s) that no muscle crosses at their reference position: "
-              + ", ".join(f"{k}={v:.4g}" for k, v in locks.items()) + f"; free joints: {self.joint_names}",
-              file=sys.stderr)
+        note(f"locked {len(locks)} joint(s) that no muscle crosses at their reference position: "
+             + ", ".join(f"{k}={v:.4g}" for k, v in locks.items()) + f"; free joints: {self.joint_names}")
 
     def _drop_muscles_crossing_nothing(self):
         """Default muscles that cross no free joint (e.g. finger muscles of a locked hand) are left out."""
@@ -202,7 +201,7 @@ class MusculoskeletalModel:
         if not moves.all():
             dropped = [n for n, keep in zip(self.muscle_names, moves) if not keep]
             self.muscle_ids = self.muscle_ids[moves]
-            print(f"left out {len(dropped)} muscle(s) that cross no free joint: {dropped}", file=sys.stderr)
+            note(f"left out {len(dropped)} muscle(s) that cross no free joint: {dropped}")
 
     # ------------------------------------------------------------------ structure
     def _check_joints(self):

@@ -18,18 +18,26 @@ QP_EPS_ABS = 1e-9  # proxsuite's tolerance on the equilibrium QP [N m]: far belo
 # the least-squares QP: stationarity to 1 mN of its scaled objective (the rows are best efforts, never commands)
 LS_EPS_N, LS_MAX_ITER = 1e-3, 1000
 _SOLVED = proxsuite.proxqp.QPSolverOutput.PROXQP_SOLVED
+# proxsuite's relative tolerance on an equilibrium QP of M tensions: (M + 2) u of the residuals' own terms, the
+# rounding of evaluating them. Its absolute one alone (1e-12 N m) lies below that rounding where the terms are large
+# (activations near a lifted cap of 1000 on moment arms of 40 N m: terms of 4e4 N m), and no iterate then meets it.
+UNIT_ROUNDOFF = np.finfo(np.float64).eps / 2
 
 
-def _dense_qp(n, n_eq, eps_abs, max_iter, qps=None):
+def _dense_qp(n, n_eq, eps_abs, max_iter, qps=None, eps_rel=0.0):
     """A proxsuite dense QP of n variables, n_eq equalities and an n-row box (built in the BatchQP ``qps`` if given),
-    with the tolerance and iteration limit set."""
+    with the tolerances and iteration limit set. ``eps_rel`` > 0 also tightens proxsuite's primal infeasibility
+    test to it: at its default (1e-4) a feasible case whose weak muscles must pull at a lifted cap of 1000 is called
+    infeasible within ten iterations (an infeasible one runs to ``max_iter`` instead; it is never trusted here)."""
     qp = proxsuite.proxqp.dense.QP(n, n_eq, n) if qps is None else qps.init_qp_in_place(n, n_eq, n)
-    qp.settings.eps_abs, qp.settings.eps_rel = eps_abs, 0.0
+    qp.settings.eps_abs, qp.settings.eps_rel = eps_abs, eps_rel
+    if eps_rel > 0:
+        qp.settings.eps_primal_inf = eps_rel
     qp.settings.max_iter, qp.settings.verbose = max_iter, False
     return qp
 
 
-def _proxsuite(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_threads: int):
+def _proxsuite(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_threads: int, eps_rel: float = 0.0):
     """``argmin 0.5 x^T H x + g^T x  s.t.  A x = b,  lo <= x <= hi`` per case (arrays: H (B, n, n), g (B, n), A
     (B, n_eq, n) and b (B, n_eq) or both None, lo, hi (B, n)): ``x (B, n)`` as proxsuite returns it and
     ``solved (B,)`` (proxsuite's status SOLVED)."""
@@ -37,9 +45,9 @@ def _proxsuite(H, g, A, b, lo, hi, eps_abs: float, max_iter: int, num_threads: i
     n_eq = 0 if A is None else A.shape[1]
     eye, x, solved = np.eye(n), np.zeros((batch, n)), np.zeros(batch, dtype=bool)
     parallel = proxsuite.proxqp.dense.BatchQP(batch) if num_threads > 1 else None
-    qp = _dense_qp(n, n_eq, eps_abs, max_iter) if parallel is None else None
+    qp = _dense_qp(n, n_eq, eps_abs, max_iter, eps_rel=eps_rel) if parallel is None else None
     for k in range(batch):  # proxsuite sets its QPs up one at a time; the box as n inequality rows
-        case = qp if qp is not None else _dense_qp(n, n_eq, eps_abs, max_iter, parallel)
+        case = qp if qp is not None else _dense_qp(n, n_eq, eps_abs, max_iter, parallel, eps_rel)
         case.init(H[k], g[k], None if A is None else A[k], None if A is None else b[k], eye, lo[k], hi[k])
         if parallel is None:
             case.solve()
@@ -80,7 +88,8 @@ def _equilibrium(problem: BoxQP, max_iter: int, num_threads: int, eps_abs):
     G, tau, f_ref, lo, hi, _ = _cpu(problem)
     m = G.shape[1]
     x, solved = _proxsuite(np.broadcast_to(np.eye(m), (len(G), m, m)), -f_ref, -np.swapaxes(G, 1, 2), tau, lo, hi,
-                           QP_EPS_ABS if eps_abs is None else eps_abs, max_iter, num_threads)
+                           QP_EPS_ABS if eps_abs is None else eps_abs, max_iter, num_threads,
+                           eps_rel=(m + 2) * UNIT_ROUNDOFF)
     return _back(problem, x, solved)
 
 

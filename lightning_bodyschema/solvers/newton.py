@@ -17,7 +17,8 @@ meets Armijo's condition (or, for ``t = 1``, keeps the free set and lowers ``max
 quadratic the step maximises, and Armijo's test may fail on the rounding of the dual value alone), else a gradient
 step ``F / L`` (``L`` a bound on the dual gradient's Lipschitz constant), which always ascends.
 A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibrium that the box
-cannot hold has no root) is reported as not converged.
+cannot hold has no root) is reported as not converged; after the last step, a residual within the rounding of
+computing it counts as below ``tol`` (``_unsettled``: on a badly scaled case no iterate can do better).
 
 ``fixed_iterations=True`` runs the steps on every case at once, every trial on every case, masked where a case has
 converged, in a ``torch.while_loop`` that ends when every case has converged or after ``max_iter`` steps: no host
@@ -40,6 +41,7 @@ NEWTON_TOL_NM = 1e-9
 # trial steps 1, 1/2, ..., 1/2048 (after the exact maximiser); where none is accepted, the gradient step (ascent)
 LINE_SEARCH_HALVINGS = 12
 _ARMIJO = 1e-4
+_UNIT_ROUNDOFF = torch.finfo(torch.float64).eps / 2
 _RIDGE = 1e-12  # of the mean eigenvalue of G^T G, added to the Newton system (G may be 0)
 # the steps before which the infeasibility test runs (and after the last): from the fourth on a batch, where a proof
 # spares the proven cases' steps; from the sixth on a few cases, where each test costs about a step's overhead
@@ -47,14 +49,17 @@ _CERTIFY_STEPS, _CERTIFY_STEPS_FEW, FEW_CASES = frozenset(range(3, 64, 2)), froz
 
 
 class NewtonResult(NamedTuple):
-    """``f (B, M)`` [N] in the box; ``converged (B,)`` bool: ``max |F(lam)| <= tol`` (then f balances ``tau`` to
-    ``tol`` plus ``w |lam|``); ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)``
-    bool: proven to have no tension in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``)."""
+    """``f (B, M)`` [N] in the box; ``converged (B,)`` bool: every ``|F_n(lam)| <= tol``, or after the last step
+    within the rounding of computing it (``_unsettled``; then f balances ``tau`` to that plus ``w |lam|``);
+    ``iterations (B,)`` int32: the Newton steps each case took; ``infeasible (B,)`` bool: proven to have no tension
+    in the box that balances ``tau`` to ``infeasible_tol`` (``dual_newton``); ``direction (B, N)``: the unit
+    multiplier direction that proved it (a Farkas-type certificate, ``problem.separation_gap_nm``), NaN elsewhere."""
 
     f: torch.Tensor
     converged: torch.Tensor
     iterations: torch.Tensor
     infeasible: torch.Tensor
+    direction: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -293,15 +298,35 @@ def _start(G, tau, f_ref, w, traceable: bool = False, views: _Views | None = Non
     return lam, ridge + w.view(-1, 1, 1) * eye
 
 
-def _separated(problem, lam, tol_nm: float) -> torch.Tensor:
-    """(B,) True where the multiplier's direction proves that no tension in the box balances ``tau`` to ``tol_nm``
-    on every joint (an equilibrium case, ``w = 0``). Along ``u = lam / |lam|`` the dual grows by ``u . tau -
-    max_f u . (-G^T f)`` per unit of ``|lam|``: where that is positive the dual is unbounded and the QP has no
-    solution (``problem.separation_gap_nm``; exact, a case with a solution is never marked)."""
+def _separated(problem, lam, tol_nm: float):
+    """``(separated (B,), u (B, N))``: True where the multiplier's direction ``u = lam / |lam|`` proves that no
+    tension in the box balances ``tau`` to ``tol_nm`` on every joint (an equilibrium case, ``w = 0``). Along u the
+    dual grows by ``u . tau - max_f u . (-G^T f)`` per unit of ``|lam|``: where that is positive the dual is unbounded
+    and the QP has no solution (``problem.separation_gap_nm``; exact, a case with a solution is never marked)."""
     G, tau, _, lo, hi, w = problem
     u = lam / torch.clamp(torch.linalg.vector_norm(lam, dim=1, keepdim=True), min=1e-300)
     gap = separation_gap_nm(G, tau, lo, hi, u.unsqueeze(1)).squeeze(1)
-    return (gap > math.sqrt(G.shape[2]) * tol_nm) & (w == 0)
+    return (gap > math.sqrt(G.shape[2]) * tol_nm) & (w == 0), u
+
+
+def _unsettled(problem, state: _State, residual, tol: float) -> torch.Tensor:
+    """(B,) True where some joint's residual ``|F_n|`` exceeds both ``tol`` and the rounding floor of evaluating it
+    in float64 (u the unit roundoff): a free tension ``f_m = f_ref_m - sum_n G_mn lam_n`` errs by up to ``(N + 1) u
+    (|f_ref_m| + sum_n |G_mn lam_n|)``, and ``F_n = sum_m G_mn f_m + tau_n - w lam_n`` adds ``(M + 2) u (sum_m |G_mn
+    f_m| + |tau_n| + w |lam_n|)``. A smaller residual is zero to the arithmetic. On a badly scaled case (activations
+    near a lifted cap of 1000 on moment arms of 40 N m, the multiplier large where the free muscles are weak) that
+    floor lies above a tolerance of 1e-12 N m, which no iterate can then meet: the steps run to their limit (they
+    do not leave the floor) and the case counts as converged. Tested once, after the last step."""
+    G, tau, f_ref, _, _, w = problem
+    m, n = G.shape[1], G.shape[2]
+    abs_G = G.abs()
+    abs_Gt = abs_G.transpose(1, 2)
+    free_f = torch.baddbmm(f_ref.abs().unsqueeze(-1), abs_G, state.lam.abs().unsqueeze(-1)).squeeze(-1)
+    error_f = (n + 1) * _UNIT_ROUNDOFF * free_f * state.free  # a clipped tension is a bound: exact
+    terms = torch.baddbmm(tau.abs().unsqueeze(-1), abs_Gt, state.f.abs().unsqueeze(-1)).squeeze(-1)
+    floor = (m + 2) * _UNIT_ROUNDOFF * torch.addcmul(terms, w.unsqueeze(1), state.lam.abs())
+    floor = torch.baddbmm(floor.unsqueeze(-1), abs_Gt, error_f.unsqueeze(-1)).squeeze(-1)
+    return ((residual.abs() > tol) & (residual.abs() > floor)).any(1)
 
 
 def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_iter: int = NEWTON_MAX_ITER,
@@ -319,8 +344,10 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
     w = _f64(w, G.device)
     w = w if w.shape == (batch,) else w.expand(batch)  # a BoxQP's (B,) weight as it is: no expand to dispatch
     infeasible = torch.zeros(batch, dtype=torch.bool, device=G.device)
+    direction = torch.full_like(tau, torch.nan)
     if batch == 0 and not fixed_iterations:
-        return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible)
+        return NewtonResult(f_ref.clone(), infeasible, torch.zeros(0, dtype=torch.int32, device=G.device), infeasible,
+                            direction)
     problem = (G, tau, f_ref, lo, hi, w)
     views = None if fixed_iterations else _views(G, tau, f_ref, w)  # the traced graph as it was: views per use
     w_col = None if views is None else views.w
@@ -334,11 +361,11 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         size = residual.abs().amax(1)
         active = size > tol
         if infeasible_tol is not None and k in (_CERTIFY_STEPS if batch > FEW_CASES else _CERTIFY_STEPS_FEW):
-            infeasible = infeasible | (active & _separated(problem, state.lam, infeasible_tol))
+            infeasible, direction = _proven(problem, state, active, infeasible, direction, infeasible_tol)
             active = active & ~infeasible
         running = host_count(active)  # one host read; the indices only where some cases have stopped
         if running == 0:
-            return NewtonResult(state.f, size <= tol, iterations, infeasible)
+            return NewtonResult(state.f, size <= tol, iterations, infeasible, direction)
         if running == batch:  # every case still runs: no gather
             state = _newton_step(problem, state, residual, shift, True, views=views)
         else:
@@ -347,10 +374,17 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
                                shift[idx], True)
             state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
-    size = _residual(state, w, w_col).abs().amax(1)
+    unsettled = _unsettled(problem, state, _residual(state, w, w_col), tol)
     if infeasible_tol is not None:  # what the last step leaves
-        infeasible = infeasible | ((size > tol) & _separated(problem, state.lam, infeasible_tol))
-    return NewtonResult(state.f, size <= tol, iterations, infeasible)
+        infeasible, direction = _proven(problem, state, unsettled, infeasible, direction, infeasible_tol)
+    return NewtonResult(state.f, ~unsettled, iterations, infeasible, direction)
+
+
+def _proven(problem, state: _State, running, infeasible, direction, tol_nm: float):
+    """``(infeasible, direction)`` with the ``running`` cases that ``_separated`` proves added, each with its u."""
+    separated, u = _separated(problem, state.lam, tol_nm)
+    new = running & separated & ~infeasible
+    return infeasible | new, torch.where(new.unsqueeze(1), u, direction)
 
 
 def _masked_steps(problem, state: _State, shift, iterations, tol: float, max_iter: int):

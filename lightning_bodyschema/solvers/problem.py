@@ -75,12 +75,16 @@ class Solution(NamedTuple):
     """``f_n (B, M)`` [N] float64 on the problem's device, within the box (NaN rows where the input was bad);
     ``status (B,)`` int32 codes of ``lightning_bodyschema.status.Status``; ``iterations (B,)`` int32: the dual
     Newton's steps (0 where another back-end solved the case); ``problem``: the ``BoxQP`` it solves, so that the
-    residuals below are the solution's own (qpsolvers' ``Solution`` style)."""
+    residuals below are the solution's own (qpsolvers' ``Solution`` style). ``certificate (B, N)``: on an
+    equilibrium case ``INFEASIBLE`` in an uncrossed box, the unit direction u that proves it (Farkas:
+    ``separation_gap_nm`` along u exceeds ``sqrt(N)`` times the equilibrium tolerance, so every tension in the box
+    leaves some joint's residual above that tolerance); NaN on every other case (a crossed box is its own proof)."""
 
     f_n: torch.Tensor
     status: torch.Tensor
     iterations: torch.Tensor
     problem: BoxQP
+    certificate: torch.Tensor | None = None
 
     def balance_residual_nm(self) -> torch.Tensor:
         """``max_j |G^T f + tau|`` per case (B,) [N m]: the equilibrium's residual (0 to the tolerance on an ``ok``

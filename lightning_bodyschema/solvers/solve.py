@@ -17,15 +17,23 @@ qpsolvers has installed (one call per equilibrium case). The ``Solution`` holds 
    (``_least_squares_proves_no_balance``). ``NOT_CONVERGED`` (with the least-squares tensions) where neither the
    solvers settle a case nor a proof rules it out. A least-squares problem (``w > 0``) the Newton leaves goes to
    proxsuite.
+5. every equilibrium case left ``INFEASIBLE`` or ``NOT_CONVERGED`` in an uncrossed box: ``INFEASIBLE`` exactly where
+   a Farkas-type certificate is found and checked (``separating_direction``; ``Solution.certificate``), else
+   ``NOT_CONVERGED``. So ``INFEASIBLE`` always carries its proof, and ``NOT_CONVERGED`` never hides one.
 
 Another back-end: its answer on every case with valid input (crossed ones in their lowered box); ``OK`` where it
 solved the case and, for an equilibrium case, balanced the torque to ``EQUILIBRIUM_TOL_NM`` in an uncrossed box;
-else ``INFEASIBLE`` where the box crosses or the torque-reach screen proves it, else ``NOT_CONVERGED``.
+else ``INFEASIBLE`` where the box crosses or a checked certificate proves it (step 5), else ``NOT_CONVERGED``.
+
+Both stop at the rounding of the residual they measure where it exceeds their tolerance (``newton._unsettled``,
+``backends.UNIT_ROUNDOFF``): a case whose weak muscles pull at a lifted activation cap of 1000 has terms of 4e4 N m
+in a torque of 7 and cannot be balanced to 1e-12 N m in float64, only to the last bits of those terms.
 
 torch on the problem's device; numpy only inside ``solvers.backends``. Prints nothing.
 """
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -33,15 +41,16 @@ import torch
 from ..errors import BodySchemaInputError
 from ..status import Status
 from .backends import LS_MAX_ITER, check_qp_solver, proxsuite_solve, qpsolvers_solve
-from .least_squares import LS_REG, least_squares_weight
+from .least_squares import LS_REG, box_least_squares, least_squares_weight
 from .newton import FEW_CASES, NEWTON_MAX_ITER, NEWTON_TOL_NM, dual_newton, host_count
-from .problem import BoxQP, Solution
-from .torque_reach import outside_torque_reach, residual_direction
+from .problem import BoxQP, Solution, separation_gap_nm
+from .torque_reach import outside_torque_reach, residual_direction, screen_normals
 
 EQUILIBRIUM_TOL_NM = 1e-6  # a tension vector is an equilibrium if every joint torque residual is below this
 FALLBACKS = ("proxsuite", "none")
 FIRST_PASS = 10  # dual Newton steps before the cases it leaves are screened (holdable ones rarely need more)
 FALLBACK_MAX_ITER = 2000  # proxsuite's iteration limit per equilibrium QP (a case without a solution runs to it)
+CERTIFY_REGS = (1e-9, 1e-12)  # the box least squares' weights (``least_squares``' reg) tried for a certificate
 _OK, _INFEASIBLE, _NOT_CONVERGED = Status.OK.code, Status.INFEASIBLE.code, Status.NOT_CONVERGED.code
 
 
@@ -54,12 +63,13 @@ class _Options(NamedTuple):
     num_threads: int
     fallback_eps_abs: float | None
     least_squares: bool
+    certify: bool
 
 
 def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_TOL_NM,
                  max_iter: int = NEWTON_MAX_ITER, fallback: str = "proxsuite",
                  fallback_max_iter: int = FALLBACK_MAX_ITER, ls_reg: float = LS_REG, num_threads: int = 1,
-                 fallback_eps_abs: float | None = None, least_squares: bool = True) -> Solution:
+                 fallback_eps_abs: float | None = None, least_squares: bool = True, certify: bool = True) -> Solution:
     """The ``Solution`` of every case of ``problem`` by the back-end ``solver`` (module docstring).
 
     Args:
@@ -77,26 +87,77 @@ def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_
             with a tight ``tol`` so that the cases proxsuite settles are as exact as the Newton's.
         least_squares: False: an equilibrium case proven without a solution keeps the Newton's tensions instead of
             the least squares' (not solved for it: for a caller that discards those rows).
+        certify: False: no certificate search (step 5): ``INFEASIBLE`` where the steps above proved it, without
+            ``Solution.certificate`` (for a caller that solves those cases again in a wider box, as static
+            optimization does above full activation).
     """
     options = _Options(tol, max_iter, fallback, fallback_max_iter, ls_reg, num_threads, fallback_eps_abs,
-                       least_squares)
+                       least_squares, certify)
     _check_options(options)
     if check_qp_solver(solver) != "newton":
-        return Solution(*_external(problem, solver, options), problem)
-    f, status, iterations = _solvable_first_pass(problem, tol, max_iter)
+        return _certified(problem, *_external(problem, solver, options), options.certify)
+    f, status, iterations, direction = _solvable_first_pass(problem, tol, max_iter)
     any_least, any_equilibrium, every_equilibrium = _left(status, problem.w_m2)
     if any_least:
         least = (status == _NOT_CONVERGED) & (problem.w_m2 > 0)
         f[least], status[least], iterations[least] = _least_squares_rest(problem.take(least), iterations[least],
                                                                          options)
     if every_equilibrium:  # no gather (a single case that needs more than the first pass)
-        return Solution(*_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options), problem)
+        return _certified(problem, *_no_equilibrium_yet(problem, f, status == _INFEASIBLE, iterations, options),
+                          options.certify, direction)
     if any_equilibrium:  # the least-squares rows above have w > 0: not among these
         rows = ((status == _NOT_CONVERGED) | (status == _INFEASIBLE)) & (problem.w_m2 == 0)
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
                                                                       status[rows] == _INFEASIBLE, iterations[rows],
                                                                       options)
-    return Solution(f, status, iterations, problem)
+    return _certified(problem, f, status, iterations, options.certify, direction)
+
+
+def _certified(problem: BoxQP, f, status, iterations, certify: bool, direction=None) -> Solution:
+    """The ``Solution`` with ``INFEASIBLE`` only where a checked certificate proves it (``Solution.certificate``,
+    ``separating_direction``) or the box crosses: an equilibrium case claimed ``INFEASIBLE`` without one becomes
+    ``NOT_CONVERGED`` (nothing proved it), one left ``NOT_CONVERGED`` with one becomes ``INFEASIBLE``.
+    ``direction (B, N)``: the Newton's own proofs (``NewtonResult.direction``, NaN where none), tried first."""
+    certificate = torch.full_like(problem.tau_nm, torch.nan)
+    claim = ((status == _INFEASIBLE) | (status == _NOT_CONVERGED)) & ~problem.crossed & (problem.w_m2 == 0)
+    if not certify or not _some(claim):
+        return Solution(f, status, iterations, problem, certificate)
+    certificate[claim] = separating_direction(problem.take(claim), f[claim],
+                                              None if direction is None else direction[claim])
+    proven = ~torch.isnan(certificate[:, 0])
+    status = torch.where(claim, torch.where(proven, _INFEASIBLE, _NOT_CONVERGED), status).to(torch.int32)
+    return Solution(f, status, iterations, problem, certificate)
+
+
+def separating_direction(problem: BoxQP, f_n, direction=None) -> torch.Tensor:
+    """(B, N) per equilibrium case a unit direction u along which no tension in the box reaches ``tau``: its
+    ``separation_gap_nm`` exceeds ``sqrt(N) EQUILIBRIUM_TOL_NM`` (checked here); NaN where none is found. Tried: the
+    residual of the case's tensions ``f_n``, the screen's directions, then the residuals of box least squares whose
+    balance weighs ever more (``CERTIFY_REGS``): their tensions near the torque zonotope's point nearest ``-tau``, whose
+    residual is the sharpest separating direction there is. ``direction (B, N)``: a candidate of the caller's own
+    (the Newton's multiplier direction; NaN where none), tried with the others."""
+    candidates = [residual_direction(problem.G, problem.tau_nm, f_n).unsqueeze(1), screen_normals(problem.G)]
+    if direction is not None:
+        candidates.append(torch.nan_to_num(direction, nan=0.0).unsqueeze(1))  # a zero direction proves nothing
+    direction, found = _best_direction(problem, torch.cat(candidates, 1))
+    for reg in CERTIFY_REGS:
+        if _every(found):
+            break
+        rest = problem.take(~found)
+        least = box_least_squares(rest.G, rest.tau_nm, rest.f_ref_n, rest.lo_n, rest.hi_n, reg)
+        more, more_found = _best_direction(rest, residual_direction(rest.G, rest.tau_nm, least.f).unsqueeze(1))
+        direction[~found], found[~found] = more, more_found
+    return torch.where(found.unsqueeze(1), direction, torch.nan)
+
+
+def _best_direction(problem: BoxQP, normals):
+    """``(u (B, N), found (B,))``: of the directions ``normals (B, K, N)`` and their opposites, the one with the
+    largest separation gap, and whether that gap proves the case without an equilibrium."""
+    normals = torch.cat([normals, -normals], 1)
+    gap = separation_gap_nm(problem.G, problem.tau_nm, problem.lo_n, problem.hi_n, normals)
+    best = gap.argmax(1)
+    u = normals[torch.arange(len(best), device=best.device), best]
+    return u, gap.amax(1) > math.sqrt(problem.G.shape[2]) * EQUILIBRIUM_TOL_NM
 
 
 def _external(problem: BoxQP, solver: str, options: _Options):
@@ -156,28 +217,29 @@ def _some(mask) -> bool:
 
 
 def _solvable_first_pass(problem: BoxQP, tol: float, max_iter: int):
-    """``(f, status, iterations)``: ``_first_pass`` on the cases with valid input and an uncrossed box; the others
-    NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled later)."""
+    """``(f, status, iterations, direction)``: ``_first_pass`` on the cases with valid input and an uncrossed box;
+    the others NaN and ``BAD_INPUT``, or the box's point nearest f_ref and ``NOT_CONVERGED`` (crossed: settled
+    later), and no direction (NaN)."""
     skip = problem.bad_input | problem.crossed
     if not _some(skip):  # every case: no gather
         return _first_pass(problem, tol, max_iter)
     f = torch.minimum(torch.maximum(problem.f_ref_n, problem.lo_n), problem.hi_n)
     f = torch.where(problem.bad_input.unsqueeze(1), torch.nan, f)
     status = torch.where(problem.bad_input, Status.BAD_INPUT.code, _NOT_CONVERGED).to(torch.int32)
-    iterations = torch.zeros_like(status)
+    iterations, direction = torch.zeros_like(status), torch.full_like(problem.tau_nm, torch.nan)
     if not _every(skip):
         run = (~skip).nonzero().squeeze(1)
-        f[run], status[run], iterations[run] = _first_pass(problem.take(run), tol, max_iter)
-    return f, status, iterations
+        f[run], status[run], iterations[run], direction[run] = _first_pass(problem.take(run), tol, max_iter)
+    return f, status, iterations, direction
 
 
 def _first_pass(problem: BoxQP, tol: float, max_iter: int):
-    """``(f, status, iterations)`` after the dual Newton's first ``FIRST_PASS`` steps: OK where it converged,
-    INFEASIBLE where its multiplier proves an equilibrium case without a solution (``dual_newton``'s
-    ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``)."""
+    """``(f, status, iterations, direction)`` after the dual Newton's first ``FIRST_PASS`` steps: OK where it
+    converged, INFEASIBLE where its multiplier proves an equilibrium case without a solution (``dual_newton``'s
+    ``infeasible_tol``, at ``EQUILIBRIUM_TOL_NM``), with that multiplier's direction."""
     newton = dual_newton(*problem[:6], tol=tol, max_iter=min(max_iter, FIRST_PASS),
                          infeasible_tol=max(tol, EQUILIBRIUM_TOL_NM))
-    return newton.f, _codes(newton.converged, newton.infeasible), newton.iterations
+    return newton.f, _codes(newton.converged, newton.infeasible), newton.iterations, newton.direction
 
 
 def _codes(converged, infeasible) -> torch.Tensor:

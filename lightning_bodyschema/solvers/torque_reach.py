@@ -39,6 +39,14 @@ def _facet_normals(G: torch.Tensor) -> torch.Tensor | None:
     return torch.linalg.svd(spans)[2][..., -1, :]  # the right singular vector of the zero singular value
 
 
+def screen_normals(G: torch.Tensor) -> torch.Tensor:
+    """(B, K, N) the screen's own test directions: every facet normal of the torque zonotope where there are at most
+    ``MAX_SCREEN_NORMALS`` of them, else the joint axes."""
+    normals = _facet_normals(G)
+    return torch.eye(G.shape[2], dtype=G.dtype, device=G.device).expand(G.shape[0], -1, -1) if normals is None \
+        else normals
+
+
 def residual_direction(G, tau, f_n) -> torch.Tensor:
     """(B, N) unit vectors along ``tau + G^T f``: for the box least-squares tensions f of a torque outside the
     zonotope, close to the normal of the hyperplane that separates them (any direction is a valid test; this one
@@ -57,13 +65,10 @@ def outside_torque_reach(G, tau, lo, hi, tol_nm: float, direction: torch.Tensor 
     ``direction`` (B, N) (default: ``residual_direction`` of the box least squares about the box's middle);
     ``direction`` is added to the facet normals when given.
     """
-    normals = _facet_normals(G)
-    if direction is None and normals is None:
+    if direction is None and not screen_is_exact(*G.shape[1:]):
         direction = residual_direction(G, tau, box_least_squares(G, tau, 0.5 * (lo + hi), lo, hi).f)
     extra = [] if direction is None else [direction.unsqueeze(1)]
-    if normals is None:
-        normals = torch.eye(G.shape[2], dtype=G.dtype, device=G.device).expand(G.shape[0], -1, -1)
-    normals = torch.cat(extra + [normals], dim=1)
+    normals = torch.cat(extra + [screen_normals(G)], dim=1)
     normals = torch.cat([normals, -normals], dim=1)  # both orientations of every direction
     gap = separation_gap_nm(G, tau, lo, hi, normals)
     # a gap d forces |u . residual| >= d, so some joint's residual >= d / sqrt(N): the QP's own tolerance

@@ -171,3 +171,25 @@ def test_an_unknown_back_end_is_refused_by_name():
     problem = BoxQP.build(*_body(2, seed=4)[1:], 75.0, 0.0, 150.0)
     with pytest.raises(BodySchemaInputError, match="unknown QP solver 'gurobi'; allowed: 'newton', 'proxqp'"):
         solve_box_qp(problem, "gurobi")
+
+
+@pytest.mark.parametrize("solver", ["newton", "proxqp"])
+def test_every_infeasible_case_carries_a_checked_certificate(solver):
+    """An uncrossed INFEASIBLE case holds a unit direction u along which the box's torques fall short of tau by more
+    than sqrt(N) times the equilibrium tolerance (checked here by the support function, written out); OK and crossed
+    cases hold NaN."""
+    rng, G, tau = _body(64, seed=4)
+    tau[:24] *= np.linspace(1.2, 4.0, 24)[:, None]  # from barely to far out of reach of tensions up to 150 N
+    hi = np.full((64, M), 150.0)
+    hi[24:28, 1] = -1.0  # crossed
+    problem = BoxQP.build(G, tau, 0.0, 0.0, hi)
+    solution = solve_box_qp(problem, solver)
+    status, u = solution.status.numpy(), solution.certificate.numpy()
+    infeasible = (status == INFEASIBLE) & ~problem.crossed.numpy()
+    assert infeasible.sum() >= 12 and (status[24:28] == INFEASIBLE).all() and (status[28:] == OK).all()
+    assert set(status.tolist()) <= {OK, INFEASIBLE}  # every case decided: held, or proven out of reach
+    assert np.isnan(u[~infeasible]).all() and np.allclose(np.linalg.norm(u[infeasible], axis=1), 1.0)
+    c = -np.einsum("bmn,bn->bm", G[infeasible], u[infeasible])
+    support = np.where(c > 0, 150.0 * c, 0.0).sum(1)  # max over [0, 150] of u . (-G^T f)
+    gap = np.einsum("bn,bn->b", u[infeasible], tau[infeasible]) - support
+    assert (gap > np.sqrt(N) * 1e-6).all()
