@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from .mjcf import exact_xml
 from .model import MusculoskeletalModel
 from .spring import SpringParams
 
@@ -61,4 +62,4 @@ def mismatched_robot(model: MusculoskeletalModel, spring: SpringParams, fraction
         (np.broadcast_to(np.asarray(spring.k_n, float), (n,)) * factor(n)).tolist(),
         (np.broadcast_to(np.asarray(spring.alpha_per_m, float), (n,)) * factor(n)).tolist(),
         spring.f_max_n)
-    return MusculoskeletalModel(spec.to_xml(), muscles=model.muscle_names), perturbed_spring
+    return MusculoskeletalModel(exact_xml(spec), muscles=model.muscle_names), perturbed_spring
