@@ -176,7 +176,7 @@ def slsqp_frames(body, q, qvel, qacc, jacobians=True):
 
     inverse, out = InverseBody(body), np.full((len(q), body.model.n_muscles), np.nan)
     for b in range(len(q)):
-        l_geo, G, tau = inverse.inverse(q[b:b + 1], qvel[b:b + 1], qacc[b:b + 1])
+        l_geo, G, tau = inverse.inverse(q[b:b + 1], qvel[b:b + 1], qacc[b:b + 1])[:3]
         s, p = body.curves.affine(l_geo)
         s = (s * body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel[b:b + 1])))[0]
         A, need = -(G[0] * s[:, None]).T, tau[0] + G[0].T @ p[0]

@@ -164,7 +164,8 @@ def _body(data: dict, locks: dict, args):
 
     options = robot_options(data)
     locks = {**dict(options.pop("locked_joints") or {}), **locks}
-    options["fixed_base"] = options["fixed_base"] or args.fixed_base
+    # a motion may move a floating root (its columns in the file); statics welds it, the dynamics puts it back
+    options["fixed_base"] = options["fixed_base"] or args.fixed_base or bool(args.motion)
     return StaticBody(options.pop("source"), locked_joints=locks, k_n=data.get("k_n"),
                       alpha_per_m=data.get("alpha_per_m", 20.0), f_max_n=data.get("f_max_n"), threads=args.threads,
                       **options)
