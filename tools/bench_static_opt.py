@@ -174,7 +174,7 @@ def slsqp_frames(body, q, qvel, qacc, jacobians=True):
 
     from lightning_bodyschema.statics.dynamics import InverseBody
 
-    inverse, out = InverseBody(body), np.full((len(q), body.model.n_muscles), np.nan)
+    inverse, out = InverseBody(body, lean=False), np.full((len(q), body.model.n_muscles), np.nan)
     for b in range(len(q)):
         l_geo, G, tau = inverse.inverse(q[b:b + 1], qvel[b:b + 1], qacc[b:b + 1])[:3]
         s, p = body.curves.affine(l_geo)

@@ -1,9 +1,10 @@
 """Muscles for a motion: inverse dynamics with faults on the true body, batched over frames.
 
 Per frame (free joints ``q``, ``qvel``, ``qacc``; every joint of the model from them through the locks and couplings,
-``qacc_full = E qacc + (dE/dt) qvel``, ``sim/joints.py``), MuJoCo's ``mj_inverse`` (constraints off: the free
-coordinates carry the locks and couplings exactly) gives the generalized force the motion needs, ``M qacc + bias -
-passive`` (gravity, Coriolis, joint damping and springs), and in the free joints ``tau = E^T qfrc_inverse``. The
+``qacc_full = E qacc + (dE/dt) qvel``, ``sim/joints.py``), MuJoCo's inverse dynamics (``mj_inverse``'s answer by
+a leaner call sequence, ``statics.mujoco_inverse``; constraints off: the free coordinates carry the locks and
+couplings exactly) gives the generalized force the motion needs, ``M qacc + bias - passive`` (gravity, Coriolis,
+joint damping and springs), and in the free joints ``tau = E^T qfrc_inverse``. A floating root: ``statics.root``. The
 muscles must supply it: ``-G^T f = tau`` with ``f = FV(v) s(l) a + p(l)`` at each muscle's tendon velocity
 ``v = G qvel`` (MuJoCo's force-velocity curve, ``statics.muscles``). Then the static optimization's QP per frame
 (``StaticBody.solve_torque``: ``min sum a^2`` or the tension objective, faults, statuses), all frames in one batch.
@@ -16,7 +17,6 @@ numpy, MuJoCo and torch (the QP, on any device); never imports Lightning.
 """
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass, field, replace
 from typing import Optional, Sequence
 
@@ -24,10 +24,12 @@ import mujoco
 import numpy as np
 
 from ..errors import BodySchemaInputError
+from ..sim.mjcf import compile_spec
 from ..sim.model import UNCROSSED_ARM_M
 from .activation import excitation
 from .optimize import StaticBody, StaticResult, check_solver
-from .root import FrameLayout
+from .mujoco_inverse import lean_inverse, lean_model, uses_lean
+from .root import FrameLayout, floating_spec
 
 DEFAULT_RESIDUAL_WEIGHT = 1.0  # 1 N m of residual costs as much as one muscle at full activation
 
@@ -70,13 +72,19 @@ class InverseBody:
     """MuJoCo's inverse dynamics of a ``StaticBody``'s model: a private copy of the model (``floating``: with its
     source's free joints put back, ``statics.root``) with its constraints off (locks and couplings are carried by the
     free coordinates; contacts play no part), one ``MjData`` per thread (``body.threads``; the same numbers whatever
-    the count)."""
+    the count). ``lean``: idle tendons left out and the lean call sequence (``statics.mujoco_inverse``); False: the
+    whole model and ``mj_inverse`` itself, as a MuJoCo user calls it."""
 
-    def __init__(self, body: StaticBody, floating: bool = False):
-        self.body, self.layout = body, FrameLayout.of(body, floating)
-        self.m = copy.copy(self.layout.m)
+    def __init__(self, body: StaticBody, floating: bool = False, lean: bool = True):
+        spec = floating_spec(body) if floating else mujoco.MjSpec.from_string(body.model.xml)
+        model = lean_model(spec, body.model.muscle_names) if lean else compile_spec(spec)
+        self.body, self.layout = body, FrameLayout.of(body, floating, model)
+        self.m = self.layout.m  # compiled here: this copy is private
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+        self.lean = lean and uses_lean(self.m)
         self.datas = [mujoco.MjData(self.m) for _ in range(body.threads)]
+        self.tendon_ids = np.array([mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_TENDON, n)
+                                    for n in body.model.muscle_names], dtype=int)
         self.index = self._muscle_index()
 
     def full_state(self, q, qvel, qacc):
@@ -114,7 +122,7 @@ class InverseBody:
         rest_jac, rest_force = (jac, force) if not layout.floating else (jac[:, :, layout.rest_dof],
                                                                           force[:, layout.rest_dof])
         roots = (None, None) if not layout.floating else (jac[:, :, layout.root_dof], force[:, layout.root_dof])
-        return (lengths[:, self.body.model.muscle_ids], rest_jac @ tangent,
+        return (lengths[:, self.tendon_ids], rest_jac @ tangent,
                 np.einsum("bjn,bj->bn", tangent, rest_force), *roots)
 
     def _muscle_index(self):
@@ -124,19 +132,24 @@ class InverseBody:
         tendons = np.repeat(np.arange(m.ntendon), m.ten_J_rownnz)
         entries = np.concatenate([np.arange(a, a + n) for a, n in zip(m.ten_J_rowadr, m.ten_J_rownnz)]
                                  + [np.zeros(0, int)])
-        order = {int(t): k for k, t in enumerate(self.body.model.muscle_ids)}
+        order = {int(t): k for k, t in enumerate(self.tendon_ids)}
         keep = np.array([int(t) in order for t in tendons], dtype=bool)
         return (np.array([order[int(t)] for t in tendons[keep]], dtype=int), m.ten_J_colind[entries[keep]],
                 entries[keep])
 
     def _fill(self, state, rows, d, out) -> None:
-        """``mj_inverse`` of the frames ``rows``: tendon lengths, the muscles' ``ten_J`` entries and the forces."""
+        """MuJoCo's inverse dynamics of the frames ``rows`` (``statics.mujoco_inverse``): tendon lengths, the
+        muscles' ``ten_J`` entries and the forces."""
         full, qvel_full, qacc_full = state
         (lengths, values, force), m, entries = out, self.m, self.index[2]
         for b in rows:  # MuJoCo evaluates one state per call
             d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
-            mujoco.mj_inverse(m, d)
-            lengths[b], force[b], values[b] = d.ten_length, d.qfrc_inverse, d.ten_J[entries]
+            if self.lean:
+                lean_inverse(m, d, force[b])
+            else:
+                mujoco.mj_inverse(m, d)
+                force[b] = d.qfrc_inverse
+            lengths[b], values[b] = d.ten_length, d.ten_J[entries]
 
 
 def _inverse_body(body: StaticBody, floating: bool = False) -> InverseBody:

@@ -16,7 +16,8 @@ from lightning_bodyschema.statics.check import mujoco_motion_error
 from lightning_bodyschema.statics.differentiate import differentiate
 from lightning_bodyschema.statics.root import root_derivatives
 
-# a torso floating on a free joint, a two-joint arm, four muscles with MuJoCo muscle actuators
+# a torso floating on a free joint, a two-joint arm, four muscles with MuJoCo muscle actuators, an idle tendon
+# (a path without force: left out of the inverse model) and a spring tendon (kept: it pulls)
 FLOATING_ARM = """
 <mujoco model="floating_arm">
   <compiler angle="radian"/>
@@ -28,14 +29,14 @@ FLOATING_ARM = """
       <site name="s_shoulder_front" pos="0.06 0 0.1"/>
       <site name="s_shoulder_back" pos="-0.06 0 0.1"/>
       <body name="upper" pos="0 0.12 0.15">
-        <joint name="shoulder" type="hinge" axis="0 1 0" range="-1.5 1.5"/>
+        <joint name="shoulder" type="hinge" axis="0 1 0" range="-1.5 1.5" damping="0.5"/>
         <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.03" mass="1.5"/>
         <site name="s_upper_front" pos="0.03 0 -0.1"/>
         <site name="s_upper_back" pos="-0.03 0 -0.1"/>
         <site name="s_upper_low_f" pos="0.03 0 -0.25"/>
         <site name="s_upper_low_b" pos="-0.03 0 -0.25"/>
         <body name="fore" pos="0 0 -0.3">
-          <joint name="elbow" type="hinge" axis="0 1 0" range="0 2.0"/>
+          <joint name="elbow" type="hinge" axis="0 1 0" range="0 2.0" armature="0.01"/>
           <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.025" mass="1.0"/>
           <site name="s_fore_top" pos="0.05 0 0.02"/>
           <site name="s_fore_bottom" pos="0.05 0 -0.02"/>
@@ -48,6 +49,8 @@ FLOATING_ARM = """
     <spatial name="extensor_s"><site site="s_shoulder_back"/><site site="s_upper_back"/></spatial>
     <spatial name="flexor_e"><site site="s_upper_low_f"/><site site="s_fore_top"/></spatial>
     <spatial name="extensor_e"><site site="s_upper_low_b"/><site site="s_fore_bottom"/></spatial>
+    <spatial name="ligament"><site site="s_shoulder_front"/><site site="s_fore_top"/></spatial>
+    <spatial name="spring" stiffness="40" springlength="0.3"><site site="s_shoulder_back"/><site site="s_fore_bottom"/></spatial>
   </tendon>
   <actuator>
     <muscle name="m_flexor_s" tendon="flexor_s" force="400"/>
@@ -174,3 +177,37 @@ def test_cli_motion_with_root_columns(tmp_path, body):
         # the differentiator's miss (~0.2 % of the peak accelerations) is all that separates them
         scale = np.abs(exact.root_residual[inner]).max(0)
         assert (np.abs(saved["root_residual"] - exact.root_residual)[inner].max(0) <= 1e-2 * scale).all()
+
+
+@pytest.mark.parametrize("floating", [False, True])
+def test_lean_inverse_is_mj_inverse(body, floating):
+    """The inverse model leaves out the idle tendon only, and its lean sequence gives mj_inverse's generalized
+    force on the whole model (idle tendon included) to 1e-12 of the force's scale, frame by frame."""
+    import mujoco
+
+    from lightning_bodyschema.statics.dynamics import InverseBody
+    from lightning_bodyschema.statics.root import FrameLayout, floating_spec
+
+    inverse = InverseBody(body, floating)
+    names = [mujoco.mj_id2name(inverse.m, mujoco.mjtObj.mjOBJ_TENDON, i) for i in range(inverse.m.ntendon)]
+    assert inverse.lean and sorted(names) == sorted(body.model.muscle_names + ["spring"])
+    whole = FrameLayout.of(body, floating)
+    whole.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    assert whole.m.ntendon == 6
+    t = np.arange(0.0, 1.0, 0.05)
+    q, qvel, qacc = arm_motion(t)
+    root = turning_root(t) if floating else None
+    _, G, tau, _, tau_root = inverse.inverse(q, qvel, qacc, root)
+    state = whole.state(*inverse.full_state(q, qvel, qacc)[:3], root)
+    d = mujoco.MjData(whole.m)
+    expected = np.empty((len(t), whole.m.nv))
+    for b in range(len(t)):
+        d.qpos[:], d.qvel[:], d.qacc[:] = state[0][b], state[1][b], state[2][b]
+        mujoco.mj_inverse(whole.m, d)
+        expected[b] = d.qfrc_inverse
+    got = np.zeros_like(expected)
+    got[:, whole.rest_dof] = tau  # every joint free here: E = I
+    if floating:
+        got[:, whole.root_dof] = tau_root
+    scale = np.abs(expected).max()
+    assert scale > 1.0 and np.abs(got - expected).max() <= 1e-12 * scale
