@@ -28,7 +28,7 @@ from ..sim.mjcf import compile_spec
 from ..sim.model import UNCROSSED_ARM_M
 from .activation import excitation
 from .optimize import StaticBody, StaticResult, check_solver
-from .mujoco_inverse import lean_inverse, lean_model, uses_lean
+from .mujoco_inverse import assemble, lean_inverse, lean_model, uses_lean
 from .root import FrameLayout, floating_spec
 
 DEFAULT_RESIDUAL_WEIGHT = 1.0  # 1 N m of residual costs as much as one muscle at full activation
@@ -107,7 +107,8 @@ class InverseBody:
 
         full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
         m, batch, (rows, cols, entries), layout = self.m, len(q), self.index, self.layout
-        out = np.empty((batch, m.ntendon)), np.empty((batch, len(entries))), np.empty((batch, m.nv))
+        out = (np.empty((batch, m.ntendon)), np.empty((batch, len(self.datas[0].ten_J))), np.empty((batch, m.nv)),
+               np.zeros((batch, m.nv)))
         state = layout.state(full, qvel_full, qacc_full, root)
         threads = _thread_count(len(self.datas), batch)
         if threads == 1:
@@ -116,9 +117,11 @@ class InverseBody:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(self._fill, [state] * threads, np.array_split(np.arange(batch), threads),
                               self.datas[:threads], [out] * threads))
-        lengths, values, force = out
+        lengths, ten_j, force, passive = out
+        if self.lean:
+            force = assemble(m, force, state[2], passive)
         jac = np.zeros((batch, len(self.body.model.muscle_ids), m.nv))
-        jac[:, rows, cols] = values  # one scatter of every frame's sparse rows
+        jac[:, rows, cols] = ten_j[:, entries]  # one gather and scatter of every frame's sparse rows
         rest_jac, rest_force = (jac, force) if not layout.floating else (jac[:, :, layout.rest_dof],
                                                                           force[:, layout.rest_dof])
         roots = (None, None) if not layout.floating else (jac[:, :, layout.root_dof], force[:, layout.root_dof])
@@ -138,18 +141,19 @@ class InverseBody:
                 entries[keep])
 
     def _fill(self, state, rows, d, out) -> None:
-        """MuJoCo's inverse dynamics of the frames ``rows`` (``statics.mujoco_inverse``): tendon lengths, the
-        muscles' ``ten_J`` entries and the forces."""
+        """MuJoCo's inverse dynamics of the frames ``rows`` (``statics.mujoco_inverse``): tendon lengths, ``ten_J``
+        and the forces (lean: the RNE and the passive forces)."""
         full, qvel_full, qacc_full = state
-        (lengths, values, force), m, entries = out, self.m, self.index[2]
+        (lengths, ten_j, force, passive), m = out, self.m
         for b in rows:  # MuJoCo evaluates one state per call
             d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
             if self.lean:
                 lean_inverse(m, d, force[b])
+                passive[b] = d.qfrc_passive
             else:
                 mujoco.mj_inverse(m, d)
                 force[b] = d.qfrc_inverse
-            lengths[b], values[b] = d.ten_length, d.ten_J[entries]
+            lengths[b], ten_j[b] = d.ten_length, d.ten_J  # the muscles' entries gathered for all frames at once
 
 
 def _inverse_body(body: StaticBody, floating: bool = False) -> InverseBody:

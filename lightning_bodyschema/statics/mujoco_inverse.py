@@ -46,13 +46,18 @@ def uses_lean(m: mujoco.MjModel) -> bool:
                 or (hasattr(m, "tendon_dampingpoly") and np.any(m.tendon_dampingpoly)))
 
 
-def lean_inverse(m: mujoco.MjModel, d: mujoco.MjData, force: np.ndarray) -> None:
-    """``qfrc_inverse`` of ``d``'s state into ``force`` (nv,), and ``d``'s tendon lengths and Jacobian, by the lean
-    sequence (module docstring); constraints must be off."""
+def lean_inverse(m: mujoco.MjModel, d: mujoco.MjData, rne: np.ndarray) -> None:
+    """The lean sequence on ``d``'s state (module docstring; constraints must be off): ``d``'s tendon lengths and
+    Jacobian and ``qfrc_passive``, and the RNE with the acceleration into ``rne`` (nv,); ``qfrc_inverse`` is then
+    ``assemble``'s (kept apart so that frames are assembled together)."""
     mujoco.mj_kinematics(m, d)
     mujoco.mj_comPos(m, d)
     mujoco.mj_tendon(m, d)
     mujoco.mj_comVel(m, d)
     mujoco.mj_passive(m, d)
-    mujoco.mj_rne(m, d, 1, force)
-    force += m.dof_armature * d.qacc - d.qfrc_passive
+    mujoco.mj_rne(m, d, 1, rne)
+
+
+def assemble(m: mujoco.MjModel, rne: np.ndarray, qacc: np.ndarray, passive: np.ndarray) -> np.ndarray:
+    """``qfrc_inverse`` (B, nv) of frames from ``lean_inverse``'s RNE and passive forces at accelerations ``qacc``."""
+    return rne + m.dof_armature * qacc - passive
