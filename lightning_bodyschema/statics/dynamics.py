@@ -29,7 +29,7 @@ from ..sim.model import UNCROSSED_ARM_M
 from .activation import excitation
 from .optimize import StaticBody, StaticResult, check_solver
 from .mujoco_inverse import assemble, lean_inverse, lean_model, uses_lean
-from .root import FrameLayout, floating_spec
+from .root import FrameLayout, floating_spec, muscles_span_root
 
 DEFAULT_RESIDUAL_WEIGHT = 1.0  # 1 N m of residual costs as much as one muscle at full activation
 
@@ -73,19 +73,26 @@ class InverseBody:
     source's free joints put back, ``statics.root``) with its constraints off (locks and couplings are carried by the
     free coordinates; contacts play no part), one ``MjData`` per thread (``body.threads``; the same numbers whatever
     the count). ``lean``: idle tendons left out and the lean call sequence (``statics.mujoco_inverse``); False: the
-    whole model and ``mj_inverse`` itself, as a MuJoCo user calls it."""
+    whole model and ``mj_inverse`` itself, as a MuJoCo user calls it. Floating and lean: the muscles' paths are the
+    welded body's (a path does not change when the whole body moves rigidly, and wrapping them again with 6 more dofs
+    per root cost 2.5x the MuJoCo time on myoLegs), the forces the floating body's without any idle tendon."""
 
     def __init__(self, body: StaticBody, floating: bool = False, lean: bool = True):
         spec = floating_spec(body) if floating else mujoco.MjSpec.from_string(body.model.xml)
-        model = lean_model(spec, body.model.muscle_names) if lean else compile_spec(spec)
+        self.arms = _inverse_body(body) if floating and lean else None  # the muscles' paths, welded
+        if floating and lean and muscles_span_root(body.model.mj_model, body.model.muscle_ids):
+            raise BodySchemaInputError("a muscle spans the floating root (its path touches the world or another "
+                                       "root); muscles anchored outside the floating body are not supported")
+        model = lean_model(spec, [] if self.arms else body.model.muscle_names) if lean else compile_spec(spec)
         self.body, self.layout = body, FrameLayout.of(body, floating, model)
         self.m = self.layout.m  # compiled here: this copy is private
         self.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
         self.lean = lean and uses_lean(self.m)
         self.datas = [mujoco.MjData(self.m) for _ in range(body.threads)]
-        self.tendon_ids = np.array([mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_TENDON, n)
-                                    for n in body.model.muscle_names], dtype=int)
-        self.index = self._muscle_index()
+        if self.arms is None:
+            self.tendon_ids = np.array([mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_TENDON, n)
+                                        for n in body.model.muscle_names], dtype=int)
+            self.index = self._muscle_index()
 
     def full_state(self, q, qvel, qacc):
         """Every joint's position, velocity and acceleration (B, nq) from the free joints' (B, N), and ``E``."""
@@ -97,36 +104,58 @@ class InverseBody:
         return full, qvel_full, qacc_full, tangent
 
     def inverse(self, q, qvel, qacc, root=None):
-        """``(l_geo (B, M), G (B, M, N), tau (B, N), G_root (B, M, 6K), tau_root (B, 6K))``: tendon lengths, moment
-        arms and the generalized force ``E^T qfrc_inverse`` [N m] the motion needs in the free joints (module
-        docstring), and on a floating root (``root``: its checked ``(qpos, qvel, qacc)``) the muscles' moment arms
-        about the root's dofs and the root's generalized force [N, N m] (both None without a root)."""
+        """``(l_geo (B, M), G (B, M, N), tau (B, N), G_root, tau_root (B, 6K))``: tendon lengths, moment arms and the
+        generalized force ``E^T qfrc_inverse`` [N m] the motion needs in the free joints (module docstring), and on a
+        floating root (``root``: its checked ``(qpos, qvel, qacc)``) the root's generalized force [N, N m] and the
+        muscles' moment arms about its dofs (B, M, 6K) (None where the paths are the welded body's: zero; both None
+        without a root)."""
+        full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
+        layout = self.layout
+        lengths, ten_j, force = self._run(layout.state(full, qvel_full, qacc_full, root), self.arms is None, True)
+        rest_force = force if not layout.floating else force[:, layout.rest_dof]
+        tau = np.einsum("bjn,bj->bn", tangent, rest_force)
+        tau_root = None if not layout.floating else force[:, layout.root_dof]
+        if self.arms is not None:
+            return (*self.arms.paths(full, tangent), tau, None, tau_root)
+        jac = self._jacobian(ten_j)
+        if not layout.floating:
+            return lengths[:, self.tendon_ids], jac @ tangent, tau, None, None
+        return (lengths[:, self.tendon_ids], jac[:, :, layout.rest_dof] @ tangent, tau, jac[:, :, layout.root_dof],
+                tau_root)
+
+    def paths(self, full, tangent):
+        """``(l_geo (B, M), G (B, M, N))`` at every joint's positions ``full`` (B, nq): MuJoCo's kinematics alone."""
+        lengths, ten_j, _ = self._run((full, None, None), True, False)
+        return lengths[:, self.tendon_ids], self._jacobian(ten_j) @ tangent
+
+    def _jacobian(self, ten_j):
+        """(B, M, nv) the muscles' rows of every frame's sparse ``ten_J`` (B, nnz): one gather and scatter."""
+        rows, cols, entries = self.index
+        jac = np.zeros((len(ten_j), len(self.tendon_ids), self.m.nv))
+        jac[:, rows, cols] = ten_j[:, entries]
+        return jac
+
+    def _run(self, state, paths: bool, forces: bool):
+        """``(lengths, ten_J, force)`` of every frame (module ``_fill``), on the body's threads."""
         from concurrent.futures import ThreadPoolExecutor
 
         from ..sim.model import _thread_count
 
-        full, qvel_full, qacc_full, tangent = self.full_state(q, qvel, qacc)
-        m, batch, (rows, cols, entries), layout = self.m, len(q), self.index, self.layout
+        m, batch = self.m, len(state[0])
         out = (np.empty((batch, m.ntendon)), np.empty((batch, len(self.datas[0].ten_J))), np.empty((batch, m.nv)),
                np.zeros((batch, m.nv)))
-        state = layout.state(full, qvel_full, qacc_full, root)
         threads = _thread_count(len(self.datas), batch)
+        chunks = np.array_split(np.arange(batch), threads) if threads > 1 else [range(batch)]
         if threads == 1:
-            self._fill(state, range(batch), self.datas[0], out)
+            self._fill(state, chunks[0], self.datas[0], out, paths, forces)
         else:  # MuJoCo releases the GIL inside its calls
             with ThreadPoolExecutor(threads) as pool:
-                list(pool.map(self._fill, [state] * threads, np.array_split(np.arange(batch), threads),
-                              self.datas[:threads], [out] * threads))
+                list(pool.map(self._fill, [state] * threads, chunks, self.datas[:threads], [out] * threads,
+                              [paths] * threads, [forces] * threads))
         lengths, ten_j, force, passive = out
-        if self.lean:
+        if forces and self.lean:
             force = assemble(m, force, state[2], passive)
-        jac = np.zeros((batch, len(self.body.model.muscle_ids), m.nv))
-        jac[:, rows, cols] = ten_j[:, entries]  # one gather and scatter of every frame's sparse rows
-        rest_jac, rest_force = (jac, force) if not layout.floating else (jac[:, :, layout.rest_dof],
-                                                                          force[:, layout.rest_dof])
-        roots = (None, None) if not layout.floating else (jac[:, :, layout.root_dof], force[:, layout.root_dof])
-        return (lengths[:, self.tendon_ids], rest_jac @ tangent,
-                np.einsum("bjn,bj->bn", tangent, rest_force), *roots)
+        return lengths, ten_j, force
 
     def _muscle_index(self):
         """``(rows, cols, entries)``: the muscles' entries of MuJoCo's sparse ``ten_J`` in this copy's model, their
@@ -140,20 +169,27 @@ class InverseBody:
         return (np.array([order[int(t)] for t in tendons[keep]], dtype=int), m.ten_J_colind[entries[keep]],
                 entries[keep])
 
-    def _fill(self, state, rows, d, out) -> None:
-        """MuJoCo's inverse dynamics of the frames ``rows`` (``statics.mujoco_inverse``): tendon lengths, ``ten_J``
-        and the forces (lean: the RNE and the passive forces)."""
+    def _fill(self, state, rows, d, out, paths: bool, forces: bool) -> None:
+        """MuJoCo on the frames ``rows`` (``statics.mujoco_inverse``): ``paths``: tendon lengths and ``ten_J``;
+        ``forces``: the inverse dynamics' forces (lean: the RNE and the passive forces)."""
         full, qvel_full, qacc_full = state
         (lengths, ten_j, force, passive), m = out, self.m
         for b in rows:  # MuJoCo evaluates one state per call
-            d.qpos[:], d.qvel[:], d.qacc[:] = full[b], qvel_full[b], qacc_full[b]
-            if self.lean:
+            d.qpos[:] = full[b]
+            if not forces:
+                mujoco.mj_kinematics(m, d)
+                mujoco.mj_comPos(m, d)
+                mujoco.mj_tendon(m, d)
+            elif self.lean:
+                d.qvel[:], d.qacc[:] = qvel_full[b], qacc_full[b]
                 lean_inverse(m, d, force[b])
                 passive[b] = d.qfrc_passive
             else:
+                d.qvel[:], d.qacc[:] = qvel_full[b], qacc_full[b]
                 mujoco.mj_inverse(m, d)
                 force[b] = d.qfrc_inverse
-            lengths[b], ten_j[b] = d.ten_length, d.ten_J  # the muscles' entries gathered for all frames at once
+            if paths:
+                lengths[b], ten_j[b] = d.ten_length, d.ten_J  # the muscles' entries gathered for all frames at once
 
 
 def _inverse_body(body: StaticBody, floating: bool = False) -> InverseBody:
@@ -260,11 +296,11 @@ def _root_fields(inverse: InverseBody, root, G_root, tau_root, result: StaticRes
     ``tau_root + G_root^T f`` (the muscles' share, ``-G_root^T f``, is zero but for rounding: none spans the root)."""
     if root is None:
         return {}
-    span = np.abs(G_root).max(initial=0.0)
+    span = 0.0 if G_root is None else np.abs(G_root).max(initial=0.0)
     if span > UNCROSSED_ARM_M:  # a muscle anchored outside the floating tree: the root would need the QP
         raise BodySchemaInputError(f"a muscle spans the floating root (moment arm {span:.3g} m); muscles anchored to "
                                    "the world are not supported on a floating root: weld it (no root_qpos)")
-    residual = tau_root + np.einsum("bmr,bm->br", G_root, result.tension_n)
+    residual = tau_root if G_root is None else tau_root + np.einsum("bmr,bm->br", G_root, result.tension_n)
     return dict(root_qpos=root[0], root_qvel=root[1], root_qacc=root[2], root_residual=residual,
                 root_dofs=list(inverse.layout.root_dofs))
 

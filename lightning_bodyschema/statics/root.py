@@ -47,6 +47,22 @@ def floating_spec(body) -> mujoco.MjSpec:
     return spec
 
 
+def muscles_span_root(m: mujoco.MjModel, tendons) -> bool:
+    """True where a tendon of ``tendons`` (ids of the welded model ``m``, whose bodies the floating one shares)
+    touches bodies of two trees, or the world: then its path moves with a root and it spans the root's dofs."""
+    owners = {int(mujoco.mjtWrap.mjWRAP_SITE): m.site_bodyid, int(mujoco.mjtWrap.mjWRAP_SPHERE): m.geom_bodyid,
+              int(mujoco.mjtWrap.mjWRAP_CYLINDER): m.geom_bodyid}
+    for tendon in tendons:
+        start = m.tendon_adr[tendon]
+        bodies = [owners[int(kind)][obj] for kind, obj in zip(m.wrap_type[start:start + m.tendon_num[tendon]],
+                                                             m.wrap_objid[start:start + m.tendon_num[tendon]])
+                  if int(kind) in owners]
+        trees = {int(m.body_rootid[b]) for b in bodies}
+        if 0 in trees or len(trees) > 1:
+            return True
+    return False
+
+
 @dataclass
 class FrameLayout:
     """Where the welded body's joints and the roots sit in a MuJoCo model's state: ``m`` the model; ``rest_qpos``

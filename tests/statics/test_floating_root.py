@@ -190,14 +190,16 @@ def test_lean_inverse_is_mj_inverse(body, floating):
 
     inverse = InverseBody(body, floating)
     names = [mujoco.mj_id2name(inverse.m, mujoco.mjtObj.mjOBJ_TENDON, i) for i in range(inverse.m.ntendon)]
-    assert inverse.lean and sorted(names) == sorted(body.model.muscle_names + ["spring"])
+    # floating: the muscles' paths are the welded body's, the forces need only the tendon that pulls
+    assert inverse.lean and sorted(names) == (["spring"] if floating else sorted(body.model.muscle_names + ["spring"]))
     whole = FrameLayout.of(body, floating)
     whole.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
     assert whole.m.ntendon == 6
     t = np.arange(0.0, 1.0, 0.05)
     q, qvel, qacc = arm_motion(t)
     root = turning_root(t) if floating else None
-    _, G, tau, _, tau_root = inverse.inverse(q, qvel, qacc, root)
+    _, G, tau, G_root, tau_root = inverse.inverse(q, qvel, qacc, root)
+    assert G_root is None  # no muscle spans the root: its moment arms there are zero
     state = whole.state(*inverse.full_state(q, qvel, qacc)[:3], root)
     d = mujoco.MjData(whole.m)
     expected = np.empty((len(t), whole.m.nv))
@@ -211,3 +213,14 @@ def test_lean_inverse_is_mj_inverse(body, floating):
         got[:, whole.root_dof] = tau_root
     scale = np.abs(expected).max()
     assert scale > 1.0 and np.abs(got - expected).max() <= 1e-12 * scale
+
+
+def test_a_muscle_anchored_to_the_world_is_refused_on_a_floating_root():
+    """A muscle from the world to the arm spans the root: the root cannot be left to residuals alone."""
+    anchored = FLOATING_ARM.replace('<worldbody>', '<worldbody>\n    <site name="s_ground" pos="0 0 0"/>').replace(
+        '<spatial name="ligament">', '<spatial name="tether"><site site="s_ground"/><site site="s_upper_front"/>'
+        '</spatial>\n    <spatial name="ligament">').replace(
+        '</actuator>', '  <muscle name="m_tether" tendon="tether" force="100"/>\n  </actuator>')
+    q = np.array([[0.2, 0.8]])
+    with pytest.raises(BodySchemaInputError, match="spans the floating root"):
+        inverse_dynamics(anchored, q, 0 * q, 0 * q, root_qpos=[[0, 0, 1, 1, 0, 0, 0]])
