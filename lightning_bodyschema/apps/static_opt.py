@@ -141,7 +141,7 @@ def _parser():
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     motion = parser.add_argument_group("motions (--motion)")
     motion.add_argument("--residual", action="append", default=[], metavar="JOINT",
-                        help="a residual actuator on this free joint (reported per frame); repeatable")
+                        help="a residual actuator on this free joint (reported per frame); repeatable (a floating root always has its own)")
     motion.add_argument("--residual-weight", type=float, default=1.0,
                         help="objective weight per (N m)^2 of residual torque (default 1: 1 N m costs as much as one "
                              "muscle at full activation)")

@@ -273,10 +273,11 @@ def solve_motion(body: StaticBody, q, qvel, qacc, faults=None, tau_nm=None, resi
     q, qvel, qacc = _frames(body, q, qvel, qacc)
     faults = body.fault_batch(faults, len(q))
     check_solver(solver)
-    names, residual = _residual(body, residual_dofs, residual_weight)
+    inverse = _inverse_body(body, floating=root is not None)
+    roots = {dof[:-3] for dof in inverse.layout.root_dofs}  # a floating root always has its residual actuators
+    names, residual = _residual(body, [n for n in residual_dofs or () if n not in roots], residual_weight)
     t = _times(t, len(q), body.model.mj_model.opt.timestep)
     device = _device(device)
-    inverse = _inverse_body(body, floating=root is not None)
     root = inverse.layout.check_root(*(root or (None, None, None)), len(q))
     l_geo, G, tau, G_root, tau_root = inverse.inverse(q, qvel, qacc, root)
     if tau_nm is not None:
@@ -327,7 +328,8 @@ def inverse_dynamics(model, q, qvel, qacc, faults=None, residual_dofs: Optional[
     in the world, angular in the root's frame), on a body whose source has free joints, built with
     ``fixed_base=True`` (the default when ``model`` is a source and ``root_qpos`` is given); MuJoCo's inverse
     dynamics then runs on the whole state and the root's 6 generalized forces per free joint are carried by residual
-    actuators (``root_residual``), the muscles on the rest. Returns a ``MotionResult``; with ``qvel = qacc = 0`` it is
+    actuators (``root_residual``; naming the root in ``residual_dofs`` changes nothing: no muscle spans it, so its
+    residuals are those forces whatever their weight), the muscles on the rest. Returns a ``MotionResult``; with ``qvel = qacc = 0`` it is
     ``static_optimization``'s answer.
 
         >>> body = StaticBody("myo:myoelbow_2dof")
