@@ -122,7 +122,7 @@ def mujoco_motion_error(body: StaticBody, result) -> np.ndarray:
     joint is free). On a floating root (``result.root_qpos``) MuJoCo runs the body with its root free, the root's
     residual forces applied, and the root's 6K accelerations minus ``result.root_qacc`` follow as columns N.. of
     (B, N + 6K). NaN on rows without activations."""
-    from .dynamics import InverseBody
+    from .dynamics import _inverse_body
     from .root import FrameLayout, floating_spec
 
     floating = result.root_qpos is not None
@@ -130,7 +130,7 @@ def mujoco_motion_error(body: StaticBody, result) -> np.ndarray:
     layout = FrameLayout.of(body, floating, m)
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
     d, error = mujoco.MjData(m), np.full((len(result.q), result.q.shape[1] + len(layout.root_dof)), np.nan)
-    full, qvel_full, _, tangent = InverseBody(body).full_state(result.q, result.qvel, result.qacc)
+    full, qvel_full, _, tangent = _inverse_body(body).full_state(result.q, result.qvel, result.qacc)
     rate = body.model.joint_map.tangent_rate(result.q, result.qvel, full)
     root = (result.root_qpos, result.root_qvel, result.root_qacc) if floating else None
     qpos, qvel, _ = layout.state(full, qvel_full, qvel_full, root)
