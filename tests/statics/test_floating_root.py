@@ -4,6 +4,7 @@ controls and those forces reproduces every acceleration, the root's included; th
 columns; bad input."""
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -225,3 +226,29 @@ def test_a_muscle_anchored_to_the_world_is_refused_on_a_floating_root():
     q = np.array([[0.2, 0.8]])
     with pytest.raises(BodySchemaInputError, match="spans the floating root"):
         inverse_dynamics(anchored, q, 0 * q, 0 * q, root_qpos=[[0, 0, 1, 1, 0, 0, 0]])
+
+
+def test_cli_root_columns_in_csv_and_refusals(tmp_path, capsys):
+    """CSV out: the root's residual columns named with their units; root columns given in part, and --track on a
+    floating root, refused in one line (exit 2)."""
+    t = np.arange(0.0, 0.2, 0.002)
+    q = arm_motion(t)[0]
+    qpos = turning_root(t)[0]
+    columns = {"t": t, "shoulder": q[:, 0], "elbow": q[:, 1]}
+    columns.update({f"root_{p}": qpos[:, k] for k, p in enumerate(("px", "py", "pz", "qw", "qx", "qy", "qz"))})
+    model, motion, out = tmp_path / "arm.xml", tmp_path / "motion.npz", tmp_path / "out.csv"
+    model.write_text(FLOATING_ARM)
+    np.savez(motion, **columns)
+    static_opt_main(["--model", str(model), "--motion", str(motion), "--out", str(out), "--no-progress"])
+    header = out.read_text().splitlines()[0].split(",")
+    assert header[-6:] == ["root_tx.residual_n", "root_ty.residual_n", "root_tz.residual_n", "root_rx.residual_nm",
+                           "root_ry.residual_nm", "root_rz.residual_nm"]
+    partial = {k: v for k, v in columns.items() if k != "root_qz"}
+    np.savez(tmp_path / "partial.npz", **partial)
+    for argv, match in ((["--motion", str(tmp_path / "partial.npz")], re.escape("miss ['root_qz']")),
+                        (["--motion", str(motion), "--track"], "--track simulates a welded body")):
+        with pytest.raises(SystemExit) as exit_info:
+            static_opt_main(["--model", str(model), "--out", str(tmp_path / "x.csv"), "--no-progress", *argv])
+        err = capsys.readouterr().err.strip()
+        assert exit_info.value.code == 2 and len(err.splitlines()) == 1
+        assert re.search(match, err), err
