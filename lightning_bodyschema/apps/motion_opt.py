@@ -26,9 +26,8 @@ CHUNK = 256  # frames per solve: the progress bar's step
 def solve_file(body, args, faults):
     """The ``MotionResult`` of ``args.motion`` (velocities and accelerations differentiated where not given)."""
     from ..statics.differentiate import differentiate
-    from .motion_files import read_motion
-
     from ..statics.root import free_roots, root_derivatives
+    from .motion_files import read_motion
 
     roots = [joint for joint, _ in free_roots(body.source)] if body.fixed_base else []
     t, q, qvel, qacc, root = read_motion(args.motion, body.model, roots)

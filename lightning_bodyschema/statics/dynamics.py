@@ -136,7 +136,7 @@ class InverseBody:
         return jac
 
     def _run(self, state, paths: bool, forces: bool):
-        """``(lengths, ten_J, force)`` of every frame (module ``_fill``), on the body's threads."""
+        """``(lengths, ten_J, force)`` of every frame (``_fill``), on the body's threads."""
         from concurrent.futures import ThreadPoolExecutor
 
         from ..sim.model import _thread_count
