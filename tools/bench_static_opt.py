@@ -15,8 +15,10 @@ load average is printed with the timings: they depend on it. One torch thread.
 per squat, repeated to ``--frames`` frames), frames 2 ms apart, analytic velocities and accelerations. Per body: the
 time per frame of ``inverse_dynamics`` on the whole motion, side by side (alternating) with per-frame SLSQP on the
 same problem as a MuJoCo user writes it (per frame: ``mj_inverse``, then scipy's SLSQP on ``min sum a^2`` with the
-same muscle curves; on ``--slsqp-frames`` frames); the statuses; MuJoCo's forward check on a sample of frames
-(``statics.check.mujoco_motion_error``); on myoArm the tracking in MuJoCo (``statics.track``); the Savitzky-Golay
+same muscle curves; on ``--slsqp-frames`` frames), and our MuJoCo part alone (the bound on the ratio a free QP
+would give); the statuses; MuJoCo's forward check on a sample of frames
+(``statics.check.mujoco_motion_error``); on myoLegs the squat again with its pelvis free (a floating root,
+``statics.root``); on myoArm the tracking in MuJoCo (``statics.track``); the Savitzky-Golay
 differentiator's accuracy on an analytic motion (``statics.differentiate``).
 """
 import argparse
@@ -165,6 +167,57 @@ def squat(body, frames, step_s=0.002):
     return (t, *(depth * x for x in shape))
 
 
+def pelvis_motion(t, sink_m=0.15, turn_rad=0.3, period_s=4.0):
+    """myoLegs' free root over a squat: the pelvis sinks ``sink_m`` (raised cosine) and turns ``turn_rad`` sin about
+    the vertical, from MyoSuite's standing pose (1 m up): MuJoCo's ``(qpos (B, 7), qvel, qacc (B, 6))``, exact."""
+    w = 2 * np.pi / period_s
+    z = np.stack([1.0 - sink_m * 0.5 * (1 - np.cos(w * t)), -sink_m * 0.5 * w * np.sin(w * t),
+                  -sink_m * 0.5 * w ** 2 * np.cos(w * t)])
+    yaw = np.stack([turn_rad * np.sin(w * t), turn_rad * w * np.cos(w * t), -turn_rad * w ** 2 * np.sin(w * t)])
+    zero = np.zeros_like(t)
+    qpos = np.stack([zero, zero, z[0], np.cos(yaw[0] / 2), zero, zero, np.sin(yaw[0] / 2)], 1)
+    qvel, qacc = (np.stack([zero, zero, z[k], zero, zero, yaw[k]], 1) for k in (1, 2))
+    return qpos, qvel, qacc
+
+
+def bench_floating(body, motion, repeats):
+    """The myoLegs squat with its pelvis free (``pelvis_motion``): time per frame beside the welded squat
+    (alternating), the root's residual forces, MuJoCo's forward check on every dof, the root's included."""
+    import time
+
+    from lightning_bodyschema.statics import inverse_dynamics
+    from lightning_bodyschema.statics.check import mujoco_motion_error
+
+    t, q, qvel, qacc = motion
+    root = pelvis_motion(t)
+    kwargs = dict(t=t, root_qpos=root[0], root_qvel=root[1], root_qacc=root[2])
+    result = inverse_dynamics(body, q, qvel, qacc, **kwargs)
+    floating, welded = [], []
+    for _ in range(repeats):
+        for times, extra in ((floating, kwargs), (welded, dict(t=t))):
+            start = time.perf_counter()
+            inverse_dynamics(body, q, qvel, qacc, **extra)
+            times.append((time.perf_counter() - start) / len(t))
+    sample = result.take(np.linspace(0, len(t) - 1, 50).astype(int))
+    error = np.abs(mujoco_motion_error(body, sample))[sample.ok]
+    force = result.root_residual
+    print(f"  pelvis free (sinks 0.15 m, turns 0.3 rad): status {count_values(status_names(result.status))}; "
+          f"{1e3 * statistics.median(floating):.3f} ms per frame (welded {1e3 * statistics.median(welded):.3f}); "
+          f"root residual force {force[:, 2].min():.1f}..{force[:, 2].max():.1f} N up (body weight "
+          f"{body.model.mj_model.body_mass.sum() * 9.81:.1f} N), torque up to {np.abs(force[:, 3:]).max():.1f} N m; "
+          f"MuJoCo forward check on {len(error)} ok frames, every dof and the root's 6: <= {error.max():.1e}")
+
+
+def user_inverse(body):
+    """The body's ``InverseBody`` with ``mj_inverse`` on the whole model (as a MuJoCo user calls it), compiled once,
+    before any timing."""
+    from lightning_bodyschema.statics.dynamics import InverseBody
+
+    if getattr(body, "_user_inverse", None) is None:
+        body._user_inverse = InverseBody(body, lean=False)
+    return body._user_inverse
+
+
 def slsqp_frames(body, q, qvel, qacc, jacobians=True):
     """Per frame as a MuJoCo user writes it: mj_inverse (``statics.dynamics.InverseBody`` on that frame), then SLSQP
     on ``min sum a^2``, ``0 <= a <= 1``, ``-G^T (FV s a + p) = tau``, with the objective's and the constraints'
@@ -172,11 +225,9 @@ def slsqp_frames(body, q, qvel, qacc, jacobians=True):
     do). Returns the activations (NaN: SLSQP failed)."""
     from scipy.optimize import minimize
 
-    from lightning_bodyschema.statics.dynamics import InverseBody
-
-    inverse, out = InverseBody(body), np.full((len(q), body.model.n_muscles), np.nan)
+    inverse, out = user_inverse(body), np.full((len(q), body.model.n_muscles), np.nan)
     for b in range(len(q)):
-        l_geo, G, tau = inverse.inverse(q[b:b + 1], qvel[b:b + 1], qacc[b:b + 1])
+        l_geo, G, tau = inverse.inverse(q[b:b + 1], qvel[b:b + 1], qacc[b:b + 1])[:3]
         s, p = body.curves.affine(l_geo)
         s = (s * body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel[b:b + 1])))[0]
         A, need = -(G[0] * s[:, None]).T, tau[0] + G[0].T @ p[0]
@@ -194,22 +245,28 @@ def bench_motion(name, body, motion, slsqp_frames_n, repeats):
 
     from lightning_bodyschema.statics import inverse_dynamics
     from lightning_bodyschema.statics.check import mujoco_motion_error
+    from lightning_bodyschema.statics.dynamics import _inverse_body
 
     t, q, qvel, qacc = motion
     result = inverse_dynamics(body, q, qvel, qacc, t=t)
     pick = np.linspace(0, len(t) - 1, slsqp_frames_n).astype(int)
-    batched, per_frame, finite = [], [], []
+    batched, per_frame, finite, mujoco_part = [], [], [], []
+    inverse = _inverse_body(body)
+    user_inverse(body)  # compiled before the clock starts
     for _ in range(repeats):  # alternating, so that a change in the machine's load falls on each
         start = time.perf_counter()
         inverse_dynamics(body, q, qvel, qacc, t=t)
         batched.append((time.perf_counter() - start) / len(t))
+        start = time.perf_counter()
+        inverse.inverse(q, qvel, qacc)
+        mujoco_part.append((time.perf_counter() - start) / len(t))
         start = time.perf_counter()
         reference = slsqp_frames(body, q[pick], qvel[pick], qacc[pick])
         per_frame.append((time.perf_counter() - start) / len(pick))
         start = time.perf_counter()
         slsqp_frames(body, q[pick[:10]], qvel[pick[:10]], qacc[pick[:10]], jacobians=False)
         finite.append((time.perf_counter() - start) / 10)
-    ours, theirs, plain = (statistics.median(x) for x in (batched, per_frame, finite))
+    ours, theirs, plain, ours_mujoco = (statistics.median(x) for x in (batched, per_frame, finite, mujoco_part))
     both = result.ok[pick] & np.isfinite(reference).all(1)
     gap = np.abs(result.activation[pick][both] - reference[both]).max() if both.any() else np.nan
     sample = result.take(pick)
@@ -221,6 +278,8 @@ def bench_motion(name, body, motion, slsqp_frames_n, repeats):
           f"in all); per-frame mj_inverse + SLSQP {1e3 * theirs:.2f} ms per frame ({theirs / ours:.0f}x) on "
           f"{len(pick)} frames, activations differ by {gap:.1e} at most on {both.sum()} frames both solve; with "
           f"finite-difference Jacobians {1e3 * plain:.1f} ms per frame ({plain / ours:.0f}x) on 10 frames\n"
+          f"  of which MuJoCo's inverse dynamics and moment arms alone {1e3 * ours_mujoco:.3f} ms per frame: a free "
+          f"QP would be at most {theirs / ours_mujoco:.0f}x / {plain / ours_mujoco:.0f}x faster than the two SLSQPs\n"
           f"  MuJoCo forward check on {len(error)} ok frames: |qacc - requested| <= {error.max():.1e} rad/s^2; frames "
           f"with an excitation clipped to [0, 1]: {100 * clipped:.0f} %")
     return result
@@ -263,6 +322,8 @@ def motion_main(args):
         body = build()
         motion = reach(body) if name == "myoArm" else squat(body, args.frames)
         result = bench_motion(name, body, motion, args.slsqp_frames, args.repeats)
+        if name == "myoLegs":
+            bench_floating(body, motion, args.repeats)
         if name == "myoArm":
             print("  " + track_motion(body, *motion).summary())
             if args.plot:

@@ -5,6 +5,12 @@ CSV or NPZ as the posture files (``apps.static_opt``), plus optional ``qvel_<joi
 ``.mot`` (the storage format MyoSuite's own import reads): header lines up to ``endheader`` (``inDegrees=yes``: the
 hinge joints' columns are in degrees), then a ``time`` column and one column per coordinate; coordinates that are not
 free joints of the body (locked, coupled, absent) are left out and named.
+
+A floating root (a free joint ``J`` of the body's source, e.g. myo:myolegs's ``root``; ``statics.root``): columns
+``J_px, J_py, J_pz`` [m] and ``J_qw, J_qx, J_qy, J_qz`` (its unit quaternion) per frame, and optionally
+``qvel_J_tx .. qvel_J_rz`` and ``qacc_J_tx .. qacc_J_rz`` (MuJoCo's qvel convention: linear velocity in the world,
+angular velocity in the root's frame); without them the root moves by the differentiator too. Without the
+position columns the root stays welded where the model places it. CSV and NPZ only.
 """
 from __future__ import annotations
 
@@ -45,20 +51,47 @@ def read_mot(path: str) -> tuple[dict, bool]:
     return columns, degrees
 
 
-def read_motion(path: str, model) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """``(t (B,), q, qvel, qacc (B, N))`` of ``model``'s free joints from a motion file; qvel and qacc None where the
-    file gives none (the caller differentiates)."""
+def read_motion(path: str, model, roots=()) -> tuple:
+    """``(t (B,), q, qvel, qacc (B, N), root)`` of ``model``'s free joints from a motion file; qvel and qacc None
+    where the file gives none (the caller differentiates); ``root``: the floating roots' ``(qpos (B, 7K), qvel,
+    qacc (B, 6K) or None)`` of the free joints named ``roots`` (module docstring), None where the file has none."""
     if not os.path.isfile(path):
         raise BodySchemaInputError(f"--motion {path!r} does not exist")
     if path.lower().endswith(".mot"):
-        return _from_mot(path, model)
+        return (*_from_mot(path, model), None)
     columns = read_posture_columns(path)
     if "t" not in columns:
         raise BodySchemaInputError(f"{path}: no 't' column; a motion needs one, the frame times [s]")
     t = columns.pop("t")
     free = model.joint_names
+    root = _root_columns(columns, list(roots), path)
     derivatives = [_derivative(columns, prefix, free, path) for prefix in DERIVATIVES]
-    return (t, postures_of(columns, free, path), *derivatives)
+    return (t, postures_of(columns, free, path), *derivatives, root)
+
+
+ROOT_POSE = ("px", "py", "pz", "qw", "qx", "qy", "qz")
+
+
+def _root_columns(columns: dict, roots: list, path: str):
+    """The roots' columns (popped; module docstring) as ``(qpos, qvel, qacc)``, None without any."""
+    from ..statics.root import ROOT_DOFS
+
+    groups = [("", ROOT_POSE)] + [(prefix, ROOT_DOFS) for prefix in DERIVATIVES]
+    found = [[f"{prefix}{j}_{part}" for j in roots for part in parts] for prefix, parts in groups]
+    present = [[name in columns for name in names] for names in found]
+    if not any(present[0]):
+        stray = [name for names, flags in zip(found[1:], present[1:]) for name, f in zip(names, flags) if f]
+        if stray:
+            raise BodySchemaInputError(f"{path}: root velocity columns {stray[:3]} without the root's position "
+                                       f"columns {found[0]}")
+        return None
+    arrays = []
+    for names, flags in zip(found, present):
+        if any(flags) and not all(flags):
+            missing = [n for n, f in zip(names, flags) if not f]
+            raise BodySchemaInputError(f"{path}: the floating root's columns miss {missing}; give all of {names}")
+        arrays.append(np.stack([np.asarray(columns.pop(n), np.float64) for n in names], 1) if all(flags) else None)
+    return tuple(arrays)
 
 
 def _derivative(columns: dict, prefix: str, free: list, path: str):

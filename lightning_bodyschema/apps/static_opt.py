@@ -142,7 +142,7 @@ def _parser():
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     motion = parser.add_argument_group("motions (--motion)")
     motion.add_argument("--residual", action="append", default=[], metavar="JOINT",
-                        help="a residual actuator on this free joint (reported per frame); repeatable")
+                        help="a residual actuator on this free joint (reported per frame); repeatable (a floating root always has its own)")
     motion.add_argument("--residual-weight", type=float, default=1.0,
                         help="objective weight per (N m)^2 of residual torque (default 1: 1 N m costs as much as one "
                              "muscle at full activation)")
@@ -165,7 +165,8 @@ def _body(data: dict, locks: dict, args):
 
     options = robot_options(data)
     locks = {**dict(options.pop("locked_joints") or {}), **locks}
-    options["fixed_base"] = options["fixed_base"] or args.fixed_base
+    # a motion may move a floating root (its columns in the file); statics welds it, the dynamics puts it back
+    options["fixed_base"] = options["fixed_base"] or args.fixed_base or bool(args.motion)
     return StaticBody(options.pop("source"), locked_joints=locks, k_n=data.get("k_n"),
                       alpha_per_m=data.get("alpha_per_m", 20.0), f_max_n=data.get("f_max_n"), threads=args.threads,
                       **options)

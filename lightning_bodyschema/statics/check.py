@@ -119,26 +119,47 @@ def mujoco_motion_error(body: StaticBody, result) -> np.ndarray:
     controls, cut muscles at zero force, residual torques as ``qfrc_applied`` on their joints), its constraints off
     and the locks and couplings held exactly instead: the free joints' acceleration is
     ``(E^T M E)^-1 E^T M (qacc - (dE/dt) qvel)`` of MuJoCo's unconstrained ``qacc`` (that very ``qacc`` where every
-    joint is free). NaN on rows without activations."""
-    from .dynamics import InverseBody
+    joint is free). On a floating root (``result.root_qpos``) MuJoCo runs the body with its root free, the root's
+    residual forces applied, and the root's 6K accelerations minus ``result.root_qacc`` follow as columns N.. of
+    (B, N + 6K). NaN on rows without activations."""
+    from .dynamics import _inverse_body
+    from .root import FrameLayout, floating_spec
 
-    m = actuated_model(body.model, body.curves)
+    floating = result.root_qpos is not None
+    m = actuated_model(body.model, body.curves, floating_spec(body) if floating else None)
+    layout = FrameLayout.of(body, floating, m)
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
-    d, error = mujoco.MjData(m), np.full(result.q.shape, np.nan)
-    full, qvel_full, _, tangent = InverseBody(body).full_state(result.q, result.qvel, result.qacc)
+    d, error = mujoco.MjData(m), np.full((len(result.q), result.q.shape[1] + len(layout.root_dof)), np.nan)
+    full, qvel_full, _, tangent = _inverse_body(body).full_state(result.q, result.qvel, result.qacc)
     rate = body.model.joint_map.tangent_rate(result.q, result.qvel, full)
-    mass, free_dofs = np.zeros((m.nv, m.nv)), body.model.joint_map.free
+    root = (result.root_qpos, result.root_qvel, result.root_qacc) if floating else None
+    qpos, qvel, _ = layout.state(full, qvel_full, qvel_full, root)
+    mass, free_dofs = np.zeros((m.nv, m.nv)), layout.rest_dof[body.model.joint_map.free]
+    wanted = result.qacc if not floating else np.hstack([result.qacc, result.root_qacc])
     m.actuator_forcerange[:] = 0.0
     for b in _rows(result):
         m.actuator_forcelimited[:] = result.faults.cut[b]
-        d.qpos[:], d.qvel[:], d.act[:], d.ctrl[:] = full[b], qvel_full[b], result.activation[b], result.control[b]
+        d.qpos[:], d.qvel[:], d.act[:], d.ctrl[:] = qpos[b], qvel[b], result.activation[b], result.control[b]
         d.qfrc_applied[:] = 0.0
         if result.residual_nm is not None:
             d.qfrc_applied[free_dofs[[body.model.joint_names.index(n) for n in result.residual_dofs]]] = \
                 result.residual_nm[b]
+        if floating:
+            d.qfrc_applied[layout.root_dof] = result.root_residual[b]
         mujoco.mj_forward(m, d)
         mujoco.mj_fullM(m, d, mass)
-        E = tangent[b]
-        reduced = np.linalg.solve(E.T @ mass @ E, E.T @ mass @ (d.qacc - rate[b]))
-        error[b] = reduced - result.qacc[b]
+        E = _tangent_of(layout, tangent[b], m.nv)
+        qacc = d.qacc.copy()
+        qacc[layout.rest_dof] -= rate[b]
+        error[b] = np.linalg.solve(E.T @ mass @ E, E.T @ mass @ qacc) - wanted[b]
     return error
+
+
+def _tangent_of(layout, tangent, nv: int) -> np.ndarray:
+    """``d state / d (free joints, roots)`` (nv, N + 6K): the joint map's ``E`` on the welded body's dofs, the
+    identity on the roots'."""
+    n, k = tangent.shape[1], len(layout.root_dof)
+    E = np.zeros((nv, n + k))
+    E[layout.rest_dof, :n] = tangent
+    E[layout.root_dof, n + np.arange(k)] = 1.0
+    return E

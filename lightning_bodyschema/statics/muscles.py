@@ -131,10 +131,11 @@ def read_muscle_curves(source: str, tendons, fixed_base: bool = False) -> Muscle
         dynprm=m.actuator_dynprm[ids, :3].copy())
 
 
-def actuated_model(model: MusculoskeletalModel, curves: MuscleCurves) -> mujoco.MjModel:
-    """``model``'s own MuJoCo model (locks, welded base and all) with the muscle actuators put back, one per muscle,
-    activation in [0, 1]: what a MuJoCo user runs, for checking static activations in MuJoCo."""
-    spec = mujoco.MjSpec.from_string(model.xml)
+def actuated_model(model: MusculoskeletalModel, curves: MuscleCurves, spec=None) -> mujoco.MjModel:
+    """``model``'s own MuJoCo model (locks, welded base and all; ``spec``: this spec of it instead, e.g. with its
+    floating root back) with the muscle actuators put back, one per muscle, activation in [0, 1]: what a MuJoCo user
+    runs, for checking static activations in MuJoCo."""
+    spec = mujoco.MjSpec.from_string(model.xml) if spec is None else spec
     for k, tendon in enumerate(model.muscle_names):
         actuator = spec.add_actuator(name=curves.actuators[k], target=tendon, trntype=mujoco.mjtTrn.mjTRN_TENDON)
         actuator.gaintype, actuator.biastype = _MUSCLE

@@ -111,6 +111,7 @@ class StaticBody:
                                        "text (a StaticBody is built from the model's source)")
         self.model = MusculoskeletalModel(model, muscles=muscles, gravity=gravity, locked_joints=locked_joints,
                                           fixed_base=fixed_base)
+        self.source, self.fixed_base = model, fixed_base  # a floating root's dynamics reads the source's free joints
         self.spring = spring_for_model(self.model, k_n, alpha_per_m, f_max_n)
         self.curves: Optional[MuscleCurves] = read_muscle_curves(model, self.model.muscle_names, fixed_base)
         self.threads = check_threads(threads)  # refused now, not at the first solve
