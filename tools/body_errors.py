@@ -11,8 +11,9 @@ p99 (their share of postures off by more than 0.1 mm and their largest error: wh
 Then the worst muscle per posture (``evaluation.body_errors``: a posture is only as good as its worst muscle): the
 largest length, moment-arm and torque error at each posture, median / p90 / p99 / max over the postures, the share of
 postures whose worst muscle is off by more than 0.1 mm, and where those bad postures are (the muscle worst there most
-often, the joint they bunch on and their interval). Any schema with ``body_si`` (``StructuredSchema``). One torch
-thread.
+often, the joint they bunch on and their interval). Then the postures the adapter flags as near a learned path
+switch (``StructuredSchema.path_switches``: ``near_path_switch``), counted, and the worst muscle per posture over the
+others. Any schema with ``body_si`` (``StructuredSchema``). One torch thread.
 """
 import argparse
 
@@ -52,6 +53,18 @@ def worst_report(errors: dict, model, k: int) -> str:
     lines += ["", f"postures whose worst muscle is off by > 0.1 mm: {100 * s['bad_posture_fraction']:.3g} %", "", ""]
     rows = bad_regions(errors["worst"], errors["q"], model.q_range, errors["crossed"], max(k, 1))
     return "\n".join(lines) + bad_regions_table(rows, model.muscle_names, model.joint_names)
+
+
+def flagged_report(worst, flagged: np.ndarray) -> str:
+    """The share of postures flagged near a learned path switch and the worst muscle per posture over the others."""
+    rest = summary(type(worst)(*(a[~flagged] for a in worst))) if (~flagged).any() else None
+    lines = [f"postures flagged near a learned path switch: {int(flagged.sum())} of {len(flagged)} "
+             f"({100 * float(flagged.mean()):.3g} %)"]
+    if rest is not None:
+        lines.append("the others, worst muscle per posture: length p99 {:.4g} mm, max {:.4g} mm; moment arm p99 {:.4g} "
+                     "mm/rad".format(rest["worst_length_mm_p99"], rest["worst_length_mm_max"],
+                                     rest["worst_arm_mm_per_rad_p99"]))
+    return "\n".join(lines)
 
 
 def worst_muscles(errors: dict, names, k: int) -> str:
@@ -107,6 +120,9 @@ def main(argv=None):
         print(worst_muscles(errors, schema.robot_model.muscle_names, args.worst))
     print()
     print(worst_report(errors, schema.robot_model, args.worst))
+    if hasattr(schema, "path_switches"):
+        print()
+        print(flagged_report(errors["worst"], schema.path_switches(q)["near_path_switch"]))
 
 
 if __name__ == "__main__":

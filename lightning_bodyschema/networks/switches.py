@@ -8,12 +8,12 @@ exact: the adapter reports such postures (``near_path_switch``) instead of comma
 
 ``switch_distance`` estimates each posture's distance [rad, Euclidean over the joints] to every learned switch to
 first order, ``|g(q)| / |grad_q g(q)|`` (exact for a plane; near a curved zero set, where the flag matters, close),
-and keeps the switches whose two branches differ there by at least ``JUMP_FLOOR_M`` (a degree-8 gate also changes
+and, within reach, keeps the switches whose two branches differ there by at least ``JUMP_FLOOR_M`` (a degree-8 gate also changes
 sign where both branches agree: no jump, nothing to flag). Muscles whose cells replaced their branches
 (``networks.cells``) do not switch by a gate and are not counted: a trimmed cell fits the larger side of a jump
 inside it and says nothing of where the smaller side begins (RESULTS.md "Hold every posture").
 
-Plain PyTorch, no Lightning.
+In numpy (a few terms per gate: at one posture numpy's calls cost less than torch's); no Lightning.
 """
 from __future__ import annotations
 
@@ -35,49 +35,84 @@ def gated_muscles(path) -> torch.Tensor:
     return torch.nonzero(path.branched).flatten()
 
 
-def gate_distance(path, x: torch.Tensor, half_range: torch.Tensor) -> torch.Tensor:
-    """``(B, G)`` [rad]: each gated muscle's (``gated_muscles``) first-order distance from normalized postures ``x
-    (B, N)`` to its gate's zero set; ``half_range (N,)``: rad per normalized unit. Only the gates' own terms are
-    evaluated (a gate has at most ``branches.GATE_TERMS``)."""
-    muscles = gated_muscles(path)
-    if not len(muscles):
-        return x.new_zeros(len(x), 0, dtype=torch.float64)
-    gate = path.gate[muscles]
-    cols = torch.nonzero(gate.abs().sum(0) > 0).flatten()
-    exponents = path.exponents[cols]
-    phi, dphi = product_basis(x.to(torch.float64), exponents, int(exponents.max()), slopes=True)
-    g = phi @ gate[:, cols].T  # (B, G)
-    grad = torch.einsum("bnp,gp->bgn", dphi, gate[:, cols]) / half_range.to(torch.float64)  # d g / d q [1/rad]
-    return g.abs() / grad.norm(dim=2).clamp_min(1e-300)
+def _legendre(x: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """``P_0..P_degree`` of ``x (B, N)`` and their slopes, ``(B, N, degree + 1)`` each (``basis.legendre``)."""
+    values, slopes = [np.ones_like(x), x], [np.zeros_like(x), np.ones_like(x)]
+    for n in range(1, degree):  # (n+1) P_{n+1} = (2n+1) x P_n - n P_{n-1};  P'_{n+1} = P'_{n-1} + (2n+1) P_n
+        values.append(((2 * n + 1) * x * values[n] - n * values[n - 1]) / (n + 1))
+        slopes.append(slopes[n - 1] + (2 * n + 1) * values[n])
+    return np.stack(values[:degree + 1], -1), np.stack(slopes[:degree + 1], -1)
 
 
-def branch_gap(path, x: torch.Tensor) -> torch.Tensor:
-    """``(B, G)``: each gated muscle's second branch minus its first at normalized postures ``x (B, N)``, in the
-    path's (normalized) length units."""
-    muscles = gated_muscles(path)
-    diff = (path.coef_alt[muscles] - path.coef[muscles]) * path.term_mask[muscles]
-    cols = torch.nonzero(diff.abs().sum(0) > 0).flatten()
-    if not len(cols):
-        return x.new_zeros(len(x), len(muscles), dtype=torch.float64)
-    exponents = path.exponents[cols]
-    return product_basis(x.to(torch.float64), exponents, int(exponents.max()))[0] @ diff[:, cols].T
+class _Terms:
+    """Product-Legendre terms ``exponents (P, N)`` evaluated in numpy at ``x (B, N)``: ``phi (B, P)`` and, with
+    ``slopes``, ``dphi/dx (B, N, P)`` (``basis.product_basis``'s arithmetic on the few terms a gate uses)."""
+
+    def __init__(self, exponents: torch.Tensor):
+        self.exponents = exponents.cpu().numpy()
+        self.degree = max(int(self.exponents.max(initial=0)), 1)
+
+    def __call__(self, x: np.ndarray, slopes: bool = False):
+        values, derivs = _legendre(x, self.degree)
+        joints = np.arange(x.shape[1])
+        factors = values[:, joints, self.exponents]  # (B, P, N)
+        phi = factors.prod(-1)
+        if not slopes:
+            return phi, None
+        ones = np.ones_like(factors[..., :1])
+        before = np.concatenate([ones, np.cumprod(factors[..., :-1], -1)], -1)  # prod_{i<j} factor_i
+        after = np.concatenate([np.cumprod(factors[..., :0:-1], -1)[..., ::-1], ones], -1)  # prod_{i>j}
+        slope = derivs[:, joints, self.exponents] * before * after  # (B, P, N)
+        return phi, slope.transpose(0, 2, 1)
 
 
-def switch_distance(path, x: torch.Tensor, half_range: torch.Tensor, length_scale_m: torch.Tensor) -> tuple[
-        np.ndarray, np.ndarray]:
-    """Each posture's distance [rad] to the nearest learned switch of ``path`` (a ``PerMusclePath``) whose branches
-    differ there by at least ``JUMP_FLOOR_M``, and its muscle, ``(B,)`` each (``inf``, -1: none), at normalized
-    postures ``x (B, N)``; ``half_range (N,)``: rad per normalized unit, ``length_scale_m (M,)``: m per normalized
-    length unit."""
-    with torch.no_grad():
-        muscles = gated_muscles(path)
-        if not len(muscles):
+class SwitchSnapshot:
+    """A fitted ``PerMusclePath``'s learned switches frozen in numpy (the gates in use and their branches'
+    difference, each on its own terms only), for ``switch_distance``; rebuilt when the path changes (a schema keeps
+    it in its inference cache)."""
+
+    def __init__(self, path):
+        self.muscles = gated_muscles(path).cpu().numpy()
+        if not len(self.muscles):
+            return
+        index = torch.as_tensor(self.muscles, device=path.coef.device)
+        gate = path.gate[index]
+        diff = (path.coef_alt[index] - path.coef[index]) * path.term_mask[index]
+        self.gate_terms, self.gate = self._columns(path, gate)
+        self.gap_terms, self.gap = self._columns(path, diff)
+
+    @staticmethod
+    def _columns(path, coef: torch.Tensor):
+        cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
+        return _Terms(path.exponents[cols]), coef[:, cols].T.cpu().numpy()  # (P', G)
+
+    def __call__(self, x: np.ndarray, half_range: np.ndarray, length_scale_m: np.ndarray):
+        """``(distance (B,), muscle (B,))``: ``switch_distance``'s answer at normalized postures ``x (B, N)``."""
+        if not len(self.muscles):
             return np.full(len(x), np.inf), np.full(len(x), -1, dtype=np.int64)
-        jump_m = branch_gap(path, x).abs() * length_scale_m.to(torch.float64)[muscles]
-        distance = torch.where(jump_m >= JUMP_FLOOR_M, gate_distance(path, x, half_range), torch.inf)
-        nearest, which = distance.min(1)
-        muscle = torch.where(torch.isfinite(nearest), muscles[which], -1)
-        return nearest.cpu().numpy(), muscle.cpu().numpy().astype(np.int64)
+        phi, dphi = self.gate_terms(x, slopes=True)
+        grad = (dphi @ self.gate) / half_range[None, :, None]  # (B, N, G): d g / d q [1/rad]
+        distance = np.abs(phi @ self.gate) / np.maximum(np.linalg.norm(grad, axis=1), 1e-300)  # (B, G)
+        rows, cols = np.nonzero(distance <= SWITCH_REACH_RAD)  # within reach: is there a jump? (few rows)
+        if len(rows):
+            jump_m = np.abs((self.gap_terms(x[rows])[0] @ self.gap)[np.arange(len(rows)), cols])
+            jump_m *= length_scale_m[self.muscles[cols]]
+            distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
+        which = np.argmin(distance, axis=1)
+        nearest = distance[np.arange(len(x)), which]
+        return nearest, np.where(np.isfinite(nearest), self.muscles[which], -1)
+
+
+def switch_distance(path, x, half_range, length_scale_m, snapshot: SwitchSnapshot = None) -> tuple[np.ndarray,
+                                                                                                  np.ndarray]:
+    """Each posture's distance [rad] to the nearest learned switch of ``path`` (a ``PerMusclePath``) and its muscle,
+    ``(B,)`` each (``inf``, -1: none), at normalized postures ``x (B, N)``; ``half_range (N,)``: rad per normalized
+    unit, ``length_scale_m (M,)``: m per normalized length unit; ``snapshot``: ``SwitchSnapshot(path)`` when the
+    caller keeps one. A gate's zero set within ``SWITCH_REACH_RAD`` where its branches differ by less than
+    ``JUMP_FLOOR_M`` is no switch (inf)."""
+    snapshot = SwitchSnapshot(path) if snapshot is None else snapshot
+    host = lambda a: np.asarray(a.detach().cpu() if torch.is_tensor(a) else a, np.float64)  # noqa: E731
+    return snapshot(host(x), host(half_range), host(length_scale_m))
 
 
 def switch_diagnostics(distance_rad: np.ndarray, muscle: np.ndarray) -> dict:

@@ -39,7 +39,7 @@ from ..networks.path_config import PathConfig
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.snapshot import BodySnapshot, GravitySnapshot
 from ..networks.structured import JacobianMLP, check_architecture
-from ..networks.switches import switch_diagnostics, switch_distance
+from ..networks.switches import SwitchSnapshot, switch_diagnostics, switch_distance
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
 from .base import BodySchema
@@ -440,8 +440,9 @@ class StructuredSchema(BodySchema):
         if not isinstance(path, PerMusclePath):
             return switch_diagnostics(np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64))
         x = self.normalizer.encode_q(q.to(path.coef.device)).clamp(path.x_lo, path.x_hi)
-        scale_m = self.normalizer.x_std[:self.n_muscles].to(path.coef.device)
-        return switch_diagnostics(*switch_distance(path, x, self._half_range().to(path.coef.device), scale_m))
+        snapshot = self.inference_cache.get("switch_snapshot", lambda: SwitchSnapshot(path))
+        return switch_diagnostics(*switch_distance(path, x, self._half_range(), self.normalizer.x_std[:self.n_muscles],
+                                                   snapshot))
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:

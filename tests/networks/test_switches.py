@@ -50,13 +50,19 @@ def test_the_distance_to_a_learned_switch_is_the_distance_to_the_true_surface_ne
 
 
 def test_a_gate_whose_branches_agree_within_the_floor_is_no_switch():
-    """The same path read in units where its jump (0.9 to 2.1 length units) is below ``JUMP_FLOOR_M``: no switch."""
+    """The same path read in units where its jump (0.9 to 2.1 length units) is below ``JUMP_FLOOR_M``: no switch
+    within reach (beyond it the branches are not compared: nothing is flagged there anyway)."""
     path = _fitted()
-    x = torch.rand(500, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(7)) * 1.8 - 0.9
+    x = torch.rand(200, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(7)) * 1.8 - 0.9
+    offset_rad = torch.linspace(-SWITCH_REACH_RAD, SWITCH_REACH_RAD, 200, dtype=torch.float64)  # across the plane
+    x[:, 0] = 0.2 - 0.3 * x[:, 1] + offset_rad * float(np.linalg.norm(NORMAL / HALF_RANGE.numpy()))
     scale_m = torch.full((3,), 0.5 * JUMP_FLOOR_M / 2.1, dtype=torch.float64)  # the largest jump: half the floor
+    near = _true_distance_rad(x.numpy()) < 0.5 * SWITCH_REACH_RAD
     distance, muscle = switch_distance(path, x, HALF_RANGE, scale_m)
-    assert np.isinf(distance).all() and (muscle == -1).all()
-    assert np.isfinite(switch_distance(path, x, HALF_RANGE, 4 * scale_m)[0]).any()  # the smallest jump: twice it
+    assert near.sum() > 50 and np.isinf(distance[near]).all() and (muscle[near] == -1).all()
+    assert not switch_diagnostics(distance, muscle)["near_path_switch"].any()
+    flagged = switch_diagnostics(*switch_distance(path, x, HALF_RANGE, 4 * scale_m))["near_path_switch"]
+    assert flagged[near].all()  # the smallest jump: twice the floor
 
 
 def test_a_path_without_switches_reports_none():
