@@ -2,6 +2,7 @@
 """A checkpoint's learned body against MuJoCo's: muscle lengths, moment arms, torque (median and p99).
 
     python tools/body_errors.py --ckpt runs/myoarm/.../last.ckpt [--postures 2000] [--seed 1] [--worst 5]
+                                [--near-jumps]
 
 At ``--postures`` seeded uniform postures of the checkpoint's robot (its MJCF; a checkpoint without a model stops
 with one line): |l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
@@ -13,7 +14,11 @@ largest length, moment-arm and torque error at each posture, median / p90 / p99 
 postures whose worst muscle is off by more than 0.1 mm, and where those bad postures are (the muscle worst there most
 often, the joint they bunch on and their interval). Then the postures the adapter flags as near a learned path
 switch (``StructuredSchema.path_switches``: ``near_path_switch``), counted, and the worst muscle per posture over the
-others. Any schema with ``body_si`` (``StructuredSchema``). One torch thread.
+others. ``--near-jumps``: is the tail at the true path's jumps? For the postures whose worst muscle misses by at
+least its p99, for up to 100 of those missing by 0.1-1 mm and for as many postures drawn at random (the tail's
+muscles), the share within 0.01 / 0.05 / 0.1 / 0.3 rad of a jump
+of that muscle's true length along a joint it crosses (``evaluation.body_errors.jump_distance``). Any schema with
+``body_si`` (``StructuredSchema``). One torch thread.
 """
 import argparse
 
@@ -22,7 +27,8 @@ import torch
 
 from lightning_bodyschema.apps.common import exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
+from lightning_bodyschema.evaluation.body_errors import BAD_LENGTH_MM, bad_regions, bad_regions_table, jump_distance, \
+    summary, worst_per_posture
 
 
 def body_errors(schema, q: np.ndarray) -> dict:
@@ -67,6 +73,22 @@ def flagged_report(worst, flagged: np.ndarray) -> str:
     return "\n".join(lines)
 
 
+def near_jumps_report(worst, q: np.ndarray, model, crossed: np.ndarray) -> str:
+    """``--near-jumps`` (module docstring): the tail's and the 0.1-1 mm postures' distance to a true jump."""
+    bulk = np.flatnonzero((worst.length_mm > BAD_LENGTH_MM) & (worst.length_mm <= 1.0))[:100]
+    lines = ["| postures (worst muscle's length error) | n | within 0.01 / 0.05 / 0.1 / 0.3 rad of a true jump |",
+             "|---|---|---|"]
+    tail = np.flatnonzero(worst.length_mm >= np.percentile(worst.length_mm, 99))
+    anywhere = np.random.default_rng(0).choice(len(q), len(tail), replace=False)
+    for label, rows, muscles in (("p99 tail", tail, worst.length_muscle[tail]),
+                                 (f"{BAD_LENGTH_MM}-1 mm", bulk, worst.length_muscle[bulk]),
+                                 ("any posture, the tail's muscles", anywhere, worst.length_muscle[tail])):
+        reach = jump_distance(model, q[rows], muscles, crossed)
+        shares = " / ".join(f"{100 * float(np.mean(reach <= x)):.0f} %" for x in (0.01, 0.05, 0.1, 0.3))
+        lines.append(f"| {label} | {len(rows)} | {shares} |")
+    return "\n".join(lines)
+
+
 def worst_muscles(errors: dict, names, k: int) -> str:
     """The ``k`` muscles with the largest length p99 (``errors["per_muscle_length_mm"] (B, M)``), a table."""
     length_mm = errors["per_muscle_length_mm"]
@@ -99,6 +121,7 @@ def main(argv=None):
     parser.add_argument("--postures", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--worst", type=int, default=5, help="muscles listed by length p99 (0: none)")
+    parser.add_argument("--near-jumps", action="store_true", help="the tail's distance to the true path's jumps")
     args = parser.parse_args(argv)
     if args.postures < 1 or args.worst < 0:
         raise BodySchemaInputError(f"--postures {args.postures} / --worst {args.worst}: expected integers >= 1 / >= 0")
@@ -123,6 +146,9 @@ def main(argv=None):
     if hasattr(schema, "path_switches"):
         print()
         print(flagged_report(errors["worst"], schema.path_switches(q)["near_path_switch"]))
+    if args.near_jumps:
+        print()
+        print(near_jumps_report(errors["worst"], q, schema.robot_model, errors["crossed"]))
 
 
 if __name__ == "__main__":
