@@ -9,6 +9,11 @@ import numpy as np
 import torch
 
 
+def namespace(a):
+    """The array library of ``a``: numpy for a numpy array, else torch."""
+    return np if isinstance(a, np.ndarray) else torch
+
+
 def encode_q(q, lo, hi):
     """Postures ``q`` [rad] within ``[lo, hi]`` to ``[-1, 1]`` (the schemas' normalized postures; numpy arrays or
     tensors, ``lo``, ``hi`` in q's dtype)."""

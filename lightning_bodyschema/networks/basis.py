@@ -8,6 +8,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from .arrays import Frozen, namespace, offsets, scatter_sum, take
+
 DENSE_ROWS = 48  # up to this many postures ``ProductTerms`` gathers every factor at once (BENCHMARKS.md)
 
 
@@ -64,20 +66,19 @@ class ProductTerms(nn.Module):
     """The product terms of ``exponents (P, N)``, evaluated with few operations at few postures and with little
     memory traffic at many.
 
-    ``product_basis`` writes every term's N factors and N derivative columns. Here the Legendre values come from
-    the powers of x times a fixed matrix (three operations, not a recurrence of ``3 * degree``; they differ from the
-    recurrence by about 1e-11 at degree 16 on [-1, 1], 1e-10 for the slopes, far below any length the paths
-    resolve). Up to ``DENSE_ROWS`` postures every term's factors on the joints it uses are gathered at once
-    (``dense``: about 15 operations in all; ``n_slots`` factors per term, padded with exact ones: on myoArm's paths
-    3 of 7 joints); above, the terms are grouped by the joints they use (their support) and only those factors
-    multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors instead of 8911). An
+    ``product_basis`` writes every term's N factors and N derivative columns. Here the Legendre values come from the
+    powers of x times a fixed matrix (three operations, not a recurrence of ``3 * degree``; they differ from the
+    recurrence by about 1e-11 at degree 16 on [-1, 1], 1e-10 for the slopes, far below any length the paths resolve). Up
+    to ``DENSE_ROWS`` postures every term's factors on the joints it uses are gathered at once (``dense_terms``, the
+    snapshot's evaluation too: about 15 operations in all; ``n_slots`` factors per term, padded with exact ones: on
+    myoArm's paths 3 of 7 joints); above, the terms are grouped by the joints they use (their support) and only those
+    factors multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors instead of 8911). An
     exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
 
     ``forward(x, slopes)`` returns a ``Basis``; ``contract`` applies coefficients given in the terms' original order
-    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls).
-    ``stacked_index`` places each term and its slopes for ``networks.snapshot.TermsSnapshot`` (few postures), each
-    variable's slope in its output column ``columns`` (one per variable; None: its own; several variables may share
-    one: a joint and its cell coordinate). Buffers only, none persistent (a checkpoint's state dict is
+    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). ``dense_terms``
+    adds each variable's slope into its output column ``columns`` (one per variable; None: its own; several variables
+    may share one: a joint and its cell coordinate). Buffers only, none persistent (a checkpoint's state dict is
     unchanged); plain PyTorch.
     """
 
@@ -98,11 +99,12 @@ class ProductTerms(nn.Module):
         slot_joint = np.argsort(exponents == 0, axis=1, kind="stable")[:, :self.n_slots]
         flat = slot_joint * (self.degree + 1) + np.take_along_axis(exponents, slot_joint, 1)
         columns = np.arange(self.n_joints) if columns is None else np.asarray(columns, dtype=np.int64)
-        self.n_columns = int(columns.max(initial=-1)) + 1
+        self.n_columns, self.n_terms = int(columns.max(initial=-1)) + 1, len(exponents)
         stacked = np.concatenate([np.zeros((len(slot_joint), 1), np.int64), 1 + columns[slot_joint]], 1)
-        for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.reshape(-1), **long),
-                                slot_joint=torch.tensor(slot_joint, **long), exponents=torch.tensor(exponents, **long),
-                                stacked_index=torch.tensor(stacked, **long),  # (P, 1 + slots): ``TermsSnapshot``'s
+        flat_index = np.arange(self.n_terms)[:, None] * (1 + self.n_columns) + stacked  # into (P, 1 + columns)
+        for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.T.reshape(-1), **long),
+                                exponents=torch.tensor(exponents, **long),
+                                flat_index=torch.tensor(flat_index.T.copy(), **long),  # (1 + slots, P)
                                 to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
             self.register_buffer(name, value, persistent=False)
         for g, (key, cols) in enumerate(zip(self.supports, members)):
@@ -129,13 +131,6 @@ class ProductTerms(nn.Module):
             self._buffers[name] = value.to(self._buffers[name].device)
         return out
 
-    def _legendre(self, x: torch.Tensor, slopes: bool):
-        """``P_0..P_degree`` of ``x (B, N)`` and (or None) their slopes: ``(B, N, degree + 1)``."""
-        # x^k as repeated products (as the grouped path's; pow is slower and rounds differently)
-        rising = x[..., None].expand(*x.shape, self.degree).cumprod(-1)
-        powers = torch.cat([torch.ones_like(rising[..., :1]), rising], -1)  # (a pad costs several times a cat)
-        return powers @ self.to_values, (powers @ self.to_slopes) if slopes else None
-
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
         """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: by the number
         of postures (``dense_for``)."""
@@ -144,27 +139,11 @@ class ProductTerms(nn.Module):
             phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
             return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
         if dense_for(x) if dense is None else dense:
-            return self._dense(*self._legendre(x, slopes))
+            stacked = dense_terms(self, x)
+            return Basis(stacked[..., 0], stacked[..., 1:] if slopes else None, False)
         powers = F.pad(x.T[:, None, :].expand(-1, self.degree, -1).cumprod(1), (0, 0, 1, 0), value=1.0)
         # (N, degree + 1, B): each joint's rows contiguous
         return self._grouped(self.to_values.T @ powers, (self.to_slopes.T @ powers) if slopes else None)
-
-    def _dense(self, values, derivs) -> "Basis":
-        """``phi (B, P)`` and ``dphi (B, P, N)`` in the original order: every term's factors in its ``n_slots`` slots
-        gathered at once (myoArm's paths: 3 slots of 7 joints), each slope added into its joint's column."""
-        shape = (len(values), -1, self.n_slots)
-        factors = self._gather(values).view(shape)  # (B, P, slots)
-        if derivs is None:
-            return Basis(_slot_products(factors.unbind(-1), None)[0], None, False)
-        phi, slopes = _slot_products(factors.unbind(-1), self._gather(derivs).view(shape).unbind(-1))
-        index = self.slot_joint.expand(len(values), -1, -1)
-        return Basis(phi, phi.new_zeros(*phi.shape, self.n_joints).scatter_add_(2, index, torch.stack(slopes, -1)),
-                     False)
-
-    def _gather(self, table: torch.Tensor) -> torch.Tensor:
-        """Every term's factor per slot ``(B, P * slots)`` from ``table (B, N, degree + 1)`` (``gather``: the fastest
-        at one posture; an exported program takes ``product_basis``, never this)."""
-        return table.flatten(1).gather(1, self.slot_index.expand(len(table), -1))
 
     def _grouped(self, values, derivs) -> "Basis":
         """``phi (P, B)`` (transposed) in ``perm``'s order and per joint ``j`` the derivative rows ``(P_j, B)`` of the
@@ -214,6 +193,40 @@ class ProductTerms(nn.Module):
         if basis.dphi is None or not slopes:
             return y, None
         return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, by_joint)], -1)
+
+
+def dense_terms(terms, x, scale=None):
+    """``(B, P, 1 + columns)`` at postures ``x (B, V)`` (numpy or torch): column 0 each term of ``terms`` (a
+    ``ProductTerms`` or its ``TermsSnapshot``), then each variable's slope added into its output column (with
+    ``scale (V,)``: times ``d variable / d output``). The Legendre values from the powers of x (repeated products:
+    pow rounds differently) times a fixed matrix; each slot's factors a contiguous row; one scatter adds each term's
+    slots in their order."""
+    xp, n = namespace(x), len(x)
+    rising = xp.cumprod(xp.broadcast_to(x[..., None], (*x.shape, terms.degree)), -1)
+    powers = xp.concatenate([xp.ones_like(rising[..., :1]), rising], -1)
+    values, derivs = powers @ terms.to_values, powers @ terms.to_slopes
+    derivs = derivs if scale is None else derivs * scale[:, None]
+    shape = (n, terms.n_slots, terms.n_terms)
+    factors = take(values.reshape(n, -1), terms.slot_index, 1).reshape(shape)
+    slopes = take(derivs.reshape(n, -1), terms.slot_index, 1).reshape(shape)
+    phi, slopes = _slot_products(tuple(factors[:, s] for s in range(terms.n_slots)),
+                                 tuple(slopes[:, s] for s in range(terms.n_slots)))
+    width = terms.n_terms * (1 + terms.n_columns)
+    parts = xp.stack([phi] + slopes, 1)  # (B, 1 + slots, P)
+    index = terms.flat_index + offsets(x, width)
+    return scatter_sum(index.ravel(), parts.ravel(), n * width).reshape(n, terms.n_terms, -1)
+
+
+class TermsSnapshot(Frozen):
+    """A ``ProductTerms``' tables frozen for ``dense_terms`` (``on_host()``: in numpy)."""
+
+    def __init__(self, terms: ProductTerms):
+        for name in ("degree", "n_slots", "n_columns", "n_terms", "to_values", "to_slopes", "slot_index",
+                     "flat_index"):
+            setattr(self, name, getattr(terms, name))
+
+    def __call__(self, x, scale=None):
+        return dense_terms(self, x, scale)
 
 
 def _slot_products(factors: tuple, derivs: Optional[tuple]) -> tuple:

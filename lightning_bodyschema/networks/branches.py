@@ -48,7 +48,7 @@ NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a j
 def one_thread():
     """torch's CPU threads set to 1 inside, then restored: batched float64 LU solves (``torch.linalg.solve`` of
     ``(2, 300, 300)`` and larger) hang in torch 2.13's MKL with 2 threads, printing "Parameter 6 was incorrect on
-    entry to DLASWP" (one thread: 0.001 s); the fits' least squares run inside (``bodyschema fit`` uses one thread
+    entry to DLASWP" (one thread: they solve); the fits' least squares run inside (``bodyschema fit`` uses one thread
     anyway)."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)

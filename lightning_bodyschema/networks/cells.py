@@ -42,6 +42,7 @@ from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 from .basis import ProductTerms
+from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 from .path_config import CELL_JOINTS
@@ -162,14 +163,14 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         basis = path.cell_terms_all(z, dy is not None, dense=True)
         y_cell, dy_cell = _contract(path, basis, cell)
         dy_cell = None if dy is None else _fold(path, dy_cell)
-        return _replace(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
+        return replace_where(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
     y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
         y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
-        y, dy = _replace(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
-                         None if dy_cell is None else _fold(path, dy_cell), copy=False)
+        y, dy = replace_where(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
+                            None if dy_cell is None else _fold(path, dy_cell), copy=False)
     return y, dy
 
 
@@ -210,17 +211,6 @@ def _by_cell(terms, coef, z, cell, slopes):
             start += count
     inverse = torch.argsort(order)
     return y[inverse], None if dy is None else dy[inverse]
-
-
-def _replace(y, dy, muscles, fitted, y_cell, dy_cell, copy: bool = True):
-    """``y``, ``dy`` with the cells' ``y_cell (B, Mc)``, ``dy_cell (B, Mc, N)`` (d/dx, ``_fold``) of ``muscles`` where
-    their cell was ``fitted (B, Mc)`` (copies, or with ``copy=False`` written in place)."""
-    y = y.clone() if copy else y
-    y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
-    if dy is not None:
-        dy = dy.clone() if copy else dy
-        dy[:, muscles] = torch.where(fitted[:, :, None], dy_cell, dy[:, muscles])
-    return y, dy
 
 
 def set_cell_layout(path, degrees) -> None:

@@ -24,7 +24,7 @@ from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 from .arrays import horner
-from .snapshot import JUMP_ROWS, GravitySnapshot
+from .snapshot import JUMP_ROWS, GravitySnapshot, world_poses
 from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
@@ -143,18 +143,9 @@ class GravityTorque(nn.Module):
 
     def _world(self, motion: torch.Tensor) -> torch.Tensor:
         """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``
-        (``kinematics``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program, else one product
-        per node (parents first; a body offset's a single matrix product)."""
-        if torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS:
-            world = self.node_const + (self.node_motion @ motion.flatten(2)).unflatten(2, (4, 4))
-            for k in range(self.n_rounds):
-                world = self._pick(f"node_pointer{k}", world) @ world
-            return world
-        nodes = []
-        for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
-            T = self.node_const[i] if chain < 0 else motion[:, chain]
-            nodes.append(T.expand(len(motion), 4, 4) if parent < 0 else nodes[parent] @ T)
-        return torch.stack(nodes, 1)
+        (``snapshot.world_poses``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program."""
+        jump = torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS
+        return world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
 
     def _register_nodes(self, tree) -> None:
         """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation

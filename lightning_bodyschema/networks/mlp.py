@@ -38,7 +38,7 @@ def _activation_class(activation: ActivationSpec) -> type[nn.Module]:
         f"activation={activation!r} is not known; use one of {sorted(_ACTIVATIONS)} or an nn.Module class")
 
 
-def _check_dims(**dims: int) -> None:
+def check_dims(**dims: int) -> None:
     """Every size must be an int >= 1 (0 would build an empty layer that trains silently to nothing)."""
     for name, value in dims.items():
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -59,7 +59,7 @@ class MLP(nn.Module):
     def __init__(self, in_dim: int, hidden: int, out_dim: int, n_hidden_layers: int = 2,
                  activation: ActivationSpec = "tanh"):
         super().__init__()
-        _check_dims(in_dim=in_dim, hidden=hidden, out_dim=out_dim, n_hidden_layers=n_hidden_layers)
+        check_dims(in_dim=in_dim, hidden=hidden, out_dim=out_dim, n_hidden_layers=n_hidden_layers)
         act = _activation_class(activation)
         widths = [in_dim] + [hidden] * n_hidden_layers
         layers: list[nn.Module] = []
@@ -83,7 +83,7 @@ class AEEncoder(nn.Module):
     def __init__(self, x_dim: int, q_dim: int, z_latent_dim: int, hidden: int = 64,
                  n_hidden_layers: int = 2, activation: ActivationSpec = "tanh"):
         super().__init__()
-        _check_dims(x_dim=x_dim, q_dim=q_dim, z_latent_dim=z_latent_dim)
+        check_dims(x_dim=x_dim, q_dim=q_dim, z_latent_dim=z_latent_dim)
         self.q_dim, self.z_latent_dim = q_dim, z_latent_dim
         self.mlp = MLP(x_dim, hidden, q_dim + self._n_latent_outputs(), n_hidden_layers, activation)
 
@@ -117,7 +117,7 @@ class Decoder(nn.Module):
     def __init__(self, q_dim: int, z_latent_dim: int, x_dim: int, hidden: int = 64,
                  n_hidden_layers: int = 2, activation: ActivationSpec = "tanh"):
         super().__init__()
-        _check_dims(q_dim=q_dim, z_latent_dim=z_latent_dim, x_dim=x_dim)
+        check_dims(q_dim=q_dim, z_latent_dim=z_latent_dim, x_dim=x_dim)
         self.q_dim, self.z_latent_dim = q_dim, z_latent_dim
         self.mlp = MLP(q_dim + z_latent_dim, hidden, x_dim, n_hidden_layers, activation)
 
@@ -140,7 +140,7 @@ def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool
     ``latent_dim`` is the paper's total latent size (3, 10, 30) = dim z_q (= q_dim) + dim z_latent,
     so it must exceed q_dim: with no z_latent there is nothing left to adapt to a fault.
     """
-    _check_dims(latent_dim=latent_dim)
+    check_dims(latent_dim=latent_dim)
     if latent_dim <= q_dim:
         raise BodySchemaInputError(
             f"latent_dim={latent_dim} must exceed q_dim={q_dim}: it counts z_q ({q_dim}) plus at least one z_latent")
@@ -165,7 +165,7 @@ class EpsMLP(nn.Module):
     def __init__(self, x_dim: int, q_dim: int, hidden: int = 91, n_hidden: int = 2,
                  activation: ActivationSpec = "silu", n_timesteps: int = 200):
         super().__init__()
-        _check_dims(x_dim=x_dim, q_dim=q_dim, n_timesteps=n_timesteps)
+        check_dims(x_dim=x_dim, q_dim=q_dim, n_timesteps=n_timesteps)
         self.x_dim, self.q_dim, self.n_timesteps = x_dim, q_dim, n_timesteps
         self.mlp = MLP(x_dim + 1 + q_dim, hidden, x_dim, n_hidden, activation)
 
@@ -216,12 +216,11 @@ class FrozenMLP:
     """Inference-only snapshot of an ``MLP``: its forward and reverse-mode backward pass written out by hand (the
     samplers' loops; ``networks.structured.JacobianMLP`` carries forward-mode tangents instead).
 
-    Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice:
-    what the loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer
-    contribution is folded into a bias once (``first_bias``). Plain tensors, pre-transposed contiguous weights,
-    no autograd, no ``nn.Module`` dispatch: at batch 1 a tensor op costs a few microseconds of dispatch, so the
-    op count is the cost. One ``addmm`` and one activation per layer forward; the backward uses ATen's fused
-    activation backward (one op instead of four for SiLU's derivative).
+    Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice: what the
+    loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer contribution is
+    folded into a bias once (``first_bias``). Plain tensors, pre-transposed contiguous weights, no autograd, no
+    ``nn.Module`` dispatch: at batch 1 the op count is the cost. One ``addmm`` and one activation per layer forward; the
+    backward uses ATen's fused activation backward (one op instead of four for SiLU's derivative).
 
     Lifetime: the weights are copied when it is built and never follow the module afterwards; whoever holds one
     (``schemas.cache.InferenceCache``, a prepared ``adaptation.Adapter``) decides when to rebuild it.
@@ -260,10 +259,6 @@ class FrozenMLP:
         self.eager = ActivationOps(getattr(torch._C._nn, "silu", act.out) if self.silu else torch.tanh,
                                    getattr(backward.grad_input, "_op", backward.grad_input))
 
-    @property
-    def hidden_width(self) -> int:
-        return self.b1.shape[0]
-
     def first_bias(self, rest: torch.Tensor) -> torch.Tensor:
         """First-layer pre-activation from the fixed columns ``rest (B, n_rest)``: ``b1 + rest W1_rest^T``."""
         return torch.addmm(self.b1, rest, self.w1_rest_t)
@@ -271,7 +266,7 @@ class FrozenMLP:
     def buffers(self, batch: int, like: torch.Tensor) -> tuple[list, list, list]:
         """(pre, post, grads): per-layer (B, H) buffers for ``trunk`` and ``back``, allocated once per loop."""
         n_layers = 1 + len(self.hidden)
-        new = functools.partial(like.new_empty, (batch, self.hidden_width))
+        new = functools.partial(like.new_empty, (batch, self.b1.shape[0]))
         return [new() for _ in range(n_layers)], [new() for _ in range(n_layers)], [new() for _ in range(2)]
 
     def trunk(self, u: torch.Tensor, bias: torch.Tensor, w1_t: torch.Tensor, bufs, ops: ActivationOps):

@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
+from .branched import add_branches, branch_parts, refresh_branches, replace_where
 from .branches import fit_branches, one_thread
 from .cell_fit import fit_cells
 from .cells import cell_cuts, evaluate_cells, set_cell_layout
@@ -87,14 +88,8 @@ class PerMusclePath(nn.Module):
         mask = term_mask(crossing, exponents, degrees, blocks)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
-        if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branches)
-            self.register_buffer("coef_alt", torch.zeros_like(self.coef))
-            self.register_buffer("gate", torch.zeros_like(self.coef))
-            self.register_buffer("branched", torch.zeros(n_muscles, dtype=torch.bool))
-            # the branched muscles' indices, a buffer whose shape is known before a call (torch.export): kept in
-            # step with ``branched`` by the fit and by every state-dict load
-            self.register_buffer("branched_index", torch.zeros(0, dtype=torch.long), persistent=False)
-            self.register_load_state_dict_post_hook(lambda module, _: module._refresh_branched())
+        if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
+            add_branches(self)
         if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
             self.cell_cut = cell_cuts(crossing, blocks, config.cell_joints)  # (M, N) numpy: the joints that cut boxes
@@ -138,7 +133,7 @@ class PerMusclePath(nn.Module):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
-        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product, not einsum's reshapes (batch 1: 5x faster)
+        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product: fewer operations than einsum's reshapes
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def snapshot(self) -> PathSnapshot:
@@ -147,37 +142,24 @@ class PerMusclePath(nn.Module):
         return PathSnapshot(self)
 
     def _coefficients(self, dense: bool) -> tuple:
-        """The whole-box coefficients (masked: exactly zero off each muscle's terms), the branched muscles' gates
-        and second polynomials (or None), laid out for a dense basis (an exported program's) or a grouped one
-        (``ProductTerms.layout``)."""
+        """The whole-box coefficients (masked: exactly zero off each muscle's terms) and the branched muscles'
+        ``(muscles, alt, gate)`` (``branched.branch_parts``; or None), laid out for a dense basis (an exported
+        program's) or a grouped one (``ProductTerms.layout``)."""
         layout = lambda coef: self.terms.layout(coef, not dense)  # noqa: E731
-        if self.branches != 2 or not len(self.branched_index):
-            return layout(self.coef * self.term_mask), None, None
-        muscles = self.branched_index
-        return (layout(self.coef * self.term_mask), layout(self.gate[muscles]),
-                layout(self.coef_alt[muscles] * self.term_mask[muscles]))
+        parts = branch_parts(self)
+        branches = None if parts is None else (parts[0], layout(parts[1]), layout(parts[2]))
+        return layout(self.coef * self.term_mask), branches
 
     def _smooth(self, inside: torch.Tensor, slopes: bool, dense: bool, coefs: tuple):
         """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
         (``_coefficients(dense)``): ``(B, M)``, ``(B, M, N)`` or None."""
         basis = self.terms(inside, slopes, dense=dense)
         y, dy = self.terms.contract(basis, coefs[0])
-        if coefs[1] is not None:  # the active branch per muscle and sample
-            y, dy = self._active_branch(basis, y, dy, *coefs[1:3])
-        return y, dy
-
-    def _active_branch(self, basis, y, dy, gate, alt):
-        """``y``, ``dy`` with each branched muscle's second polynomial ``alt`` where its ``gate`` is positive
-        (``basis``: ``self.terms``'; both laid out for it)."""
-        muscles = self.branched_index
-        active = self.terms.contract(basis, gate, slopes=False)[0] > 0  # (B, M')
-        y_alt, dy_alt = self.terms.contract(basis, alt)
-        y = y.clone()
-        y[:, muscles] = torch.where(active, y_alt, y[:, muscles])
-        if dy is not None:
-            dy = dy.clone()
-            dy[:, muscles] = torch.where(active[:, :, None], dy_alt, dy[:, muscles])
-        return y, dy
+        if coefs[1] is None:
+            return y, dy
+        muscles, alt, gate = coefs[1]  # the active branch per muscle and sample
+        gate_value = self.terms.contract(basis, gate, slopes=False)[0]
+        return replace_where(y, dy, muscles, gate_value > 0, *self.terms.contract(basis, alt))
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
@@ -205,16 +187,11 @@ class PerMusclePath(nn.Module):
         if self.branches == 2:
             self.branched.zero_()
             fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
-            self._refresh_branched()  # before the cells: their candidates are the muscles the branches leave worst
+            refresh_branches(self)  # before the cells: their candidates are the muscles the branches leave worst
         if self.pieces > 1:
             fit_cells(self, x, y, chunk)
         if self.branches == 2:
-            self._refresh_branched()
-
-    def _refresh_branched(self) -> None:
-        """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
-        if not self.branched.is_meta:
-            self.branched_index = torch.nonzero(self.branched).flatten()
+            refresh_branches(self)
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""

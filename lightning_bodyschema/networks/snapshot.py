@@ -1,15 +1,16 @@
 """The fitted per-muscle body frozen once, and its one evaluation at few postures, written once for numpy and torch.
 
-At one posture every tensor operation costs its dispatch, not its arithmetic (a float64 product of ten numbers: about
-2 us in torch, 0.5 us in numpy), so a controller on a CPU asks numpy for the body, while a schema on a GPU, or one
-asked for a few dozen postures, stays in torch. Both run the code below: ``PathSnapshot`` (every part of a fitted
-``PerMusclePath``, its whole-box polynomials, branches and cells, from one stacked basis: one product with the
-whole-box rows, one with the posture's cells' rows, one pick of each muscle's candidate), ``GravitySnapshot`` (a
-``GravityTorque``'s torque by one 4x4 motion per joint and the frames' world poses) and ``BodySnapshot`` (the schema's
-normalizer and unit scales around both: ``StructuredSchema.body_si``'s whole arithmetic). Each is built from the
-modules' tensors (torch) and ``on_host()`` gives the same object in numpy over host copies of them; the few
-operations whose spelling differs between the two libraries are ``networks.arrays``' (``xp``: the object's array
-library). The numpy evaluation multiplies the two large matrices by torch (numpy's OpenBLAS threads on its own).
+At one posture every tensor operation costs its dispatch, not its arithmetic, and numpy's dispatch is the cheaper
+(BENCHMARKS.md "Per-muscle body evaluation, myoArm"), so a controller on a CPU asks numpy for the body, while a
+schema on a GPU, or one asked for a few dozen postures, stays in torch. Both run the code below: ``PathSnapshot``
+(every part of a fitted ``PerMusclePath``, its whole-box polynomials, branches and cells, from one stacked basis:
+one product with the whole-box rows, one with the posture's cells' rows, one pick of each muscle's candidate),
+``GravitySnapshot`` (a ``GravityTorque``'s torque by one 4x4 motion per joint and the frames' world poses) and
+``BodySnapshot`` (the schema's normalizer and unit scales around both: ``StructuredSchema.body_si``'s whole
+arithmetic). Each is built from the modules' tensors (torch) and ``on_host()`` gives the same object in numpy over
+host copies of them; the few operations whose spelling differs between the two libraries are ``networks.arrays``'
+(``xp``: the object's array library). The numpy evaluation multiplies the two large matrices by torch (numpy's
+OpenBLAS threads on its own).
 
 Lifetime: a snapshot holds what it read when built and never follows the module afterwards; a schema keeps its
 snapshots in its inference cache (``schemas/cache.py``: cleared on every weight, dtype or device change). No
@@ -20,48 +21,17 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .arrays import (Frozen, as_dtype, as_index, decode_q, encode_q, horner, offsets, pick, product, rows_product,
-                     scatter_sum, take)
-from .basis import _slot_products
+from .arrays import Frozen, as_dtype, as_index, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
+from .basis import TermsSnapshot
+from .branched import branch_parts
 from .cells import cell_spread
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
 
-# the largest stacked basis of this evaluation: postures x terms (whole-box and cell) x (1 + joints), about 11 MB of
-# float64. Above it, ``PerMusclePath``'s blocks of rows and a cell at a time are faster (their slopes touch only the
-# joints each term uses): myoArm's per-muscle path 102 postures, myoLegs + OSL 43, myoLegs 22, myoHand 241
+# the largest stacked basis of this evaluation: postures x terms (whole-box and cell) x (1 + joints). Above it,
+# ``PerMusclePath``'s blocks of rows and a cell at a time are the faster (their slopes touch only the joints each term
+# uses; the crossovers: BENCHMARKS.md "Figures behind code choices")
 FEW_ELEMENTS = 1_400_000
-
-
-class TermsSnapshot(Frozen):
-    """A ``basis.ProductTerms``' terms and their slopes at few postures in one array ``(B, P, 1 + columns)``:
-    column 0 the term, then each variable's slope added into its output column (``ProductTerms.columns``; with
-    ``scale (V,)`` times ``d variable / d output``). The Legendre values from the powers of x times a fixed matrix;
-    each slot's factors a contiguous row; one weighted bincount adds each term's slots in their order."""
-
-    def __init__(self, terms):
-        self.degree, self.n_slots, self.n_columns = terms.degree, terms.n_slots, terms.n_columns
-        self.to_values, self.to_slopes = terms.to_values, terms.to_slopes
-        self.n_terms, width = len(terms.stacked_index), 1 + terms.n_columns
-        self.slot_index = terms.slot_index.view(self.n_terms, -1).T.flatten()  # slot-major
-        rows = torch.arange(self.n_terms, device=terms.stacked_index.device)[:, None]
-        self.flat_index = (rows * width + terms.stacked_index).T.contiguous()  # (1 + slots, P) into (P, width)
-
-    def __call__(self, x, scale=None):
-        xp, n = self.xp, len(x)
-        rising = xp.cumprod(xp.broadcast_to(x[..., None], (*x.shape, self.degree)), -1)
-        powers = xp.concatenate([xp.ones_like(rising[..., :1]), rising], -1)
-        values, derivs = powers @ self.to_values, powers @ self.to_slopes
-        derivs = derivs if scale is None else derivs * scale[:, None]
-        shape = (n, self.n_slots, self.n_terms)
-        factors = take(values.reshape(n, -1), self.slot_index, 1).reshape(shape)
-        slopes = take(derivs.reshape(n, -1), self.slot_index, 1).reshape(shape)
-        phi, slopes = _slot_products(tuple(factors[:, s] for s in range(self.n_slots)),
-                                     tuple(slopes[:, s] for s in range(self.n_slots)))
-        width = self.n_terms * (1 + self.n_columns)
-        index = self.flat_index + offsets(x, width)
-        parts = xp.stack([phi] + slopes, 1)  # (B, 1 + slots, P)
-        return scatter_sum(index.ravel(), parts.ravel(), n * width).reshape(n, self.n_terms, -1)
 
 
 def has_cells(path) -> bool:
@@ -120,9 +90,10 @@ class PathSnapshot(Frozen):
         self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
         rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
             torch.zeros(n, **long)
-        if path.branches == 2 and len(path.branched_index):
-            branched, count = path.branched_index, len(path.branched_index)
-            rows += [path.coef_alt[branched] * path.term_mask[branched], path.gate[branched]]
+        branches = branch_parts(path)
+        if branches is not None:
+            branched, count = branches[0], len(branches[0])
+            rows += list(branches[1:])
             self.alt_col[branched] = len(box_muscles) + torch.arange(count, **long)
             self.gate_col[branched] = len(box_muscles) + count + torch.arange(count, **long)
         self.box = torch.cat(rows)
@@ -160,7 +131,7 @@ class PathSnapshot(Frozen):
 
 def _box_product(box, basis):
     """``(B, R, K)``: rows ``box (R, P)`` times ``basis (B, P, K)``, as one ``(R, P) x (P, B K)`` product."""
-    xp = np if isinstance(box, np.ndarray) else torch
+    xp = namespace(box)
     flat = xp.swapaxes(basis, 0, 1).reshape(basis.shape[1], -1)
     return xp.swapaxes(product(box, flat).reshape(len(box), len(basis), -1), 0, 1)
 
@@ -176,7 +147,7 @@ class GravitySnapshot(Frozen):
     def __init__(self, gravity):
         self.__dict__.update(gravity.named_buffers(recurse=False))
         self.pointers = [getattr(gravity, f"node_pointer{k}_index") for k in range(gravity.n_rounds)]
-        self.node_parent, self.node_chain = gravity.node_parent, gravity.node_chain
+        self.node_parent, self.node_chain, self.n_rounds = gravity.node_parent, gravity.node_chain, gravity.n_rounds
         self.coupled, self.all_hinges = bool(gravity.dep_joint), gravity.all_hinges
         f64, hinge = dict(dtype=torch.float64, device=gravity.coef.device), gravity.chain_hinge[:, None]
         terms = torch.zeros(3, len(gravity.chain_cross), 4, 4, **f64)
@@ -222,18 +193,27 @@ class GravitySnapshot(Frozen):
     def _world(self, motion):
         """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
         from the chain joints' motions ``(B, C, 4, 4)``."""
-        xp, n = self.xp, len(motion)
-        if xp is np or n <= JUMP_ROWS:
-            world = self.node_const + (self.node_motion @ motion.reshape(n, -1, 16)).reshape(n, -1, 4, 4)
-            for pointer in self.pointers:
-                world = take(world, pointer, 1) @ world
-        else:
-            nodes = []
-            for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
-                T = self.node_const[i] if chain < 0 else motion[:, chain]
-                nodes.append(xp.broadcast_to(T, (n, 4, 4)) if parent < 0 else nodes[parent] @ T)
-            world = xp.stack(nodes, 1)
+        jump = self.xp is np or len(motion) <= JUMP_ROWS
+        world = world_poses(self, motion, lambda k, poses: take(poses, self.pointers[k], 1), jump)
         return take(world, self.frame_node_index, 1), take(world, self.before_node_index, 1)
+
+
+def world_poses(tree, motion, pick, jump: bool):
+    """Every node's world pose ``(B, nodes + 1, 4, 4)`` of a ``GravityTorque``'s tree (the module or its snapshot:
+    ``node_const``, ``node_motion``, ``node_parent``, ``node_chain``, ``n_rounds``) from the chain joints' motions
+    ``(B, C, 4, 4)``: with ``jump`` by pointer jumping (``pick(k, poses)``: the rows of round k's pointers), else one
+    product per node, parents first (a body offset's a single matrix product)."""
+    if jump:
+        moved = tree.node_motion @ motion.reshape(*motion.shape[:2], 16)
+        world = tree.node_const + moved.reshape(*moved.shape[:2], 4, 4)
+        for k in range(tree.n_rounds):
+            world = pick(k, world) @ world
+        return world
+    xp, nodes = namespace(motion), []
+    for i, (parent, chain) in enumerate(zip(tree.node_parent, tree.node_chain)):
+        T = tree.node_const[i] if chain < 0 else motion[:, chain]
+        nodes.append(xp.broadcast_to(T, (len(motion), 4, 4)) if parent < 0 else nodes[parent] @ T)
+    return xp.stack(nodes, 1)
 
 
 class BodySnapshot(Frozen):

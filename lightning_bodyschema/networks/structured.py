@@ -9,6 +9,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
+from .mlp import check_dims
 
 BLOCKS = ("plain", "residual")
 # postures per pass of ``with_jacobian``: the tangents of 256 postures (256 x in_dim x width floats) stay in the
@@ -52,9 +53,7 @@ class JacobianMLP(nn.Module):
     def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, n_hidden: int = 3, block: str = "plain",
                  norm: str = "none"):
         super().__init__()
-        for name, value in (("in_dim", in_dim), ("out_dim", out_dim), ("hidden", hidden), ("n_hidden", n_hidden)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise BodySchemaInputError(f"{name}={value!r} must be an integer >= 1")
+        check_dims(in_dim=in_dim, out_dim=out_dim, hidden=hidden, n_hidden=n_hidden)
         check_architecture(block, norm)
         self.residual = block == "residual"
         sizes = [in_dim] + [hidden] * n_hidden + [out_dim]

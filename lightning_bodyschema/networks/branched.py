@@ -1,0 +1,50 @@
+"""The branched part of a per-muscle path (``PerMusclePath(branches=2)``): per branched muscle a second polynomial over
+the muscle's own terms and a gate, a polynomial whose sign picks it. The length is the active branch's polynomial and
+the moment arm that polynomial's exact derivative, so the learned length jumps where the gate changes sign.
+
+Its state (``add_branches``: the state dict's ``coef_alt``, ``gate``, ``branched``), its coefficients
+(``branch_parts``: what every evaluation, the snapshot's too, takes) and the choice (``replace_where``, which the
+cells share). The fit: ``networks.branches``. Plain PyTorch, no Lightning.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def add_branches(path) -> None:
+    """``path``'s branch state, none branched: ``coef_alt``, ``gate`` like its ``coef`` (float64) and ``branched``
+    ``(M,)`` bool, and ``branched_index``, the branched muscles' indices (not in the state dict: a buffer whose shape
+    is known before a call, for torch.export), kept in step with ``branched`` by the fit and by every state-dict load
+    (``refresh_branches``)."""
+    path.register_buffer("coef_alt", torch.zeros_like(path.coef))
+    path.register_buffer("gate", torch.zeros_like(path.coef))
+    path.register_buffer("branched", torch.zeros(len(path.coef), dtype=torch.bool))
+    path.register_buffer("branched_index", torch.zeros(0, dtype=torch.long), persistent=False)
+    path.register_load_state_dict_post_hook(lambda module, _: refresh_branches(module))
+
+
+def refresh_branches(path) -> None:
+    """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
+    if not path.branched.is_meta:
+        path.branched_index = torch.nonzero(path.branched).flatten()
+
+
+def branch_parts(path):
+    """``(muscles (M',), alt (M', P), gate (M', P))``: the branched muscles, their second polynomials (zero off each
+    muscle's terms) and their gates, terms in their original order; None when no muscle is branched."""
+    if path.branches != 2 or not len(path.branched_index):
+        return None
+    muscles = path.branched_index
+    return muscles, path.coef_alt[muscles] * path.term_mask[muscles], path.gate[muscles]
+
+
+def replace_where(y, dy, muscles, where, y_new, dy_new, copy: bool = True):
+    """``y (B, M)`` and ``dy (B, M, N)`` (or None) with the columns ``muscles`` taken from ``y_new (B, M')``,
+    ``dy_new (B, M', N)`` where ``where (B, M')``: a branched muscle's second polynomial where its gate is positive,
+    a celled muscle's cell polynomial where its cell was fitted. Copies, or with ``copy=False`` written in place."""
+    y = y.clone() if copy else y
+    y[:, muscles] = torch.where(where, y_new, y[:, muscles])
+    if dy is not None:
+        dy = dy.clone() if copy else dy
+        dy[:, muscles] = torch.where(where[:, :, None], dy_new, dy[:, muscles])
+    return y, dy
