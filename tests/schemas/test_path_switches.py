@@ -10,6 +10,7 @@ from physics_checks import fit_structured
 
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.faults import Faults
+from lightning_bodyschema.networks.branched import refresh_branches
 from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD
 
 
@@ -30,7 +31,7 @@ def _switch_at_shoulder(schema, at_rad: float, jump_m: float):
     path.gate[0] = torch.where(linear, 1.0, 0.0) - torch.where(constant, 2 * (at_rad - lo) / (hi - lo) - 1, 0.0)
     path.coef_alt[0] = path.coef[0] + torch.where(constant, jump_m / float(norm.x_std[0]), 0.0)
     path.branched[0] = True
-    path._refresh_branched()
+    refresh_branches(path)
     schema.clear_caches()
 
 
