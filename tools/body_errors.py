@@ -2,6 +2,7 @@
 """A checkpoint's learned body against MuJoCo's: muscle lengths, moment arms, torque (median and p99).
 
     python tools/body_errors.py --ckpt runs/myoarm/.../last.ckpt [--postures 2000] [--seed 1] [--worst 5]
+                                [--near-jumps]
 
 At ``--postures`` seeded uniform postures of the checkpoint's robot (its MJCF; a checkpoint without a model stops
 with one line): |l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
@@ -11,8 +12,13 @@ p99 (their share of postures off by more than 0.1 mm and their largest error: wh
 Then the worst muscle per posture (``evaluation.body_errors``: a posture is only as good as its worst muscle): the
 largest length, moment-arm and torque error at each posture, median / p90 / p99 / max over the postures, the share of
 postures whose worst muscle is off by more than 0.1 mm, and where those bad postures are (the muscle worst there most
-often, the joint they bunch on and their interval). Any schema with ``body_si`` (``StructuredSchema``). One torch
-thread.
+often, the joint they bunch on and their interval). Then the postures the adapter flags as near a learned path
+switch (``StructuredSchema.path_switches``: ``near_path_switch``), counted, and the worst muscle per posture over the
+others. ``--near-jumps``: is the tail at the true path's jumps? For the postures whose worst muscle misses by at
+least its p99, for up to 100 of those missing by 0.1-1 mm and for as many postures drawn at random (the tail's
+muscles), the share within 0.01 / 0.05 / 0.1 / 0.3 rad of a jump
+of that muscle's true length along a joint it crosses (``evaluation.body_errors.jump_distance``). Any schema with
+``body_si`` (``StructuredSchema``). One torch thread.
 """
 import argparse
 
@@ -21,7 +27,8 @@ import torch
 
 from lightning_bodyschema.apps.common import exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
+from lightning_bodyschema.evaluation.body_errors import BAD_LENGTH_MM, bad_regions, bad_regions_table, jump_distance, \
+    summary, worst_per_posture
 
 
 def body_errors(schema, q: np.ndarray) -> dict:
@@ -52,6 +59,34 @@ def worst_report(errors: dict, model, k: int) -> str:
     lines += ["", f"postures whose worst muscle is off by > 0.1 mm: {100 * s['bad_posture_fraction']:.3g} %", "", ""]
     rows = bad_regions(errors["worst"], errors["q"], model.q_range, errors["crossed"], max(k, 1))
     return "\n".join(lines) + bad_regions_table(rows, model.muscle_names, model.joint_names)
+
+
+def flagged_report(worst, flagged: np.ndarray) -> str:
+    """The share of postures flagged near a learned path switch and the worst muscle per posture over the others."""
+    rest = summary(type(worst)(*(a[~flagged] for a in worst))) if (~flagged).any() else None
+    lines = [f"postures flagged near a learned path switch: {int(flagged.sum())} of {len(flagged)} "
+             f"({100 * float(flagged.mean()):.3g} %)"]
+    if rest is not None:
+        lines.append("the others, worst muscle per posture: length p99 {:.4g} mm, max {:.4g} mm; moment arm p99 {:.4g} "
+                     "mm/rad".format(rest["worst_length_mm_p99"], rest["worst_length_mm_max"],
+                                     rest["worst_arm_mm_per_rad_p99"]))
+    return "\n".join(lines)
+
+
+def near_jumps_report(worst, q: np.ndarray, model, crossed: np.ndarray) -> str:
+    """``--near-jumps`` (module docstring): the tail's and the 0.1-1 mm postures' distance to a true jump."""
+    bulk = np.flatnonzero((worst.length_mm > BAD_LENGTH_MM) & (worst.length_mm <= 1.0))[:100]
+    lines = ["| postures (worst muscle's length error) | n | within 0.01 / 0.05 / 0.1 / 0.3 rad of a true jump |",
+             "|---|---|---|"]
+    tail = np.flatnonzero(worst.length_mm >= np.percentile(worst.length_mm, 99))
+    anywhere = np.random.default_rng(0).choice(len(q), len(tail), replace=False)
+    for label, rows, muscles in (("p99 tail", tail, worst.length_muscle[tail]),
+                                 (f"{BAD_LENGTH_MM}-1 mm", bulk, worst.length_muscle[bulk]),
+                                 ("any posture, the tail's muscles", anywhere, worst.length_muscle[tail])):
+        reach = jump_distance(model, q[rows], muscles, crossed)
+        shares = " / ".join(f"{100 * float(np.mean(reach <= x)):.0f} %" for x in (0.01, 0.05, 0.1, 0.3))
+        lines.append(f"| {label} | {len(rows)} | {shares} |")
+    return "\n".join(lines)
 
 
 def worst_muscles(errors: dict, names, k: int) -> str:
@@ -86,6 +121,7 @@ def main(argv=None):
     parser.add_argument("--postures", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--worst", type=int, default=5, help="muscles listed by length p99 (0: none)")
+    parser.add_argument("--near-jumps", action="store_true", help="the tail's distance to the true path's jumps")
     args = parser.parse_args(argv)
     if args.postures < 1 or args.worst < 0:
         raise BodySchemaInputError(f"--postures {args.postures} / --worst {args.worst}: expected integers >= 1 / >= 0")
@@ -107,6 +143,12 @@ def main(argv=None):
         print(worst_muscles(errors, schema.robot_model.muscle_names, args.worst))
     print()
     print(worst_report(errors, schema.robot_model, args.worst))
+    if hasattr(schema, "path_switches"):
+        print()
+        print(flagged_report(errors["worst"], schema.path_switches(q)["near_path_switch"]))
+    if args.near_jumps:
+        print()
+        print(near_jumps_report(errors["worst"], q, schema.robot_model, errors["crossed"]))
 
 
 if __name__ == "__main__":

@@ -43,7 +43,9 @@ class Adapter:
     check postures -> encode -> ``adapt_normalized`` -> decode. ``adapts_in_si`` (``StructuredSchema``'s QP on its
     learned body, a user's SI schema): the faults' SI bounds (``FaultBounds``, prepared either way); per call check
     postures -> ``adapt_si`` on q [rad]; where it also says why a row holds no command (a third output, ``Status``
-    members), that status stays and the row's best effort goes to ``diagnostics`` (``qp_l_motor_m``, ``qp_f_n``).
+    members), that status stays and the row's best effort goes to ``diagnostics`` (``qp_l_motor_m``, ``qp_f_n``);
+    a schema with ``path_switches(q)`` (``StructuredSchema``) adds its dict of per-row diagnostics
+    (``near_path_switch``: the posture is within reach of a learned path switch, the command not exact there).
     Then, either way, ``safe_command`` -> ``flag_infeasible`` (when ``check_physics``; ``mark_unchecked`` when the
     robot has no model to check on; the physical reason wins over the schema's own).
 
@@ -105,6 +107,8 @@ class Adapter:
         if len(answer) > 2:
             result.diagnostics.update(qp_l_motor_m=l_motor, qp_f_n=f)
         result = self._checked(result, q)
+        if hasattr(schema, "path_switches"):  # near a learned path's switch a command is not exact: flagged
+            result.diagnostics.update(schema.path_switches(q))
         if self.check_physics and schema.has_physics:  # the physical reason wins over the schema's own
             result.status[~result.diagnostics["feasible"] & refused] = Status.INFEASIBLE
         return result

@@ -4,7 +4,8 @@ Per-muscle percentiles pool every (posture, muscle) pair, so one muscle off by c
 them (myoArm: per-muscle length p99 0.067 mm, worst muscle per posture p99 9.2 mm). ``worst_per_posture`` takes, at
 each posture, the largest length error over the muscles, the largest moment-arm error over the muscle-joint pairs a
 muscle crosses, and the largest torque error over the joints, with the muscle (and joint) where each is reached;
-``bad_regions`` says where the bad postures are: which muscle is worst there and which of its joints they bunch on.
+``bad_regions`` says where the bad postures are: which muscle is worst there and which of its joints they bunch on;
+``jump_distance`` how far a posture is from a jump of the true path (a wrap switching sides), probed in the simulator.
 
 numpy only; never imports Lightning or torch.
 """
@@ -15,6 +16,9 @@ from typing import NamedTuple
 import numpy as np
 
 BAD_LENGTH_MM = 0.1  # a posture whose worst muscle misses its length by more than this is "bad" [mm]
+JUMP_MM = 0.5  # a second difference of a true length above this at STEP_RAD is a jump, not a bend [mm] (a smooth
+# path bends by ~1e-4 mm there: curvatures up to 100 mm/rad^2; myoArm's wraps jump by 0.7-20 mm)
+STEP_RAD = 1e-3  # the probe's step along a joint [rad]
 
 
 class WorstPerPosture(NamedTuple):
@@ -76,3 +80,25 @@ def bad_regions_table(rows, muscle_names, joint_names) -> str:
     lines += [f"| {muscle_names[m]} | {n} | {big:.4g} | {joint_names[j]} {lo:.3f} .. {hi:.3f} |"
               for m, n, big, j, lo, hi in rows]
     return "\n".join(lines)
+
+
+def jump_distance(model, q: np.ndarray, muscle: np.ndarray, crossed: np.ndarray, reach_rad: float = 0.3) -> np.ndarray:
+    """``(K,)`` [rad]: how far each posture ``q (K, N)`` is from a jump of its ``muscle (K,)``'s true length along any
+    joint the muscle crosses (``crossed (M, N)``), within ``reach_rad`` (``inf``: none): the true length on a line
+    through the posture along each such joint at ``STEP_RAD`` steps (one batched ``model.kinematics`` call, inside the
+    joint's range), a jump where its second difference exceeds ``JUMP_MM``."""
+    offsets = np.arange(-reach_rad, reach_rad + STEP_RAD / 2, STEP_RAD)
+    case, joint = np.nonzero(crossed[muscle])  # one line per (posture, crossed joint)
+    lines = np.repeat(q[case][:, None, :], len(offsets), 1)  # (P, T, N)
+    lo, hi = model.q_range[joint, 0][:, None], model.q_range[joint, 1][:, None]
+    along = q[case, joint][:, None] + offsets[None, :]
+    inside = (along >= lo) & (along <= hi)
+    lines[np.arange(len(case)), :, joint] = np.clip(along, lo, hi)
+    length_mm = 1e3 * model.kinematics(lines.reshape(-1, q.shape[1]))[0].reshape(len(case), len(offsets), -1)
+    length_mm = np.take_along_axis(length_mm, muscle[case][:, None, None], 2)[..., 0]  # (P, T)
+    bend = np.abs(np.diff(length_mm, 2, axis=1))
+    jump = (bend > JUMP_MM) & inside[:, :-2] & inside[:, 1:-1] & inside[:, 2:]
+    per_line = np.where(jump, np.abs(offsets[1:-1])[None, :], np.inf).min(1, initial=np.inf)
+    out = np.full(len(q), np.inf)
+    np.minimum.at(out, case, per_line)
+    return out

@@ -39,6 +39,7 @@ from ..networks.path_config import PathConfig
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
 from ..networks.snapshot import BodySnapshot, GravitySnapshot
 from ..networks.structured import JacobianMLP, check_architecture
+from ..networks.switches import SwitchSnapshot, switch_diagnostics, switch_distance
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
 from .base import BodySchema
@@ -427,6 +428,21 @@ class StructuredSchema(BodySchema):
         gravity = cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
         norm = self.normalizer
         return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype))
+
+    def path_switches(self, q_rad) -> dict:
+        """Where the learned paths switch branch, at postures ``q_rad (B, N)`` [rad]: ``near_path_switch (B,)`` bool
+        (within ``networks.switches.SWITCH_REACH_RAD`` of a two-branch muscle's gate where its branches differ by
+        ``JUMP_FLOOR_M`` or more: the learned length may sit on the wrong side of the true jump, so a command there is
+        not exact; its status is unchanged), ``path_switch_distance_rad`` and ``path_switch_muscle`` (``inf``, -1: no
+        such switch; an MLP path has none). The adapter's diagnostics."""
+        q = torch.as_tensor(np.asarray(q_rad, np.float64))
+        path = self.length_net
+        if not isinstance(path, PerMusclePath):
+            return switch_diagnostics(np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64))
+        x = self.normalizer.encode_q(q.to(path.coef.device)).clamp(path.x_lo, path.x_hi)
+        snapshot = self.inference_cache.get("switch_snapshot", lambda: SwitchSnapshot(path))
+        return switch_diagnostics(*switch_distance(path, x, self._half_range(), self.normalizer.x_std[:self.n_muscles],
+                                                   snapshot))
 
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:

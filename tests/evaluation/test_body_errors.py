@@ -2,7 +2,7 @@
 located, where per-muscle percentiles pooled over every pair hide it."""
 import numpy as np
 
-from lightning_bodyschema.evaluation.body_errors import bad_regions, summary, worst_per_posture
+from lightning_bodyschema.evaluation.body_errors import bad_regions, jump_distance, summary, worst_per_posture
 from lightning_bodyschema.sim import MusculoskeletalModel
 
 
@@ -30,3 +30,26 @@ def test_one_muscle_off_in_one_joint_region_is_the_worst_there_and_located():
     (muscle, n_bad, largest, joint, lo, hi), = bad_regions(worst, q, arm.q_range, crossed)
     assert (muscle, n_bad, joint) == (3, region.sum(), 1) and abs(largest - 2.0) < 1e-9
     assert 0.9 < lo < hi <= arm.q_range[1, 1]  # the bad postures' elbow interval lies in the region
+
+
+def test_a_true_jump_is_found_where_the_wrap_switches_and_not_on_a_smooth_path():
+    """myoArm's TMAJ jumps by 17 mm where its wrap switches sides at high shoulder elevation; the probe finds it from
+    postures a known distance away along the elevation (or nearer along another joint it crosses), and finds none
+    on BRA, an elbow muscle whose path is smooth there."""
+    import yaml
+    locks = yaml.safe_load(open("configs/myoarm.yaml"))["data"]["locked_joints"]
+    arm = MusculoskeletalModel("myo:myoarm", locked_joints=locks)
+    crossed, names = arm.crossing(), arm.muscle_names
+    tmaj, bra = names.index("TMAJ_tendon"), names.index("BRA_tendon")
+    q = np.array([[-0.687, 2.911, 1.402, 0.159, 0.344, 0.427, 0.037]])  # one of TMAJ's worst postures (seed 1)
+    scan = np.repeat(q, 601, 0)
+    scan[:, 1] += np.linspace(-0.3, 0.15, 601)  # the elevation, inside its range (0 .. 3.1 rad)
+    length = 1e3 * arm.kinematics(scan)[0][:, tmaj]
+    at = int(np.argmax(np.abs(np.diff(length))))
+    assert abs(length[at + 1] - length[at]) > 10.0  # the jump: two scan points 0.75 mrad apart
+    edge = 0.5 * (scan[at, 1] + scan[at + 1, 1])
+    probes = np.repeat(q, 2, 0)
+    probes[:, 1] = edge + np.array([-0.05, 0.02])
+    found = jump_distance(arm, probes, np.full(2, tmaj), crossed, reach_rad=0.1)
+    assert np.all(found <= np.array([0.05, 0.02]) + 1e-3) and np.all(found > 0)  # within one probe step
+    assert np.isinf(jump_distance(arm, probes, np.full(2, bra), crossed, reach_rad=0.1)).all()
