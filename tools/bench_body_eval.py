@@ -10,7 +10,7 @@ run it from another worktree (its ``PYTHONPATH``) on the same checkpoint for a s
 (a per-muscle checkpoint) also the length model by the few-postures path and by blocks of rows
 (``networks.snapshot.FEW_ELEMENTS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
 by node (``networks.gravity.JUMP_ROWS`` forced), and ``body_si`` in numpy and in torch
-(``schemas.structured.HOST_ROWS`` forced): the figures behind the three thresholds. One torch thread; the load average
+(``schemas.structured_body.HOST_ROWS`` forced): the figures behind the three thresholds. One torch thread; the load average
 is printed with the figures.
 """
 import argparse
@@ -71,17 +71,17 @@ def rows(schema, batch: int, repeats: int, paths: bool):
 
 
 def host_rows(schema, q, batch: int, repeats: int):
-    """``body_si`` by the numpy evaluation and by torch (``schemas.structured.HOST_ROWS`` forced), where the
+    """``body_si`` by the numpy evaluation and by torch (``schemas.structured_body.HOST_ROWS`` forced), where the
     checkpoint's body has a numpy evaluation: the figures behind that threshold."""
-    from lightning_bodyschema.schemas import structured
+    from lightning_bodyschema.schemas import structured_body
 
-    out, kept = [], structured.HOST_ROWS
+    out, kept = [], structured_body.HOST_ROWS
     for label, limit in (("numpy", 10 ** 9), ("torch", 0)):
-        structured.HOST_ROWS = limit
+        structured_body.HOST_ROWS = limit
         if label == "numpy" and schema._host_body(q) is None:
             break
         out.append((f"body_si, {label}", ms_per_call(lambda: schema.body_si(q), batch, repeats)))
-    structured.HOST_ROWS = kept
+    structured_body.HOST_ROWS = kept
     return out
 
 

@@ -37,12 +37,12 @@ from ..faults.qp import bounds_command
 from ..networks.gravity import GravityTorque
 from ..networks.path_config import PathConfig
 from ..networks.per_muscle import PerMusclePath, degrees_within_tolerance
-from ..networks.snapshot import BodySnapshot, GravitySnapshot
+from ..networks.snapshot import GravitySnapshot
 from ..networks.structured import JacobianMLP, check_architecture
-from ..networks.switches import SwitchSnapshot, switch_diagnostics, switch_distance
 from ..sim.gravity_tree import gravity_tree
 from ..sim.separable import separable_blocks
 from .base import BodySchema
+from .structured_body import LearnedBody
 from .crossing import crossing_from_data, resolve_crossing
 
 BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s on myoArm
@@ -52,12 +52,9 @@ TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at mos
 TORQUE_TRIM = 3.0  # its refits drop postures missed by more than this many medians (RESULTS.md "Per-muscle paths")
 TORQUE_TRIM_ROUNDS = 8
 LENGTH_MODELS = ("mlp", "per_muscle")
-# ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``snapshot.few_for``): on myoArm
-# numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation, myoArm")
-HOST_ROWS = 16
 
 
-class StructuredSchema(BodySchema):
+class StructuredSchema(LearnedBody, BodySchema):
     """A learned body ``(l_geo(q), G(q), tau(q))`` answered by a QP (module docstring).
 
     Args:
@@ -390,60 +387,6 @@ class StructuredSchema(BodySchema):
         return {**errors, **summary(worst)}
 
     # ------------------------------------------------------------------ commands
-    def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
-        (a per-muscle path without hidden layers and a gravity torque on the CPU, up to ``HOST_ROWS`` postures: its
-        ``BodySnapshot`` in numpy)."""
-        host = self._host_body(q_rad)
-        if host is not None:
-            return host(q_rad.detach().cpu().numpy().astype(np.float64))
-        with torch.no_grad():
-            q_n = self.normalizer.encode_q(q_rad.to(self.device, torch.float64)).to(self.dtype)
-            return tuple(t.cpu().numpy().astype(np.float64) for t in self.body(q_n))  # a copy: the caller owns it
-
-    def learned_body_si(self, q_rad) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``body_si``: the learned body itself (``BodySchema.learned_body_si``'s contract)."""
-        return self.body_si(torch.as_tensor(np.asarray(q_rad, np.float64)))
-
-    def _host_body(self, q_rad: torch.Tensor) -> Optional[BodySnapshot]:
-        """``body_si``'s numpy ``BodySnapshot`` for postures ``q_rad``: in eval mode, not exporting, up to
-        ``HOST_ROWS`` postures within the path's few-postures budget, for the body it covers on the CPU; else None."""
-        if self.training or torch.compiler.is_exporting() or len(q_rad) > HOST_ROWS:
-            return None
-        host = self.inference_cache.get("body_snapshot", self._numpy_body)
-        return host if host is not None and len(q_rad) <= host.path.max_postures else None
-
-    def _numpy_body(self) -> Optional[BodySnapshot]:
-        """``body_snapshot().on_host()``, or None for a body it does not cover (an MLP in the path, another torque
-        model) or off the CPU."""
-        path = self.length_net
-        covered = isinstance(path, PerMusclePath) and not path.n_hidden and self.hparams.torque_model == "gravity"
-        return self.body_snapshot().on_host() if covered and self.device.type == "cpu" else None
-
-    def body_snapshot(self) -> BodySnapshot:
-        """The fitted body (a per-muscle path without hidden layers and a gravity torque) frozen, in torch
-        (``on_host()``: numpy), from the snapshots ``body`` and ``torque`` keep: ``body_si``'s arithmetic."""
-        cache = self.inference_cache
-        path = cache.get("path_snapshot", self.length_net.snapshot)
-        gravity = cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
-        norm = self.normalizer
-        return BodySnapshot(norm.q_lo, norm.q_hi, self.dtype, path, gravity, self._length_scales(self.dtype))
-
-    def path_switches(self, q_rad) -> dict:
-        """Where the learned paths switch branch, at postures ``q_rad (B, N)`` [rad]: ``near_path_switch (B,)`` bool
-        (within ``networks.switches.SWITCH_REACH_RAD`` of a two-branch muscle's gate where its branches differ by
-        ``JUMP_FLOOR_M`` or more: the learned length may sit on the wrong side of the true jump, so a command there is
-        not exact; its status is unchanged), ``path_switch_distance_rad`` and ``path_switch_muscle`` (``inf``, -1: no
-        such switch; an MLP path has none). The adapter's diagnostics."""
-        q = torch.as_tensor(np.asarray(q_rad, np.float64))
-        path = self.length_net
-        if not isinstance(path, PerMusclePath):
-            return switch_diagnostics(np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64))
-        x = self.normalizer.encode_q(q.to(path.coef.device)).clamp(path.x_lo, path.x_hi)
-        snapshot = self.inference_cache.get("switch_snapshot", lambda: SwitchSnapshot(path))
-        return switch_diagnostics(*switch_distance(path, x, self._half_range(), self.normalizer.x_std[:self.n_muscles],
-                                                   snapshot))
-
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):
         """The QP's best effort at ``q_rad (B, N)`` [rad] under ``bounds`` (a ``faults.bounds.FaultBounds``; None:
         healthy): ``(l_motor (B, M) [m], f (B, M) [N], status (B,))`` as float64 arrays and ``Status`` members, every

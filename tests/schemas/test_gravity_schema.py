@@ -83,7 +83,7 @@ def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers
     """Up to HOST_ROWS postures (in eval mode) ``body_si`` takes its numpy ``BodySnapshot``: each step and cast of
     ``StructuredSchema.body``; more postures, or training, the torch evaluation."""
     from lightning_bodyschema.networks.snapshot import BodySnapshot
-    from lightning_bodyschema.schemas import structured
+    from lightning_bodyschema.schemas import structured_body
 
     schema, _ = paper_arm
     calls = []
@@ -97,7 +97,7 @@ def test_body_si_at_a_few_postures_on_the_cpu_is_the_host_evaluation_and_answers
             expected = [t.double().numpy() for t in schema.body(schema.normalizer.encode_q(q[:rows]).to(schema.dtype))]
         for got, want in zip((l_geo, G, tau), expected):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
-    assert calls == [(1, np), (16, np)] and structured.HOST_ROWS == 16
+    assert calls == [(1, np), (16, np)] and structured_body.HOST_ROWS == 16
     schema.train()
     try:
         schema.body_si(q[:1])
