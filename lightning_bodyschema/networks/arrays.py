@@ -76,7 +76,7 @@ def pick(candidates, choice):
 
 def offsets(x, step: int):
     """``(B, 1, 1)``: ``step`` times each row's number of ``x (B, ...)``, an integer array on x's device."""
-    rows = np.arange(len(x)) if isinstance(x, np.ndarray) else torch.arange(len(x), device=x.device)
+    rows = np.arange(len(x)) if isinstance(x, np.ndarray) else torch.arange(x.shape[0], device=x.device)
     return (step * rows)[:, None, None]
 
 

@@ -48,7 +48,7 @@ class TermsSnapshot(Frozen):
         self.flat_index = (rows * width + terms.stacked_index).T.contiguous()  # (1 + slots, P) into (P, width)
 
     def __call__(self, x, scale=None):
-        xp, n = self.xp, len(x)
+        xp, n = self.xp, x.shape[0]
         rising = xp.cumprod(xp.broadcast_to(x[..., None], (*x.shape, self.degree)), -1)
         powers = xp.concatenate([xp.ones_like(rising[..., :1]), rising], -1)
         values, derivs = powers @ self.to_values, powers @ self.to_slopes
@@ -162,7 +162,7 @@ def _box_product(box, basis):
     """``(B, R, K)``: rows ``box (R, P)`` times ``basis (B, P, K)``, as one ``(R, P) x (P, B K)`` product."""
     xp = np if isinstance(box, np.ndarray) else torch
     flat = xp.swapaxes(basis, 0, 1).reshape(basis.shape[1], -1)
-    return xp.swapaxes(product(box, flat).reshape(len(box), len(basis), -1), 0, 1)
+    return xp.swapaxes(product(box, flat).reshape(len(box), basis.shape[0], -1), 0, 1)
 
 
 class GravitySnapshot(Frozen):
@@ -222,8 +222,8 @@ class GravitySnapshot(Frozen):
     def _world(self, motion):
         """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
         from the chain joints' motions ``(B, C, 4, 4)``."""
-        xp, n = self.xp, len(motion)
-        if xp is np or n <= JUMP_ROWS:
+        xp, n = self.xp, motion.shape[0]
+        if xp is np or torch.compiler.is_exporting() or n <= JUMP_ROWS:  # exported: one path for any batch
             world = self.node_const + (self.node_motion @ motion.reshape(n, -1, 16)).reshape(n, -1, 4, 4)
             for pointer in self.pointers:
                 world = take(world, pointer, 1) @ world
