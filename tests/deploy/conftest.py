@@ -48,6 +48,15 @@ def paths_cases(struct_paths, dm):
 
 
 @pytest.fixture(scope="session")
+def paths_package(struct_paths, tmp_path_factory):
+    """struct_paths' adapter package for a dynamic batch (its BodySnapshot evaluates every case of a call at once)."""
+    from lightning_bodyschema.deploy import export_package
+
+    path = str(tmp_path_factory.mktemp("deploy") / "per_muscle.pt2")
+    return export_package(struct_paths, path, batch="dynamic", ckpt_sha256="test-session")
+
+
+@pytest.fixture(scope="session")
 def struct_package(struct30, tmp_path_factory):
     """struct30's adapter package for batch 1 (what a control loop sends, and what the C++ example runs)."""
     from lightning_bodyschema.deploy import export_package
