@@ -2,7 +2,8 @@
 signature and outputs), for ``torch.export``.
 
 Per case, as ``StructuredSchema.solve_si`` and ``faults.qp.fault_command`` do: the learned body at the posture
-(``schema.body``: lengths ``l_geo``, moment arms ``G``, the torque ``tau``), the faults' tension box through the
+(lengths ``l_geo``, moment arms ``G``, the torque ``tau``: a per-muscle body's frozen ``BodySnapshot``, what
+``body_si`` evaluates, else ``schema.body``), the faults' tension box through the
 spring (``FaultBounds.tension_box``), the tensions closest to ``f_ref`` (half of each muscle's f_max) that balance
 ``tau`` inside the box by the batched dual Newton of ``solvers.newton`` with an iteration cap (``fixed_iterations``:
 traceable; the graph stops once every case has settled), then ``l_motor = l_geo - delta(f)`` and the shared safe
