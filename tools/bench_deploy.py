@@ -3,6 +3,7 @@
 
     python tools/bench_deploy.py --ckpt CKPT --package runs/adapter.pt2 [--ckpt CKPT2 --package PKG2 ...]
         [--cpp-build build/cpp] [--calls 10000] [--paths eager,compiled,aoti,aoti_wrapper,cpp] [--cut MUSCLE]
+        [--rounds 1]
 
 One table for every (checkpoint, package) pair given, diffusion and structured alike. Paths: ``eager`` the
 prepared Python adapter (``schema.adapter(faults, check_physics=False)``, 20 steps for the diffusion schema),
@@ -11,7 +12,8 @@ raw call from Python on tensors allocated once, ``aoti_wrapper`` ``load_exported
 out), ``cpp`` examples/cpp's ``control_loop`` (build it first; see README "Deploy in a C++ controller"). Prints one
 markdown row per schema and path: first call after loading [ms], p50, p99, p99.9, max [us], resident-memory growth
 [kB] over the calls after the first, and how many calls answered ok. ``--cut``: the one cut muscle of every call
-(default: the robot's first muscle; '' none).
+(default: the robot's first muscle; '' none). ``--rounds``: the whole table that many times, the pairs interleaved
+(side-by-side figures on a shared machine: each round's rows ran minutes apart at most).
 """
 import json
 import os
@@ -120,29 +122,41 @@ def main(argv=None):
     parser.add_argument("--calls", type=int, default=10000, help="consecutive calls per path (default 10000)")
     parser.add_argument("--paths", default=",".join(PATHS), help=f"comma-separated, of {list(PATHS)}")
     parser.add_argument("--cut", default=None, help="the one cut muscle of every call (default: the first; '' none)")
+    parser.add_argument("--rounds", type=int, default=1, help="repeat every pair and path, interleaved (default 1)")
     args = parser.parse_args(argv)
     paths = args.paths.split(",")
     unknown = sorted(set(paths) - set(PATHS))
-    if unknown or args.calls < 10 or len(args.ckpt) != len(args.package):
-        raise BodySchemaInputError(f"--paths {unknown} unknown (allowed {list(PATHS)}), --calls {args.calls} < 10, or "
-                                   f"{len(args.ckpt)} --ckpt for {len(args.package)} --package (give pairs)")
+    if unknown or args.calls < 10 or args.rounds < 1 or len(args.ckpt) != len(args.package):
+        raise BodySchemaInputError(f"--paths {unknown} unknown (allowed {list(PATHS)}), --calls {args.calls} < 10, "
+                                   f"--rounds {args.rounds} < 1, or {len(args.ckpt)} --ckpt for "
+                                   f"{len(args.package)} --package (give pairs)")
     if "cpp" in paths and args.cpp_build is None:
         raise BodySchemaInputError("the cpp path needs --cpp-build (the examples/cpp build folder)")
     torch_one_thread()
+    print_rounds(args, paths)
+
+
+def print_rounds(args, paths) -> None:
+    """One markdown row per round, (checkpoint, package) pair and path, the pairs interleaved within a round."""
     print(f"batch 1, {args.calls} calls per path")
-    print("| schema | path | first call after load [ms] | p50 [us] | p99 [us] | p99.9 [us] | max [us] | RSS growth [kB] "
-          "| ok calls |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for ckpt, package in zip(args.ckpt, args.package):
-        args.ckpt = ckpt  # what load_checked_schema reads
-        schema = load_checked_schema(args)
-        for path in paths:
-            row = bench_path(schema, package, path, args)
-            if row is None:
-                continue
-            print(f"| {type(schema).__name__} ({schema.n_muscles} muscles) | {path} | {row['first_ms']:.1f} | "
-                  f"{row['p50_us']:.0f} | {row['p99_us']:.0f} | {row['p999_us']:.0f} | {row['max_us']:.0f} | "
-                  f"{row['rss_growth_kb']} | {row['ok']}/{args.calls} |", flush=True)
+    print("| round | schema | package | path | first call after load [ms] | p50 [us] | p99 [us] | p99.9 [us] | max [us] "
+          "| RSS growth [kB] | ok calls |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    schemas, ckpts = {}, list(args.ckpt)
+    for round_ in range(1, args.rounds + 1):
+        for ckpt, package in zip(ckpts, args.package):
+            if ckpt not in schemas:
+                args.ckpt = ckpt  # what load_checked_schema reads
+                schemas[ckpt] = load_checked_schema(args)
+            schema = schemas[ckpt]
+            for path in paths:
+                row = bench_path(schema, package, path, args)
+                if row is not None:
+                    print(f"| {round_} | {type(schema).__name__} ({schema.n_muscles} muscles) | "
+                          f"{os.path.basename(package)} | {path} | {row['first_ms']:.1f} | {row['p50_us']:.0f} | "
+                          f"{row['p99_us']:.0f} | {row['p999_us']:.0f} | {row['max_us']:.0f} | "
+                          f"{row['rss_growth_kb']} | {row['ok']}/{args.calls} |", flush=True)
+    print(f"load average (1, 5, 15 min) at the end: {os.getloadavg()}")
 
 
 def bench_path(schema, package: str, path: str, args):

@@ -100,13 +100,11 @@ def _torch_notes_silenced():
         yield
 
 
-def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:
-    """Write the AOTInductor package of ``schema``'s adapter (``package_module``) to ``out`` (atomically: a
-    temporary file in the same folder, then a rename). Returns ``out``."""
+def exported_program(module, batch):
+    """``torch.export`` of a package module (``package_module``) for ``batch`` (``parse_batch``'s): the program
+    ``export_package`` compiles."""
     from torch.export import Dim, export
 
-    module = package_module(schema, n_steps, seeds).eval()
-    batch = parse_batch(batch)
     example = module.example_inputs(2 if batch == "dynamic" else batch)
     shapes = None
     if batch == "dynamic":
@@ -121,6 +119,15 @@ def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sh
             raise BodySchemaInputError(f"{module.kind} adapter: its code fixes the batch size when traced, so it "
                                        "cannot be exported for a dynamic batch; give a static one (--batch-sizes "
                                        "1)") from None
+    return program
+
+
+def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:
+    """Write the AOTInductor package of ``schema``'s adapter (``package_module``) to ``out`` (atomically: a
+    temporary file in the same folder, then a rename). Returns ``out``."""
+    module = package_module(schema, n_steps, seeds).eval()
+    batch = parse_batch(batch)
+    program = exported_program(module, batch)
     metadata = package_metadata(schema, module, ckpt_sha256, batch)
     folder = os.path.dirname(os.path.abspath(out))
     os.makedirs(folder, exist_ok=True)

@@ -2,7 +2,8 @@
 signature and outputs), for ``torch.export``.
 
 Per case, as ``StructuredSchema.solve_si`` and ``faults.qp.fault_command`` do: the learned body at the posture
-(``schema.body``: lengths ``l_geo``, moment arms ``G``, the torque ``tau``), the faults' tension box through the
+(lengths ``l_geo``, moment arms ``G``, the torque ``tau``: a per-muscle body's frozen ``BodySnapshot``, what
+``body_si`` evaluates, else ``schema.body``), the faults' tension box through the
 spring (``FaultBounds.tension_box``), the tensions closest to ``f_ref`` (half of each muscle's f_max) that balance
 ``tau`` inside the box by the batched dual Newton of ``solvers.newton`` with an iteration cap (``fixed_iterations``:
 traceable; the graph stops once every case has settled), then ``l_motor = l_geo - delta(f)`` and the shared safe
@@ -25,6 +26,15 @@ from .module import PackageModule
 PACKAGE_NEWTON_ITER = 12
 
 
+def snapshot_covers(schema) -> bool:
+    """Whether ``schema.body_snapshot()`` is its whole body: a per-muscle path without hidden layers and the
+    gravity torque."""
+    from ..networks.per_muscle import PerMusclePath
+
+    path = schema.length_net
+    return isinstance(path, PerMusclePath) and not path.n_hidden and schema.hparams.torque_model == "gravity"
+
+
 class StructuredAdapterModule(PackageModule):
     """The tensor-only adapter of a trained ``StructuredSchema`` (module docstring); ``max_iter``: the most Newton
     steps a call runs. The ``seed`` input must be 0 (the structured schema draws nothing)."""
@@ -41,17 +51,21 @@ class StructuredAdapterModule(PackageModule):
             raise BodySchemaInputError(f"max_iter={max_iter!r}: Newton steps per case, an int in 1..1000")
         super().__init__(schema, [0])
         self.schema, self.max_iter, self.dtype = schema, max_iter, schema.dtype
+        self.snapshot = schema.body_snapshot() if snapshot_covers(schema) else None
 
-    def body(self, q_n):
-        """``schema.body(q_n)`` one posture at a time under ``torch.vmap``: the same numbers, and the batch size
-        stays symbolic when exported (the body's networks size a tensor by ``len(x)``, which would fix it)."""
-        def one(q_row):
-            return tuple(t[0] for t in self.schema.body(q_row[None]))
-        return torch.vmap(one)(q_n)
+    def body(self, q):
+        """The learned body ``(l_geo, G, tau)`` at postures ``q (B, N)`` [rad]: the frozen ``BodySnapshot`` where it
+        covers the body (``body_si``'s arithmetic, every posture at once), else ``schema.body`` at the normalized
+        postures one at a time under ``torch.vmap`` (the batch size stays symbolic when exported: the body's
+        networks size a tensor by ``len(x)``, which would fix it); the same numbers either way."""
+        if self.snapshot is not None:
+            return self.snapshot(q)
+        one = lambda row: tuple(t[0] for t in self.schema.body(row[None]))  # noqa: E731
+        return torch.vmap(one)(self.normalized_q(q, self.dtype))
 
     def forward(self, q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed):
         bad, q, bounds = self.faults(q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed)
-        l_geo, G, tau = (t.to(torch.float64) for t in self.body(self.normalized_q(q, self.dtype)))
+        l_geo, G, tau = (t.to(torch.float64) for t in self.body(q))
         box_lo, box_hi = bounds.tension_box(l_geo)
         box_lo, crossed = uncrossed_box(box_lo, box_hi)  # crossed: no tension meets the bounds
         f_ref = (0.5 * self.f_max_n).expand_as(box_lo)

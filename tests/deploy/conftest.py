@@ -32,6 +32,31 @@ def struct_cases(struct30, dm):
 
 
 @pytest.fixture(scope="session")
+def struct_paths(dm):
+    """A per-muscle StructuredSchema of the paper arm (configs/myoarm.yaml's kind: polynomial paths, two branches and
+    a gate, cells, the gravity tree's torque; least squares, one epoch): its package evaluates the BodySnapshot."""
+    from physics_checks import fit_structured
+
+    return fit_structured(dm, length_model="per_muscle", path_degree=8, torque_model="gravity", path_branches=2,
+                          path_cells=2)[0]
+
+
+@pytest.fixture(scope="session")
+def paths_cases(struct_paths, dm):
+    """(q_ref, faults): 42 mixed cases for struct_paths."""
+    return mixed_faults(struct_paths, dm, n=42)
+
+
+@pytest.fixture(scope="session")
+def paths_package(struct_paths, tmp_path_factory):
+    """struct_paths' adapter package for a dynamic batch (its BodySnapshot evaluates every case of a call at once)."""
+    from lightning_bodyschema.deploy import export_package
+
+    path = str(tmp_path_factory.mktemp("deploy") / "per_muscle.pt2")
+    return export_package(struct_paths, path, batch="dynamic", ckpt_sha256="test-session")
+
+
+@pytest.fixture(scope="session")
 def struct_package(struct30, tmp_path_factory):
     """struct30's adapter package for batch 1 (what a control loop sends, and what the C++ example runs)."""
     from lightning_bodyschema.deploy import export_package

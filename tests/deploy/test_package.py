@@ -180,3 +180,17 @@ def test_structured_package_equals_python_in_python_and_cpp(struct_package, stru
         Faults.from_names(adapter.muscle_names, cut=[["tail_flexor"]])
     with pytest.raises(BodySchemaInputError, match="another robot"):
         load_exported(struct_package, muscle_names=names[::-1])
+
+
+def test_per_muscle_package_equals_python_at_any_batch(paths_package, struct_paths, paths_cases):
+    """A per-muscle body's package (the body from its frozen snapshot, a dynamic batch): Python's statuses and ok
+    commands (the package's contract, 1e-5 m and 1e-2 N) on every case in one call, and on one case alone."""
+    q, faults = paths_cases
+    ref = struct_paths.adapter(faults, check_physics=False)(q)
+    adapter = load_exported(paths_package, expected_sha256=file_sha256(paths_package))
+    for rows in (np.arange(len(q)), np.arange(1)):
+        got, ok = adapter(q[rows], faults.take(rows)), ref.status[rows] == "ok"
+        assert (got.status == ref.status[rows]).all() and (len(rows) == 1 or 5 <= ok.sum() < len(q))
+        np.testing.assert_allclose(got.l_motor_m[ok], ref.l_motor_m[rows][ok], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(got.f_n[ok], ref.f_n[rows][ok], rtol=0, atol=1e-2)
+        assert np.isnan(got.l_motor_m[~ok]).all() and np.isnan(got.f_n[~ok]).all()

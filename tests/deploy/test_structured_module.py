@@ -18,10 +18,15 @@ def _run(module, q, faults, seed=0):
     return l_motor.numpy(), f.numpy(), status_array(status.numpy().tolist())
 
 
-def test_structured_module_equals_the_python_adapter(struct30, struct_cases):
-    q, faults = struct_cases
-    ref = struct30.adapter(faults, check_physics=False)(q)
-    l_motor, f, status = _run(StructuredAdapterModule(struct30), q, faults)
+@pytest.mark.parametrize("which", ["mlp", "per_muscle"])
+def test_structured_module_equals_the_python_adapter(which, request):
+    """The dense body (schema.body under vmap) and the per-muscle body (its frozen BodySnapshot) alike."""
+    schema, (q, faults) = (request.getfixturevalue(name) for name in {
+        "mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", "paths_cases")}[which])
+    ref = schema.adapter(faults, check_physics=False)(q)
+    module = StructuredAdapterModule(schema)
+    assert (module.snapshot is not None) == (which == "per_muscle")
+    l_motor, f, status = _run(module, q, faults)
     assert (status == ref.status).all()
     ok = status == Status.OK
     assert 5 <= ok.sum() < len(q) and (status[~ok] == Status.INFEASIBLE_LEARNED).any()
@@ -29,7 +34,7 @@ def test_structured_module_equals_the_python_adapter(struct30, struct_cases):
     np.testing.assert_allclose(f[ok], ref.f_n[ok], rtol=0, atol=1e-2)
     assert np.isnan(l_motor[~ok]).all() and np.isnan(f[~ok]).all()
     # every ok command meets every fault: cut f = 0, jams and bands to FAULT_TOL_M, f within [0, f_limit]
-    bounds = FaultBounds.from_faults(faults.take(ok), struct30.spring.f_max_n)
+    bounds = FaultBounds.from_faults(faults.take(ok), schema.spring.f_max_n)
     length_m, cut_n = bounds.broken(l_motor[ok], f[ok])
     assert length_m.max() <= FAULT_TOL_M and cut_n.max() == 0.0
     assert (f[ok] >= 0).all() and (f[ok] <= bounds.f_limit_n + 1e-9).all()
@@ -54,16 +59,20 @@ def test_structured_module_refuses_bad_rows_and_other_seeds(struct30, struct_cas
 
 
 @pytest.mark.slow
-def test_the_exported_program_is_the_eager_module(struct30, struct_cases):
-    """torch.export of the module (the Newton's fixed iteration cap) answers as the eager module."""
-    from torch.export import export
+@pytest.mark.parametrize("which", ["mlp", "per_muscle"])
+def test_the_exported_program_is_the_eager_module(which, request):
+    """The package's program (``deploy.package.exported_program``: torch.export with a dynamic batch) answers as the
+    eager module, at the batch it was traced with and at 1."""
+    from lightning_bodyschema.deploy.package import exported_program
 
-    q, faults = struct_cases
-    module = StructuredAdapterModule(struct30).eval()
-    with torch.no_grad():
-        program = export(module, module_inputs(q, faults), strict=False)
-        got = program.module()(*module_inputs(q, faults))
-        want = module(*module_inputs(q, faults))
-    assert torch.equal(got[2], want[2])
-    torch.testing.assert_close(got[0], want[0], rtol=0, atol=1e-12, equal_nan=True)
-    torch.testing.assert_close(got[1], want[1], rtol=0, atol=1e-9, equal_nan=True)
+    schema, (q, faults) = (request.getfixturevalue(name) for name in {
+        "mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", "paths_cases")}[which])
+    module = StructuredAdapterModule(schema).eval()
+    program = exported_program(module, "dynamic").module()
+    for rows in (np.arange(len(q)), np.arange(1)):
+        inputs = module_inputs(q[rows], faults.take(rows))
+        with torch.no_grad():
+            got, want = program(*inputs), module(*inputs)
+        assert torch.equal(got[2], want[2])
+        torch.testing.assert_close(got[0], want[0], rtol=0, atol=1e-12, equal_nan=True)
+        torch.testing.assert_close(got[1], want[1], rtol=0, atol=1e-9, equal_nan=True)
