@@ -139,11 +139,13 @@ def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_
     assert all(b.dtype == torch.float64 for b in other.buffers() if b.is_floating_point())  # (and index buffers)
     torch.testing.assert_close(other(q), gravity(q), rtol=0, atol=0)
     exported = torch.export.export(gravity, (q[:7],), dynamic_shapes=({0: torch.export.Dim("batch")},))
-    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)
+    # the exported graph may compose the chain's frames in another order: its roundings at the torque's scale
+    tol = _CHAIN_ROUNDINGS * torch.finfo(torch.float64).eps * max(1.0, gravity(q).abs().max().item())
+    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=tol)
     rows = _Rows(gravity)  # one posture at a time under vmap, as deploy.structured exports a schema's body
     exported = torch.export.export(rows, (q[:2],), dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=4096)},),
                                    strict=False)
-    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=1e-12)
+    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=tol)
     with torch.device("meta"):  # a checkpoint's skeleton
         assert GravityTorque(gravity_tree(robot)).coef.shape == gravity.coef.shape
 
