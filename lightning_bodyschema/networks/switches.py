@@ -13,14 +13,15 @@ sign where both branches agree: no jump, nothing to flag). Muscles whose cells r
 (``networks.cells``) do not switch by a gate and are not counted: a trimmed cell fits the larger side of a jump
 inside it and says nothing of where the smaller side begins (RESULTS.md "Hold every posture").
 
-In numpy (a few terms per gate: at one posture numpy's calls cost less than torch's); no Lightning.
+In numpy, on the path's own basis evaluation (``basis.TermsSnapshot``) over the few terms a gate uses; no Lightning.
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from .basis import product_basis
+from .arrays import encode_q
+from .basis import ProductTerms, TermsSnapshot
 
 SWITCH_REACH_RAD = 0.005  # a posture this close to a learned switch is flagged [rad] (RESULTS.md "Hold every posture":
 # 0.65 % of uniform myoArm postures; 10 mrad: 1.2 %)
@@ -33,37 +34,6 @@ def gated_muscles(path) -> torch.Tensor:
     if getattr(path, "branches", 1) != 2:
         return torch.zeros(0, dtype=torch.long, device=path.coef.device)
     return torch.nonzero(path.branched).flatten()
-
-
-def _legendre(x: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """``P_0..P_degree`` of ``x (B, N)`` and their slopes, ``(B, N, degree + 1)`` each (``basis.legendre``)."""
-    values, slopes = [np.ones_like(x), x], [np.zeros_like(x), np.ones_like(x)]
-    for n in range(1, degree):  # (n+1) P_{n+1} = (2n+1) x P_n - n P_{n-1};  P'_{n+1} = P'_{n-1} + (2n+1) P_n
-        values.append(((2 * n + 1) * x * values[n] - n * values[n - 1]) / (n + 1))
-        slopes.append(slopes[n - 1] + (2 * n + 1) * values[n])
-    return np.stack(values[:degree + 1], -1), np.stack(slopes[:degree + 1], -1)
-
-
-class _Terms:
-    """Product-Legendre terms ``exponents (P, N)`` evaluated in numpy at ``x (B, N)``: ``phi (B, P)`` and, with
-    ``slopes``, ``dphi/dx (B, N, P)`` (``basis.product_basis``'s arithmetic on the few terms a gate uses)."""
-
-    def __init__(self, exponents: torch.Tensor):
-        self.exponents = exponents.cpu().numpy()
-        self.degree = max(int(self.exponents.max(initial=0)), 1)
-
-    def __call__(self, x: np.ndarray, slopes: bool = False):
-        values, derivs = _legendre(x, self.degree)
-        joints = np.arange(x.shape[1])
-        factors = values[:, joints, self.exponents]  # (B, P, N)
-        phi = factors.prod(-1)
-        if not slopes:
-            return phi, None
-        ones = np.ones_like(factors[..., :1])
-        before = np.concatenate([ones, np.cumprod(factors[..., :-1], -1)], -1)  # prod_{i<j} factor_i
-        after = np.concatenate([np.cumprod(factors[..., :0:-1], -1)[..., ::-1], ones], -1)  # prod_{i>j}
-        slope = derivs[:, joints, self.exponents] * before * after  # (B, P, N)
-        return phi, slope.transpose(0, 2, 1)
 
 
 class SwitchSnapshot:
@@ -83,19 +53,23 @@ class SwitchSnapshot:
 
     @staticmethod
     def _columns(path, coef: torch.Tensor):
+        """The terms ``coef (G, P)`` uses, as the path's own basis evaluation in numpy (``basis.TermsSnapshot``:
+        each term and its slopes), and their coefficients ``(P', G)``."""
         cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
-        return _Terms(path.exponents[cols]), coef[:, cols].T.cpu().numpy()  # (P', G)
+        terms = TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host()
+        return terms, coef[:, cols].T.cpu().numpy()
 
     def __call__(self, x: np.ndarray, half_range: np.ndarray, length_scale_m: np.ndarray):
         """``(distance (B,), muscle (B,))``: ``switch_distance``'s answer at normalized postures ``x (B, N)``."""
         if not len(self.muscles):
             return np.full(len(x), np.inf), np.full(len(x), -1, dtype=np.int64)
-        phi, dphi = self.gate_terms(x, slopes=True)
-        grad = (dphi @ self.gate) / half_range[None, :, None]  # (B, N, G): d g / d q [1/rad]
-        distance = np.abs(phi @ self.gate) / np.maximum(np.linalg.norm(grad, axis=1), 1e-300)  # (B, G)
+        basis = self.gate_terms(x)  # (B, P', 1 + N): each term, then its slopes
+        gate = np.swapaxes(basis, 1, 2) @ self.gate  # (B, 1 + N, G)
+        grad = gate[:, 1:] / half_range[None, :, None]  # d g / d q [1/rad]
+        distance = np.abs(gate[:, 0]) / np.maximum(np.linalg.norm(grad, axis=1), 1e-300)  # (B, G)
         rows, cols = np.nonzero(distance <= SWITCH_REACH_RAD)  # within reach: is there a jump? (few rows)
         if len(rows):
-            jump_m = np.abs((self.gap_terms(x[rows])[0] @ self.gap)[np.arange(len(rows)), cols])
+            jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols])
             jump_m *= length_scale_m[self.muscles[cols]]
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
         which = np.argmin(distance, axis=1)
@@ -111,8 +85,27 @@ def switch_distance(path, x, half_range, length_scale_m, snapshot: SwitchSnapsho
     caller keeps one. A gate's zero set within ``SWITCH_REACH_RAD`` where its branches differ by less than
     ``JUMP_FLOOR_M`` is no switch (inf)."""
     snapshot = SwitchSnapshot(path) if snapshot is None else snapshot
-    host = lambda a: np.asarray(a.detach().cpu() if torch.is_tensor(a) else a, np.float64)  # noqa: E731
-    return snapshot(host(x), host(half_range), host(length_scale_m))
+    return snapshot(_host(x), _host(half_range), _host(length_scale_m))
+
+
+class PostureSwitches:
+    """``SwitchSnapshot`` at postures in radians, all in numpy: the schema's normalization (``q_lo``, ``q_hi``
+    (N,) [rad]: ``arrays.encode_q``), the path's box and the lengths' scale (M,) [m per normalized unit] held as host
+    copies. A call ``(q_rad (B, N))`` gives ``switch_distance``'s answer."""
+
+    def __init__(self, path, q_lo, q_hi, length_scale_m):
+        self.snapshot = SwitchSnapshot(path)
+        self.q_lo, self.q_hi, self.x_lo, self.x_hi, self.length_scale_m = (
+            _host(a) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
+        self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
+
+    def __call__(self, q_rad):
+        x = np.clip(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo, self.x_hi)
+        return self.snapshot(x, self.half_range, self.length_scale_m)
+
+
+def _host(a) -> np.ndarray:
+    return np.asarray(a.detach().cpu() if torch.is_tensor(a) else a, np.float64)
 
 
 def switch_diagnostics(distance_rad: np.ndarray, muscle: np.ndarray) -> dict:

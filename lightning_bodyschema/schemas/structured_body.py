@@ -10,7 +10,7 @@ import torch
 
 from ..networks.per_muscle import PerMusclePath
 from ..networks.snapshot import BodySnapshot, GravitySnapshot
-from ..networks.switches import SwitchSnapshot, switch_diagnostics, switch_distance
+from ..networks.switches import PostureSwitches, switch_diagnostics
 
 # ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``snapshot.few_for``): on myoArm
 # numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation, myoArm")
@@ -66,11 +66,10 @@ class LearnedBody:
         ``JUMP_FLOOR_M`` or more: the learned length may sit on the wrong side of the true jump, so a command there is
         not exact; its status is unchanged), ``path_switch_distance_rad`` and ``path_switch_muscle`` (``inf``, -1: no
         such switch; an MLP path has none). The adapter's diagnostics."""
-        q = torch.as_tensor(np.asarray(q_rad, np.float64))
-        path = self.length_net
+        q = np.asarray(q_rad.detach().cpu() if torch.is_tensor(q_rad) else q_rad, np.float64)
+        path, norm = self.length_net, self.normalizer
         if not isinstance(path, PerMusclePath):
             return switch_diagnostics(np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64))
-        x = self.normalizer.encode_q(q.to(path.coef.device)).clamp(path.x_lo, path.x_hi)
-        snapshot = self.inference_cache.get("switch_snapshot", lambda: SwitchSnapshot(path))
-        return switch_diagnostics(*switch_distance(path, x, self._half_range(), self.normalizer.x_std[:self.n_muscles],
-                                                   snapshot))
+        switches = self.inference_cache.get(
+            "switch_snapshot", lambda: PostureSwitches(path, norm.q_lo, norm.q_hi, norm.x_std[:self.n_muscles]))
+        return switch_diagnostics(*switches(q))
