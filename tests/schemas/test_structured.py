@@ -142,7 +142,7 @@ def test_adapted_commands_meet_every_fault_and_the_learned_balance(paper_arm):
     assert (balance_residual_nm(G, tau, f) <= 1e-6).all()
     taut = f > 0
     # the body evaluated again on the ok rows (other blocks of rows: its sums in another order) and the spring's
-    # roundings (~1e-13 m); a motor not at l_geo - delta(f) is off by 1e-5 m or more
+    # roundings (~4e-14 m); a motor not at l_geo - delta(f) is off by 1e-5 m or more
     tol_m = rounding_tol(_BODY_ROUNDINGS, l_geo) + spring_length_tol(l_geo)
     np.testing.assert_allclose((l + elongation_from_tension(f, SPRING))[taut], l_geo[taut], rtol=0, atol=tol_m)
     assert fk.cut.any() and fk.fix.any() and fk.weak.any() and fk.band.any()
