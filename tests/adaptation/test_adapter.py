@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 import torch
-from physics_checks import mixed_faults
+from physics_checks import mixed_faults, rounding_tol
 
 from lightning_bodyschema.adaptation import check_postures, flag_infeasible, safe_command
 from lightning_bodyschema.adaptation.command import FAULT_TOL_N, motor_length_range
@@ -52,8 +52,11 @@ def test_a_command_that_breaks_a_jam_or_band_beyond_the_tolerance_is_never_ok():
                       [0.3, 0.2501, 5.0, 5.0]], dtype=torch.float64)
     result = safe_command(x, faults, faults.f_limit(150.0))
     assert result.status.tolist() == ["ok", "fault_not_met", "fault_not_met", "fault_not_met"]
-    np.testing.assert_allclose(result.diagnostics["jam_violation_m"], [9e-6, 2e-5, 0.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(result.diagnostics["band_violation_m"], [0.0, 0.0, 0.02, 1e-4], atol=1e-12)
+    # a length less its bound, both decimals read into binary: a rounding each and one for the difference, at the
+    # lengths' scale (~3e-16 m); a violation net of the tolerance (FAULT_TOL_M) would be off by 1e-5 m
+    tol_m = rounding_tol(4, x[:, :2])
+    np.testing.assert_allclose(result.diagnostics["jam_violation_m"], [9e-6, 2e-5, 0.0, 0.0], rtol=0, atol=tol_m)
+    np.testing.assert_allclose(result.diagnostics["band_violation_m"], [0.0, 0.0, 0.02, 1e-4], rtol=0, atol=tol_m)
     assert np.isnan(result.l_motor_m[1:]).all() and np.isnan(result.f_n[1:]).all()
 
 

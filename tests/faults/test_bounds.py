@@ -4,6 +4,7 @@ Faults.validate's."""
 import numpy as np
 import pytest
 import torch
+from physics_checks import spring_length_tol
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.faults import Faults
@@ -43,11 +44,13 @@ def test_the_box_ends_put_the_motor_on_its_length_bounds():
     assert (hi[ok] <= f_limit[ok]).all() and (lo >= 0).all() and (hi[faults.cut] == 0).all()
     # a taut jam or band hi: the box's low end holds the motor exactly at that bound (f = phi(l_geo - l_hi))
     taut = ok & (lo > 0)
-    np.testing.assert_allclose(_motor(l_geo, lo)[taut], bounds.l_hi_m[taut], rtol=0, atol=1e-12)
+    # l_geo - delta(phi(l_geo - l_hi)): the spring and its inverse, a few roundings at the lengths' scale (~1e-15 m)
+    np.testing.assert_allclose(_motor(l_geo, lo)[taut], bounds.l_hi_m[taut], rtol=0, atol=spring_length_tol(l_geo))
     # a band's lo that binds: the box's high end holds the motor exactly at lo
     binds = ok & bounds.band & (hi < f_limit) & (hi > 0)  # hi = 0: slack, the motor anywhere above l_geo
     assert binds.any() and taut.any()
-    np.testing.assert_allclose(_motor(l_geo, hi)[binds], faults.l_band_m[..., 0][binds], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(_motor(l_geo, hi)[binds], faults.l_band_m[..., 0][binds], rtol=0,
+                               atol=spring_length_tol(l_geo))
 
 
 def test_the_box_crosses_exactly_when_no_tension_meets_the_bounds():
@@ -141,7 +144,7 @@ def test_a_tension_in_the_box_gives_a_motor_length_within_every_bound_in_numpy_a
     l_motor = bounds.motor_length_m(l_geo, f)
     assert np.isfinite(l_motor[held]).all() and np.isnan(l_motor[~(lo <= hi).all(1)]).all()
     broken_m, _ = bounds.take(held).broken(l_motor[held], f[held])
-    assert broken_m.max() <= 1e-14
+    assert broken_m.max() <= spring_length_tol(l_geo)  # the spring and its inverse at the lengths' scale (~5e-16 m)
     slack_banded = held[:, None] & (f <= 0) & bounds.band
     at_band = np.minimum(np.maximum(l_geo, bounds.l_lo_m), bounds.l_hi_m)  # at l_geo, else up at the band's lo
     assert (l_motor[slack_banded] == at_band[slack_banded]).all()

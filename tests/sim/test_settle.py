@@ -4,12 +4,20 @@ import sys
 
 import numpy as np
 import pytest
+from physics_checks import rounding_tol
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation import FaultCases
 from lightning_bodyschema.sim.settle import SettleParams, SettleStatus, settle
 
 N_MUSCLES = 6
+
+
+def _same_rest_tol(arm, q_rad) -> float:
+    """Two settles whose forces agree but for roundings: at most one rounding of the posture per step (the damped
+    arm shrinks them), at its scale (~7e-13 rad at 1 rad over 3 s at 1 ms); a force missed or added moves the rest
+    posture by 1e-4 rad or more."""
+    return rounding_tol(round(SettleParams().max_time_s / arm.mj_model.opt.timestep), q_rad)
 
 
 def no_faults(batch):
@@ -54,7 +62,7 @@ def test_cutting_a_slack_muscle_changes_nothing(arm, healthy):
     args = (healthy.l_motor[rows], healthy.f[rows], healthy.q[rows])
     intact, broken = settle(arm, *args), settle(arm, *args, cut=cut, fix=fix, l_fixed=l_fixed)
     assert np.all(broken.settled) and broken.E_q_phys.max() <= 1e-9
-    np.testing.assert_allclose(broken.q_settle, intact.q_settle, atol=1e-12)
+    np.testing.assert_allclose(broken.q_settle, intact.q_settle, rtol=0, atol=_same_rest_tol(arm, intact.q_settle))
 
 
 def test_cutting_a_loaded_muscle_moves_the_arm_the_way_the_lost_torque_says(arm, healthy):
@@ -88,7 +96,7 @@ def test_jam_at_the_commanded_length_changes_nothing(arm, healthy):
     for jam in ("immobile", "one_sided"):
         stuck = settle(arm, l_motor, healthy.f[b], healthy.q[b], cut=cut, fix=fix, l_fixed=l_fixed,
                        params=SettleParams(jam=jam))
-        np.testing.assert_allclose(stuck.q_settle, free.q_settle, atol=1e-12)
+        np.testing.assert_allclose(stuck.q_settle, free.q_settle, rtol=0, atol=_same_rest_tol(arm, free.q_settle))
 
 
 def test_held_jam_ignores_the_command_one_way_jam_lets_the_motor_reel_in(arm, healthy):
