@@ -297,8 +297,8 @@ def _newton_direction(problem, state: _State, residual, shift, traceable: bool, 
 def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tensor:
     """``A^-1 b`` (B, N) for symmetric positive definite ``A (B, N, N)``: an LU solve, or (``traceable``) a Cholesky
     factor built column by column and its two triangular substitutions, all elementwise operations on (B,) columns
-    (N is static), which AOTInductor fuses into a few kernels: ``linalg`` solvers have no C shim, and
-    ``torch.cholesky_solve``'s call (its copies and its error check) costs more than the arithmetic at these sizes."""
+    (N is static), which AOTInductor fuses into a few kernels: ``linalg`` solvers have no C shim (its proxy executor
+    would run them), and ``torch.cholesky_solve`` is a library call that copies its operands and checks its factor."""
     if not traceable:
         return torch.linalg.solve_ex(A, b.unsqueeze(-1))[0].squeeze(-1)
     n = A.shape[-1]
