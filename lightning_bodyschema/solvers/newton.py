@@ -20,8 +20,9 @@ A case whose residual is not below ``tol`` after ``max_iter`` steps (an equilibr
 cannot hold has no root) is reported as not converged; after the last step, a residual within the rounding of
 computing it counts as below ``tol`` (``_unsettled``: on a badly scaled case no iterate can do better).
 
-``fixed_iterations=True`` runs the steps on every case at once, every trial on every case, masked where a case has
-converged, in a ``torch.while_loop`` that ends when every case has converged or after ``max_iter`` steps: no host
+``fixed_iterations=True`` runs the steps on every case at once, masked where a case has converged, in a
+``torch.while_loop`` that ends when every case has converged or after ``max_iter`` steps; the trials after ``t = 1``
+run on every case under a ``torch.cond``, in the steps where some running case does not take the full step: no host
 synchronisation and no data-dependent shape, so ``torch.export`` can trace it (and AOTInductor compiles it without
 its proxy executor: the Newton systems are solved by a Cholesky factor made of elementwise operations); the answers
 are the eager ones to rounding. torch only.
@@ -205,16 +206,13 @@ def _gradient_step(problem, state: _State, residual, lipschitz=None) -> _State:
     return _evaluate(*problem, state.lam + residual / lipschitz.unsqueeze(1))
 
 
-def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=None, views=None) -> _State:
+def _line_search(problem, state: _State, residual, step, views=None) -> _State:
     """Armijo's condition on the dual value along the Newton ``step``: the first accepted of ``t = 1``, the exact
-    maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``, every case at once
-    (eager: ``t = 1`` first, the others on the cases it fails). Where no trial is accepted (a nearly singular Newton
-    system), a gradient step, which always ascends (the dual is concave with a Lipschitz-continuous gradient).
-    ``views``: the problem's ``_Views`` (eager, every case of the run)."""
+    maximiser along the step (``_exact_step``), ``1/2, ..., 2^(1 - LINE_SEARCH_HALVINGS)``: ``t = 1`` on every case,
+    the others on the cases it fails. Where no trial is accepted (a nearly singular Newton system), a gradient step,
+    which always ascends (the dual is concave with a Lipschitz-continuous gradient). ``views``: the problem's
+    ``_Views`` (every case of the run)."""
     slope = (residual * step).sum(1)  # the dual's directional derivative: ascent for a Newton step
-    if not eager:
-        accepted, trial = _trials(problem, state, step, slope, _trial_steps(problem, state, step, first=True))
-        return _select(accepted, trial, _gradient_step(problem, state, residual, lipschitz))
     out = _evaluate(*problem, state.lam + step, views)
     fails = out.value < state.value + _ARMIJO * slope  # the cases the full step fails
     failing = host_count(fails)
@@ -229,19 +227,45 @@ def _line_search(problem, state: _State, residual, step, eager: bool, lipschitz=
     if host_count(settled) == settled.shape[0]:
         return out
     accepted, trial = _trials(sub_problem, sub_state, sub_step, sub_slope,
-                              _trial_steps(sub_problem, sub_state, sub_step, first=False))
+                              _trial_steps(sub_problem, sub_state, sub_step))
     trial = _select(settled, sub_out, trial)
     if host_count(accepted | settled) < accepted.shape[0]:
         trial = _select(accepted | settled, trial, _gradient_step(sub_problem, sub_state, sub_residual))
     return trial if every else _State(*(x.index_copy(0, rows, y) for x, y in zip(out, trial)))
 
 
-def _trial_steps(problem, state: _State, step, first: bool) -> torch.Tensor:
-    """(B, K) the trial steps in order: ``t = 1`` (if ``first``), the exact maximiser, ``1/2, 1/4, ...``."""
-    halvings = 0.5 ** torch.arange(LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
+def _traced_newton_step(problem, state: _State, residual, shift, lipschitz, active) -> _State:
+    """``_newton_step``'s answers without a host read, for ``torch.export``: the full step where it meets Armijo's
+    condition or settles (``_settled_step``), else the other trials and the gradient step; those are evaluated under
+    ``torch.cond`` only when some ``active`` case needs them (near the answer a Newton step is taken whole)."""
+    w = problem[5]
+    step = _newton_direction(problem, state, residual, shift, True)
+    slope = (residual * step).sum(1)
+    out = _evaluate(*problem, state.lam + step)
+    whole = (out.value >= state.value + _ARMIJO * slope) | _settled_step(state, out.free, _residual(out, w), w)
+    tensors = (*problem, *state, step, slope, residual, lipschitz, whole, *out)
+    return _State(*torch.cond((whole | ~active).all(), _whole_step, _searched_step, tensors))
+
+
+def _whole_step(*tensors):
+    return tuple(t.clone() for t in tensors[-5:])  # a branch's outputs may not alias its inputs
+
+
+def _searched_step(*tensors):
+    """``_traced_newton_step``'s line search: the exact and halved trials, else the gradient step, where the full
+    step ``out`` is not ``whole``."""
+    problem, state, (step, slope, residual, lipschitz, whole), out = tensors[:6], _State(*tensors[6:11]), \
+        tensors[11:16], _State(*tensors[16:])
+    accepted, trial = _trials(problem, state, step, slope, _trial_steps(problem, state, step))
+    trial = _select(accepted, trial, _gradient_step(problem, state, residual, lipschitz))
+    return tuple(_select(whole, out, trial))
+
+
+def _trial_steps(problem, state: _State, step) -> torch.Tensor:
+    """(B, K) the trial steps after ``t = 1`` in order: the exact maximiser, ``1/2, 1/4, ...``."""
+    halvings = 0.5 ** torch.arange(1, LINE_SEARCH_HALVINGS, dtype=step.dtype, device=step.device)
     batch = step.shape[0]  # not len(): a symbolic batch size stays symbolic under torch.export
-    parts = [halvings[:1].expand(batch, 1)] if first else []
-    return torch.cat(parts + [_exact_step(problem, state, step).unsqueeze(1), halvings[1:].expand(batch, -1)], 1)
+    return torch.cat([_exact_step(problem, state, step).unsqueeze(1), halvings.expand(batch, -1)], 1)
 
 
 def _rows(items, rows):
@@ -255,33 +279,46 @@ def _residual(state: _State, w, w_col=None) -> torch.Tensor:
     return torch.addcmul(state.balance, w.unsqueeze(1) if w_col is None else w_col, state.lam, value=-1.0)
 
 
-def _newton_step(problem, state: _State, residual, shift, eager: bool, lipschitz=None, views=None) -> _State:
+def _newton_step(problem, state: _State, residual, shift, views=None) -> _State:
     """One Newton step on (2) (``residual``) with (3) (``shift``: ``w I`` and the ridge) and the line search, for
-    the (sub)batch ``problem`` (``lipschitz``: the gradient step's constant, made once by a fixed-step run;
-    ``views``: the problem's ``_Views``, made once by an eager run on every case)."""
+    the (sub)batch ``problem`` (``views``: the problem's ``_Views``, made once on every case)."""
+    step = _newton_direction(problem, state, residual, shift, False, None if views is None else views.Gt)
+    return _line_search(problem, state, residual, step, views)
+
+
+def _newton_direction(problem, state: _State, residual, shift, traceable: bool, Gt=None) -> torch.Tensor:
+    """(B, N) the Newton step of (2) with (3) (``Gt``: ``G^T``, made here when not given)."""
     G = problem[0]
-    Gt = G.transpose(1, 2) if views is None else views.Gt
+    Gt = G.transpose(1, 2) if Gt is None else Gt
     hessian = torch.baddbmm(shift, Gt, G * state.free.unsqueeze(-1))  # (3); a bool factor is 0 or 1
-    step = _solve_spd(hessian, residual, traceable=not eager)
-    return _line_search(problem, state, residual, step, eager, lipschitz, views)
+    return _solve_spd(hessian, residual, traceable)
 
 
 def _solve_spd(A: torch.Tensor, b: torch.Tensor, traceable: bool) -> torch.Tensor:
     """``A^-1 b`` (B, N) for symmetric positive definite ``A (B, N, N)``: an LU solve, or (``traceable``) a Cholesky
-    factor built column by column from elementwise operations (N is static) and ``torch.cholesky_solve``, which
-    AOTInductor compiles without its proxy executor (``linalg`` solvers have no C shim)."""
+    factor built column by column and its two triangular substitutions, all elementwise operations on (B,) columns
+    (N is static), which AOTInductor fuses into a few kernels: ``linalg`` solvers have no C shim (its proxy executor
+    would run them), and ``torch.cholesky_solve`` is a library call that copies its operands and checks its factor."""
     if not traceable:
         return torch.linalg.solve_ex(A, b.unsqueeze(-1))[0].squeeze(-1)
     n = A.shape[-1]
     rows = torch.arange(n, device=A.device)
-    columns = []
+    columns = []  # columns[j] (B, N): column j of the factor L, zero above the diagonal
     for j in range(n):
         v = A[:, :, j]
         for k in range(j):
             v = v - columns[k] * columns[k][:, j:j + 1]
         pivot = torch.sqrt(torch.clamp(v[:, j:j + 1], min=1e-300))
         columns.append(torch.where(rows >= j, v / pivot, torch.zeros_like(v)))
-    return torch.cholesky_solve(b.unsqueeze(-1), torch.stack(columns, 2)).squeeze(-1)
+    y = []  # L y = b, forward
+    for j in range(n):
+        y.append((b[:, j] - sum((columns[k][:, j] * y[k] for k in range(j)), torch.zeros_like(b[:, j])))
+                 / columns[j][:, j])
+    x = [None] * n  # L^T x = y, backward
+    for j in reversed(range(n)):
+        x[j] = (y[j] - sum((columns[j][:, k] * x[k] for k in range(j + 1, n)), torch.zeros_like(y[j])))
+        x[j] = x[j] / columns[j][:, j]
+    return torch.stack(x, 1)
 
 
 def _start(G, tau, f_ref, w, traceable: bool = False, views: _Views | None = None):
@@ -367,11 +404,11 @@ def dual_newton(G, tau, f_ref, lo, hi, w=0.0, tol: float = NEWTON_TOL_NM, max_it
         if running == 0:
             return NewtonResult(state.f, size <= tol, iterations, infeasible, direction)
         if running == batch:  # every case still runs: no gather
-            state = _newton_step(problem, state, residual, shift, True, views=views)
+            state = _newton_step(problem, state, residual, shift, views)
         else:
             idx = active.nonzero().squeeze(1)
             sub = _newton_step(tuple(x[idx] for x in problem), _State(*(x[idx] for x in state)), residual[idx],
-                               shift[idx], True)
+                               shift[idx])
             state = _State(*(x.index_copy(0, idx, y) for x, y in zip(state, sub)))
         iterations += active
     unsettled = _unsettled(problem, state, _residual(state, w, w_col), tol)
@@ -403,7 +440,7 @@ def _masked_steps(problem, state: _State, shift, iterations, tol: float, max_ite
     def step(k, iterations, *state):
         state = _State(*state)
         residual, active = _residual(state, w), running(state)
-        new = _select(active, _newton_step(problem, state, residual, shift, False, lipschitz), state)
+        new = _select(active, _traced_newton_step(problem, state, residual, shift, lipschitz, active), state)
         return (k + 1, iterations + active.to(iterations.dtype), *new)
 
     k = torch.zeros((), dtype=torch.int64, device=iterations.device)

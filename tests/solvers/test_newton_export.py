@@ -32,10 +32,35 @@ def test_exported_fixed_iteration_newton_gives_the_eager_answer():
 
 
 def test_the_exported_newton_stops_early_and_calls_no_linalg_solver():
-    """The traced graph is one while_loop (it ends once every case has settled) whose Newton systems are solved by
-    a Cholesky factor of elementwise operations and cholesky_solve: no linalg solver or eigensolver, which
-    AOTInductor would run through its proxy executor."""
+    """The traced graph is one while_loop (it ends once every case has settled) whose line search runs its trials
+    after t = 1 under a cond, and whose Newton systems are solved by a Cholesky factor and substitutions of
+    elementwise operations: no linalg solver, eigensolver or cholesky_solve (AOTInductor would run the first through
+    its proxy executor; the last costs more than the arithmetic at these sizes)."""
     program = torch.export.export(_Command(), _problem(16))
     text = program.graph_module.print_readable(print_output=False)
-    assert "while_loop" in text and "cholesky_solve" in text
-    assert not any(name in text for name in ("linalg_solve", "solve_ex", "lu_factor", "eigvalsh", "cholesky_ex"))
+    assert "higher_order.while_loop" in text and "higher_order.cond" in text
+    assert not any(name in text for name in ("linalg_solve", "solve_ex", "lu_factor", "eigvalsh", "cholesky"))
+
+
+def test_the_traced_step_searches_where_the_full_step_is_rejected():
+    """The first Newton step of the traced path (the trials after t = 1 under a cond) equals the eager one on every
+    case, among them cases whose full step is rejected (the cond's searched branch)."""
+    from lightning_bodyschema.solvers import newton
+
+    G, tau, f_ref, lo, hi = _problem(16)
+    w = torch.zeros(16, dtype=torch.float64)
+    problem = (G, tau, f_ref, lo, hi, w)
+    lam, shift = newton._start(G, tau, f_ref, w, traceable=True)
+    state = newton._evaluate(*problem, lam)
+    residual = newton._residual(state, w)
+    step = newton._newton_direction(problem, state, residual, shift, traceable=True)
+    full = newton._evaluate(*problem, state.lam + step)
+    rejected = full.value < state.value + newton._ARMIJO * (residual * step).sum(1)
+    assert 0 < int(rejected.sum()) < 16
+    active = torch.ones(16, dtype=torch.bool)
+    traced = newton._traced_newton_step(problem, state, residual, shift, newton._lipschitz(problem), active)
+    eager = newton._newton_step(problem, state, residual, shift)
+    assert not torch.equal(traced.lam[rejected], full.lam[rejected])  # searched, not the full step
+    scale = state.lam.abs().amax() + step.abs().amax()  # [N rad/m] the size of the multipliers in play
+    torch.testing.assert_close(traced.lam, eager.lam, rtol=0.0, atol=1e-12 * float(scale))
+    torch.testing.assert_close(traced.f, eager.f, rtol=0.0, atol=1e-9)
