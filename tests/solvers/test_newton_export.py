@@ -3,6 +3,7 @@ import numpy as np
 import torch
 
 from lightning_bodyschema.solvers.newton import dual_newton
+from physics_checks import rounding_tol
 
 
 class _Command(torch.nn.Module):
@@ -42,6 +43,9 @@ def test_the_exported_newton_stops_early_and_calls_no_linalg_solver():
     assert not any(name in text for name in ("linalg_solve", "solve_ex", "lu_factor", "eigvalsh", "cholesky"))
 
 
+_SOLVE_ROUNDINGS = 4096  # the traced Newton step against the eager one (condition of the dual Hessian ~1e3)
+
+
 def test_the_traced_step_searches_where_the_full_step_is_rejected():
     """The first Newton step of the traced path (the trials after t = 1 under a cond) equals the eager one on every
     case, among them cases whose full step is rejected (the cond's searched branch)."""
@@ -62,5 +66,7 @@ def test_the_traced_step_searches_where_the_full_step_is_rejected():
     eager = newton._newton_step(problem, state, residual, shift)
     assert not torch.equal(traced.lam[rejected], full.lam[rejected])  # searched, not the full step
     scale = state.lam.abs().amax() + step.abs().amax()  # [N rad/m] the size of the multipliers in play
-    torch.testing.assert_close(traced.lam, eager.lam, rtol=0.0, atol=1e-12 * float(scale))
+    # the Newton system solved by another kernel (elementwise substitutions vs cholesky_solve): its roundings,
+    # amplified by the system's condition, at the multipliers' scale; a wrong trial or branch moves lam by O(scale)
+    torch.testing.assert_close(traced.lam, eager.lam, rtol=0.0, atol=rounding_tol(_SOLVE_ROUNDINGS, scale))
     torch.testing.assert_close(traced.f, eager.f, rtol=0.0, atol=1e-9)
