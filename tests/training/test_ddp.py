@@ -29,7 +29,7 @@ def run_fit(tmp_path, name, batch_size, epochs, *extra, model="DiffusionSchema")
            "PYTHONPATH": os.pathsep.join([HERE, os.environ.get("PYTHONPATH", "")])}
     start = time.perf_counter()
     done = subprocess.run(args, capture_output=True, text=True, env=env, timeout=1800)
-    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.returncode == 0, (done.returncode, done.stdout[-3000:], done.stderr[-3000:])
     return time.perf_counter() - start, [torch.load(p, weights_only=True) for p in sorted(out.glob("rank*.pt"))]
 
 
