@@ -1,5 +1,7 @@
+import atexit
 import copy
 import os
+import shutil
 import sys
 import tempfile
 
@@ -18,6 +20,7 @@ torch.set_flush_denormal(True)
 os.environ.setdefault("MPLBACKEND", "Agg")
 # what the tools remember between runs (tools/static_opt.py: a body's names) stays out of the user's cache
 os.environ["BODYSCHEMA_CACHE_DIR"] = tempfile.mkdtemp(prefix="bodyschema-cache-")
+atexit.register(shutil.rmtree, os.environ["BODYSCHEMA_CACHE_DIR"], ignore_errors=True)
 # the tests live in one folder per subpackage; their shared checks (physics_checks.py) live here
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
