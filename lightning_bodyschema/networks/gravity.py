@@ -8,10 +8,9 @@ joint's mass column is ``-g . a_j`` (its moment columns 0). Coupled joints add t
 ``d q_j / d q_free`` (``tau_free = E^T tau_full``). Per free joint an offset and a linear spring
 (``tau_j += c0_j + c1_j q_j``) represent joint springs.
 
-Forward kinematics is MuJoCo's, in closed form in torch float64: each body at its parent's pose times its offset,
-then each joint (a hinge rotates by ``q - qpos0`` about its axis through its anchor; a slide translates). A Python
-loop over the tree's bodies, none over postures; no autograd; broadcasting only (``torch.export``, ``torch.vmap``).
-Plain PyTorch, no Lightning.
+Forward kinematics is MuJoCo's, in closed form in float64 (each body at its parent's pose times its offset, then each
+joint: a hinge rotates by ``q - qpos0`` about its axis through its anchor, a slide translates); batched, no autograd,
+traceable under ``torch.export`` and ``torch.vmap``. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -41,11 +40,10 @@ def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
 class GravityTorque(nn.Module):
     """``tau (B, N)`` [N m] at free-joint postures ``q (B, N)`` [rad or m] of a ``sim.gravity_tree.GravityTree``.
 
-    ``features(q) (B, N, P)``; ``forward(q) = features(q) @ coef`` (computed without the features: the frames'
-    world first mass moments summed below each joint); ``fit_trimmed`` sets ``coef`` by least squares. ``coef``
-    (P,) is the only state-dict entry (float64): per frame ``(m [kg], s [kg m] x3)``, then N offsets [N m] and N
-    spring rates [N m per rad or m]. The tree's arrays are non-persistent buffers (``.to(device)`` moves them; the
-    schema rebuilds them from the robot), kept float64 by dtype casts.
+    ``features(q) (B, N, P)``; ``forward(q) = features(q) @ coef``; ``fit_trimmed`` sets ``coef`` by least squares.
+    ``coef`` (P,) is the only state-dict entry (float64): per frame ``(m [kg], s [kg m] x3)``, then N offsets [N m]
+    and N spring rates [N m per rad or m]. The tree's arrays are non-persistent float64 buffers (the schema rebuilds
+    them from the robot).
     """
 
     def __init__(self, tree):
@@ -118,13 +116,8 @@ class GravityTorque(nn.Module):
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
         ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics);
-        ``full``: ``full_q(q)`` when the caller has it.
-
-        Every body offset and joint motion is a node of the tree with its 4x4 transform; each node's world pose is
-        the product along its ancestors, by pointer jumping (each round a node takes its pointer's product and
-        pointer, ``log2(depth)`` rounds of two batched products; in an exported program every gather a one-hot product,
-        which torch.export keeps batch-generic under vmap): a handful of operations for any tree, not a few per body.
-        Above ``JUMP_ROWS`` postures one product per node instead (fewer tiny 4x4 products in all)."""
+        ``full``: ``full_q(q)`` when the caller has it. Every body offset and joint motion is a node of the tree with
+        its 4x4 transform, each node's world pose the product along its ancestors (``snapshot.world_poses``)."""
         rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)) if full is None else full)
         # (B, nodes, 4, 4) by padding and a one-hot product, not concatenation or gathers (which specialize the
         # batch under vmap in torch.export)
@@ -142,12 +135,10 @@ class GravityTorque(nn.Module):
         return world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
 
     def _register_nodes(self, tree) -> None:
-        """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation
-        about its anchor or a slide's shift), each node's parent the node before it (a body's offset: its parent
-        body's last node), and an identity node last, every root's parent. ``node_parent`` and ``node_chain`` (a
-        joint node's motion, or -1); buffers: each node's constant transform (0 on a joint's node) and the one-hot
-        map of the joint motions onto their nodes, and the picks of ``_pick`` (each pointer round, the frames' last
-        nodes, the node before each moving joint)."""
+        """The node tree of ``kinematics``: per body its offset, then each of its joints in order, each node's parent
+        the node before it (a body's offset: its parent body's last node), an identity node last (every root's
+        parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform (0 on a
+        joint's node), the one-hot map of the joint motions onto their nodes, and the picks of ``_pick``."""
         parent, last, joint_node, self.node_chain, const = [], {}, {}, [], []
         for i, p in enumerate(self.body_parent):
             parent.append(last[p] if p >= 0 else -1)
@@ -179,9 +170,8 @@ class GravityTorque(nn.Module):
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
 
     def _register_couplings(self) -> None:
-        """The couplings' and slopes' gathers with their constant half (``qpos0`` there) and each polynomial's
-        coefficient columns (contiguous, the highest power first), as ``full_q`` and ``_slopes`` take them (and
-        ``networks.snapshot.GravitySnapshot``)."""
+        """The couplings' and slopes' gathers, their ``qpos0`` and each polynomial's coefficient columns (the highest
+        power first), as ``snapshot.full_posture`` and ``snapshot.joint_slopes`` take them."""
         gather = lambda rows: torch.as_tensor(rows, dtype=torch.long, device=self.qpos0.device)  # noqa: E731
         buffers = dict(dep_follows_index=gather(self.dep_follows), dep_follows_qpos0=self.qpos0[self.dep_follows],
                        dep_index=gather(self.dep_joint), dep_qpos0=self.qpos0[self.dep_joint],
@@ -191,9 +181,8 @@ class GravityTorque(nn.Module):
             self.register_buffer(name, value, persistent=False)
 
     def _pick(self, name: str, poses: torch.Tensor) -> torch.Tensor:
-        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather (many
-        times faster at large batches), or in an exported program a product with its one-hot matrix (a gather under
-        ``vmap`` fixes the batch size)."""
+        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather, or
+        exported a product with its one-hot matrix (a gather under ``vmap`` fixes the batch size)."""
         if torch.compiler.is_exporting():
             return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
         return poses.index_select(1, getattr(self, f"{name}_index"))
@@ -234,9 +223,8 @@ class GravityTorque(nn.Module):
 
     def forward(self, q: torch.Tensor, snapshot: Optional[GravitySnapshot] = None) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
-        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features).
-        Eager: its ``GravitySnapshot`` (``snapshot`` when the caller keeps it: a schema's inference cache), the same
-        numbers in about half the operations; exported: the program traced from ``kinematics``."""
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves. Eager: its ``GravitySnapshot``
+        (``snapshot`` when the caller keeps one); exported: traced from ``kinematics``."""
         if not torch.compiler.is_exporting():
             return (GravitySnapshot(self) if snapshot is None else snapshot)(q.to(torch.float64))
         q = q.to(torch.float64)
@@ -259,11 +247,9 @@ class GravityTorque(nn.Module):
     def fit_trimmed(self, q: torch.Tensor, tau: torch.Tensor, factor: float = 3.0, rounds: int = 8,
                     chunk: int = 4096) -> torch.Tensor:
         """Least squares of ``coef`` on postures ``q (S, N)`` and torques ``tau (S, N)`` [N m], then up to ``rounds``
-        refits without the postures whose residual norm exceeds ``factor`` times the kept ones' median (where a
-        learned moment arm swings, its torque is no gravity's, and would pull the whole fit); the kept mask ``(S,)``.
-        Each fit is a QR of the features, not the normal equations: the tree's parameters include directions the
-        postures determine only weakly (relative singular values down to 1e-10 on myoArm), which the normal
-        equations' squared condition number would lose to rounding."""
+        refits without the postures whose residual norm exceeds ``factor`` times the kept ones' median; the kept mask
+        ``(S,)``. Each fit is a QR of the features (``trim.solve_triangular``), not the normal equations, whose
+        squared condition number would lose the directions the postures determine only weakly."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
         self.coef.copy_(solve_triangular(self._triangular(q, tau, chunk)))
         def refit(keep, new):
