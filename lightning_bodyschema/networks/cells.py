@@ -214,7 +214,7 @@ def set_cell_layout(path, degrees) -> None:
 
 def _set_few_terms(path, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
     """``few_terms``: the whole-box and the cell terms over ``snapshot.PathSnapshot``'s variables (the joints, then
-    ``cell_inputs``' coordinates), each slope into its joint's column times ``few_scale`` (``pieces`` on a local one)."""
+    ``cell_inputs``' coordinates), each slope into its joint's column times ``few_scale`` (on a local one: pieces)."""
     exponents, n_joints = path._cell_sources[1], path.crossing.shape[1]
     merged = np.zeros((len(exponents) + len(cell_exponents), 2 * n_joints + len(extra)), np.int64)
     merged[:len(exponents), :n_joints], merged[len(exponents):, n_joints:] = exponents, cell_exponents

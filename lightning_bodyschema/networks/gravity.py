@@ -19,11 +19,10 @@ from typing import Optional
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 from .arrays import apply_keeping_dtype
-from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_slopes, world_poses
+from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_motions, joint_slopes, world_poses
 from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
@@ -35,6 +34,19 @@ def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
     zero = np.zeros_like(x)
     return torch.tensor(np.stack([[zero, -z, y], [z, zero, -x], [-y, x, zero]]).transpose(2, 0, 1).copy(),
                         dtype=torch.float64)
+
+
+def _motion_terms(tree, chain: list) -> torch.Tensor:
+    """``(3, C, 4, 4)``: each chain joint's motion ``I + sin M_sin + versine M_versine + angle M_angle`` in its body's
+    frame (Rodrigues about the axis through the anchor for a hinge, a shift along the axis for a slide)."""
+    f64, hinge = dict(dtype=torch.float64), torch.tensor(tree.jnt_type[chain] == _HINGE, dtype=torch.float64)[:, None]
+    cross = _cross_matrices(tree.jnt_axis[chain]) * hinge[:, :, None]  # a slide does not rotate
+    pos = torch.tensor(tree.jnt_pos[chain], **f64)[..., None]
+    terms = torch.zeros(3, len(chain), 4, 4, **f64)
+    terms[0, :, :3, :3], terms[0, :, :3, 3] = cross, -hinge * (cross @ pos)[..., 0]
+    terms[1, :, :3, :3], terms[1, :, :3, 3] = cross @ cross, -hinge * (cross @ cross @ pos)[..., 0]
+    terms[2, :, :3, 3] = (1.0 - hinge) * torch.tensor(tree.jnt_axis[chain], **f64)
+    return terms
 
 
 class GravityTorque(nn.Module):
@@ -55,22 +67,18 @@ class GravityTorque(nn.Module):
         f64 = dict(dtype=torch.float64)
         chain = [j for joints in tree.body_joints for j in joints]  # the joints of the bodies the FK visits
         self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
-        cross, chain_pos = _cross_matrices(tree.jnt_axis[chain]), torch.tensor(tree.jnt_pos[chain], **f64)
-        cross = cross * torch.tensor(tree.jnt_type[chain] == _HINGE, **f64)[:, None, None]  # a slide does not rotate
-        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=torch.tensor(tree.qpos0, **f64),
-                       gravity_cross=_cross_matrices(tree.gravity)[0],  # g x v as a product (vmap, export)
+        qpos0 = torch.tensor(tree.qpos0, **f64)
+        anchor_axis = torch.zeros(len(tree.moving_joint), 4, 2, **f64)  # per moving joint [anchor; 1], [axis; 0]
+        anchor_axis[:, :3, 0], anchor_axis[:, 3, 0] = torch.tensor(tree.jnt_pos[tree.moving_joint], **f64), 1.0
+        anchor_axis[:, :3, 1] = torch.tensor(tree.jnt_axis[tree.moving_joint], **f64)
+        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
+                       gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
                        free_select=torch.tensor(tree.free_select, **f64),
                        full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
                        dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
                        body_pos=torch.tensor(tree.body_pos, **f64), body_rot=torch.tensor(tree.body_rot, **f64),
-                       chain_cross=cross, chain_cross2=cross @ cross,
-                       chain_eye=torch.eye(3, **f64).expand_as(cross).clone(),
-                       chain_cross_pos=(cross @ chain_pos[..., None])[..., 0],
-                       chain_cross2_pos=(cross @ cross @ chain_pos[..., None])[..., 0],
-                       chain_axis=torch.tensor(tree.jnt_axis[chain], **f64),
-                       chain_hinge=torch.tensor(tree.jnt_type[chain] == _HINGE, **f64),
-                       moving_pos=torch.tensor(tree.jnt_pos[tree.moving_joint], **f64),
-                       moving_axis=torch.tensor(tree.jnt_axis[tree.moving_joint], **f64),
+                       motion_eye=torch.eye(4, **f64), motion_terms=_motion_terms(tree, chain), anchor_axis=anchor_axis,
+                       chain_joint_index=torch.as_tensor(chain, dtype=torch.long), chain_qpos0=qpos0[chain],
                        moves_frame=torch.tensor(tree.moves_frame, **f64),
                        hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
                        free_scatter=self._one_hot(tree.free_column, n_free),
@@ -83,7 +91,8 @@ class GravityTorque(nn.Module):
         self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
         self.coupled = bool(self.dep_joint)
-        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of)
+        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of,
+                                chain_joint_index=chain)
         self._register_nodes(tree)
         self._register_couplings()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
@@ -116,23 +125,19 @@ class GravityTorque(nn.Module):
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
         ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics);
-        ``full``: ``full_q(q)`` when the caller has it. Every body offset and joint motion is a node of the tree with
-        its 4x4 transform, each node's world pose the product along its ancestors (``snapshot.world_poses``)."""
-        rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)) if full is None else full)
-        # (B, nodes, 4, 4) by padding and a one-hot product, not concatenation or gathers (which specialize the
-        # batch under vmap in torch.export)
-        motion = F.pad(rot, (0, 1, 0, 1)) + F.pad(shift[..., None], (3, 0, 0, 1)) + self.node_corner  # (B, C, 4, 4)
-        world = self._world(motion)
-        frames, before = self._pick("frame_node", world), self._pick("before_node", world)
-        anchors = before[..., :3, 3] + (before[..., :3, :3] @ self.moving_pos[..., None])[..., 0]
-        return (frames[..., :3, 3], frames[..., :3, :3], anchors,
-                (before[..., :3, :3] @ self.moving_axis[..., None])[..., 0])
+        ``full``: ``full_q(q)`` when the caller has it."""
+        frames, before = self._poses(self.full_q(q.to(torch.float64)) if full is None else full)
+        anchor_axis = before[..., :3, :] @ self.anchor_axis
+        return frames[..., :3, 3], frames[..., :3, :3], anchor_axis[..., 0], anchor_axis[..., 1]
 
-    def _world(self, motion: torch.Tensor) -> torch.Tensor:
-        """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``
-        (``snapshot.world_poses``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program."""
+    def _poses(self, full: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
+        at every joint's ``full (B, nq)``: each node's pose the product along its ancestors (``snapshot.world_poses``;
+        pointer jumping up to ``JUMP_ROWS`` postures and in an exported program)."""
+        motion = joint_motions(self, full, self._columns)
         jump = torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS
-        return world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
+        world = world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
+        return self._pick("frame_node", world), self._pick("before_node", world)
 
     def _register_nodes(self, tree) -> None:
         """The node tree of ``kinematics``: per body its offset, then each of its joints in order, each node's parent
@@ -154,10 +159,7 @@ class GravityTorque(nn.Module):
         n, self.node_parent = len(parent), parent
         motion = np.zeros((n + 1, len(self.chain_joint)))
         motion[[k for k, c in enumerate(self.node_chain) if c >= 0], [c for c in self.node_chain if c >= 0]] = 1.0
-        corner = np.zeros((4, 4))
-        corner[3, 3] = 1.0
-        for name, value in dict(node_const=np.stack(const + [np.eye(4)]), node_motion=motion,
-                                node_corner=corner).items():
+        for name, value in dict(node_const=np.stack(const + [np.eye(4)]), node_motion=motion).items():
             self.register_buffer(name, torch.tensor(value, dtype=torch.float64), persistent=False)
         pointer, picks = np.array([q if q >= 0 else n for q in parent] + [n]), {}
         while (pointer[:n] < n).any():  # log2(depth) rounds
@@ -187,19 +189,6 @@ class GravityTorque(nn.Module):
             return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
         return poses.index_select(1, getattr(self, f"{name}_index"))
 
-    def _joint_motions(self, full: torch.Tensor):
-        """Every chain joint's motion in its body's frame at once: rotation ``(B, C, 3, 3)`` (Rodrigues about the
-        axis; the identity for a slide) and shift of the body origin ``(B, C, 3)`` (a hinge keeps its anchor fixed:
-        ``pos - rot pos``; a slide moves along its axis)."""
-        angle = (full - self.qpos0)[:, self.chain_joint, None, None]  # (B, C, 1, 1)
-        sin, versine = angle.sin(), 1.0 - angle.cos()
-        rot = self.chain_eye + sin * self.chain_cross + versine * self.chain_cross2
-        # pos - rot pos = -(sin K pos + versine K^2 pos), K pos and K^2 pos constant
-        hinge = self.chain_hinge[:, None]
-        shift = -hinge * (sin[..., 0] * self.chain_cross_pos + versine[..., 0] * self.chain_cross2_pos) \
-            + (1.0 - hinge) * self.chain_axis * angle[..., 0]
-        return rot, shift
-
     def _slopes(self, full: torch.Tensor) -> torch.Tensor:
         """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint (``snapshot.joint_slopes``)."""
         return joint_slopes(self, full, self._columns)
@@ -210,7 +199,7 @@ class GravityTorque(nn.Module):
         q = q.to(torch.float64)
         full = self.full_q(q)
         p, R, o, a = self.kinematics(q, full)
-        ga = a @ self.gravity_cross.T  # (B, J, 3)
+        ga = a @ self.gravity_cross_T  # (B, J, 3)
         hinge = self.hinge[:, None]
         mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
@@ -223,24 +212,14 @@ class GravityTorque(nn.Module):
 
     def forward(self, q: torch.Tensor, snapshot: Optional[GravitySnapshot] = None) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
-        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves. Eager: its ``GravitySnapshot``
-        (``snapshot`` when the caller keeps one); exported: traced from ``kinematics``."""
-        if not torch.compiler.is_exporting():
-            return (GravitySnapshot(self) if snapshot is None else snapshot)(q.to(torch.float64))
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves: its ``GravitySnapshot`` (``snapshot``
+        when the caller keeps one); exported, built in the trace on this module's poses and columns (``_poses``,
+        ``_columns``: no gather that would fix the batch under vmap)."""
         q = q.to(torch.float64)
+        if not torch.compiler.is_exporting():
+            return (GravitySnapshot(self) if snapshot is None else snapshot)(q)
         full = self.full_q(q)
-        p, R, o, a = self.kinematics(q, full)
-        per_frame = self.coef[:4 * self.n_frames].reshape(self.n_frames, 4)
-        mass, moment = per_frame[:, 0], per_frame[:, 1:]
-        w = mass[:, None] * p + (R @ moment[..., None])[..., 0]  # (B, F, 3)
-        w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w)
-        mass_joint = self.moves_frame @ mass  # (J,)
-        ga = a @ self.gravity_cross.T
-        tau_hinge = -(ga * (w_joint - mass_joint[:, None] * o)).sum(-1)
-        tau_slide = -(a @ self.gravity) * mass_joint
-        tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(full)
-        spring = self.coef[4 * self.n_frames:]
-        return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
+        return GravitySnapshot(self).torque(q, full, *self._poses(full), self._columns)
 
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()

@@ -124,17 +124,6 @@ class GravitySnapshot(Frozen):
         self.pointers = [getattr(gravity, f"node_pointer{k}_index") for k in range(gravity.n_rounds)]
         self.node_parent, self.node_chain, self.n_rounds = gravity.node_parent, gravity.node_chain, gravity.n_rounds
         self.coupled, self.all_hinges = gravity.coupled, gravity.all_hinges
-        f64, hinge = dict(dtype=torch.float64, device=gravity.coef.device), gravity.chain_hinge[:, None]
-        terms = torch.zeros(3, len(gravity.chain_cross), 4, 4, **f64)
-        terms[0, :, :3, :3], terms[0, :, :3, 3] = gravity.chain_cross, -hinge * gravity.chain_cross_pos
-        terms[1, :, :3, :3], terms[1, :, :3, 3] = gravity.chain_cross2, -hinge * gravity.chain_cross2_pos
-        terms[2, :, :3, 3] = (1.0 - hinge) * gravity.chain_axis
-        self.motion_eye, self.motion_terms = torch.eye(4, **f64), terms
-        self.anchor_axis = torch.zeros(len(gravity.moving_joint), 4, 2, **f64)
-        self.anchor_axis[:, :3, 0], self.anchor_axis[:, 3, 0] = gravity.moving_pos, 1.0
-        self.anchor_axis[:, :3, 1] = gravity.moving_axis
-        self.chain_joint_index = torch.as_tensor(gravity.chain_joint, dtype=torch.long, device=f64["device"])
-        self.chain_qpos0, self.gravity_cross_T = gravity.qpos0[gravity.chain_joint], gravity.gravity_cross.T.clone()
         n_frames, n_free, coef = gravity.n_frames, gravity.n_free, gravity.coef
         order = torch.arange(4 * n_frames, device=coef.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
         self.moment_mass = coef.index_select(0, order).view(-1, 4, 1)
@@ -142,11 +131,12 @@ class GravitySnapshot(Frozen):
         self.offset, self.rate = coef[4 * n_frames:4 * n_frames + n_free], coef[4 * n_frames + n_free:]
 
     def __call__(self, q):
-        xp, full = self.xp, full_posture(self, q, self._columns)
-        angle = (take(full, self.chain_joint_index, 1) - self.chain_qpos0)[:, :, None, None]
-        by_sin, by_versine, by_angle = self.motion_terms
-        motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
-        frames, before = self._world(motion)
+        full = full_posture(self, q, self._columns)
+        return self.torque(q, full, *self._world(joint_motions(self, full, self._columns)), self._columns)
+
+    def torque(self, q, full, frames, before, columns):
+        """``tau (B, N)`` at ``q`` from every joint's ``full (B, nq)``, the frames' world poses ``(B, F, 4, 4)`` and
+        the nodes' before the moving joints ``(B, J, 4, 4)`` (``columns``: ``full_posture``'s)."""
         w = (frames[..., :3, :] @ self.moment_mass)[..., 0]
         anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
         o, a = anchor_axis[..., 0], anchor_axis[..., 1]
@@ -154,7 +144,7 @@ class GravitySnapshot(Frozen):
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * self.mass_joint)
-        return (tau * joint_slopes(self, full, self._columns)) @ self.free_scatter + self.offset + self.rate * q
+        return (tau * joint_slopes(self, full, columns)) @ self.free_scatter + self.offset + self.rate * q
 
     def _columns(self, full, name: str):
         """``full``'s columns at the index ``name``."""
@@ -176,6 +166,15 @@ def full_posture(tree, q, columns):
         return full
     value = horner(tree.dep_horner, columns(full, "dep_follows_index") - tree.dep_follows_qpos0)
     return full + (value + tree.dep_qpos0 - columns(full, "dep_index")) @ tree.dep_scatter
+
+
+def joint_motions(tree, full, columns):
+    """Every chain joint's motion ``(B, C, 4, 4)`` in its body's frame at every joint's ``full (B, nq)`` of a
+    ``GravityTorque``'s tree (the module or its snapshot): ``I + sin M_sin + versine M_versine + angle M_angle``."""
+    angle = (columns(full, "chain_joint_index") - tree.chain_qpos0)[:, :, None, None]
+    by_sin, by_versine, by_angle = tree.motion_terms
+    xp = namespace(full)
+    return tree.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
 
 
 def joint_slopes(tree, full, columns):
