@@ -31,17 +31,9 @@ def product_basis(x: torch.Tensor, exponents: torch.Tensor, degree: int, slopes:
     terms); ``degree``: the largest exponent."""
     values, derivs = legendre(x, degree)
     factors = [values[:, j][:, exponents[:, j]] for j in range(x.shape[1])]  # N x (B, P)
-    before = [torch.ones_like(factors[0])]  # prod_{i<j} factor_i
-    for factor in factors[:-1]:
-        before.append(before[-1] * factor)
-    phi = before[-1] * factors[-1]
-    if not slopes:
-        return phi, None
-    dphi, after = [], torch.ones_like(phi)  # after: prod_{i>j} factor_i
-    for j in reversed(range(x.shape[1])):
-        dphi.append(derivs[:, j][:, exponents[:, j]] * before[j] * after)
-        after = after * factors[j]
-    return phi, torch.stack(dphi[::-1], 1)
+    joint_slopes = [derivs[:, j][:, exponents[:, j]] for j in range(x.shape[1])] if slopes else None
+    phi, dphi = _slot_products(factors, joint_slopes)
+    return phi, None if dphi is None else torch.stack(dphi, 1)
 
 
 def power_matrices(degree: int) -> tuple[np.ndarray, np.ndarray]:

@@ -106,14 +106,11 @@ class PerMusclePath(nn.Module):
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         exporting = torch.compiler.is_exporting()
         derive = slopes or not torch.equal(inside, x64)
-        rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
         coefs = self._coefficients(exporting)  # once per call
-        if exporting or len(x) <= rows:
-            y, dy = self._smooth(inside, derive, exporting, coefs)
-        else:
-            parts = [self._smooth(inside[start:start + rows], derive, False, coefs)
-                     for start in range(0, len(x), rows)]
-            y, dy = torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if derive else None
+        blocks = [inside] if exporting else inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
+        parts = [self._smooth(rows, derive, exporting, coefs) for rows in blocks]
+        y, dy = parts[0] if len(parts) == 1 else (torch.cat([y for y, _ in parts]),
+                                                  torch.cat([dy for _, dy in parts]) if derive else None)
         if has_cells(self):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
