@@ -198,18 +198,15 @@ def set_cell_layout(path, degrees) -> None:
                                     for start, _, width in path.cell_group_bounds).to(device)  # each group's
     path.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
     _set_few_terms(path, layout[2], extra)
-    for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
-                            "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
-        path.register_buffer(name, torch.as_tensor(value, device=path.coef.device), persistent=False)  # derived
-    unfold = np.eye(path.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
-    path.register_buffer("cell_rows", torch.arange(len(layout[0]), device=device), persistent=False)
-    path.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
-    path.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
-                         persistent=False)
-    path.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
-                                                  device=path.coef.device))
-    path.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
-                                                    device=path.coef.device))
+    derived = zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order", "cell_valid",
+                   "cell_perm", "cell_rows", "cell_extra", "cell_unfold"),  # unfold (E, N): the joints kept whole
+                  (values.astype(np.int64), *layout, valid, perm, np.arange(len(layout[0])), extra,
+                   np.eye(path.crossing.shape[1])[extra]))
+    for name, value in derived:
+        path.register_buffer(name, torch.as_tensor(value, device=device), persistent=False)
+    shape = (len(layout[0]), n_cells)
+    path.register_buffer("cell_coef", torch.zeros(*shape, valid.shape[1], dtype=torch.float64, device=device))
+    path.register_buffer("cell_fitted", torch.zeros(*shape, dtype=torch.bool, device=device))
 
 
 def _set_few_terms(path, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
