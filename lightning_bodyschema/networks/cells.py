@@ -25,6 +25,7 @@ from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 from .path_config import CELL_JOINTS
+from .polynomial import check_degrees
 
 
 def cell_coordinates(x, pieces: int):
@@ -186,12 +187,8 @@ def _by_cell(terms, coef, z, cell, slopes):
 def set_cell_layout(path, degrees) -> None:
     """A ``PerMusclePath``'s cells for each muscle's cell degree ``(M,)`` (0: no cells): the layout, each group's
     and every cell term (``basis.ProductTerms``), the snapshot's terms and zero cell coefficients, none fitted."""
-    values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
-    if values.shape != (len(path.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
-        raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(path.coef)} integers >= 0, one per "
-                                   f"muscle (0: no cells)")
-    *layout, valid, n_cells, extra = cell_layout(*path._cell_sources, values.astype(np.int64), path.pieces,
-                                                 path.cell_cut)
+    values = check_degrees(degrees, len(path.coef), 0, "cell_degrees")
+    *layout, valid, n_cells, extra = cell_layout(*path._cell_sources, values, path.pieces, path.cell_cut)
     perm, path.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
     device = path.coef.device  # (a fit sets the cells on its own device, a GPU's too)
     path.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
@@ -200,7 +197,7 @@ def set_cell_layout(path, degrees) -> None:
     _set_few_terms(path, layout[2], extra)
     derived = zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order", "cell_valid",
                    "cell_perm", "cell_rows", "cell_extra", "cell_unfold"),  # unfold (E, N): the joints kept whole
-                  (values.astype(np.int64), *layout, valid, perm, np.arange(len(layout[0])), extra,
+                  (values, *layout, valid, perm, np.arange(len(layout[0])), extra,
                    np.eye(path.crossing.shape[1])[extra]))
     for name, value in derived:
         path.register_buffer(name, torch.as_tensor(value, device=device), persistent=False)

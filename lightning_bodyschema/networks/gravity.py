@@ -116,8 +116,8 @@ class GravityTorque(nn.Module):
         return full_posture(self, q, self._columns)
 
     def _columns(self, full: torch.Tensor, name: str) -> torch.Tensor:
-        """``full``'s columns at the index buffer ``name``: ``index_select``, or in an exported program indexing by
-        the list of joints (as traced before)."""
+        """``full``'s columns at the index buffer ``name``: ``index_select``, or exported indexing by the list of
+        joints (an ``index_select`` would fix the batch under vmap)."""
         if torch.compiler.is_exporting():
             return full[:, self.index_lists[name]]
         return full.index_select(1, getattr(self, name))
@@ -189,10 +189,6 @@ class GravityTorque(nn.Module):
             return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
         return poses.index_select(1, getattr(self, f"{name}_index"))
 
-    def _slopes(self, full: torch.Tensor) -> torch.Tensor:
-        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint (``snapshot.joint_slopes``)."""
-        return joint_slopes(self, full, self._columns)
-
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:
         """``Y (B, N, P)`` with ``tau = Y @ coef`` (module docstring for the columns)."""
@@ -205,7 +201,7 @@ class GravityTorque(nn.Module):
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
         moment = -torch.einsum("bjc,bfck->bjfk", ga, R) * hinge[..., None]
         per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
-        weighted = per_joint.flatten(2) * self._slopes(full)[..., None]
+        weighted = per_joint.flatten(2) * joint_slopes(self, full, self._columns)[..., None]
         tree = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
         ones = torch.ones_like(q)
         return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)

@@ -49,10 +49,8 @@ def count_parameters(module: nn.Module) -> int:
 
 
 class MLP(nn.Module):
-    """``in_dim -> [hidden, act] x n_hidden_layers -> out_dim`` (linear output, no output activation).
-
-    ``n_hidden_layers`` counts hidden layers, so the number of ``Linear`` layers is n_hidden_layers + 1.
-    """
+    """``in_dim -> [hidden, act] x n_hidden_layers -> out_dim``: ``n_hidden_layers + 1`` ``Linear`` layers, the
+    output linear."""
 
     def __init__(self, in_dim: int, hidden: int, out_dim: int, n_hidden_layers: int = 2,
                  activation: ActivationSpec = "tanh"):
@@ -73,10 +71,8 @@ class MLP(nn.Module):
 
 
 class AEEncoder(nn.Module):
-    """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)).
-
-    One MLP whose output is split, so z_q and z_latent share the hidden features (paper: one encoder).
-    """
+    """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)): one MLP whose output is split (z_q
+    and z_latent share the hidden features; paper: one encoder)."""
 
     def __init__(self, x_dim: int, q_dim: int, z_latent_dim: int, hidden: int = 64,
                  n_hidden_layers: int = 2, activation: ActivationSpec = "tanh"):
@@ -94,11 +90,8 @@ class AEEncoder(nn.Module):
 
 
 class VAEEncoder(AEEncoder):
-    """h_enc^vae: x (B, x_dim) -> (z_q, mu, logvar), mu and logvar (B, z_latent_dim).
-
-    Outputs log sigma^2 rather than the paper's sigma: unconstrained, so no positivity clamp is
-    needed, and the KL term is closed-form in it. ``sigma = exp(0.5 * logvar)``.
-    """
+    """h_enc^vae: x (B, x_dim) -> (z_q, mu, logvar), mu and logvar (B, z_latent_dim): log sigma^2 rather than the
+    paper's sigma (unconstrained; ``sigma = exp(0.5 * logvar)``)."""
 
     def _n_latent_outputs(self) -> int:
         return 2 * self.z_latent_dim
@@ -123,21 +116,15 @@ class Decoder(nn.Module):
         return self.mlp(torch.cat([q, z_latent], dim=-1))
 
     def frozen(self) -> Optional["FrozenMLP"]:
-        """An inference-only snapshot for latent descent: free columns z_latent, fixed columns q (``FrozenMLP``).
-
-        ``frozen.first_bias(q)`` folds q into the first layer, so ``frozen.forward(z, bias)`` is ``self(q, z)``.
-        None for activations without a hand-written derivative.
-        """
+        """An inference-only snapshot for latent descent (``FrozenMLP``: free columns z_latent, fixed q, so
+        ``frozen.forward(z, frozen.first_bias(q))`` is ``self(q, z)``); None without a hand-written derivative."""
         return FrozenMLP.of(self.mlp, slice(self.q_dim, None))
 
 
 def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool = False, hidden: int = 64,
                       n_hidden_layers: int = 2, activation: ActivationSpec = "tanh") -> tuple[AEEncoder, Decoder]:
-    """Encoder and decoder for the paper's AE / VAE.
-
-    ``latent_dim`` is the paper's total latent size (3, 10, 30) = dim z_q (= q_dim) + dim z_latent,
-    so it must exceed q_dim: with no z_latent there is nothing left to adapt to a fault.
-    """
+    """Encoder and decoder for the paper's AE / VAE; ``latent_dim``: the paper's total latent size (3, 10, 30) =
+    dim z_q (= q_dim) + dim z_latent, so it must exceed q_dim (no z_latent: nothing to adapt to a fault)."""
     check_dims(latent_dim=latent_dim)
     if latent_dim <= q_dim:
         raise BodySchemaInputError(
@@ -180,10 +167,8 @@ class EpsMLP(nn.Module):
         return FrozenMLP.of(self.mlp, slice(0, self.x_dim))
 
     def step_biases(self, frozen: "FrozenMLP", q: torch.Tensor, timesteps: Sequence[int]) -> torch.Tensor:
-        """First-layer bias of every step of a sampling loop, (S, B, H): ``b1 + (t_i / T) w_t + q W_q^T``.
-
-        The t/T and q columns are fixed for a whole loop, so a step pays only for its x_t columns; all steps in
-        one broadcast op."""
+        """First-layer bias of every step of a sampling loop, (S, B, H): ``b1 + (t_i / T) w_t + q W_q^T`` (the t/T
+        and q columns are fixed for a whole loop: a step pays only for its x_t columns)."""
         t_feat = q.new_tensor([t / self.n_timesteps for t in timesteps])
         w_t, w_q = frozen.w1_rest_t[0], frozen.w1_rest_t[1:]  # rest columns in input order: t/T, then q
         base = torch.addmm(frozen.b1, q.detach(), w_q)  # (B, H)

@@ -18,7 +18,7 @@ JACOBIAN_CHUNK = 256
 NORMS = ("none", "layer")
 
 
-def _silu_slope(z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+def silu_slope(z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     """``silu'(z) = s (1 + z (1 - s)) = s + a (1 - s)`` with ``s = sigmoid(z)`` and ``a = silu(z)`` (already made for
     the value: three elementwise passes)."""
     s = torch.sigmoid(z)
@@ -94,7 +94,7 @@ class JacobianMLP(nn.Module):
         for layer, norm, residual in self._steps():
             z = h if norm is None else norm(h)
             a = F.silu(z)
-            slope = _silu_slope(z, a)
+            slope = silu_slope(z, a)
             scaled = tangent * slope.unsqueeze(1) if norm is None else _layer_norm_tangent(h, tangent, norm, slope)
             step = F.linear(scaled, layer.weight)
             out = F.linear(a, layer.weight, layer.bias)
