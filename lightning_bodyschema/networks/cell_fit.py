@@ -39,7 +39,7 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     muscles = path.cell_muscles
     miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])
     miss, own = miss.abs(), r[:, muscles]
-    keep = _kept(miss, own, path.cell_keep)
+    keep = _kept(miss, own, path.config.cell_keep)
     coef, fitted = path.cell_coef[keep], path.cell_fitted[keep]
     degrees = path.cell_degrees.clone()
     degrees[muscles[~keep]] = 0
@@ -84,8 +84,8 @@ def _fit_each_cell(path, x, y_m, own, chunk):
             gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_c
             eye = torch.eye(terms, dtype=torch.float64, device=x.device)
             solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
-            if path.cell_trim is not None:
-                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * terms)
+            if path.config.cell_trim is not None:
+                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.config.cell_trim, SAMPLES_PER_TERM * terms)
             better = torch.ones(len(members), dtype=torch.bool, device=x.device)
             if terms < width:  # a thin cell replaces the whole-box polynomial only where it halves its miss there
                 miss = (phi_c @ solution - y_c).abs().median(0).values

@@ -62,10 +62,8 @@ class PerMusclePath(nn.Module):
         crossing = check_crossing(crossing)
         blocks = check_blocks(crossing, config.blocks)
         n_muscles, n_joints = crossing.shape
-        self.config, self.cell_keep = config, config.cell_keep  # the fit's, not the state's
-        n_hidden, branches, cells = config.n_hidden, config.branches, config.cells
-        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, config.gate_degree, cells
-        self.cell_trim = None if config.cell_trim is None else float(config.cell_trim)  # the fit's, not the state's
+        self.config = config  # the fit's options (gate degree, cell trim and keep rule), not the state's
+        self.n_hidden, self.branches, self.pieces = config.n_hidden, config.branches, config.cells
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
         degrees = muscle_degrees(crossing, config.degree, config.max_terms, config.term_budget, blocks=blocks) \
             if config.degrees is None else check_degrees(config.degrees, len(crossing))
@@ -77,16 +75,16 @@ class PerMusclePath(nn.Module):
         mask = term_mask(crossing, exponents, degrees, blocks)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
-        if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
+        if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
             add_branches(self)
-        if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
+        if self.pieces > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
             self.cell_cut = cell_cuts(crossing, blocks, config.cell_joints)  # (M, N) numpy: the joints that cut boxes
             self.set_cell_degrees(np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
-        self.weights, self.biases = muscle_mlp_parameters(n_muscles, n_joints, config.hidden, n_hidden)
+        self.weights, self.biases = muscle_mlp_parameters(n_muscles, n_joints, config.hidden, self.n_hidden)
 
     # ------------------------------------------------------------------ the polynomial
     def basis(self, x: torch.Tensor, slopes: bool = False):
@@ -154,7 +152,7 @@ class PerMusclePath(nn.Module):
         x, y, gram, rhs, order = self._fit_whole_box(x, y, ridge, chunk)
         if self.branches == 2:
             self.branched.zero_()
-            fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
+            fit_branches(self, x, y, gram, rhs, order, self.config.gate_degree, chunk)
             refresh_branches(self)  # before the cells: their candidates are the muscles the branches leave worst
         if self.pieces > 1:
             fit_cells(self, x, y, chunk)
