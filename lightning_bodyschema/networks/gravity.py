@@ -71,20 +71,6 @@ class GravityTorque(nn.Module):
         anchor_axis = torch.zeros(len(tree.moving_joint), 4, 2, **f64)  # per moving joint [anchor; 1], [axis; 0]
         anchor_axis[:, :3, 0], anchor_axis[:, 3, 0] = torch.tensor(tree.jnt_pos[tree.moving_joint], **f64), 1.0
         anchor_axis[:, :3, 1] = torch.tensor(tree.jnt_axis[tree.moving_joint], **f64)
-        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
-                       gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
-                       free_select=torch.tensor(tree.free_select, **f64),
-                       full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
-                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
-                       body_pos=torch.tensor(tree.body_pos, **f64), body_rot=torch.tensor(tree.body_rot, **f64),
-                       motion_eye=torch.eye(4, **f64), motion_terms=_motion_terms(tree, chain), anchor_axis=anchor_axis,
-                       chain_joint_index=torch.as_tensor(chain, dtype=torch.long), chain_qpos0=qpos0[chain],
-                       moves_frame=torch.tensor(tree.moves_frame, **f64),
-                       hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
-                       free_scatter=self._one_hot(tree.free_column, n_free),
-                       slope_coef=torch.tensor(tree.slope_coef, **f64))
-        for name, value in buffers.items():
-            self.register_buffer(name, value, persistent=False)
         self.slides = int((tree.jnt_type[chain] != _HINGE).sum())  # slide joints the kinematics visits
         self.dep_joint, self.dep_follows = tree.dep_joint.tolist(), tree.dep_follows.tolist()
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
@@ -93,8 +79,25 @@ class GravityTorque(nn.Module):
         self.coupled = bool(self.dep_joint)
         self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of,
                                 chain_joint_index=chain)
+        # the couplings' and slopes' polynomials as ``snapshot.full_posture`` and ``joint_slopes`` take them: each
+        # one's gather and ``qpos0`` there, its coefficient columns the highest power first
+        horner = lambda coef: torch.tensor(coef, **f64).T.flip(0).contiguous()  # noqa: E731
+        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
+                       gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
+                       free_select=torch.tensor(tree.free_select, **f64), full_base=torch.tensor(tree.full_base, **f64),
+                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
+                       motion_eye=torch.eye(4, **f64), motion_terms=_motion_terms(tree, chain), anchor_axis=anchor_axis,
+                       chain_qpos0=qpos0[chain],
+                       moves_frame=torch.tensor(tree.moves_frame, **f64),
+                       hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
+                       free_scatter=self._one_hot(tree.free_column, n_free),
+                       dep_follows_qpos0=qpos0[self.dep_follows], dep_qpos0=qpos0[self.dep_joint],
+                       slope_qpos0=qpos0[self.slope_of], dep_horner=horner(tree.dep_coef),
+                       slope_horner=horner(tree.slope_coef),
+                       **{name: torch.as_tensor(rows, dtype=torch.long) for name, rows in self.index_lists.items()})
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
         self._register_nodes(tree)
-        self._register_couplings()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
         self.all_hinges = bool(tree.jnt_type[tree.moving_joint].size) and bool(
             (tree.jnt_type[tree.moving_joint] == _HINGE).all())
@@ -170,17 +173,6 @@ class GravityTorque(nn.Module):
         for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
             self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
-
-    def _register_couplings(self) -> None:
-        """The couplings' and slopes' gathers, their ``qpos0`` and each polynomial's coefficient columns (the highest
-        power first), as ``snapshot.full_posture`` and ``snapshot.joint_slopes`` take them."""
-        gather = lambda rows: torch.as_tensor(rows, dtype=torch.long, device=self.qpos0.device)  # noqa: E731
-        buffers = dict(dep_follows_index=gather(self.dep_follows), dep_follows_qpos0=self.qpos0[self.dep_follows],
-                       dep_index=gather(self.dep_joint), dep_qpos0=self.qpos0[self.dep_joint],
-                       dep_horner=self.dep_coef.T.flip(0).contiguous(), slope_index=gather(self.slope_of),
-                       slope_qpos0=self.qpos0[self.slope_of], slope_horner=self.slope_coef.T.flip(0).contiguous())
-        for name, value in buffers.items():
-            self.register_buffer(name, value, persistent=False)
 
     def _pick(self, name: str, poses: torch.Tensor) -> torch.Tensor:
         """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather, or
