@@ -8,7 +8,7 @@ import torch
 
 from .basis import product_basis
 from .branches import SAMPLES_PER_TERM
-from .cells import cell_degree, cell_index, cell_inputs
+from .cells import cell_degree, cell_index, cell_inputs, set_cell_layout
 from .trim import trimmed_refits
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
@@ -21,9 +21,9 @@ CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kep
 @torch.no_grad()
 def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None:
     """Cells for the muscles of a fitted ``PerMusclePath`` that a smooth polynomial fits worst (module docstring):
-    sets the path's cell layout (``PerMusclePath.set_cell_degrees``) and coefficients, and clears ``branched`` where
+    sets the path's cell layout (``cells.set_cell_layout``) and coefficients, and clears ``branched`` where
     cells replace the branches. ``x (S, N)``, ``y (S, M)`` float64, normalized."""
-    path.set_cell_degrees(torch.zeros_like(path.cell_degrees))
+    set_cell_layout(path, torch.zeros_like(path.cell_degrees))
     r = torch.cat([y[i:i + chunk] - path(x[i:i + chunk]) for i in range(0, len(x), chunk)]).abs()
     median = r.median(0).values
     candidates = (median > CELL_MEDIANS * median.median()) & (median > CELL_FLOOR)
@@ -32,7 +32,7 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     total = path.exponents.sum(1)
     own_degree = (total[None, :] * path.term_mask).amax(1)
     cuts = path.cell_cut.sum(1).tolist()  # each muscle's cutting joints
-    path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
+    set_cell_layout(path, torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
                                         for a, d, c, n in zip(path.block_sizes, own_degree, candidates, cuts)],
                                        device=median.device))
     _fit_each_cell(path, x, y[:, path.cell_muscles], r[:, path.cell_muscles], chunk)
@@ -43,7 +43,7 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     coef, fitted = path.cell_coef[keep], path.cell_fitted[keep]
     degrees = path.cell_degrees.clone()
     degrees[muscles[~keep]] = 0
-    path.set_cell_degrees(degrees)  # the kept muscles' own terms come first in either layout: same columns
+    set_cell_layout(path, degrees)  # the kept muscles' own terms come first in either layout: same columns
     path.cell_coef.copy_(coef[:, :path.cell_coef.shape[1], :path.cell_coef.shape[2]])
     path.cell_fitted.copy_(fitted[:, :path.cell_fitted.shape[1]])
     if hasattr(path, "branched"):

@@ -80,7 +80,7 @@ class PerMusclePath(nn.Module):
         if self.pieces > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
             self.cell_cut = cell_cuts(crossing, blocks, config.cell_joints)  # (M, N) numpy: the joints that cut boxes
-            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
+            set_cell_layout(self, np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
@@ -172,11 +172,6 @@ class PerMusclePath(nn.Module):
         coef, order = solve_normal_equations(self.term_mask, gram, rhs, ridge)
         self.coef.copy_(coef)
         return order
-
-    def set_cell_degrees(self, degrees) -> None:
-        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout and zero cell coefficients, none fitted
-        (``cells.set_cell_layout``). A checkpoint's skeleton is built from the same degrees."""
-        set_cell_layout(self, degrees)
 
     @torch.no_grad()
     @one_thread()
