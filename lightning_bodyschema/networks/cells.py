@@ -96,16 +96,6 @@ def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarr
     return muscles, strides, cell_exponents, order, valid, pieces ** most, extra
 
 
-def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, list]:
-    """The celled muscles grouped by equal joints and cell terms: ``perm (Mc,)`` (group by group, each in muscle
-    order) and each group's ``(start, end, width)`` in that order (its rows of ``perm``, its number of terms)."""
-    inverse = np.unique(np.concatenate([strides, order], 1), axis=0, return_inverse=True)[1].reshape(-1)
-    perm = np.argsort(inverse, kind="stable")
-    ends = np.cumsum(np.bincount(inverse)).astype(np.int64)
-    starts = ends - np.bincount(inverse)
-    return perm, [(int(a), int(b), int(valid[perm[a]].sum())) for a, b in zip(starts, ends)]
-
-
 def cell_inputs(path, x):
     """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)`` (numpy or torch)
     of a ``PerMusclePath`` or its snapshot: every joint's local coordinate (``cell_coordinates``), then the joints
@@ -189,7 +179,12 @@ def set_cell_layout(path, degrees) -> None:
     and every cell term (``basis.ProductTerms``), the snapshot's terms and zero cell coefficients, none fitted."""
     values = check_degrees(degrees, len(path.coef), 0, "cell_degrees")
     *layout, valid, n_cells, extra = cell_layout(*path._cell_sources, values, path.pieces, path.cell_cut)
-    perm, path.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
+    # the celled muscles grouped by equal joints and cell terms: ``perm`` (group by group, each in muscle order) and
+    # each group's (start, end, number of terms) in it
+    inverse = np.unique(np.concatenate([layout[1], layout[3]], 1), axis=0, return_inverse=True)[1].reshape(-1)
+    perm, ends = np.argsort(inverse, kind="stable"), np.cumsum(np.bincount(inverse)).tolist()
+    path.cell_group_bounds = [(end - count, end, int(valid[perm[end - count]].sum()))
+                              for end, count in zip(ends, np.bincount(inverse).tolist())]
     device = path.coef.device  # (a fit sets the cells on its own device, a GPU's too)
     path.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
                                     for start, _, width in path.cell_group_bounds).to(device)  # each group's
