@@ -1,6 +1,5 @@
-"""The few operations whose spelling differs between numpy and torch, for code written once for both (the body's
-snapshots, ``networks.snapshot``), and ``Frozen``: an object of arrays that ``on_host()`` copies to numpy. No
-Lightning."""
+"""The operations whose spelling differs between numpy and torch (for ``networks.snapshot``'s code written once for
+both) and ``Frozen``: an object of arrays that ``on_host()`` copies to numpy. No Lightning."""
 from __future__ import annotations
 
 import copy
@@ -45,8 +44,7 @@ def unbind(a, axis: int) -> tuple:
 
 
 def take_columns(a, index):
-    """``a (B, K)``'s columns ``index``: numpy's ``take``, torch's ``gather`` (at hundreds of columns several times
-    faster than ``index_select``)."""
+    """``a (B, K)``'s columns ``index``: numpy's ``take``, torch's ``gather`` (faster than ``index_select``)."""
     return a.take(index, 1) if isinstance(a, np.ndarray) else a.gather(1, index.expand(a.shape[0], -1))
 
 
@@ -59,7 +57,7 @@ def product(a, b):
 
 def rows_product(m, w):
     """``(B, J, C)``: ``m (J, F)`` times each posture's ``w (B, F, C)`` (numpy's broadcast product; torch's one
-    ``(J, F) x (F, B C)`` product by einsum, several times faster at thousands of postures)."""
+    ``(J, F) x (F, B C)`` product by einsum)."""
     if isinstance(w, np.ndarray):
         return m @ w
     return torch.einsum("jf,bfc->bjc", m, w.contiguous())
@@ -83,9 +81,9 @@ def as_dtype(a, dtype):
 
 
 def scatter_columns(values: list, column, flat_index, width: int):
-    """``(B, P, width)``: every entry of ``values`` (K arrays ``(B, P)``) added into its column ``column (P, K)`` of
-    its posture and term, in the order of the list, onto zeros (numpy: one weighted bincount over ``flat_index
-    (K, P)``, each entry's place in a ``(P, width)`` row; torch: one ``scatter_add``; the same bits)."""
+    """``(B, P, width)``: every entry of ``values`` (K arrays ``(B, P)``) added in order onto zeros at its column
+    ``column (P, K)`` (torch: one ``scatter_add``; numpy: one weighted bincount over ``flat_index (K, P)``, each
+    entry's place in a ``(P, width)`` row; the same bits)."""
     n, p = values[0].shape
     if isinstance(values[0], np.ndarray):
         index = flat_index + (p * width) * np.arange(n)[:, None, None]

@@ -31,17 +31,9 @@ def product_basis(x: torch.Tensor, exponents: torch.Tensor, degree: int, slopes:
     terms); ``degree``: the largest exponent."""
     values, derivs = legendre(x, degree)
     factors = [values[:, j][:, exponents[:, j]] for j in range(x.shape[1])]  # N x (B, P)
-    before = [torch.ones_like(factors[0])]  # prod_{i<j} factor_i
-    for factor in factors[:-1]:
-        before.append(before[-1] * factor)
-    phi = before[-1] * factors[-1]
-    if not slopes:
-        return phi, None
-    dphi, after = [], torch.ones_like(phi)  # after: prod_{i>j} factor_i
-    for j in reversed(range(x.shape[1])):
-        dphi.append(derivs[:, j][:, exponents[:, j]] * before[j] * after)
-        after = after * factors[j]
-    return phi, torch.stack(dphi[::-1], 1)
+    joint_slopes = [derivs[:, j][:, exponents[:, j]] for j in range(x.shape[1])] if slopes else None
+    phi, dphi = _slot_products(factors, joint_slopes)
+    return phi, None if dphi is None else torch.stack(dphi, 1)
 
 
 def power_matrices(degree: int) -> tuple[np.ndarray, np.ndarray]:
@@ -56,30 +48,16 @@ def power_matrices(degree: int) -> tuple[np.ndarray, np.ndarray]:
     return values, slopes
 
 
-def dense_for(x: torch.Tensor) -> bool:
-    """Whether a basis at postures ``x`` is dense: up to ``DENSE_ROWS`` of them, and always in an exported program
-    (one path for every batch)."""
-    return torch.compiler.is_exporting() or len(x) <= DENSE_ROWS
-
-
 class ProductTerms(nn.Module):
-    """The product terms of ``exponents (P, N)``, evaluated with few operations at few postures and with little
-    memory traffic at many.
+    """The product terms of ``exponents (P, N)``: ``forward(x, slopes)`` gives a ``Basis``, ``contract`` applies
+    coefficients in the terms' original order (``layout``: arranged for the basis's path, once per evaluation).
 
-    ``product_basis`` writes every term's N factors and N derivative columns. Here the Legendre values come from the
-    powers of x times a fixed matrix (three operations, not a recurrence of ``3 * degree``; they differ from the
-    recurrence by about 1e-11 at degree 16 on [-1, 1], 1e-10 for the slopes, far below any length the paths resolve). Up
-    to ``DENSE_ROWS`` postures every term's factors on the joints it uses are gathered at once (``dense_terms``, the
-    snapshot's evaluation too: about 15 operations in all; ``n_slots`` factors per term, padded with exact ones: on
-    myoArm's paths 3 of 7 joints); above, the terms are grouped by the joints they use (their support) and only those
-    factors multiplied and differentiated (``grouped``: on myoArm's per-muscle paths 2992 factors instead of 8911). An
-    exported program takes ``product_basis`` (elementwise work AOTInductor fuses; a dense basis in layout).
-
-    ``forward(x, slopes)`` returns a ``Basis``; ``contract`` applies coefficients given in the terms' original order
-    (``layout`` arranges them for the basis's path; nothing derived from them is kept between calls). ``dense_terms``
-    adds each variable's slope into its output column ``columns`` (one per variable; None: its own; several variables
-    may share one: a joint and its cell coordinate). Buffers only, none persistent (a checkpoint's state dict is
-    unchanged); plain PyTorch.
+    The Legendre values come from the powers of x times a fixed matrix (within about 1e-11 of the recurrence at
+    degree 16 on [-1, 1]). Up to ``DENSE_ROWS`` postures every term's ``n_slots`` factors on the joints it uses are
+    gathered at once (``dense_terms``, padded with exact ones); above, the terms are grouped by the joints they use and
+    only those factors multiplied and differentiated (``grouped``); exported, ``product_basis`` (elementwise work
+    AOTInductor fuses). ``columns``: each variable's slope's output column (None: its own; a joint and its cell
+    coordinate may share one). Buffers only, none persistent (the state dict is unchanged).
     """
 
     def __init__(self, exponents, columns=None):
@@ -129,13 +107,13 @@ class ProductTerms(nn.Module):
         return apply_keeping_dtype(self, ("to_values", "to_slopes"), super()._apply, fn, *args, **kwargs)
 
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
-        """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: by the number
-        of postures (``dense_for``)."""
+        """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: up to
+        ``DENSE_ROWS`` postures."""
         if torch.compiler.is_exporting():  # the recurrence and a product per joint: elementwise work that
             # AOTInductor fuses into a few loops (the cumulative products below compile to slower code)
             phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
             return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
-        if dense_for(x) if dense is None else dense:
+        if len(x) <= DENSE_ROWS if dense is None else dense:
             phi, parts = dense_terms(self, x)
             dphi = scatter_columns(parts, self.slot_column, self.flat_index, self.n_columns) if slopes else None
             return Basis(phi, dphi, False)
@@ -145,8 +123,8 @@ class ProductTerms(nn.Module):
 
     def _grouped(self, values, derivs) -> "Basis":
         """``phi (P, B)`` (transposed) in ``perm``'s order and per joint ``j`` the derivative rows ``(P_j, B)`` of the
-        terms ``joint_terms{j}``, from ``values``, ``derivs`` ``(N, degree + 1, B)``: a loop over the supports, every
-        gather one of whole contiguous rows, every product written into its rows of the result (no concatenation)."""
+        terms ``joint_terms{j}``, from ``values``, ``derivs`` ``(N, degree + 1, B)``: a loop over the supports, each
+        product written into its rows of the result."""
         phi = values.new_empty(len(self.perm), values.shape[-1])
         dphi = None if derivs is None else [values.new_empty(n, values.shape[-1]) for n in self.joint_counts]
         for g, key in enumerate(self.supports):
@@ -196,9 +174,8 @@ class ProductTerms(nn.Module):
 def dense_terms(terms, x, scale=None):
     """``phi (B, P)`` and per slot ``(B, P)`` (a list) its variable's slope times the other slots' factors, at
     postures ``x (B, V)`` (numpy or torch), of ``terms`` (a ``ProductTerms`` or its ``TermsSnapshot``; with
-    ``scale (V,)`` the slopes times ``d variable / d output``). The Legendre values from the powers of x (repeated
-    products: pow rounds differently) times a fixed matrix; each slot's factors a contiguous row. The caller adds the
-    slot slopes into their columns (``arrays.scatter_columns``)."""
+    ``scale (V,)`` the slopes times ``d variable / d output``); the caller adds them into their columns
+    (``arrays.scatter_columns``). The powers by repeated products (pow rounds differently)."""
     xp, n = namespace(x), x.shape[0]  # (a symbolic batch stays symbolic in an exported program)
     rising = xp.cumprod(xp.broadcast_to(x[..., None], (*x.shape, terms.degree)), -1)
     powers = xp.concatenate([xp.ones_like(rising[..., :1]), rising], -1)
@@ -228,9 +205,8 @@ class TermsSnapshot(Frozen):
 
 def _slot_products(factors: tuple, derivs: Optional[tuple]) -> tuple:
     """``phi`` (the product of ``factors``, one ``(B, P)`` per slot) and, with ``derivs`` (the same), each slot's
-    slope ``derivs_j`` times the product of the other slots' factors (else None): products of the slots before and
-    after each, associated as padded cumulative products would be (the same bits), one elementwise product at a
-    time (at one posture a pad or a flip costs several)."""
+    slope ``derivs_j`` times the product of the other slots' factors (else None), associated as padded cumulative
+    products would be (the same bits), one elementwise product at a time."""
     before, after = [None, factors[0]], [None] * len(factors)  # prod_{i<j} factor_i, prod_{i>j} factor_i
     for j in range(2, len(factors)):
         before.append(before[-1] * factors[j - 1])

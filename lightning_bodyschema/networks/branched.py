@@ -1,10 +1,6 @@
 """The branched part of a per-muscle path (``PerMusclePath(branches=2)``): per branched muscle a second polynomial over
-the muscle's own terms and a gate, a polynomial whose sign picks it. The length is the active branch's polynomial and
-the moment arm that polynomial's exact derivative, so the learned length jumps where the gate changes sign.
-
-Its state (``add_branches``: the state dict's ``coef_alt``, ``gate``, ``branched``), its coefficients
-(``branch_parts``: what every evaluation, the snapshot's too, takes) and the choice (``replace_where``, which the
-cells share). The fit: ``networks.branches``. Plain PyTorch, no Lightning.
+its own terms and a gate whose sign picks it (the length jumps where the gate changes sign): its state, its
+coefficients and the choice. The fit: ``networks.branches``. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -12,10 +8,9 @@ import torch
 
 
 def add_branches(path) -> None:
-    """``path``'s branch state, none branched: ``coef_alt``, ``gate`` like its ``coef`` (float64) and ``branched``
-    ``(M,)`` bool, and ``branched_index``, the branched muscles' indices (not in the state dict: a buffer whose shape
-    is known before a call, for torch.export), kept in step with ``branched`` by the fit and by every state-dict load
-    (``refresh_branches``)."""
+    """``path``'s branch state, none branched: ``coef_alt``, ``gate`` like its ``coef`` and ``branched (M,)``, and
+    ``branched_index`` (not in the state dict: a shape known before a call, for torch.export), kept in step with
+    ``branched`` by the fit and every state-dict load (``refresh_branches``)."""
     path.register_buffer("coef_alt", torch.zeros_like(path.coef))
     path.register_buffer("gate", torch.zeros_like(path.coef))
     path.register_buffer("branched", torch.zeros(len(path.coef), dtype=torch.bool))

@@ -1,26 +1,13 @@
-"""Two-branch muscle paths: where a wrap switches sides the length jumps; two polynomials and a gate follow it.
+"""Two-branch muscle paths, the fit: where a wrap switches sides the length jumps; two polynomials and a gate follow it.
 
-MuJoCo's wrapping picks a side of each wrap object, and a muscle's length jumps where the side switches: the path
-is piecewise smooth. A smooth polynomial rings around such a jump. ``fit_branches`` gives every muscle whose
-residual after the one-polynomial fit has a heavy tail a second polynomial (same terms) and a gate, a polynomial
-over the same joints (the highest total degree ``<= gate_degree`` with at most ``GATE_TERMS`` terms) whose sign
-picks the branch, all fitted from the samples alone (no branch label needed), batched over muscles:
-
-1. labels, two ways: the residual split in two clusters then alternating (each branch refitted by least squares
-   on its samples, each sample to the branch that fits it better); or a first gate fitted to the sign of the
-   largest residuals (next to a jump the residual's sign tells the side), then alternating (branches fitted on the
-   gate's sides, samples their branch misses switched, the gate refitted);
-2. per muscle and labelling, both branches refitted (refined against the samples: on part of the box the basis is
-   ill-conditioned) and the gate a logistic regression of the labels (Newton steps, a ridge keeps it finite);
-3. a muscle keeps the better labelling's branches where the gated model halves the one polynomial's p99 residual
-   on the fitted samples and its largest residual there is at most ``SWING`` times the one polynomial's (a gate
-   slightly off the switch misses by about the jump, some twice the one polynomial's largest ring; a branch the gate
-   turns on away from the samples it was fitted on can swing much further: lengths off by metres, moment arms by
-   km/rad), and each branch holds at least ``SAMPLES_PER_TERM`` samples per term;
-   the others keep their one polynomial.
-
-The length at a posture is the active branch's polynomial and the moment arm its exact derivative: one-sided at
-the jump, which sits where the gate changes sign. Plain PyTorch, no Lightning.
+``fit_branches`` gives every muscle whose one-polynomial residual has a heavy tail a second polynomial (same terms)
+and a gate (a polynomial over the same joints, the highest total degree ``<= gate_degree`` with at most
+``GATE_TERMS`` terms) whose sign picks the branch, from the samples alone, batched over muscles: labels two ways (the
+residual split in two clusters, or a first gate fitted to the sign of the largest residuals; then alternating fits
+and reassignment), both branches refitted and the gate a logistic regression of the labels; a muscle keeps the better
+labelling where it halves the one polynomial's p99 residual on the fitted samples, its largest residual is at most
+``SWING`` times the one polynomial's (a branch turned on away from its samples can swing by metres) and each branch
+holds ``SAMPLES_PER_TERM`` samples per term. The state and evaluation: ``networks.branched``. Plain PyTorch.
 """
 from __future__ import annotations
 
@@ -46,10 +33,9 @@ NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a j
 
 @contextlib.contextmanager
 def one_thread():
-    """torch's CPU threads set to 1 inside, then restored: batched float64 LU solves (``torch.linalg.solve`` of
-    ``(2, 300, 300)`` and larger) hang in torch 2.13's MKL with 2 threads, printing "Parameter 6 was incorrect on
-    entry to DLASWP" (one thread: they solve); the fits' least squares run inside (``bodyschema fit`` uses one thread
-    anyway)."""
+    """torch's CPU threads set to 1 inside, then restored (a context or a decorator): batched float64 LU solves of
+    ``(2, 300, 300)`` and larger hang in torch 2.13's MKL with 2 threads ("Parameter 6 was incorrect on entry to
+    DLASWP"); the fits' least squares run inside."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -156,10 +142,8 @@ def fit_gate(phi_all, labels, gate_order, gate_valid, chunk, beta=None, steps=GA
 def _fit_pair(phi, y_m, labels, system, b, order_m, valid_m, ridge, chunk, refine=0):
     """Least squares of both branches of the muscles ``order_m`` describes: ``(coef_a, coef_b)``, each ``(M', P)``,
     ``coef_b`` on the samples ``labels (S, M')`` marks, ``coef_a`` on the others (the full normal equations
-    ``system, b`` minus those of the smaller set, which alone are summed). A branch's normal equations square the
-    condition number of its basis on part of the box; ``refine`` steps of refinement with residuals taken from the
-    samples recover the unregularized least-squares answer where the samples determine it (the ridge only keeps each
-    solve finite)."""
+    ``system, b`` minus the smaller set's); ``refine`` steps of refinement from the samples' residuals recover the
+    unregularized answer where the samples determine it (a branch's normal equations square its condition number)."""
     small, flip = _minority(labels)
     sys_s, rhs_s = _subset_systems(phi, y_m, small, order_m, valid_m, chunk)
     sys_b = torch.where(flip[:, None, None], system - sys_s, sys_s)
@@ -201,8 +185,7 @@ def _gate_terms(path, muscles, order_m, valid_m, gate_degree):
 
 def _labels_by_residual(phi, y_m, r_m, fit_pair):
     """Labels from the one polynomial's residual split in two clusters (Otsu), then ``ROUNDS`` times: both branches
-    fitted on their labels, each sample to the branch that fits it better. Good where a branch is a whole region
-    of one joint's range (a wrap switching at one angle)."""
+    fitted on their labels, each sample to the branch that fits it better (a wrap switching at one angle)."""
     labels = _minority(otsu_labels(r_m))[0]
     for _ in range(ROUNDS):
         pred_a, pred_b = _predict(phi, fit_pair(labels))
@@ -213,7 +196,7 @@ def _labels_by_residual(phi, y_m, r_m, fit_pair):
 def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
     """Labels from a gate first fitted to the sign of the one polynomial's largest residuals (next to a jump its
     sign tells the side), then ``ROUNDS`` times: both branches fitted on the gate's sides, samples their branch
-    misses switched (``_reassign``), the gate refitted. Good where the switching surface slants across joints."""
+    misses switched (``_reassign``), the gate refitted (a switching surface slanted across joints)."""
     near = (r_m.abs() >= torch.quantile(r_m.abs(), 1 - NEAR_FRACTION, dim=0)).to(torch.float64)
     beta = fit_gate(phi, r_m > 0, *gate_terms, chunk, weight=near / near.mean(0))
     for _ in range(ROUNDS):
@@ -225,10 +208,8 @@ def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
 
 def fit_branches(path, x, y, gram, rhs, order, gate_degree, chunk=8192):
     """Two branches and a gate for every heavy-tailed muscle of a fitted ``PerMusclePath`` (module docstring):
-    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain. ``gram (P, P)``, ``rhs (P, M)`` are
-    the normal equations of every term and ``order (M, P)`` each muscle's terms first (``PerMusclePath.
-    fit_polynomial``). Labels come two ways (``_labels_by_residual``, ``_labels_by_gate``); each muscle keeps the
-    one whose gated model fits better."""
+    sets ``coef``, ``coef_alt``, ``gate`` and ``branched`` of those that gain, from every term's normal equations
+    ``gram (P, P)``, ``rhs (P, M)`` and ``order (M, P)``, each muscle's terms first."""
     r = torch.cat([y[i:i + chunk] - path.basis(x[i:i + chunk])[0] @ path.coef.T for i in range(0, len(x), chunk)])
     tail = torch.quantile(r.abs(), 0.999, dim=0)
     tail = (tail > CANDIDATE_TAIL * r.abs().median(0).values) & (tail > TAIL_FLOOR)

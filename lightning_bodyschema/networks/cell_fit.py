@@ -8,7 +8,7 @@ import torch
 
 from .basis import product_basis
 from .branches import SAMPLES_PER_TERM
-from .cells import cell_degree, cell_index, cell_inputs
+from .cells import cell_degree, cell_index, cell_inputs, set_cell_layout
 from .trim import trimmed_refits
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
@@ -21,9 +21,9 @@ CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kep
 @torch.no_grad()
 def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None:
     """Cells for the muscles of a fitted ``PerMusclePath`` that a smooth polynomial fits worst (module docstring):
-    sets the path's cell layout (``PerMusclePath.set_cell_degrees``) and coefficients, and clears ``branched`` where
+    sets the path's cell layout (``cells.set_cell_layout``) and coefficients, and clears ``branched`` where
     cells replace the branches. ``x (S, N)``, ``y (S, M)`` float64, normalized."""
-    path.set_cell_degrees(torch.zeros_like(path.cell_degrees))
+    set_cell_layout(path, torch.zeros_like(path.cell_degrees))
     r = torch.cat([y[i:i + chunk] - path(x[i:i + chunk]) for i in range(0, len(x), chunk)]).abs()
     median = r.median(0).values
     candidates = (median > CELL_MEDIANS * median.median()) & (median > CELL_FLOOR)
@@ -32,18 +32,18 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     total = path.exponents.sum(1)
     own_degree = (total[None, :] * path.term_mask).amax(1)
     cuts = path.cell_cut.sum(1).tolist()  # each muscle's cutting joints
-    path.set_cell_degrees(torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
+    set_cell_layout(path, torch.tensor([cell_degree(a, int(d), path.pieces, len(x), n) if c else 0
                                         for a, d, c, n in zip(path.block_sizes, own_degree, candidates, cuts)],
                                        device=median.device))
     _fit_each_cell(path, x, y[:, path.cell_muscles], r[:, path.cell_muscles], chunk)
     muscles = path.cell_muscles
     miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])
     miss, own = miss.abs(), r[:, muscles]
-    keep = _kept(miss, own, path.cell_keep)
+    keep = _kept(miss, own, path.config.cell_keep)
     coef, fitted = path.cell_coef[keep], path.cell_fitted[keep]
     degrees = path.cell_degrees.clone()
     degrees[muscles[~keep]] = 0
-    path.set_cell_degrees(degrees)  # the kept muscles' own terms come first in either layout: same columns
+    set_cell_layout(path, degrees)  # the kept muscles' own terms come first in either layout: same columns
     path.cell_coef.copy_(coef[:, :path.cell_coef.shape[1], :path.cell_coef.shape[2]])
     path.cell_fitted.copy_(fitted[:, :path.cell_fitted.shape[1]])
     if hasattr(path, "branched"):
@@ -53,10 +53,8 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
 def _kept(miss: torch.Tensor, own: torch.Tensor, rule: str) -> torch.Tensor:
     """``(Mc,)`` which celled muscles keep their cells, from their cells' and their whole-box model's residuals on
     the fitted samples ``(S, Mc)``: the median divided by ``CELL_GAIN`` at least, and with ``"median_and_p99"`` no
-    larger p99 (cells that ring). ``"median"``: the median alone; where a trimmed cell misses the smaller side of a
-    jump that its whole-box model (two branches) only rings over, the p99 rises while the rest of the muscle's
-    postures, and their moment arms, become far better (myoArm's LAT1 and LAT2: median moment-arm error 0.07 ->
-    0.001 mm/rad)."""
+    larger p99 (cells that ring). ``"median"``: the median alone (a trimmed cell's missed smaller side of a jump
+    raises the p99 while the rest of the muscle's postures become far better)."""
     keep = miss.median(0).values * CELL_GAIN <= own.median(0).values
     if rule == "median_and_p99":
         keep &= torch.quantile(miss, 0.99, dim=0) <= torch.quantile(own, 0.99, dim=0)
@@ -65,11 +63,9 @@ def _kept(miss: torch.Tensor, own: torch.Tensor, rule: str) -> torch.Tensor:
 
 def _fit_each_cell(path, x, y_m, own, chunk):
     """Least squares of every celled muscle's cells into ``path.cell_coef (Mc, C, K)`` (0 on padded terms) and
-    ``path.cell_fitted (Mc, C)``: a cell of fewer samples than its terms need takes fewer terms
-    (``thin_cell_terms``), and only where it halves the median miss of the muscle's whole-box model ``own (S, Mc)``
-    on its samples (a plane can be worse than a good whole-box polynomial). Muscles over the same joints with the same
-    cell terms share their cells' normal equations (the shoulder's muscles: one system per cell for all of them, one
-    right-hand side each): a loop over such groups and their cells."""
+    ``path.cell_fitted (Mc, C)``: a thin cell takes fewer terms (``thin_cell_terms``), kept only where it halves the
+    median miss of the muscle's whole-box model ``own (S, Mc)`` on its samples. Muscles of one group share each
+    cell's normal equations (one right-hand side each): a loop over groups and their cells."""
     k, z = cell_inputs(path, x)
     for start, end, width in path.cell_group_bounds:  # a loop over groups of muscles that share joints and terms
         members = path.cell_perm[start:end]
@@ -88,8 +84,8 @@ def _fit_each_cell(path, x, y_m, own, chunk):
             gram, rhs = phi_c.T @ phi_c, phi_c.T @ y_c
             eye = torch.eye(terms, dtype=torch.float64, device=x.device)
             solution = torch.linalg.solve(gram + CELL_RIDGE * gram.diagonal().mean() * eye, rhs)
-            if path.cell_trim is not None:
-                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.cell_trim, SAMPLES_PER_TERM * terms)
+            if path.config.cell_trim is not None:
+                solution = _trimmed(phi_c, y_c, gram, rhs, solution, path.config.cell_trim, SAMPLES_PER_TERM * terms)
             better = torch.ones(len(members), dtype=torch.bool, device=x.device)
             if terms < width:  # a thin cell replaces the whole-box polynomial only where it halves its miss there
                 miss = (phi_c @ solution - y_c).abs().median(0).values
@@ -101,10 +97,7 @@ def _fit_each_cell(path, x, y_m, own, chunk):
 def thin_cell_terms(totals: list, samples: int) -> int:
     """How many of a cell's leading terms (``totals``: each term's total degree, nondecreasing) its ``samples`` fit:
     all of them with ``SAMPLES_PER_TERM`` samples each, else those of the highest total degree >= 1 that leaves as
-    many (a cell thinner than the even spread the cell degree assumed: trimming, a joint sampled unevenly), else 0.
-    Before, such a cell kept the whole-box polynomial, which for a muscle whose path jumps misses by tens of mm
-    (myoArm's LAT1 at 200 000 samples: 11 of 64 cells); ``_fit_each_cell`` keeps such a cell only where it does
-    better."""
+    many (a cell thinner than the even spread the cell degree assumed), else 0."""
     for degree in sorted(set(totals), reverse=True):
         count = sum(1 for t in totals if t <= degree)
         if degree >= 1 and count * SAMPLES_PER_TERM <= samples:
@@ -116,12 +109,9 @@ def _trimmed(phi, y, gram, rhs, solution, factor: float, least: int) -> torch.Te
     """Each muscle's cell polynomial ``(K, Mg)`` refitted without the samples it misses by more than ``factor`` times
     the kept ones' median (``trim.trimmed_refits`` per muscle, up to ``CELL_TRIM_ROUNDS`` refits), from
     ``phi (S, K)``, ``y (S, Mg)``, the whole cell's normal equations ``gram``, ``rhs`` and their ``solution``; each
-    refit updates every muscle's normal equations by the rows whose side changed only (few after the first). A
-    muscle keeps every sample where fewer than ``least`` would stay.
-
-    Where a wrap switches sides inside the cell the length jumps (17 to 20 mm on myoArm's shoulder); one
-    polynomial over both sides rings over the whole cell, millimetres far from the jump. Trimmed, it fits the
-    larger side to the micrometre and misses the smaller by about the jump."""
+    refit updates every muscle's normal equations by the rows whose side changed only. A muscle keeps every sample
+    where fewer than ``least`` would stay. Where a wrap switches sides inside the cell, the trimmed polynomial fits
+    the larger side and misses the smaller by about the jump (one over both rings over the whole cell)."""
     system, b = gram.expand(y.shape[1], -1, -1).clone(), rhs.T.clone()  # (Mg, K, K), (Mg, K)
     eye = torch.eye(len(gram), dtype=gram.dtype, device=gram.device)
     fitted = [solution]

@@ -1,35 +1,13 @@
-"""Piecewise muscle paths: a muscle's box of joints cut into cells, one polynomial per cell.
+"""Piecewise muscle paths: a muscle's box of joints cut into cells, one polynomial per cell (its layout and evaluation;
+the fit: ``networks.cell_fit``).
 
-A MuJoCo path wraps on and off spheres and cylinders: its length is smooth in pieces, and a polynomial over the
-whole box pays for every piece's seam everywhere (it rings). Over a smaller box the same degree fits far better:
-on myoArm, least squares on 80 000 uniform postures, scored on 20 000 others, cutting each crossed joint's range in
-two takes DELT1's and TMAJ's median length error from 0.10 to 0.0001 mm and TRIlong's from 0.39 to 0.019 mm
-(RESULTS.md "Per-muscle paths on myoArm"). ``fit_cells`` gives the muscles a smooth polynomial fits worst
-(candidates: a median residual above ``CELL_MEDIANS`` times the median muscle's) ``pieces ** n`` cells over the
-``n`` joints they cross, each its own polynomial in the cell's local coordinates (the joint range of the cell
-mapped to [-1, 1], where the Legendre basis is well conditioned), of the highest total degree (at most the muscle's
-own) that leaves ``SAMPLES_PER_TERM`` samples per term at an even spread. A cell with fewer samples takes the
-highest degree its own samples allow (``thin_cell_terms``) where that halves the whole-box model's median miss on
-its samples, else (and when too thin for a first-degree polynomial) it keeps the muscle's whole-box model; a
-muscle keeps its cells only where they at least halve its median residual on the fitted samples without a larger
-p99. Muscles over the same joints share each cell's normal equations (one solve, a right-hand side per muscle): a
-loop over such groups and their cells, none over muscles.
-
-A wrap can switch sides inside a cell: the length jumps there (17 to 20 mm on myoArm's shoulder, BIClong, TMAJ,
-DELT1), and one polynomial over both sides rings over the whole cell. With ``PerMusclePath(cell_trim=factor)`` each
-cell is refitted without the samples it misses by more than ``factor`` times the kept ones' median (``_trimmed``):
-it then fits the larger side and misses the smaller one by about the jump.
-
-Which joints cut a box: every joint the muscle crosses, or with ``PerMusclePath(cell_joints="largest_group")`` only
-those of its largest group of joints whose effects on the length add up (``cell_cuts``). BIClong's length is a
-shoulder part plus an elbow part and only the shoulder part jumps: 8 cells over the shoulder leave each four times
-the samples of 32 over both, and each cell's polynomial takes the elbow's joints as they are (the cells'
-coordinates ``cell_inputs``: every joint's local one, then those joints).
-
-The length at a posture is its cell's polynomial and the moment arm that polynomial's exact derivative: the learned
-length steps by about the fit's error where a posture crosses into the next cell, and a QP at one posture sees
-that posture's cell only. Joints a muscle does not cross do not cut its box (exactly zero moment arm there).
-The fit: ``networks.cell_fit``. Plain PyTorch, no Lightning.
+A wrapping path's length is smooth in pieces; over a smaller box the same degree fits far better (RESULTS.md
+"Per-muscle paths on myoArm"). A celled muscle has ``pieces ** n`` cells over the ``n`` joints that cut its box
+(``cell_cuts``: every crossed joint, or with ``cell_joints="largest_group"`` only its largest group of joints whose
+effects add up), each a polynomial in the cell's coordinates (``cell_inputs``: each cut joint's range within the cell
+mapped to [-1, 1], the joints kept whole as they are). The length at a posture is its cell's polynomial where that
+cell was fitted and the moment arm that polynomial's exact derivative (the length steps by about the fit's error at a
+cell's edge); joints a muscle does not cross cut nothing (exactly zero moment arm). Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -47,7 +25,7 @@ from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
 from .path_config import CELL_JOINTS
-
+from .polynomial import check_degrees
 
 
 def cell_coordinates(x, pieces: int):
@@ -61,8 +39,7 @@ def cell_coordinates(x, pieces: int):
 
 def cell_index(piece: torch.Tensor, stride: torch.Tensor) -> torch.Tensor:
     """Each posture's cell ``(B,)`` or ``(B, Mc)`` from its joints' pieces ``piece (B, N)`` (long) and a muscle's
-    ``stride (N,)`` or every celled muscle's ``(Mc, N)``: a product and a sum, not a matrix product (CUDA has none for
-    integers)."""
+    ``stride (N,)`` or every celled muscle's ``(Mc, N)`` (a product and a sum: CUDA has no integer matmul)."""
     return (piece[:, None, :] * stride).sum(-1) if stride.ndim == 2 else (piece * stride).sum(-1)
 
 
@@ -78,9 +55,8 @@ def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[in
 
 def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray:
     """``(M, N)`` bool: the joints that cut each muscle's box into cells. ``"crossed"``: every joint it crosses;
-    ``"largest_group"``: only the joints of its largest group of ``blocks`` (``per_muscle.check_blocks``; each tied
-    group), the others left whole: a group of one or two joints (BIClong's elbow next to its shoulder) a polynomial
-    fits over its whole range, and cutting it too would split every cell of the group that needs the cells."""
+    ``"largest_group"``: only the joints of its largest groups of ``blocks`` (``polynomial.check_blocks``), the
+    others left whole (BIClong: 8 cells over its shoulder, its elbow whole, instead of 32 over both)."""
     if rule not in CELL_JOINTS:
         raise BodySchemaInputError(f"cell_joints={rule!r}; allowed: {list(CELL_JOINTS)}")
     crossing = np.asarray(crossing, dtype=bool)
@@ -94,14 +70,12 @@ def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray
 
 def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarray, degrees: np.ndarray,
                 pieces: int, cut: Optional[np.ndarray] = None) -> tuple:
-    """Which muscles have cells and how they are laid out, from each muscle's cell degree ``degrees (M,)`` (0: no
-    cells) and the joints that cut its box ``cut (M, N)`` (``cell_cuts``; None: every crossed joint), in numpy (a
-    checkpoint's skeleton is built on the meta device): ``muscles (Mc,)``, ``strides (Mc, N)`` (``pieces ** rank``
-    on the joints each cuts, rank among them; 0 elsewhere), the cell terms' ``exponents (C, N + E)`` (each celled
-    muscle's own terms of total degree at most its cell degree, in the cells' coordinates: every joint's local one,
-    then the E joints ``extra (E,)`` that some celled muscle crosses uncut, as they are), each muscle's term columns
-    ``order (Mc, K)`` (its own first, padding on column 0) and ``valid (Mc, K)``, the number of cells of the muscle
-    with the most, and ``extra``."""
+    """The cell layout, in numpy (a skeleton is built on the meta device), from each muscle's cell degree ``degrees
+    (M,)`` (0: no cells) and its cutting joints ``cut (M, N)`` (``cell_cuts``; None: the crossed ones):
+    ``muscles (Mc,)``, ``strides (Mc, N)`` (``pieces ** rank`` on the joints each cuts, 0 elsewhere), the cell terms'
+    ``exponents (C, N + E)`` (each celled muscle's own terms up to its cell degree, in ``cell_inputs``' coordinates),
+    each muscle's term columns ``order (Mc, K)`` (padding on column 0) and ``valid (Mc, K)``, the most cells of a
+    muscle, and ``extra (E,)``: the joints some celled muscle crosses uncut."""
     cut = crossing if cut is None else cut
     muscles = np.flatnonzero(degrees > 0)
     mask = term_mask[muscles] & (exponents.sum(1)[None, :] <= degrees[muscles, None])
@@ -122,22 +96,10 @@ def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarr
     return muscles, strides, cell_exponents, order, valid, pieces ** most, extra
 
 
-def cell_groups(strides: np.ndarray, order: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, list]:
-    """The celled muscles grouped by equal joints and cell terms: ``perm (Mc,)`` (group by group, each in muscle
-    order) and each group's ``(start, end, width)`` in that order (its rows of ``perm``, its number of terms)."""
-    inverse = np.unique(np.concatenate([strides, order], 1), axis=0, return_inverse=True)[1].reshape(-1)
-    perm = np.argsort(inverse, kind="stable")
-    ends = np.cumsum(np.bincount(inverse)).astype(np.int64)
-    starts = ends - np.bincount(inverse)
-    return perm, [(int(a), int(b), int(valid[perm[a]].sum())) for a, b in zip(starts, ends)]
-
-
 def cell_inputs(path, x):
     """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)`` (numpy or torch)
-    of a ``PerMusclePath`` or its snapshot (``pieces``, ``cell_extra``): every joint's local coordinate
-    (``cell_coordinates``), then the joints ``cell_extra`` some celled muscle crosses uncut, as they are (in an
-    exported program by padding and a one-hot product: a concatenation specializes the batch in torch.export; the
-    same values)."""
+    of a ``PerMusclePath`` or its snapshot: every joint's local coordinate (``cell_coordinates``), then the joints
+    ``cell_extra`` as they are (exported: by padding and a one-hot product; a concatenation fixes the batch)."""
     k, x_local = cell_coordinates(x, path.pieces)
     extra = len(path.cell_extra)
     if not extra:
@@ -156,10 +118,8 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
 
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
-    fitted; ``x`` is inside the box, float64. A loop over the groups of muscles that share joints and cell terms (a
-    posture's cell and basis are the group's), the postures sorted by cell and each cell's one matrix product (no
-    ``(B, muscles, terms)`` gathers); an exported program gathers each muscle's cell coefficients for one basis of
-    every cell term (one path for any batch). Few postures in eager: ``networks.snapshot``."""
+    fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms, the postures
+    sorted by cell, one product per cell; exported, one basis of every cell term for any batch (``_contract``)."""
     k, z = cell_inputs(path, x)
     if torch.compiler.is_exporting():
         cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
@@ -178,28 +138,26 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
 
 
 def cell_spread(path) -> torch.Tensor:
-    """Every celled muscle's coefficients in each of its cells spread on every cell term, ``(Mc, C, T)``: zero off
-    its own terms (a sum: the padding's zeros land on column 0 too). The evaluation at few postures takes a
-    posture's cell's rows (``networks.snapshot.PathSnapshot``: one index, not a gather and a scatter per call)."""
+    """Every celled muscle's coefficients in each of its cells on every cell term, ``(Mc, C, T)``, zero off its own
+    terms (the padding's zeros added onto column 0): ``snapshot.PathSnapshot``'s cell rows."""
     coef = path.cell_coef
     index = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
     return coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, index, coef)
 
 
 def _contract(path, basis, cell: torch.Tensor):
-    """Each celled muscle's cell polynomial ``(B, Mc)`` and its slopes ``(B, Mc, N + E)`` (or None) at its posture's
-    ``cell (B, Mc)`` from a dense basis of every cell term, in an exported program: each muscle's own columns of the
-    basis times its cell's coefficients (a gather; a scatter would specialize the batch under vmap)."""
+    """Exported: each celled muscle's cell polynomial ``(B, Mc)`` and slopes ``(B, Mc, N + E)`` (or None) at its
+    ``cell (B, Mc)``, its own columns of a dense basis of every cell term times its cell's coefficients (a gather; a
+    scatter would fix the batch under vmap)."""
     coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
     y = (basis.phi[:, order] * coef).sum(-1)
     return y, None if basis.dphi is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
 
 
 def _by_cell(terms, coef, z, cell, slopes):
-    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N + E)`` (d/dz, ``cell_inputs``; or None) at the cells'
-    coordinates ``z (B, N + E)``, from its cells' coefficients
-    ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, then per cell its postures' basis and one
-    ``terms.contract`` (a loop over the cells; each cell's basis is a block of rows, never the whole batch's)."""
+    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N + E)`` (d/dz; or None) at ``z (B, N + E)`` from its
+    cells' coefficients ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, one basis and contraction per
+    cell."""
     order = torch.argsort(cell)
     x_sorted = z[order]
     y = z.new_empty(len(z), len(coef))
@@ -217,39 +175,35 @@ def _by_cell(terms, coef, z, cell, slopes):
 
 
 def set_cell_layout(path, degrees) -> None:
-    """A ``PerMusclePath``'s cells for each muscle's cell degree ``(M,)`` (0: no cells): the layout
-    (``cell_layout``, ``cell_groups``), each group's cell terms and every cell term (``basis.ProductTerms``), the
-    snapshot's terms (``_set_few_terms``), and zero cell coefficients, none fitted."""
-    values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
-    if values.shape != (len(path.coef),) or values.dtype.kind not in "iu" or (values < 0).any():
-        raise BodySchemaInputError(f"cell_degrees={degrees!r} must be {len(path.coef)} integers >= 0, one per "
-                                   f"muscle (0: no cells)")
-    *layout, valid, n_cells, extra = cell_layout(*path._cell_sources, values.astype(np.int64), path.pieces,
-                                                 path.cell_cut)
-    perm, path.cell_group_bounds = cell_groups(layout[1], layout[3], valid)
+    """A ``PerMusclePath``'s cells for each muscle's cell degree ``(M,)`` (0: no cells): the layout, each group's
+    and every cell term (``basis.ProductTerms``), the snapshot's terms and zero cell coefficients, none fitted."""
+    values = check_degrees(degrees, len(path.coef), 0, "cell_degrees")
+    *layout, valid, n_cells, extra = cell_layout(*path._cell_sources, values, path.pieces, path.cell_cut)
+    # the celled muscles grouped by equal joints and cell terms: ``perm`` (group by group, each in muscle order) and
+    # each group's (start, end, number of terms) in it
+    inverse = np.unique(np.concatenate([layout[1], layout[3]], 1), axis=0, return_inverse=True)[1].reshape(-1)
+    perm, ends = np.argsort(inverse, kind="stable"), np.cumsum(np.bincount(inverse)).tolist()
+    path.cell_group_bounds = [(end - count, end, int(valid[perm[end - count]].sum()))
+                              for end, count in zip(ends, np.bincount(inverse).tolist())]
     device = path.coef.device  # (a fit sets the cells on its own device, a GPU's too)
     path.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
                                     for start, _, width in path.cell_group_bounds).to(device)  # each group's
     path.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
     _set_few_terms(path, layout[2], extra)
-    for name, value in zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order",
-                            "cell_valid", "cell_perm"), (values.astype(np.int64), *layout, valid, perm)):
-        path.register_buffer(name, torch.as_tensor(value, device=path.coef.device), persistent=False)  # derived
-    unfold = np.eye(path.crossing.shape[1])[extra]  # (E, N): the joints a celled muscle crosses uncut
-    path.register_buffer("cell_rows", torch.arange(len(layout[0]), device=device), persistent=False)
-    path.register_buffer("cell_extra", torch.as_tensor(extra, device=device), persistent=False)
-    path.register_buffer("cell_unfold", torch.as_tensor(unfold, dtype=torch.float64, device=device),
-                         persistent=False)
-    path.register_buffer("cell_coef", torch.zeros(len(layout[0]), n_cells, valid.shape[1], dtype=torch.float64,
-                                                  device=path.coef.device))
-    path.register_buffer("cell_fitted", torch.zeros(len(layout[0]), n_cells, dtype=torch.bool,
-                                                    device=path.coef.device))
+    derived = zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order", "cell_valid",
+                   "cell_perm", "cell_rows", "cell_extra", "cell_unfold"),  # unfold (E, N): the joints kept whole
+                  (values, *layout, valid, perm, np.arange(len(layout[0])), extra,
+                   np.eye(path.crossing.shape[1])[extra]))
+    for name, value in derived:
+        path.register_buffer(name, torch.as_tensor(value, device=device), persistent=False)
+    shape = (len(layout[0]), n_cells)
+    path.register_buffer("cell_coef", torch.zeros(*shape, valid.shape[1], dtype=torch.float64, device=device))
+    path.register_buffer("cell_fitted", torch.zeros(*shape, dtype=torch.bool, device=device))
 
 
 def _set_few_terms(path, cell_exponents: np.ndarray, extra: np.ndarray) -> None:
-    """``few_terms``: the whole-box and the cell terms over the variables of ``snapshot.PathSnapshot`` (the
-    joints, their cell coordinates, the ``extra`` joints the cells keep whole), each variable's slope into its
-    joint's column, times ``few_scale`` (``d local / d x = pieces`` on the cell coordinates)."""
+    """``few_terms``: the whole-box and the cell terms over ``snapshot.PathSnapshot``'s variables (the joints, then
+    ``cell_inputs``' coordinates), each slope into its joint's column times ``few_scale`` (on a local one: pieces)."""
     exponents, n_joints = path._cell_sources[1], path.crossing.shape[1]
     merged = np.zeros((len(exponents) + len(cell_exponents), 2 * n_joints + len(extra)), np.int64)
     merged[:len(exponents), :n_joints], merged[len(exponents):, n_joints:] = exponents, cell_exponents

@@ -23,15 +23,11 @@ def term_count(sizes, d: int) -> int:
 
 def muscle_degrees(crossing: np.ndarray, degree: int, max_terms: int, budget: Optional[int] = None,
                    eligible: Optional[np.ndarray] = None, blocks: Optional[np.ndarray] = None) -> np.ndarray:
-    """``(M,)`` each muscle's total degree.
-
-    Each muscle first gets the largest ``d <= degree`` whose polynomial over the ``n`` joints it crosses has at most
-    ``max_terms`` terms (``C(n + d, n)``; with ``blocks``, a sum of one polynomial per group: ``term_count``), at
-    least 1. With ``budget`` (the most terms over all muscles together, at
-    least what that first step uses), the rest is spent one degree at a time on the muscle of lowest degree (ties:
-    the one that needs the fewest new terms, then the first), up to ``degree``, until the next step would exceed the
-    budget: the muscles that cross many joints, held low by ``max_terms``, rise first. ``eligible (M,)`` bool: only
-    these rise (None: every muscle)."""
+    """``(M,)`` each muscle's total degree: the largest ``d <= degree`` (at least 1) whose polynomial over the joints
+    it crosses (with ``blocks``, one per group) has at most ``max_terms`` terms (``term_count``); then, with a
+    ``budget`` of terms over all muscles (at least what that uses), one degree at a time to the muscle of lowest
+    degree (ties: the fewest new terms, then the first), up to ``degree``, while the budget holds; ``eligible (M,)``
+    bool: only these rise (None: every muscle)."""
     n = [(int(k),) for k in np.asarray(crossing).sum(1)] if blocks is None else block_sizes(blocks)
     degrees = np.array([max([1] + [d for d in range(1, degree + 1) if term_count(k, d) <= max_terms]) for k in n])
     if budget is None:

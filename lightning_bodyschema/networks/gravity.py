@@ -8,10 +8,9 @@ joint's mass column is ``-g . a_j`` (its moment columns 0). Coupled joints add t
 ``d q_j / d q_free`` (``tau_free = E^T tau_full``). Per free joint an offset and a linear spring
 (``tau_j += c0_j + c1_j q_j``) represent joint springs.
 
-Forward kinematics is MuJoCo's, in closed form in torch float64: each body at its parent's pose times its offset,
-then each joint (a hinge rotates by ``q - qpos0`` about its axis through its anchor; a slide translates). A Python
-loop over the tree's bodies, none over postures; no autograd; broadcasting only (``torch.export``, ``torch.vmap``).
-Plain PyTorch, no Lightning.
+Forward kinematics is MuJoCo's, in closed form in float64 (each body at its parent's pose times its offset, then each
+joint: a hinge rotates by ``q - qpos0`` about its axis through its anchor, a slide translates); batched, no autograd,
+traceable under ``torch.export`` and ``torch.vmap``. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -20,11 +19,10 @@ from typing import Optional
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from ..errors import BodySchemaInputError
 from .arrays import apply_keeping_dtype
-from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_slopes, world_poses
+from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_motions, joint_slopes, world_poses
 from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
@@ -38,14 +36,26 @@ def _cross_matrices(axes: np.ndarray) -> torch.Tensor:
                         dtype=torch.float64)
 
 
+def _motion_terms(tree, chain: list) -> torch.Tensor:
+    """``(3, C, 4, 4)``: each chain joint's motion ``I + sin M_sin + versine M_versine + angle M_angle`` in its body's
+    frame (Rodrigues about the axis through the anchor for a hinge, a shift along the axis for a slide)."""
+    f64, hinge = dict(dtype=torch.float64), torch.tensor(tree.jnt_type[chain] == _HINGE, dtype=torch.float64)[:, None]
+    cross = _cross_matrices(tree.jnt_axis[chain]) * hinge[:, :, None]  # a slide does not rotate
+    pos = torch.tensor(tree.jnt_pos[chain], **f64)[..., None]
+    terms = torch.zeros(3, len(chain), 4, 4, **f64)
+    terms[0, :, :3, :3], terms[0, :, :3, 3] = cross, -hinge * (cross @ pos)[..., 0]
+    terms[1, :, :3, :3], terms[1, :, :3, 3] = cross @ cross, -hinge * (cross @ cross @ pos)[..., 0]
+    terms[2, :, :3, 3] = (1.0 - hinge) * torch.tensor(tree.jnt_axis[chain], **f64)
+    return terms
+
+
 class GravityTorque(nn.Module):
     """``tau (B, N)`` [N m] at free-joint postures ``q (B, N)`` [rad or m] of a ``sim.gravity_tree.GravityTree``.
 
-    ``features(q) (B, N, P)``; ``forward(q) = features(q) @ coef`` (computed without the features: the frames'
-    world first mass moments summed below each joint); ``fit_trimmed`` sets ``coef`` by least squares. ``coef``
-    (P,) is the only state-dict entry (float64): per frame ``(m [kg], s [kg m] x3)``, then N offsets [N m] and N
-    spring rates [N m per rad or m]. The tree's arrays are non-persistent buffers (``.to(device)`` moves them; the
-    schema rebuilds them from the robot), kept float64 by dtype casts.
+    ``features(q) (B, N, P)``; ``forward(q) = features(q) @ coef``; ``fit_trimmed`` sets ``coef`` by least squares.
+    ``coef`` (P,) is the only state-dict entry (float64): per frame ``(m [kg], s [kg m] x3)``, then N offsets [N m]
+    and N spring rates [N m per rad or m]. The tree's arrays are non-persistent float64 buffers (the schema rebuilds
+    them from the robot).
     """
 
     def __init__(self, tree):
@@ -57,37 +67,37 @@ class GravityTorque(nn.Module):
         f64 = dict(dtype=torch.float64)
         chain = [j for joints in tree.body_joints for j in joints]  # the joints of the bodies the FK visits
         self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
-        cross, chain_pos = _cross_matrices(tree.jnt_axis[chain]), torch.tensor(tree.jnt_pos[chain], **f64)
-        cross = cross * torch.tensor(tree.jnt_type[chain] == _HINGE, **f64)[:, None, None]  # a slide does not rotate
-        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=torch.tensor(tree.qpos0, **f64),
-                       gravity_cross=_cross_matrices(tree.gravity)[0],  # g x v as a product (vmap, export)
-                       free_select=torch.tensor(tree.free_select, **f64),
-                       full_base=torch.tensor(tree.full_base, **f64), dep_coef=torch.tensor(tree.dep_coef, **f64),
-                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
-                       body_pos=torch.tensor(tree.body_pos, **f64), body_rot=torch.tensor(tree.body_rot, **f64),
-                       chain_cross=cross, chain_cross2=cross @ cross,
-                       chain_eye=torch.eye(3, **f64).expand_as(cross).clone(),
-                       chain_cross_pos=(cross @ chain_pos[..., None])[..., 0],
-                       chain_cross2_pos=(cross @ cross @ chain_pos[..., None])[..., 0],
-                       chain_axis=torch.tensor(tree.jnt_axis[chain], **f64),
-                       chain_hinge=torch.tensor(tree.jnt_type[chain] == _HINGE, **f64),
-                       moving_pos=torch.tensor(tree.jnt_pos[tree.moving_joint], **f64),
-                       moving_axis=torch.tensor(tree.jnt_axis[tree.moving_joint], **f64),
-                       moves_frame=torch.tensor(tree.moves_frame, **f64),
-                       hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
-                       free_scatter=self._one_hot(tree.free_column, n_free),
-                       slope_coef=torch.tensor(tree.slope_coef, **f64))
-        for name, value in buffers.items():
-            self.register_buffer(name, value, persistent=False)
+        qpos0 = torch.tensor(tree.qpos0, **f64)
+        anchor_axis = torch.zeros(len(tree.moving_joint), 4, 2, **f64)  # per moving joint [anchor; 1], [axis; 0]
+        anchor_axis[:, :3, 0], anchor_axis[:, 3, 0] = torch.tensor(tree.jnt_pos[tree.moving_joint], **f64), 1.0
+        anchor_axis[:, :3, 1] = torch.tensor(tree.jnt_axis[tree.moving_joint], **f64)
         self.slides = int((tree.jnt_type[chain] != _HINGE).sum())  # slide joints the kinematics visits
         self.dep_joint, self.dep_follows = tree.dep_joint.tolist(), tree.dep_follows.tolist()
         self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
         self.frame_body = tree.frame_body.tolist()
         self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
         self.coupled = bool(self.dep_joint)
-        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of)
+        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of,
+                                chain_joint_index=chain)
+        # the couplings' and slopes' polynomials as ``snapshot.full_posture`` and ``joint_slopes`` take them: each
+        # one's gather and ``qpos0`` there, its coefficient columns the highest power first
+        horner = lambda coef: torch.tensor(coef, **f64).T.flip(0).contiguous()  # noqa: E731
+        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
+                       gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
+                       free_select=torch.tensor(tree.free_select, **f64), full_base=torch.tensor(tree.full_base, **f64),
+                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
+                       motion_eye=torch.eye(4, **f64), motion_terms=_motion_terms(tree, chain), anchor_axis=anchor_axis,
+                       chain_qpos0=qpos0[chain],
+                       moves_frame=torch.tensor(tree.moves_frame, **f64),
+                       hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
+                       free_scatter=self._one_hot(tree.free_column, n_free),
+                       dep_follows_qpos0=qpos0[self.dep_follows], dep_qpos0=qpos0[self.dep_joint],
+                       slope_qpos0=qpos0[self.slope_of], dep_horner=horner(tree.dep_coef),
+                       slope_horner=horner(tree.slope_coef),
+                       **{name: torch.as_tensor(rows, dtype=torch.long) for name, rows in self.index_lists.items()})
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
         self._register_nodes(tree)
-        self._register_couplings()
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
         self.all_hinges = bool(tree.jnt_type[tree.moving_joint].size) and bool(
             (tree.jnt_type[tree.moving_joint] == _HINGE).all())
@@ -109,8 +119,8 @@ class GravityTorque(nn.Module):
         return full_posture(self, q, self._columns)
 
     def _columns(self, full: torch.Tensor, name: str) -> torch.Tensor:
-        """``full``'s columns at the index buffer ``name``: ``index_select``, or in an exported program indexing by
-        the list of joints (as traced before)."""
+        """``full``'s columns at the index buffer ``name``: ``index_select``, or exported indexing by the list of
+        joints (an ``index_select`` would fix the batch under vmap)."""
         if torch.compiler.is_exporting():
             return full[:, self.index_lists[name]]
         return full.index_select(1, getattr(self, name))
@@ -118,36 +128,25 @@ class GravityTorque(nn.Module):
     def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
         """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
         ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics);
-        ``full``: ``full_q(q)`` when the caller has it.
+        ``full``: ``full_q(q)`` when the caller has it."""
+        frames, before = self._poses(self.full_q(q.to(torch.float64)) if full is None else full)
+        anchor_axis = before[..., :3, :] @ self.anchor_axis
+        return frames[..., :3, 3], frames[..., :3, :3], anchor_axis[..., 0], anchor_axis[..., 1]
 
-        Every body offset and joint motion is a node of the tree with its 4x4 transform; each node's world pose is
-        the product along its ancestors, by pointer jumping (each round a node takes its pointer's product and
-        pointer, ``log2(depth)`` rounds of two batched products; in an exported program every gather a one-hot product,
-        which torch.export keeps batch-generic under vmap): a handful of operations for any tree, not a few per body.
-        Above ``JUMP_ROWS`` postures one product per node instead (fewer tiny 4x4 products in all)."""
-        rot, shift = self._joint_motions(self.full_q(q.to(torch.float64)) if full is None else full)
-        # (B, nodes, 4, 4) by padding and a one-hot product, not concatenation or gathers (which specialize the
-        # batch under vmap in torch.export)
-        motion = F.pad(rot, (0, 1, 0, 1)) + F.pad(shift[..., None], (3, 0, 0, 1)) + self.node_corner  # (B, C, 4, 4)
-        world = self._world(motion)
-        frames, before = self._pick("frame_node", world), self._pick("before_node", world)
-        anchors = before[..., :3, 3] + (before[..., :3, :3] @ self.moving_pos[..., None])[..., 0]
-        return (frames[..., :3, 3], frames[..., :3, :3], anchors,
-                (before[..., :3, :3] @ self.moving_axis[..., None])[..., 0])
-
-    def _world(self, motion: torch.Tensor) -> torch.Tensor:
-        """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``
-        (``snapshot.world_poses``): pointer jumping up to ``JUMP_ROWS`` postures and in an exported program."""
+    def _poses(self, full: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
+        at every joint's ``full (B, nq)``: each node's pose the product along its ancestors (``snapshot.world_poses``;
+        pointer jumping up to ``JUMP_ROWS`` postures and in an exported program)."""
+        motion = joint_motions(self, full, self._columns)
         jump = torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS
-        return world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
+        world = world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
+        return self._pick("frame_node", world), self._pick("before_node", world)
 
     def _register_nodes(self, tree) -> None:
-        """The node tree of ``kinematics``: per body its offset, then each of its joints in order (a hinge's rotation
-        about its anchor or a slide's shift), each node's parent the node before it (a body's offset: its parent
-        body's last node), and an identity node last, every root's parent. ``node_parent`` and ``node_chain`` (a
-        joint node's motion, or -1); buffers: each node's constant transform (0 on a joint's node) and the one-hot
-        map of the joint motions onto their nodes, and the picks of ``_pick`` (each pointer round, the frames' last
-        nodes, the node before each moving joint)."""
+        """The node tree of ``kinematics``: per body its offset, then each of its joints in order, each node's parent
+        the node before it (a body's offset: its parent body's last node), an identity node last (every root's
+        parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform (0 on a
+        joint's node), the one-hot map of the joint motions onto their nodes, and the picks of ``_pick``."""
         parent, last, joint_node, self.node_chain, const = [], {}, {}, [], []
         for i, p in enumerate(self.body_parent):
             parent.append(last[p] if p >= 0 else -1)
@@ -163,10 +162,7 @@ class GravityTorque(nn.Module):
         n, self.node_parent = len(parent), parent
         motion = np.zeros((n + 1, len(self.chain_joint)))
         motion[[k for k, c in enumerate(self.node_chain) if c >= 0], [c for c in self.node_chain if c >= 0]] = 1.0
-        corner = np.zeros((4, 4))
-        corner[3, 3] = 1.0
-        for name, value in dict(node_const=np.stack(const + [np.eye(4)]), node_motion=motion,
-                                node_corner=corner).items():
+        for name, value in dict(node_const=np.stack(const + [np.eye(4)]), node_motion=motion).items():
             self.register_buffer(name, torch.tensor(value, dtype=torch.float64), persistent=False)
         pointer, picks = np.array([q if q >= 0 else n for q in parent] + [n]), {}
         while (pointer[:n] < n).any():  # log2(depth) rounds
@@ -178,42 +174,12 @@ class GravityTorque(nn.Module):
             self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
 
-    def _register_couplings(self) -> None:
-        """The couplings' and slopes' gathers with their constant half (``qpos0`` there) and each polynomial's
-        coefficient columns (contiguous, the highest power first), as ``full_q`` and ``_slopes`` take them (and
-        ``networks.snapshot.GravitySnapshot``)."""
-        gather = lambda rows: torch.as_tensor(rows, dtype=torch.long, device=self.qpos0.device)  # noqa: E731
-        buffers = dict(dep_follows_index=gather(self.dep_follows), dep_follows_qpos0=self.qpos0[self.dep_follows],
-                       dep_index=gather(self.dep_joint), dep_qpos0=self.qpos0[self.dep_joint],
-                       dep_horner=self.dep_coef.T.flip(0).contiguous(), slope_index=gather(self.slope_of),
-                       slope_qpos0=self.qpos0[self.slope_of], slope_horner=self.slope_coef.T.flip(0).contiguous())
-        for name, value in buffers.items():
-            self.register_buffer(name, value, persistent=False)
-
     def _pick(self, name: str, poses: torch.Tensor) -> torch.Tensor:
-        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather (many
-        times faster at large batches), or in an exported program a product with its one-hot matrix (a gather under
-        ``vmap`` fixes the batch size)."""
+        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather, or
+        exported a product with its one-hot matrix (a gather under ``vmap`` fixes the batch size)."""
         if torch.compiler.is_exporting():
             return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
         return poses.index_select(1, getattr(self, f"{name}_index"))
-
-    def _joint_motions(self, full: torch.Tensor):
-        """Every chain joint's motion in its body's frame at once: rotation ``(B, C, 3, 3)`` (Rodrigues about the
-        axis; the identity for a slide) and shift of the body origin ``(B, C, 3)`` (a hinge keeps its anchor fixed:
-        ``pos - rot pos``; a slide moves along its axis)."""
-        angle = (full - self.qpos0)[:, self.chain_joint, None, None]  # (B, C, 1, 1)
-        sin, versine = angle.sin(), 1.0 - angle.cos()
-        rot = self.chain_eye + sin * self.chain_cross + versine * self.chain_cross2
-        # pos - rot pos = -(sin K pos + versine K^2 pos), K pos and K^2 pos constant
-        hinge = self.chain_hinge[:, None]
-        shift = -hinge * (sin[..., 0] * self.chain_cross_pos + versine[..., 0] * self.chain_cross2_pos) \
-            + (1.0 - hinge) * self.chain_axis * angle[..., 0]
-        return rot, shift
-
-    def _slopes(self, full: torch.Tensor) -> torch.Tensor:
-        """(B, J) ``d q_full[j] / d q[free_column[j]]`` of each moving joint (``snapshot.joint_slopes``)."""
-        return joint_slopes(self, full, self._columns)
 
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:
@@ -221,49 +187,36 @@ class GravityTorque(nn.Module):
         q = q.to(torch.float64)
         full = self.full_q(q)
         p, R, o, a = self.kinematics(q, full)
-        ga = a @ self.gravity_cross.T  # (B, J, 3)
+        ga = a @ self.gravity_cross_T  # (B, J, 3)
         hinge = self.hinge[:, None]
         mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
         moment = -torch.einsum("bjc,bfck->bjfk", ga, R) * hinge[..., None]
         per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
-        weighted = per_joint.flatten(2) * self._slopes(full)[..., None]
+        weighted = per_joint.flatten(2) * joint_slopes(self, full, self._columns)[..., None]
         tree = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
         ones = torch.ones_like(q)
         return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
 
     def forward(self, q: torch.Tensor, snapshot: Optional[GravitySnapshot] = None) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
-        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves (far fewer products than the features).
-        Eager: its ``GravitySnapshot`` (``snapshot`` when the caller keeps it: a schema's inference cache), the same
-        numbers in about half the operations; exported: the program traced from ``kinematics``."""
-        if not torch.compiler.is_exporting():
-            return (GravitySnapshot(self) if snapshot is None else snapshot)(q.to(torch.float64))
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves: its ``GravitySnapshot`` (``snapshot``
+        when the caller keeps one); exported, built in the trace on this module's poses and columns (``_poses``,
+        ``_columns``: no gather that would fix the batch under vmap)."""
         q = q.to(torch.float64)
+        if not torch.compiler.is_exporting():
+            return (GravitySnapshot(self) if snapshot is None else snapshot)(q)
         full = self.full_q(q)
-        p, R, o, a = self.kinematics(q, full)
-        per_frame = self.coef[:4 * self.n_frames].reshape(self.n_frames, 4)
-        mass, moment = per_frame[:, 0], per_frame[:, 1:]
-        w = mass[:, None] * p + (R @ moment[..., None])[..., 0]  # (B, F, 3)
-        w_joint = torch.einsum("jf,bfc->bjc", self.moves_frame, w)
-        mass_joint = self.moves_frame @ mass  # (J,)
-        ga = a @ self.gravity_cross.T
-        tau_hinge = -(ga * (w_joint - mass_joint[:, None] * o)).sum(-1)
-        tau_slide = -(a @ self.gravity) * mass_joint
-        tau_moving = (self.hinge * tau_hinge + (1.0 - self.hinge) * tau_slide) * self._slopes(full)
-        spring = self.coef[4 * self.n_frames:]
-        return tau_moving @ self.free_scatter + spring[:self.n_free] + spring[self.n_free:] * q
+        return GravitySnapshot(self).torque(q, full, *self._poses(full), self._columns)
 
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()
     def fit_trimmed(self, q: torch.Tensor, tau: torch.Tensor, factor: float = 3.0, rounds: int = 8,
                     chunk: int = 4096) -> torch.Tensor:
         """Least squares of ``coef`` on postures ``q (S, N)`` and torques ``tau (S, N)`` [N m], then up to ``rounds``
-        refits without the postures whose residual norm exceeds ``factor`` times the kept ones' median (where a
-        learned moment arm swings, its torque is no gravity's, and would pull the whole fit); the kept mask ``(S,)``.
-        Each fit is a QR of the features, not the normal equations: the tree's parameters include directions the
-        postures determine only weakly (relative singular values down to 1e-10 on myoArm), which the normal
-        equations' squared condition number would lose to rounding."""
+        refits without the postures whose residual norm exceeds ``factor`` times the kept ones' median; the kept mask
+        ``(S,)``. Each fit is a QR of the features (``trim.solve_triangular``), not the normal equations, whose
+        squared condition number would lose the directions the postures determine only weakly."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
         self.coef.copy_(solve_triangular(self._triangular(q, tau, chunk)))
         def refit(keep, new):

@@ -2,11 +2,9 @@
 
 Sizes, with x = [l_motor, f] (2M), q (N) and z_latent (L):
 
-- AE / VAE encoder and decoder: "three-layer MLP, 64 hidden, Tanh" read as three ``Linear`` layers
-  (two hidden layers of 64). That reading reproduces the paper's totals for M = 6, N = 2:
-  AE latent 3/10/30 -> 10,383 / 11,286 / 13,866 parameters (paper ~10k/11k/14k),
-  VAE -> 10,448 / 11,806 / 15,686 (paper ~11k/12k/15k). Three hidden layers would add 8,320
-  (two 64x64 layers) and miss every figure by > 70%.
+- AE / VAE encoder and decoder: "three-layer MLP, 64 hidden, Tanh" read as three ``Linear`` layers (two hidden
+  layers of 64), which reproduces the paper's totals for M = 6, N = 2: AE latent 3/10/30 -> 10,383 / 11,286 / 13,866
+  parameters (paper ~10k/11k/14k), VAE -> 10,448 / 11,806 / 15,686 (paper ~11k/12k/15k).
 - Diffusion eps-predictor: two hidden layers of 91 SiLU units on (x_t, t/T, q): 10,932 (paper ~11k).
 
 All tensors are batched ``(B, D)``; x is z-scored (dimensionless), q in rad.
@@ -51,10 +49,8 @@ def count_parameters(module: nn.Module) -> int:
 
 
 class MLP(nn.Module):
-    """``in_dim -> [hidden, act] x n_hidden_layers -> out_dim`` (linear output, no output activation).
-
-    ``n_hidden_layers`` counts hidden layers, so the number of ``Linear`` layers is n_hidden_layers + 1.
-    """
+    """``in_dim -> [hidden, act] x n_hidden_layers -> out_dim``: ``n_hidden_layers + 1`` ``Linear`` layers, the
+    output linear."""
 
     def __init__(self, in_dim: int, hidden: int, out_dim: int, n_hidden_layers: int = 2,
                  activation: ActivationSpec = "tanh"):
@@ -75,10 +71,8 @@ class MLP(nn.Module):
 
 
 class AEEncoder(nn.Module):
-    """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)).
-
-    One MLP whose output is split, so z_q and z_latent share the hidden features (paper: one encoder).
-    """
+    """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)): one MLP whose output is split (z_q
+    and z_latent share the hidden features; paper: one encoder)."""
 
     def __init__(self, x_dim: int, q_dim: int, z_latent_dim: int, hidden: int = 64,
                  n_hidden_layers: int = 2, activation: ActivationSpec = "tanh"):
@@ -96,11 +90,8 @@ class AEEncoder(nn.Module):
 
 
 class VAEEncoder(AEEncoder):
-    """h_enc^vae: x (B, x_dim) -> (z_q, mu, logvar), mu and logvar (B, z_latent_dim).
-
-    Outputs log sigma^2 rather than the paper's sigma: unconstrained, so no positivity clamp is
-    needed, and the KL term is closed-form in it. ``sigma = exp(0.5 * logvar)``.
-    """
+    """h_enc^vae: x (B, x_dim) -> (z_q, mu, logvar), mu and logvar (B, z_latent_dim): log sigma^2 rather than the
+    paper's sigma (unconstrained; ``sigma = exp(0.5 * logvar)``)."""
 
     def _n_latent_outputs(self) -> int:
         return 2 * self.z_latent_dim
@@ -125,21 +116,15 @@ class Decoder(nn.Module):
         return self.mlp(torch.cat([q, z_latent], dim=-1))
 
     def frozen(self) -> Optional["FrozenMLP"]:
-        """An inference-only snapshot for latent descent: free columns z_latent, fixed columns q (``FrozenMLP``).
-
-        ``frozen.first_bias(q)`` folds q into the first layer, so ``frozen.forward(z, bias)`` is ``self(q, z)``.
-        None for activations without a hand-written derivative.
-        """
+        """An inference-only snapshot for latent descent (``FrozenMLP``: free columns z_latent, fixed q, so
+        ``frozen.forward(z, frozen.first_bias(q))`` is ``self(q, z)``); None without a hand-written derivative."""
         return FrozenMLP.of(self.mlp, slice(self.q_dim, None))
 
 
 def build_autoencoder(x_dim: int, q_dim: int, latent_dim: int, variational: bool = False, hidden: int = 64,
                       n_hidden_layers: int = 2, activation: ActivationSpec = "tanh") -> tuple[AEEncoder, Decoder]:
-    """Encoder and decoder for the paper's AE / VAE.
-
-    ``latent_dim`` is the paper's total latent size (3, 10, 30) = dim z_q (= q_dim) + dim z_latent,
-    so it must exceed q_dim: with no z_latent there is nothing left to adapt to a fault.
-    """
+    """Encoder and decoder for the paper's AE / VAE; ``latent_dim``: the paper's total latent size (3, 10, 30) =
+    dim z_q (= q_dim) + dim z_latent, so it must exceed q_dim (no z_latent: nothing to adapt to a fault)."""
     check_dims(latent_dim=latent_dim)
     if latent_dim <= q_dim:
         raise BodySchemaInputError(
@@ -154,12 +139,8 @@ class EpsMLP(nn.Module):
     """h^diff: (x_t (B, x_dim), t (int or (B,) long), q (B, q_dim)) -> the schema's prediction (B, x_dim): eps_hat
     for the paper's eps-prediction (or x0_hat, or v; ``samplers.schedule.PREDICTIONS``).
 
-    Time embedding: the single scalar ``t / n_timesteps`` in [0, 1), appended to the input. Why:
-    it is the cheapest choice (one input column, 91 weights), it reproduces the paper's ~11k
-    parameters exactly (10,932 for x_dim 12, q_dim 2; 16 sinusoidal features would add ~1.4k), the
-    noise level varies smoothly with t so 91 SiLU units can build their own features from it, and it
-    is already O(1) like the z-scored x. Both DDPM and strided DDIM steps pass integer t, so a
-    scalar in the same units serves both.
+    Time embedding: the single scalar ``t / n_timesteps`` in [0, 1), appended to the input (one input column: the
+    paper's ~11k parameters exactly, 10,932 for x_dim 12, q_dim 2; DDPM and strided DDIM steps both pass integer t).
     """
 
     def __init__(self, x_dim: int, q_dim: int, hidden: int = 91, n_hidden: int = 2,
@@ -186,10 +167,8 @@ class EpsMLP(nn.Module):
         return FrozenMLP.of(self.mlp, slice(0, self.x_dim))
 
     def step_biases(self, frozen: "FrozenMLP", q: torch.Tensor, timesteps: Sequence[int]) -> torch.Tensor:
-        """First-layer bias of every step of a sampling loop, (S, B, H): ``b1 + (t_i / T) w_t + q W_q^T``.
-
-        The t/T and q columns are fixed for a whole loop, so a step pays only for its x_t columns; all steps in
-        one broadcast op."""
+        """First-layer bias of every step of a sampling loop, (S, B, H): ``b1 + (t_i / T) w_t + q W_q^T`` (the t/T
+        and q columns are fixed for a whole loop: a step pays only for its x_t columns)."""
         t_feat = q.new_tensor([t / self.n_timesteps for t in timesteps])
         w_t, w_q = frozen.w1_rest_t[0], frozen.w1_rest_t[1:]  # rest columns in input order: t/T, then q
         base = torch.addmm(frozen.b1, q.detach(), w_q)  # (B, H)
@@ -202,11 +181,8 @@ _FROZEN_ACTIVATIONS = (nn.SiLU, nn.Tanh)  # activations with a hand-written deri
 @dataclass(frozen=True)
 class ActivationOps:
     """The activation and its backward, both writing into given buffers: ``act(a, out=h)``,
-    ``act_backward(g, saved, grad_input=o)`` (saved: the pre-activation for SiLU, the output for Tanh).
-
-    Two sets of the same maths: ``eager`` calls the raw C++ bindings (no Python frame of an ``OpOverload``:
-    less dispatch per op at batch 1, where dispatch is the cost), ``traceable`` the public ATen overloads that
-    ``torch.compile`` traces."""
+    ``act_backward(g, saved, grad_input=o)`` (saved: the pre-activation for SiLU, the output for Tanh). ``eager``:
+    the raw C++ bindings (less dispatch per op); ``traceable``: the ATen overloads ``torch.compile`` traces."""
 
     act: Callable
     act_backward: Callable
@@ -218,12 +194,8 @@ class FrozenMLP:
 
     Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice: what the
     loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer contribution is
-    folded into a bias once (``first_bias``). Plain tensors, pre-transposed contiguous weights, no autograd, no
-    ``nn.Module`` dispatch: at batch 1 the op count is the cost. One ``addmm`` and one activation per layer forward; the
-    backward uses ATen's fused activation backward (one op instead of four for SiLU's derivative).
-
-    Lifetime: the weights are copied when it is built and never follow the module afterwards; whoever holds one
-    (``schemas.cache.InferenceCache``, a prepared ``adaptation.Adapter``) decides when to rebuild it.
+    folded into a bias once (``first_bias``). Plain pre-transposed tensors, no autograd, no ``nn.Module`` dispatch.
+    The weights are copied when it is built and never follow the module; whoever holds one decides when to rebuild.
 
     Blocks a sampler fuses its own arithmetic around: ``trunk(u, bias, w1_t, bufs) -> (h, saved)`` (last hidden
     features for a first-layer weight ``w1_t``, e.g. ``w1_free_t`` or a scaled copy), the output layer

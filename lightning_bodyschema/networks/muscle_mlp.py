@@ -1,7 +1,6 @@
-"""The optional per-muscle MLP of a per-muscle path: a small network per muscle (weights batched as ``(M, ...)``
-tensors, no loop over muscles) on the joint angles times the muscle's crossing mask, trained on what the polynomial
-leaves; its moment arms by forward tangents, exactly zero on every joint the muscle does not cross. Plain PyTorch, no
-Lightning."""
+"""The optional per-muscle MLP of a per-muscle path: a small network per muscle (weights ``(M, ...)``) on the joint
+angles times the muscle's crossing mask; its moment arms by forward tangents, exactly zero on every joint the muscle
+does not cross. Plain PyTorch, no Lightning."""
 from __future__ import annotations
 
 import math
@@ -9,6 +8,8 @@ import math
 import torch
 from torch import nn
 from torch.nn import functional as F
+
+from .structured import silu_slope
 
 
 def muscle_mlp_parameters(n_muscles: int, n_joints: int, hidden: int, n_hidden: int):
@@ -35,8 +36,7 @@ def muscle_mlp(path, x: torch.Tensor, slopes: bool):
     for w, b in zip(path.weights[1:], path.biases[1:]):
         a = F.silu(h)
         if slopes:
-            s = torch.sigmoid(h)
-            tangent = torch.einsum("bmnk,mkj->bmnj", tangent * (s * (1 + h * (1 - s))).unsqueeze(2), w)
+            tangent = torch.einsum("bmnk,mkj->bmnj", tangent * silu_slope(h, a).unsqueeze(2), w)
         h = torch.einsum("bmk,mkj->bmj", a, w) + b.transpose(0, 1)
     return h[..., 0], None if tangent is None else tangent[..., 0].expand(len(x), -1, -1)
 

@@ -20,27 +20,18 @@ SCHEMA_GATE_DEGREE = 8  # ``StructuredSchema(path_gate_degree=...)``'s default (
 
 @dataclass(frozen=True)
 class PathConfig:
-    """A per-muscle path's options.
+    """A per-muscle path's options (``StructuredSchema``'s ``path_*`` arguments: ``SCHEMA_NAMES``).
 
-    degree, max_terms: each muscle's polynomial has the highest total degree ``<= degree`` with at most ``max_terms``
-        terms over the joints it crosses (``degrees.muscle_degrees``).
-    term_budget: None, or the most terms over all muscles together: what ``max_terms`` leaves is spent raising the
-        lowest degrees first (the muscles that cross many joints), up to ``degree``.
-    degrees: None, or each muscle's total degree ``(M,)`` (then ``degree``, ``max_terms`` and ``term_budget`` are not
-        used; ``per_muscle.degrees_within_tolerance`` chooses them from data).
-    hidden, n_hidden: width and number of hidden layers of each muscle's MLP (n_hidden 0: no MLP).
-    branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` where a path jumps
-        (``networks.branches``).
-    cells, cell_degrees: 1 (none), or pieces per joint: the muscles a smooth polynomial fits worst get ``cells ** n``
-        cells over their ``n`` cut joints, one polynomial each (``networks.cells``); ``cell_degrees`` (M,) the fit's
-        choice (0: no cells), which a checkpoint rebuilds.
-    blocks: None, or ``(M, N)`` ints: each muscle's length as a sum of one polynomial per group of its joints
-        (``per_muscle.check_blocks``; ``sim.separable.separable_blocks`` finds them in an MJCF).
-    cell_trim: None, or each cell refitted without the samples it misses by more than this many times the kept
-        ones' median (``cell_fit._trimmed``).
-    cell_joints: which joints cut a celled muscle's box (``cells.cell_cuts``), one of ``CELL_JOINTS``.
-    cell_keep: what a muscle's cells must improve on the fitted samples to be kept (``cell_fit._kept``), one of
-        ``CELL_KEEP``.
+    degree, max_terms, term_budget: each muscle's polynomial has the highest total degree ``<= degree`` with at most
+        ``max_terms`` terms, then what a ``term_budget`` (the most terms of all muscles) leaves raises the lowest
+        degrees first (``degrees.muscle_degrees``); ``degrees``: each muscle's ``(M,)`` instead.
+    hidden, n_hidden: width and hidden layers of each muscle's MLP (0: none).
+    branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` (``networks.branches``).
+    cells, cell_degrees, cell_trim, cell_joints, cell_keep: pieces per joint (1: no cells; ``networks.cells``), the
+        fit's cell degree per muscle (a checkpoint rebuilds it), each cell refitted without the samples it misses by
+        more than ``cell_trim`` times the median, which joints cut a box (``CELL_JOINTS``) and what kept cells must
+        improve (``CELL_KEEP``; ``cell_fit._kept``).
+    blocks: None, or ``(M, N)`` ints: each muscle's length a sum of one polynomial per group of its joints.
     """
 
     degree: int = 6

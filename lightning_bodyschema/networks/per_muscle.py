@@ -1,24 +1,12 @@
 """Per-muscle path models: each muscle's length over only the joints it crosses, with exact moment arms.
 
-``PerMusclePath`` is a sum of two parts, both batched over muscles (no Python loop over muscles):
-
-* a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles, total degree
-  ``<= degree``, whose terms use only the joints that muscle crosses (a coefficient buffer ``(M, P)`` that is
-  exactly zero on every other term); it is fitted by least squares (``fit_polynomial``), not by the optimizer;
-* optionally a small MLP per muscle (weights batched as ``(M, ...)`` tensors) whose inputs are the joint angles times
-  the muscle's crossing mask, trained on what the polynomial leaves.
-
-Both parts are smooth. Where MuJoCo's path jumps (a wrap switching sides) one polynomial cannot follow: it rings
-around the jump. With ``branches=2`` every muscle whose one-polynomial residual has a heavy tail gets a second
-polynomial (same terms) and a gate, a low-degree polynomial whose sign picks the branch (``networks.branches``):
-the length at a posture is then its branch's polynomial and the moment arm that polynomial's exact derivative, so
-the learned length jumps where the gate changes sign (a QP at one posture sees that posture's branch only).
-With ``cells=2`` the muscles a smooth polynomial fits worst get one polynomial per cell of their joints' box cut in
-halves (``networks.cells``): a wrapping path is smooth in pieces, and a polynomial over a smaller box fits it far
-better.
-
-``with_jacobian(x)`` gives the lengths and their exact derivative; the derivative on a joint a muscle does not
-cross is exactly 0 (no term of either part depends on it). Plain PyTorch, no Lightning.
+``PerMusclePath`` is a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles (total
+degree ``<= degree``, terms only over the joints the muscle crosses: ``networks.polynomial``), fitted by least squares
+(``fit_polynomial``), plus optionally a small MLP per muscle trained on what it leaves (``networks.muscle_mlp``).
+Where a wrap switches sides the path jumps and one polynomial rings: ``branches=2`` gives such muscles a second
+polynomial and a gate whose sign picks it (``networks.branches``), ``cells=2`` the muscles fitted worst one polynomial
+per cell of their box (``networks.cells``). ``with_jacobian(x)`` gives the lengths and their exact derivative, exactly
+0 on a joint a muscle does not cross. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -30,7 +18,7 @@ import torch
 from torch import nn
 
 from .arrays import apply_keeping_dtype
-from .basis import ProductTerms, legendre, product_basis  # noqa: F401 (legendre: this module's interface)
+from .basis import ProductTerms, product_basis
 from .branched import add_branches, branch_parts, refresh_branches, replace_where
 from .branches import fit_branches, one_thread
 from .cell_fit import fit_cells
@@ -40,7 +28,7 @@ from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
 from .polynomial import (check_blocks, check_crossing, check_degrees, normal_equations, solve_normal_equations,
                          term_exponents, term_mask)
-from .snapshot import PathSnapshot, few_for
+from .snapshot import PathSnapshot, few_for, has_cells
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -74,10 +62,8 @@ class PerMusclePath(nn.Module):
         crossing = check_crossing(crossing)
         blocks = check_blocks(crossing, config.blocks)
         n_muscles, n_joints = crossing.shape
-        self.config, self.cell_keep = config, config.cell_keep  # the fit's, not the state's
-        n_hidden, branches, cells = config.n_hidden, config.branches, config.cells
-        self.n_hidden, self.branches, self.gate_degree, self.pieces = n_hidden, branches, config.gate_degree, cells
-        self.cell_trim = None if config.cell_trim is None else float(config.cell_trim)  # the fit's, not the state's
+        self.config = config  # the fit's options (gate degree, cell trim and keep rule), not the state's
+        self.n_hidden, self.branches, self.pieces = config.n_hidden, config.branches, config.cells
         self.block_sizes = block_sizes(blocks)  # per muscle, the joints in each group (term counts)
         degrees = muscle_degrees(crossing, config.degree, config.max_terms, config.term_budget, blocks=blocks) \
             if config.degrees is None else check_degrees(config.degrees, len(crossing))
@@ -89,16 +75,16 @@ class PerMusclePath(nn.Module):
         mask = term_mask(crossing, exponents, degrees, blocks)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
-        if branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
+        if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
             add_branches(self)
-        if cells > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
+        if self.pieces > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
             self.cell_cut = cell_cuts(crossing, blocks, config.cell_joints)  # (M, N) numpy: the joints that cut boxes
-            self.set_cell_degrees(np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
+            set_cell_layout(self, np.zeros(n_muscles, np.int64) if config.cell_degrees is None else config.cell_degrees)
         # the box of the fitted samples (normalized units); outside it the polynomial is extended to first order
         self.register_buffer("x_lo", -torch.ones(n_joints, dtype=torch.float64))
         self.register_buffer("x_hi", torch.ones(n_joints, dtype=torch.float64))
-        self.weights, self.biases = muscle_mlp_parameters(n_muscles, n_joints, config.hidden, n_hidden)
+        self.weights, self.biases = muscle_mlp_parameters(n_muscles, n_joints, config.hidden, self.n_hidden)
 
     # ------------------------------------------------------------------ the polynomial
     def basis(self, x: torch.Tensor, slopes: bool = False):
@@ -107,14 +93,10 @@ class PerMusclePath(nn.Module):
 
     def polynomial(self, x: torch.Tensor, slopes: bool = False, snapshot: Optional[PathSnapshot] = None):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
-        ``snapshot``: ``snapshot()`` when the caller keeps it (used at few postures).
-
-        Inside the box of the fitted samples (``x_lo``, ``x_hi``) the polynomial itself; outside, its first-order
-        extension from the nearest point ``c`` of the box, ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)`` (a
-        high-degree polynomial grows fast where it saw no data; these moment arms neglect ``p''(c) (x - c)``).
-        At few postures (``snapshot.few_for``) every part from one basis (``networks.snapshot.PathSnapshot``); above,
-        the whole-box polynomials in blocks of rows (their basis holds ~2N + 3 ``(rows, P)`` tensors; blocks that stay
-        in cache are faster too), the cells a cell at a time. An exported program takes one path for any batch."""
+        ``snapshot``: ``snapshot()`` when the caller keeps it. Inside the box of the fitted samples (``x_lo``,
+        ``x_hi``) the polynomial itself; outside, its first-order extension from the nearest point ``c`` of the box,
+        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_for``) the snapshot;
+        above, blocks of rows (a grouped basis), the cells a cell at a time; exported, one path for any batch."""
         x64 = x.to(torch.float64)
         if few_for(self, x64):
             y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
@@ -122,15 +104,12 @@ class PerMusclePath(nn.Module):
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         exporting = torch.compiler.is_exporting()
         derive = slopes or not torch.equal(inside, x64)
-        rows = max(1, BASIS_ELEMENTS // self.coef.shape[1])
         coefs = self._coefficients(exporting)  # once per call
-        if exporting or len(x) <= rows:
-            y, dy = self._smooth(inside, derive, exporting, coefs)
-        else:
-            parts = [self._smooth(inside[start:start + rows], derive, False, coefs)
-                     for start in range(0, len(x), rows)]
-            y, dy = torch.cat([y for y, _ in parts]), torch.cat([dy for _, dy in parts]) if derive else None
-        if self.pieces > 1 and len(self.cell_muscles):
+        blocks = [inside] if exporting else inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
+        parts = [self._smooth(rows, derive, exporting, coefs) for rows in blocks]
+        y, dy = parts[0] if len(parts) == 1 else (torch.cat([y for y, _ in parts]),
+                                                  torch.cat([dy for _, dy in parts]) if derive else None)
+        if has_cells(self):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None
@@ -138,8 +117,7 @@ class PerMusclePath(nn.Module):
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def snapshot(self) -> PathSnapshot:
-        """The fitted polynomials frozen for the evaluation at few postures (``networks.snapshot.PathSnapshot``): a
-        caller may keep it while they do not change (``StructuredSchema.body``: its inference cache)."""
+        """The fitted polynomials frozen (``networks.snapshot.PathSnapshot``): valid while they do not change."""
         return PathSnapshot(self)
 
     def _coefficients(self, dense: bool) -> tuple:
@@ -167,27 +145,27 @@ class PerMusclePath(nn.Module):
         return apply_keeping_dtype(self, ("coef", "coef_alt", "gate", "cell_coef"), super()._apply, fn, *args, **kwargs)
 
     @torch.no_grad()
+    @one_thread()
     def fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float = 1e-12, chunk: int = 8192) -> None:
-        """Least squares of every muscle's polynomial on ``x (S, N)``, ``y (S, M)`` in float64: the normal equations
-        of every term summed once over the samples, then each group of muscles with the same number of terms solved
-        in one batched solve of their own terms (no padding: memory grows with each group, not with the largest).
-        On one CPU thread (``branches.one_thread``)."""
-        with one_thread():
-            self._fit_polynomial(x.to(torch.float64), y.to(torch.float64), ridge, chunk)
-
-    def _fit_polynomial(self, x: torch.Tensor, y: torch.Tensor, ridge: float, chunk: int) -> None:
-        self.x_lo.copy_(x.amin(0))
-        self.x_hi.copy_(x.amax(0))
-        gram, rhs = self._normal_equations(x, y, chunk)
-        order = self._solve_normal_equations(gram, rhs, ridge)
+        """Least squares of every muscle's polynomial (then branches and cells, as configured) on ``x (S, N)``,
+        ``y (S, M)`` in float64 (``polynomial.solve_normal_equations``), on one CPU thread (``branches.one_thread``)."""
+        x, y, gram, rhs, order = self._fit_whole_box(x, y, ridge, chunk)
         if self.branches == 2:
             self.branched.zero_()
-            fit_branches(self, x, y, gram, rhs, order, self.gate_degree, chunk)
+            fit_branches(self, x, y, gram, rhs, order, self.config.gate_degree, chunk)
             refresh_branches(self)  # before the cells: their candidates are the muscles the branches leave worst
         if self.pieces > 1:
             fit_cells(self, x, y, chunk)
         if self.branches == 2:
             refresh_branches(self)
+
+    def _fit_whole_box(self, x: torch.Tensor, y: torch.Tensor, ridge: float, chunk: int) -> tuple:
+        """The box and ``coef`` of every sample: ``(x, y)`` in float64, the normal equations and ``order``."""
+        x, y = x.to(torch.float64), y.to(torch.float64)
+        self.x_lo.copy_(x.amin(0))
+        self.x_hi.copy_(x.amax(0))
+        gram, rhs = self._normal_equations(x, y, chunk)
+        return x, y, gram, rhs, self._solve_normal_equations(gram, rhs, ridge)
 
     def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
         """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
@@ -195,28 +173,14 @@ class PerMusclePath(nn.Module):
         self.coef.copy_(coef)
         return order
 
-    def set_cell_degrees(self, degrees) -> None:
-        """Each muscle's cell degree ``(M,)`` (0: no cells): the cell layout and zero cell coefficients, none fitted
-        (``cells.set_cell_layout``). A checkpoint's skeleton is built from the same degrees."""
-        set_cell_layout(self, degrees)
-
     @torch.no_grad()
+    @one_thread()
     def fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float = 10.0, rounds: int = 3,
                     ridge: float = 1e-12, chunk: int = 8192) -> torch.Tensor:
         """The polynomial alone (no branches or cells) by least squares on ``x (S, N)``, ``y (S, M)``, then up to
         ``rounds`` refits without the samples whose residual norm over the muscles exceeds ``factor`` times the
-        median (a few wild targets otherwise pull the whole least squares); the kept samples' mask ``(S,)``. The box
-        is every sample's; each refit updates the normal equations by the samples that changed side only. On one
-        CPU thread (``branches.one_thread``)."""
-        with one_thread():
-            return self._fit_trimmed(x.to(torch.float64), y.to(torch.float64), factor, rounds, ridge, chunk)
-
-    def _fit_trimmed(self, x: torch.Tensor, y: torch.Tensor, factor: float, rounds: int, ridge: float,
-                     chunk: int) -> torch.Tensor:
-        self.x_lo.copy_(x.amin(0))
-        self.x_hi.copy_(x.amax(0))
-        gram, rhs = self._normal_equations(x, y, chunk)
-        self._solve_normal_equations(gram, rhs, ridge)
+        median (``trim.trimmed_refits``; the box is every sample's); the kept samples' mask ``(S,)``. One thread."""
+        x, y, gram, rhs, _ = self._fit_whole_box(x, y, ridge, chunk)
 
         def refit(keep, new):
             for rows, sign in ((new & ~keep, 1.0), (keep & ~new, -1.0)):  # back in: added; dropped: taken out

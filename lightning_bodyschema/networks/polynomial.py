@@ -67,11 +67,13 @@ def check_crossing(crossing) -> np.ndarray:
     return crossing
 
 
-def check_degrees(degrees, n_muscles: int) -> np.ndarray:
-    """``degrees`` as an ``(M,)`` int array; one ``BodySchemaInputError`` unless M integers >= 1."""
-    values = np.asarray(degrees)
-    if values.shape != (n_muscles,) or values.dtype.kind not in "iu" or (values < 1).any():
-        raise BodySchemaInputError(f"degrees={degrees!r} must be {n_muscles} integers >= 1, one per muscle")
+def check_degrees(degrees, n_muscles: int, least: int = 1, name: str = "degrees") -> np.ndarray:
+    """``degrees`` (array-like or a tensor) as an ``(M,)`` int64 array; one ``BodySchemaInputError`` naming ``name``
+    unless M integers >= ``least``."""
+    values = np.asarray(degrees.cpu() if torch.is_tensor(degrees) else degrees)
+    if values.shape != (n_muscles,) or values.dtype.kind not in "iu" or (values < least).any():
+        raise BodySchemaInputError(f"{name}={degrees!r} must be {n_muscles} integers >= {least}, one per muscle"
+                                   + (" (0: no cells)" if name == "cell_degrees" else ""))
     return values.astype(np.int64)
 
 

@@ -1,19 +1,9 @@
-"""The fitted per-muscle body frozen once, and its one evaluation at few postures, written once for numpy and torch.
-
-At one posture every tensor operation costs its dispatch, not its arithmetic, and numpy's dispatch is the cheaper
-(BENCHMARKS.md "Per-muscle body evaluation, myoArm"), so a controller on a CPU asks numpy for the body, while a
-schema on a GPU, or one asked for a few dozen postures, stays in torch. Both run the code below: ``PathSnapshot``
-(every part of a fitted ``PerMusclePath``, its whole-box polynomials, branches and cells, from one stacked basis:
-one product with the whole-box rows, one with the posture's cells' rows, one pick of each muscle's candidate),
-``GravitySnapshot`` (a ``GravityTorque``'s torque by one 4x4 motion per joint and the frames' world poses) and
-``BodySnapshot`` (the schema's normalizer and unit scales around both: ``StructuredSchema.body_si``'s whole
-arithmetic). Each is built from the modules' tensors (torch) and ``on_host()`` gives the same object in numpy over
-host copies of them; the few operations whose spelling differs between the two libraries are ``networks.arrays``'
-(``xp``: the object's array library). The numpy evaluation multiplies the two large matrices by torch (numpy's
-OpenBLAS threads on its own).
-
-Lifetime: a snapshot holds what it read when built and never follows the module afterwards; a schema keeps its
-snapshots in its inference cache (``schemas/cache.py``: cleared on every weight, dtype or device change). No
+"""The fitted per-muscle body frozen once, written once for numpy and torch: ``PathSnapshot`` (a ``PerMusclePath``'s
+polynomials, branches and cells from one stacked basis), ``GravitySnapshot`` (a ``GravityTorque``'s torque) and
+``BodySnapshot`` (the schema's normalizer and unit scales around both: ``StructuredSchema.body_si``'s arithmetic).
+Each is built from the modules' tensors; ``on_host()`` gives the same object in numpy over host copies (``xp``: its
+array library; the spellings that differ: ``networks.arrays``). A snapshot never follows the module after it is
+built (a schema keeps its snapshots in its inference cache, cleared on every weight, dtype or device change). No
 Lightning.
 """
 from __future__ import annotations
@@ -28,9 +18,8 @@ from .cells import cell_index, cell_inputs, cell_spread
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
 
-# the largest stacked basis of this evaluation: postures x terms (whole-box and cell) x (1 + joints). Above it,
-# ``PerMusclePath``'s blocks of rows and a cell at a time are the faster (their slopes touch only the joints each term
-# uses; the crossovers: BENCHMARKS.md "Figures behind code choices")
+# the largest stacked basis (postures x terms x (1 + joints)) evaluated here; above, ``PerMusclePath``'s blocks of rows
+# (slopes only on the joints each term uses; BENCHMARKS.md "Figures behind code choices")
 FEW_ELEMENTS = 1_400_000
 
 
@@ -52,17 +41,10 @@ def few_for(path, x) -> bool:
 
 
 class PathSnapshot(Frozen):
-    """A fitted ``PerMusclePath``'s polynomials: ``(y (B, M), dy (B, M, N))`` at float64 postures ``x64 (B, N)``,
-    clamped to the fitted box and extended to first order outside it (``PerMusclePath.polynomial``).
-
-    ``box (R, P)`` holds the whole-box rows a posture may use (the muscles without cells fitted everywhere, then the
-    branched muscles' second polynomials, then their gates), ``spread (Mc, C, T)`` the cells' coefficients on every
-    cell term (``cells.cell_spread``), and per muscle ``(M,)`` the candidate of each choice: ``box_col`` (whole box),
-    ``alt_col`` and ``gate_col`` (its branch and gate where ``gated``), ``cell_col`` and ``cell_of`` (its cell
-    polynomial and row among the celled muscles where ``celled``). A muscle takes its cell's polynomial where that
-    cell was fitted, else its gate's branch, else its whole-box polynomial; the slopes of a cell coordinate are
-    scaled by ``pieces`` (its chain rule, exact for a power of two). ``max_postures``: the most postures it is built
-    for (``few_rows``, with the budget of its build)."""
+    """A fitted ``PerMusclePath``'s polynomials ``(y (B, M), dy (B, M, N))`` at float64 postures ``x64 (B, N)``,
+    clamped to the fitted box and extended to first order outside it (``PerMusclePath.polynomial``): a muscle takes
+    its cell's polynomial where that cell was fitted, else its gate's branch, else its whole-box polynomial (the
+    candidate rows: ``_choices``). ``max_postures``: the most postures it is built for (``few_rows``)."""
 
     def __init__(self, path):
         self.x_lo, self.x_hi, self.cells, self.max_postures = path.x_lo, path.x_hi, has_cells(path), few_rows(path)
@@ -76,8 +58,10 @@ class PathSnapshot(Frozen):
             self.spread = cell_spread(path)
 
     def _choices(self, path) -> None:
-        """The rows of ``box`` and each muscle's candidates (class docstring), from the coefficients masked to each
-        muscle's terms."""
+        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere, the
+        branched muscles' second polynomials, their gates; masked to each muscle's terms), and per muscle ``(M,)``
+        its candidates: ``box_col``, ``alt_col`` and ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of``
+        (where ``celled``)."""
         n, long = len(path.coef), dict(dtype=torch.long, device=path.coef.device)
         self.celled, everywhere = (torch.zeros(n, dtype=torch.bool, device=path.coef.device) for _ in range(2))
         self.cell_of = torch.zeros(n, **long)
@@ -130,29 +114,16 @@ def _box_product(box, basis):
 
 
 class GravitySnapshot(Frozen):
-    """A fitted ``GravityTorque``'s torque ``tau (B, N)`` [N m] at float64 postures ``q (B, N)`` [rad or m]: the
-    tree's tables (every buffer of the module) and, from its coefficients, per frame ``(s, m)`` ``(F, 4, 1)`` (in the
-    order of a pose's columns), each moving joint's mass below it ``(J,)``, the offsets and spring rates ``(N,)``.
-    Each joint's motion is one 4x4 sum ``I + sin M_sin + versine M_versine + angle M_angle``; a frame's ``R s + p m``
-    and a joint's anchor and axis each one product of a pose's top rows; the world poses by pointer jumping up to
-    ``JUMP_ROWS`` postures and in numpy, else one product per node (``GravityTorque.kinematics``' two ways)."""
+    """A fitted ``GravityTorque``'s torque ``tau (B, N)`` [N m] at float64 postures ``q (B, N)`` [rad or m], from
+    the tree's buffers and, from its coefficients, per frame ``(s, m)`` ``(F, 4, 1)``, each moving joint's mass below
+    it ``(J,)``, the offsets and spring rates ``(N,)``. Each joint's motion is one 4x4 sum ``I + sin M_sin + versine
+    M_versine + angle M_angle``; the world poses as ``world_poses``."""
 
     def __init__(self, gravity):
         self.__dict__.update(gravity.named_buffers(recurse=False))
         self.pointers = [getattr(gravity, f"node_pointer{k}_index") for k in range(gravity.n_rounds)]
         self.node_parent, self.node_chain, self.n_rounds = gravity.node_parent, gravity.node_chain, gravity.n_rounds
         self.coupled, self.all_hinges = gravity.coupled, gravity.all_hinges
-        f64, hinge = dict(dtype=torch.float64, device=gravity.coef.device), gravity.chain_hinge[:, None]
-        terms = torch.zeros(3, len(gravity.chain_cross), 4, 4, **f64)
-        terms[0, :, :3, :3], terms[0, :, :3, 3] = gravity.chain_cross, -hinge * gravity.chain_cross_pos
-        terms[1, :, :3, :3], terms[1, :, :3, 3] = gravity.chain_cross2, -hinge * gravity.chain_cross2_pos
-        terms[2, :, :3, 3] = (1.0 - hinge) * gravity.chain_axis
-        self.motion_eye, self.motion_terms = torch.eye(4, **f64), terms
-        self.anchor_axis = torch.zeros(len(gravity.moving_joint), 4, 2, **f64)
-        self.anchor_axis[:, :3, 0], self.anchor_axis[:, 3, 0] = gravity.moving_pos, 1.0
-        self.anchor_axis[:, :3, 1] = gravity.moving_axis
-        self.chain_joint_index = torch.as_tensor(gravity.chain_joint, dtype=torch.long, device=f64["device"])
-        self.chain_qpos0, self.gravity_cross_T = gravity.qpos0[gravity.chain_joint], gravity.gravity_cross.T.clone()
         n_frames, n_free, coef = gravity.n_frames, gravity.n_free, gravity.coef
         order = torch.arange(4 * n_frames, device=coef.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
         self.moment_mass = coef.index_select(0, order).view(-1, 4, 1)
@@ -160,11 +131,12 @@ class GravitySnapshot(Frozen):
         self.offset, self.rate = coef[4 * n_frames:4 * n_frames + n_free], coef[4 * n_frames + n_free:]
 
     def __call__(self, q):
-        xp, full = self.xp, full_posture(self, q, self._columns)
-        angle = (take(full, self.chain_joint_index, 1) - self.chain_qpos0)[:, :, None, None]
-        by_sin, by_versine, by_angle = self.motion_terms
-        motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
-        frames, before = self._world(motion)
+        full = full_posture(self, q, self._columns)
+        return self.torque(q, full, *self._world(joint_motions(self, full, self._columns)), self._columns)
+
+    def torque(self, q, full, frames, before, columns):
+        """``tau (B, N)`` at ``q`` from every joint's ``full (B, nq)``, the frames' world poses ``(B, F, 4, 4)`` and
+        the nodes' before the moving joints ``(B, J, 4, 4)`` (``columns``: ``full_posture``'s)."""
         w = (frames[..., :3, :] @ self.moment_mass)[..., 0]
         anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
         o, a = anchor_axis[..., 0], anchor_axis[..., 1]
@@ -172,7 +144,7 @@ class GravitySnapshot(Frozen):
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * self.mass_joint)
-        return (tau * joint_slopes(self, full, self._columns)) @ self.free_scatter + self.offset + self.rate * q
+        return (tau * joint_slopes(self, full, columns)) @ self.free_scatter + self.offset + self.rate * q
 
     def _columns(self, full, name: str):
         """``full``'s columns at the index ``name``."""
@@ -188,13 +160,21 @@ class GravitySnapshot(Frozen):
 
 def full_posture(tree, q, columns):
     """Every joint ``(B, nq)`` of a ``GravityTorque``'s tree (the module or its snapshot) from the free joints
-    ``q (B, N)``: locks, then couplings (``sim.joints.JointMap.full_q``); ``columns(full, name)``: ``full``'s columns
-    at the index ``name``."""
+    ``q (B, N)`` (``sim.joints.JointMap.full_q``); ``columns(full, name)``: ``full``'s columns at the index ``name``."""
     full = q @ tree.free_select + tree.full_base
     if not tree.coupled:
         return full
     value = horner(tree.dep_horner, columns(full, "dep_follows_index") - tree.dep_follows_qpos0)
     return full + (value + tree.dep_qpos0 - columns(full, "dep_index")) @ tree.dep_scatter
+
+
+def joint_motions(tree, full, columns):
+    """Every chain joint's motion ``(B, C, 4, 4)`` in its body's frame at every joint's ``full (B, nq)`` of a
+    ``GravityTorque``'s tree (the module or its snapshot): ``I + sin M_sin + versine M_versine + angle M_angle``."""
+    angle = (columns(full, "chain_joint_index") - tree.chain_qpos0)[:, :, None, None]
+    by_sin, by_versine, by_angle = tree.motion_terms
+    xp = namespace(full)
+    return tree.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
 
 
 def joint_slopes(tree, full, columns):
@@ -204,10 +184,9 @@ def joint_slopes(tree, full, columns):
 
 
 def world_poses(tree, motion, pick, jump: bool):
-    """Every node's world pose ``(B, nodes + 1, 4, 4)`` of a ``GravityTorque``'s tree (the module or its snapshot:
-    ``node_const``, ``node_motion``, ``node_parent``, ``node_chain``, ``n_rounds``) from the chain joints' motions
-    ``(B, C, 4, 4)``: with ``jump`` by pointer jumping (``pick(k, poses)``: the rows of round k's pointers), else one
-    product per node, parents first (a body offset's a single matrix product)."""
+    """Every node's world pose ``(B, nodes + 1, 4, 4)`` of a ``GravityTorque``'s tree (the module or its snapshot)
+    from the chain joints' motions ``(B, C, 4, 4)``: with ``jump`` by pointer jumping (``pick(k, poses)``: the rows
+    of round k's pointers), else one product per node, parents first."""
     if jump:
         moved = tree.node_motion @ motion.reshape(*motion.shape[:2], 16)
         world = tree.node_const + moved.reshape(*moved.shape[:2], 4, 4)
@@ -223,10 +202,8 @@ def world_poses(tree, motion, pick, jump: bool):
 
 class BodySnapshot(Frozen):
     """``StructuredSchema.body_si``'s arithmetic on a per-muscle path and a gravity torque: ``(l_geo [m] (B, M),
-    G [m/rad] (B, M, N), tau [N m] (B, N))`` float64 at postures ``q_rad (B, N)`` [rad], each step and cast of
-    ``StructuredSchema.body``: the normalized posture in the schema's ``dtype``, the path in float64 then cast to it,
-    the lengths and moment arms scaled in it (``scales``: ``l_mean``, ``l_std`` (M,) and ``arm`` (M, N)), the
-    torque at that posture decoded to radians in float64, then cast."""
+    G [m/rad] (B, M, N), tau [N m] (B, N))`` float64 at postures ``q_rad (B, N)`` [rad], with every cast of
+    ``StructuredSchema.body`` (``scales``: ``l_mean``, ``l_std`` (M,), ``arm`` (M, N) in the schema's ``dtype``)."""
 
     def __init__(self, q_lo, q_hi, dtype, path: PathSnapshot, gravity: GravitySnapshot, scales):
         self.q_lo, self.q_hi, self.dtype, self.float64 = q_lo.to(torch.float64), q_hi.to(torch.float64), dtype, \

@@ -12,14 +12,13 @@ from ..errors import BodySchemaInputError
 from .mlp import check_dims
 
 BLOCKS = ("plain", "residual")
-# postures per pass of ``with_jacobian``: the tangents of 256 postures (256 x in_dim x width floats) stay in the
-# core's cache between a layer's elementwise product and its matmul, and no pass allocates tens of megabytes (the
-# allocator maps those fresh from the kernel each call; BENCHMARKS.md, "Figures behind code choices")
+# postures per pass of ``with_jacobian``: their tangents stay in cache between a layer's elementwise product and its
+# matmul (BENCHMARKS.md, "Figures behind code choices")
 JACOBIAN_CHUNK = 256
 NORMS = ("none", "layer")
 
 
-def _silu_slope(z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+def silu_slope(z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     """``silu'(z) = s (1 + z (1 - s)) = s + a (1 - s)`` with ``s = sigmoid(z)`` and ``a = silu(z)`` (already made for
     the value: three elementwise passes)."""
     s = torch.sigmoid(z)
@@ -44,10 +43,9 @@ class JacobianMLP(nn.Module):
             (pre-norm residual blocks, same weights and cost; the identity path keeps deep stacks trainable).
         norm: ``"none"`` (``N`` the identity) or ``"layer"`` (``N`` a LayerNorm over the width, with its affine
             weight and bias, before every activation).
-    ``forward(x)`` gives y; ``with_jacobian(x)`` gives ``(y, J)`` with ``J (B, out_dim, in_dim) = dy/dx``, exact (the
-    chain rule through each layer, LayerNorm and residual add, differentiable by autograd in the weights), at about
-    ``in_dim + 1`` times the cost. The default (plain, none) holds only ``layers`` (one ``nn.Linear`` per layer);
-    ``norm="layer"`` adds ``norms`` (one per activation).
+    ``forward(x)`` gives y; ``with_jacobian(x)`` gives ``(y, J)`` with ``J (B, out_dim, in_dim) = dy/dx``, exact and
+    differentiable by autograd in the weights. State: ``layers`` (one ``nn.Linear`` each), with ``norm="layer"``
+    ``norms`` (one per activation).
     """
 
     def __init__(self, in_dim: int, out_dim: int, hidden: int = 256, n_hidden: int = 3, block: str = "plain",
@@ -90,13 +88,13 @@ class JacobianMLP(nn.Module):
     def _with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         first = self.layers[0]
         h = F.linear(x, first.weight, first.bias)
-        # d h / d x (1, in, width), rows = input directions, broadcast over B; contiguous: the products below then are
-        # too (a matmul of the transposed layout is many times slower; BENCHMARKS.md, "Figures behind code choices")
+        # d h / d x (1, in, width), rows = input directions, broadcast over B; contiguous (a matmul of the transposed
+        # layout is many times slower)
         tangent = first.weight.T.contiguous().unsqueeze(0)
         for layer, norm, residual in self._steps():
             z = h if norm is None else norm(h)
             a = F.silu(z)
-            slope = _silu_slope(z, a)
+            slope = silu_slope(z, a)
             scaled = tangent * slope.unsqueeze(1) if norm is None else _layer_norm_tangent(h, tangent, norm, slope)
             step = F.linear(scaled, layer.weight)
             out = F.linear(a, layer.weight, layer.bias)
@@ -107,9 +105,8 @@ class JacobianMLP(nn.Module):
 
 def _layer_norm_tangent(h: torch.Tensor, tangent: torch.Tensor, norm: nn.LayerNorm, slope: torch.Tensor):
     """``slope * d LayerNorm(h)`` for tangents ``(B, in, width)`` of ``h (B, width)`` (``slope (B, width)``: the
-    next activation's derivative). With ``c = h - mean(h)``, ``s = sqrt(var(h) + eps)`` (biased variance) and
-    ``n = c / s``: ``dn = (dc - n mean(n dc)) / s``, times the affine weight; ``mean(n dc)`` is taken as
-    ``mean(n dh) - mean(n) mean(dh)`` (the same number, one pass over the tangents fewer)."""
+    next activation's derivative): with ``c = h - mean(h)``, ``s = sqrt(var(h) + eps)`` and ``n = c / s``,
+    ``dn = (dc - n mean(n dc)) / s`` times the affine weight, ``mean(n dc) = mean(n dh) - mean(n) mean(dh)``."""
     c = h - h.mean(-1, keepdim=True)
     s = (c.pow(2).mean(-1, keepdim=True) + norm.eps).sqrt()
     n = c / s

@@ -1,6 +1,5 @@
-"""Trimmed least squares: refits without the samples a fit misses by far (the per-muscle polynomial torque and the
-gravity torque: where a learned moment arm swings, at a jump or a cell's edge, its torque is no smooth function and
-would pull the whole least squares; the path cells of ``PerMusclePath(cell_trim=...)``: a wrap's jump inside a cell).
+"""Trimmed least squares: refits without the samples a fit misses by far (the polynomial and gravity torques, where a
+learned moment arm swings; the path cells of ``PerMusclePath(cell_trim=...)``, a wrap's jump inside a cell), and
 ``solve_triangular``: the gravity torque's minimum-norm least squares from a QR. Plain PyTorch, no Lightning."""
 from __future__ import annotations
 

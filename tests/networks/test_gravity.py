@@ -158,3 +158,24 @@ def test_runs_on_cuda():
     gravity.fit_trimmed(q, tau)
     on_gpu = gravity.to("cuda")
     torch.testing.assert_close(on_gpu(q.cuda()).cpu(), tau, rtol=0, atol=1e-9)
+
+
+def test_the_torque_exports_under_vmap_with_a_dynamic_batch_and_answers_as_eager():
+    """Exported one posture at a time under ``torch.vmap`` (how ``deploy.structured`` exports a body the snapshot
+    does not cover): the module's own picks keep the batch symbolic, and the program answers as the eager snapshot
+    within the chain's roundings at the torque's scale."""
+    robot = MusculoskeletalModel("paper_arm")
+    gravity = GravityTorque(gravity_tree(robot))
+    gravity.fit_trimmed(*_postures(robot, 300, 0))
+
+    class Rows(torch.nn.Module):
+        def forward(self, q):
+            return torch.vmap(lambda row: gravity(row[None])[0])(q)
+
+    q, _ = _postures(robot, 7, 4)
+    batch = torch.export.Dim("batch", min=1, max=1024)
+    program = torch.export.export(Rows(), (q,), dynamic_shapes={"q": {0: batch}}).module()
+    for rows in (1, 7):
+        want = gravity(q[:rows])
+        tol = _CHAIN_ROUNDINGS * np.finfo(float).eps * want.abs().max().item()
+        torch.testing.assert_close(program(q[:rows]), want, rtol=0, atol=tol)

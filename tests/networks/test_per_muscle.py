@@ -5,7 +5,8 @@ import torch
 from physics_checks import central_differences, rounding_tol, term_sum_tol
 
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.networks.per_muscle import PerMusclePath, legendre, muscle_degrees
+from lightning_bodyschema.networks.basis import legendre
+from lightning_bodyschema.networks.per_muscle import PerMusclePath, muscle_degrees
 
 CROSSING = np.array([[1, 0, 0], [1, 1, 0], [0, 1, 1], [1, 1, 1]], dtype=bool)  # 4 muscles, 3 joints
 _EXTENSION_ROUNDINGS = 16  # p(c) + p'(c) (x - c) against the same by hand: x - c, a product and a sum, each re-rounded
