@@ -40,6 +40,7 @@ from ..sim.spring import spring_for_model
 from ..solvers import BoxQP, solve_box_qp, uncrossed_box
 from ..status import Status, status_array
 from .muscles import MuscleCurves, read_muscle_curves
+from .qp_blocks import solve_in_pieces
 
 OBJECTIVES = ("activation", "tension")
 FAULT_KINDS = ("cut", "jam", "weak", "band")
@@ -86,12 +87,21 @@ def check_solver(solver: str) -> None:
         raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
 
 
+def _solve_box_qp(G, column_scale, tau_nm, x_ref, lo, hi, solver: str, device=None):
+    """``argmin ||x - x_ref||^2  s.t.  -(G c)^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,),
+    ``G c`` the moment arms ``G`` (B, M, N) with each muscle's row scaled by ``column_scale`` (B, M): the one QP,
+    ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the torque-reach
+    screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
+    ``PROXQP_EPS``) on torch ``device`` (None: the CPU), called per independent block and chunk of rows
+    (``statics.qp_blocks``, which scales each piece's G: no scaled copy of the whole); the caller discards the x of
+    rows not ``ok``."""
+    return solve_in_pieces(lambda *arrays: _solve_piece(*arrays, solver, device), G, column_scale, tau_nm, x_ref, lo,
+                           hi, device)
+
+
 @torch.inference_mode()  # numpy in and out: no tensor here needs autograd's version counters
-def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str, device=None):
-    """``argmin ||x - x_ref||^2  s.t.  -G^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,): the
-    one QP call, ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the
-    torque-reach screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
-    ``PROXQP_EPS``) on torch ``device`` (None: the CPU); rows not ``ok`` are NaN."""
+def _solve_piece(G, tau_nm, x_ref, lo, hi, solver: str, device=None):
+    """``_solve_box_qp`` of one block and chunk: one solver call."""
     solution = solve_box_qp(BoxQP.build(G, tau_nm, x_ref, lo, hi, device=device), solver, tol=STATIC_TOL_NM,
                             fallback_max_iter=PROXQP_MAX_ITER, fallback_eps_abs=PROXQP_EPS, least_squares=False)
     return np.clip(to_numpy(solution.f_n), lo, hi), to_numpy(solution.status)
@@ -253,12 +263,14 @@ def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status, de
     unit = np.where(positive, scale, 1.0)
     x_lo = np.where(positive, (lo - offset) / unit, np.where(lo <= offset, 0.0, 1.0))  # scale 0: f = offset
     x_hi = np.where(positive, (hi - offset) / unit, np.where(offset <= hi, 0.0, -1.0))
-    Gx, tau_x = G * np.where(positive, scale, 0.0)[..., None], tau_nm + np.einsum("bmn,bm->bn", G, offset)
+    column_scale, tau_x = np.where(positive, scale, 0.0), tau_nm + np.einsum("bmn,bm->bn", G, offset)
     x_lo, crossed = uncrossed_box(x_lo, x_hi)
     x, code = np.full(lo.shape, np.nan), np.full(len(lo), Status.INFEASIBLE.code)  # crossed: infeasible
-    if (~crossed).any():
-        x[~crossed], code[~crossed] = _solve_box_qp(Gx[~crossed], tau_x[~crossed], x_ref[~crossed], x_lo[~crossed],
-                                                    x_hi[~crossed], solver, device)
+    if not crossed.any():  # every row: no copies
+        x, code = _solve_box_qp(G, column_scale, tau_x, x_ref, x_lo, x_hi, solver, device)
+    elif not crossed.all():
+        x[~crossed], code[~crossed] = _solve_box_qp(*(a[~crossed] for a in (G, column_scale, tau_x, x_ref, x_lo, x_hi)),
+                                                    solver, device)
     ok = code == Status.OK.code
     status = status_array(code)
     status[ok] = held
