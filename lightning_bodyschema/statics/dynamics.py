@@ -334,7 +334,7 @@ def solve_motion(body: StaticBody, q, qvel, qacc, faults=None, tau_nm=None, resi
         tau = tau_nm
     factor = None if body.curves is None else body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel))
     result, residual_nm = body.solve_torque(q, l_geo, G, tau, faults, objective, f_ref, solver, factor, residual,
-                                            device)
+                                            device, motion=tau_nm is None)  # a motion's frames: warm-started QPs
     control, clipped = (None, None) if result.activation is None else frame_controls(body, result.activation, t)
     fields = {k: getattr(result, k) for k in StaticResult.__dataclass_fields__}
     return MotionResult(**fields, qvel=qvel, qacc=qacc, tau_nm=tau, control=control, control_clipped=clipped,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..status import Status
+from .warm_start import SEED_EVERY, solve_warm
 
 CHUNK_BYTES = 2 ** 23  # of G per chunk: a quarter of this machine's L3 (32 MiB); 1 to 8 MiB ran alike, 90 MB not
 MIN_CHUNK_ROWS = 1024  # never fewer rows per chunk: a solver call costs ~1 ms more (~1 us a row at this size)
@@ -60,19 +61,23 @@ def chunks(rows: int, values_per_row: int, device=None) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def solve_in_pieces(solve, G, column_scale, tau_nm, x_ref, lo, hi, device=None):
+def solve_in_pieces(solve, G, column_scale, tau_nm, x_ref, lo, hi, device=None, warm_tol_nm=None):
     """``solve(G_piece, tau_nm, x_ref, lo, hi) -> (x (b, m), codes (b,))`` on every block and chunk (module docstring)
     of the QP whose moment arms are ``G`` (B, M, N) with each muscle's row scaled by ``column_scale`` (B, M) (each
-    piece scaled on its own: no scaled copy of the whole), put together: ``(x (B, M), codes (B,))``."""
+    piece scaled on its own: no scaled copy of the whole), put together: ``(x (B, M), codes (B,))``. ``warm_tol_nm``:
+    the rows are a motion's consecutive frames; on the CPU each chunk is warm-started (``statics.warm_start``),
+    frames taken where they balance to it [N m]."""
     x, code = np.full(lo.shape, np.nan), np.full(len(G), Status.OK.code)
+    cpu = device is None or getattr(device, "type", device) == "cpu"
     for muscles, joints in blocks(G):
         whole = isinstance(muscles, slice)
         pick = (lambda a: a) if whole else (lambda a: a[:, muscles])  # noqa: E731
         for rows in chunks(len(G), (G.shape[1] * G.shape[2]) if whole else len(muscles) * len(joints), device):
             arms = G[rows] if whole else G[rows, muscles[:, None], joints]
-            x_rows, code_rows = solve(arms * pick(column_scale[rows])[..., None],
-                                      tau_nm[rows] if whole else tau_nm[rows][:, joints],
-                                      *(pick(a[rows]) for a in (x_ref, lo, hi)))
+            piece = (arms * pick(column_scale[rows])[..., None], tau_nm[rows] if whole else tau_nm[rows][:, joints],
+                     *(pick(a[rows]) for a in (x_ref, lo, hi)))
+            warm = warm_tol_nm is not None and cpu and len(arms) >= 2 * SEED_EVERY
+            x_rows, code_rows = solve_warm(solve, *piece, warm_tol_nm) if warm else solve(*piece)
             x[rows, muscles] = x_rows
             code[rows] = np.where(_RANK[code_rows] < _RANK[code[rows]], code_rows, code[rows])
     return x, code

@@ -108,3 +108,51 @@ def test_moment_arms_from_the_sparse_jacobian_are_the_models(legs):
         expected = body.model.kinematics(q)[1]
         assert np.abs(expected).max() > 0.01  # moment arms of centimetres
         assert np.abs(G - expected).max() <= rounding_tol(64, expected)
+
+
+def test_warm_started_frames_are_the_solvers_answers(legs):
+    """A 3 s squat (1500 frames, the left soleus cut): every frame warm-started from seeds 32 frames apart is the
+    cold solve's answer (tensions within both stops' tolerance, the same statuses), and the solver ran on the seeds
+    and on no more than a few other frames."""
+    from lightning_bodyschema.statics import inverse_dynamics, warm_start
+
+    t = np.arange(0.0, 3.0, 0.002)
+    names = legs.model.joint_names
+    q = np.zeros((len(t), len(names)))
+    for joint, depth in (("hip_flexion", 0.9), ("knee_angle", 1.2), ("ankle_angle", 0.3)):
+        for side in "rl":
+            q[:, names.index(f"{joint}_{side}")] = depth * 0.5 * (1 - np.cos(2 * np.pi * t / 3.0))
+    qvel, qacc = np.gradient(q, t, axis=0), np.gradient(np.gradient(q, t, axis=0), t, axis=0)
+    calls = []
+    solve_warm = warm_start.solve_warm
+
+    def counting(solve, *arrays):
+        return solve_warm(lambda *a: (calls.append(len(a[0])), solve(*a))[1], *arrays)
+
+    faults = {"cut": ["soleus_l_tendon"]}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("lightning_bodyschema.statics.qp_blocks.solve_warm", counting)
+        warm = inverse_dynamics(legs, q, qvel, qacc, t=t, faults=faults)
+        patch.setattr("lightning_bodyschema.statics.qp_blocks.SEED_EVERY", len(t) + 1)  # no chunk warm-started
+        cold = inverse_dynamics(legs, q, qvel, qacc, t=t, faults=faults)
+    assert (warm.status == cold.status).all() and warm.ok.all()
+    assert np.abs(warm.tension_n - cold.tension_n).max() <= TENSION_TOL_N
+    seeds = 2 * -(-len(t) // warm_start.SEED_EVERY)  # two legs
+    assert seeds <= sum(calls) <= seeds + 0.02 * 2 * len(t)
+
+
+def test_the_exact_step_takes_only_the_optimum(legs_qp):
+    """On the optimum's active set the exact step is the solver's answer and is taken; on a guess with every muscle
+    free it is not, wherever the optimum holds some muscle at a bound."""
+    from lightning_bodyschema.statics.warm_start import exact_step
+
+    G, scale, tau, x_ref, x_lo, x_hi = (a[:40] for a in legs_qp)
+    Gx = G * scale[..., None]
+    x, code = solve(Gx, tau, x_ref, x_lo, x_hi)
+    ok = code == Status.OK.code
+    step, held = exact_step(Gx[ok], tau[ok], x_ref[ok], x_lo[ok], x_hi[ok], x[ok], STATIC_TOL_NM)
+    assert held.all() and np.abs((step - x[ok]) * scale[ok]).max() <= TENSION_TOL_N
+    inside = np.clip(x[ok], x_lo[ok] + 1e-3, x_hi[ok] - 1e-3)
+    _, held = exact_step(Gx[ok], tau[ok], x_ref[ok], x_lo[ok], x_hi[ok], inside, STATIC_TOL_NM)
+    bound = ((x[ok] <= x_lo[ok]) | (x[ok] >= x_hi[ok])) & (x_lo[ok] < x_hi[ok])
+    assert bound.any(1).sum() >= 10 and not held[bound.any(1)].any()
