@@ -9,7 +9,8 @@
   over G and its line search's trials stay in cache: on a 10,000-frame myoLegs motion one batch streamed G (90 MB)
   from memory at every pass; chunks halved the QP's time. The answer of a row does not depend on the others.
 
-A row's status is its blocks' worst (``BAD_INPUT``, then ``INFEASIBLE``, ``NOT_CONVERGED``, ``OK``). numpy; the solver
+Fewer than ``MIN_BLOCK_ROWS`` rows are solved whole (a solver call costs more than a block saves them). A row's
+status is its blocks' worst (``BAD_INPUT``, then ``INFEASIBLE``, ``NOT_CONVERGED``, ``OK``). numpy; the solver
 runs in torch. Never imports Lightning.
 """
 from __future__ import annotations
@@ -21,6 +22,7 @@ from .warm_start import SEED_EVERY, solve_warm
 
 CHUNK_BYTES = 2 ** 23  # of G per chunk: a quarter of this machine's L3 (32 MiB); 1 to 8 MiB ran alike, 90 MB not
 MIN_CHUNK_ROWS = 1024  # never fewer rows per chunk: a solver call costs ~1 ms more (~1 us a row at this size)
+MIN_BLOCK_ROWS = 64  # fewer rows are solved whole: each block is a solver call (~1 ms), more than a block saves them
 # each code's rank, worst lowest: a row is as bad as its worst block (a code not named here ranks worst)
 _RANK = np.zeros(max(s.code for s in Status) + 1, dtype=int)
 _RANK[[Status.INFEASIBLE.code, Status.NOT_CONVERGED.code, Status.OK.code]] = [1, 2, 3]  # BAD_INPUT: 0
@@ -69,7 +71,7 @@ def solve_in_pieces(solve, G, column_scale, tau_nm, x_ref, lo, hi, device=None, 
     frames taken where they balance to it [N m]."""
     x, code = np.full(lo.shape, np.nan), np.full(len(G), Status.OK.code)
     cpu = device is None or getattr(device, "type", device) == "cpu"
-    for muscles, joints in blocks(G):
+    for muscles, joints in blocks(G) if len(G) >= MIN_BLOCK_ROWS else [(slice(None), slice(None))]:
         whole = isinstance(muscles, slice)
         pick = (lambda a: a) if whole else (lambda a: a[:, muscles])  # noqa: E731
         for rows in chunks(len(G), (G.shape[1] * G.shape[2]) if whole else len(muscles) * len(joints), device):
