@@ -6,8 +6,8 @@
   minimizers side by side (it is unique: the Hessian is the identity). Two QPs of 40 x 7 cost about a quarter of one
   of 80 x 14 in the Newton systems (``G^T D G``) and half in every product with G.
 * Chunks: on the CPU, rows are solved about ``CHUNK_BYTES`` of moment arms at a time, so that the solver's passes
-  over G and its line search's trials stay in cache: on a 10,000-frame myoLegs motion one batch streamed G (90 MB)
-  from memory at every pass; chunks halved the QP's time. The answer of a row does not depend on the others.
+  over G and its line search's trials stay in cache (a 10,000-frame myoLegs motion has 90 MB of G). The answer of a
+  row does not depend on the others.
 
 Fewer than ``MIN_BLOCK_ROWS`` rows are solved whole (a solver call costs more than a block saves them). A row's
 status is its blocks' worst (``BAD_INPUT``, then ``INFEASIBLE``, ``NOT_CONVERGED``, ``OK``). numpy; the solver
@@ -20,7 +20,8 @@ import numpy as np
 from ..status import Status
 from .warm_start import SEED_EVERY, solve_warm
 
-CHUNK_BYTES = 2 ** 23  # of G per chunk: a quarter of this machine's L3 (32 MiB); 1 to 8 MiB ran alike, 90 MB not
+CHUNK_BYTES = 2 ** 23  # of G per chunk: a quarter of this machine's L3 (32 MiB); 1 to 8 MiB ran alike, 90 MB
+# in one batch 1.4-1.8x slower (the myoLegs squat's QP, BENCHMARKS)
 MIN_CHUNK_ROWS = 1024  # never fewer rows per chunk: a solver call costs ~1 ms more (~1 us a row at this size)
 MIN_BLOCK_ROWS = 64  # fewer rows are solved whole: each block is a solver call (~1 ms), more than a block saves them
 # each code's rank, worst lowest: a row is as bad as its worst block (a code not named here ranks worst)

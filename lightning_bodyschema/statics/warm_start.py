@@ -1,5 +1,5 @@
-"""The QPs of a motion's frames, warm-started: a frame holds with nearly the muscles at their bounds that a frame
-shortly before holds with, and on a known active set the QP is one linear solve.
+"""The QPs of a motion's frames, warm-started: a frame's optimum mostly has the same muscles at their bounds as the
+optimum of a frame shortly before it, and on a known active set the QP is one linear solve.
 
 Per chunk of frames (``statics.qp_blocks``): every ``SEED_EVERY``-th frame is solved by the solver (a seed); every
 other frame takes its seed's active set (the muscles at their lower or upper bound) as a guess and makes the exact
@@ -10,8 +10,7 @@ bound: the KKT conditions; the optimum is unique, the Hessian being the identity
 solver's own tolerance. A frame where it does not is given the active set the step found and tries again
 (``WARM_ROUNDS`` such steps: the dual Newton's, from a warm start), then goes to the solver. Only frames proven this
 way are taken, so the statuses are the solver's; the answers are the optimum to rounding (the solver's stop, 1e-12
-N m of residual, leaves up to ~1e-12 of activation). On the benchmark's reach and squat every frame was taken within
-three steps from seeds 32 frames apart; the solver then ran on 1 frame in 32. torch on the CPU; never imports Lightning.
+N m of residual, leaves up to ~1e-12 of activation). torch on the CPU; never imports Lightning.
 """
 from __future__ import annotations
 
@@ -20,7 +19,8 @@ import torch
 
 from ..status import Status
 
-SEED_EVERY = 32  # frames between two seeds: 64 ms of a 2 ms motion
+SEED_EVERY = 32  # frames between two seeds (64 ms at 2 ms frames): on the benchmark's reach and squat every other
+# frame was taken within WARM_ROUNDS steps, so the solver ran on 1 frame in 32
 WARM_ROUNDS = 3  # exact steps from the seed's active set before a frame goes to the solver
 
 
