@@ -4,7 +4,9 @@ CSV or NPZ as the posture files (``apps.static_opt``), plus optional ``qvel_<joi
 (all joints, or none: then the Savitzky-Golay differentiator of ``statics.differentiate`` gives them). OpenSim's
 ``.mot`` (the storage format MyoSuite's own import reads): header lines up to ``endheader`` (``inDegrees=yes``: the
 hinge joints' columns are in degrees), then a ``time`` column and one column per coordinate; coordinates that are not
-free joints of the body (locked, coupled, absent) are left out and named.
+free joints of the body (locked, coupled, absent) are left out and named. On a body with a floating root, OpenSim's
+six pelvis coordinates (``pelvis_tilt`` .. ``pelvis_tz``) move the root (``apps.motion_pelvis``; without a floating
+root, or on a model without a ``pelvis`` body, they are left out and named).
 
 A floating root (a free joint ``J`` of the body's source, e.g. myo:myolegs's ``root``; ``statics.root``): columns
 ``J_px, J_py, J_pz`` [m] and ``J_qw, J_qx, J_qy, J_qz`` (its unit quaternion) per frame, and optionally
@@ -51,14 +53,15 @@ def read_mot(path: str) -> tuple[dict, bool]:
     return columns, degrees
 
 
-def read_motion(path: str, model, roots=()) -> tuple:
+def read_motion(path: str, model, roots=(), source=None) -> tuple:
     """``(t (B,), q, qvel, qacc (B, N), root)`` of ``model``'s free joints from a motion file; qvel and qacc None
     where the file gives none (the caller differentiates); ``root``: the floating roots' ``(qpos (B, 7K), qvel,
-    qacc (B, 6K) or None)`` of the free joints named ``roots`` (module docstring), None where the file has none."""
+    qacc (B, 6K) or None)`` of the free joints named ``roots`` (module docstring), None where the file has none;
+    ``source``: the model's source (a ``.mot`` file's pelvis columns are put on its root: ``apps.motion_pelvis``)."""
     if not os.path.isfile(path):
         raise BodySchemaInputError(f"--motion {path!r} does not exist")
     if path.lower().endswith(".mot"):
-        return (*_from_mot(path, model), None)
+        return _from_mot(path, model, list(roots), source)
     columns = read_posture_columns(path)
     if "t" not in columns:
         raise BodySchemaInputError(f"{path}: no 't' column; a motion needs one, the frame times [s]")
@@ -106,9 +109,12 @@ def _derivative(columns: dict, prefix: str, free: list, path: str):
     return postures_of(named, free, path)
 
 
-def _from_mot(path: str, model):
+def _from_mot(path: str, model, roots: list, source):
+    from .motion_pelvis import pelvis_root
+
     columns, degrees = read_mot(path)
     t = columns.pop("t")
+    root = pelvis_root(columns, degrees, source, roots, path)
     free = model.joint_names
     left = sorted(set(columns) - set(free))
     if left:
@@ -119,4 +125,4 @@ def _from_mot(path: str, model):
 
         hinge = model.mj_model.jnt_type[model.joint_map.free] == int(mujoco.mjtJoint.mjJNT_HINGE)
         q = np.where(hinge, np.deg2rad(q), q)
-    return t, q, None, None
+    return t, q, None, None, root

@@ -30,7 +30,7 @@ def solve_file(body, args, faults):
     from .motion_files import read_motion
 
     roots = [joint for joint, _ in free_roots(body.source)] if body.fixed_base else []
-    t, q, qvel, qacc, root = read_motion(args.motion, body.model, roots)
+    t, q, qvel, qacc, root = read_motion(args.motion, body.model, roots, body.source)
     body.model.check_q(q, within_range=True)
     if qvel is None or qacc is None:
         derived = differentiate(t, q, args.smooth_window)

@@ -93,6 +93,7 @@ class InverseBody:
             self.tendon_ids = np.array([mujoco.mj_name2id(self.m, mujoco.mjtObj.mjOBJ_TENDON, n)
                                         for n in body.model.muscle_names], dtype=int)
             self.index = self._muscle_index()
+            self.plan = _ArmPlan.of(self.index, len(self.tendon_ids), self.layout, body.model.joint_map)
 
     def full_state(self, q, qvel, qacc):
         """Every joint's position, velocity and acceleration (B, nq) from the free joints' (B, N), and ``E``."""
@@ -117,16 +118,16 @@ class InverseBody:
         tau_root = None if not layout.floating else force[:, layout.root_dof]
         if self.arms is not None:
             return (*self.arms.paths(full, tangent), tau, None, tau_root)
-        jac = self._jacobian(ten_j)
         if not layout.floating:
-            return lengths[:, self.tendon_ids], jac @ tangent, tau, None, None
+            return lengths[:, self.tendon_ids], self.plan.moment_arms(ten_j, tangent), tau, None, None
+        jac = self._jacobian(ten_j)
         return (lengths[:, self.tendon_ids], jac[:, :, layout.rest_dof] @ tangent, tau, jac[:, :, layout.root_dof],
                 tau_root)
 
     def paths(self, full, tangent):
         """``(l_geo (B, M), G (B, M, N))`` at every joint's positions ``full`` (B, nq): MuJoCo's kinematics alone."""
         lengths, ten_j, _ = self._run((full, None, None), True, False)
-        return lengths[:, self.tendon_ids], self._jacobian(ten_j) @ tangent
+        return lengths[:, self.tendon_ids], self.plan.moment_arms(ten_j, tangent)
 
     def _jacobian(self, ten_j):
         """(B, M, nv) the muscles' rows of every frame's sparse ``ten_J`` (B, nnz): one gather and scatter."""
@@ -174,22 +175,71 @@ class InverseBody:
         ``forces``: the inverse dynamics' forces (lean: the RNE and the passive forces)."""
         full, qvel_full, qacc_full = state
         (lengths, ten_j, force, passive), m = out, self.m
+        # d's arrays bound once: each read of an MjData attribute makes a new numpy view (~0.3 us, ~10 per frame)
+        qpos, qvel, qacc, ten_length, ten_J, qfrc_passive = d.qpos, d.qvel, d.qacc, d.ten_length, d.ten_J, \
+            d.qfrc_passive
         for b in rows:  # MuJoCo evaluates one state per call
-            d.qpos[:] = full[b]
+            qpos[:] = full[b]
             if not forces:
                 mujoco.mj_kinematics(m, d)
                 mujoco.mj_comPos(m, d)
                 mujoco.mj_tendon(m, d)
             elif self.lean:
-                d.qvel[:], d.qacc[:] = qvel_full[b], qacc_full[b]
+                qvel[:], qacc[:] = qvel_full[b], qacc_full[b]
                 lean_inverse(m, d, force[b])
-                passive[b] = d.qfrc_passive
+                passive[b] = qfrc_passive
             else:
-                d.qvel[:], d.qacc[:] = qvel_full[b], qacc_full[b]
+                qvel[:], qacc[:] = qvel_full[b], qacc_full[b]
                 mujoco.mj_inverse(m, d)
                 force[b] = d.qfrc_inverse
             if paths:
-                lengths[b], ten_j[b] = d.ten_length, d.ten_J  # the muscles' entries gathered for all frames at once
+                lengths[b], ten_j[b] = ten_length, ten_J  # the muscles' entries gathered for all frames at once
+
+
+@dataclass(frozen=True)
+class _ArmPlan:
+    """How the muscles' entries of ``ten_J`` make ``G = J E`` (B, M, N) without the dense (B, M, nv) J: E has at most
+    one entry per joint (a free joint's 1; a follower's slope, in the column of the free joint it follows: a followed
+    joint is free or locked, ``sim.joints``; none for a locked joint), so each entry e of J adds ``J_e E_j`` to one
+    entry of G. ``entries`` (E,): positions in ``ten_J``; ``joints`` (E,): their rows of E; ``column`` (nq,): E's
+    column of each row (0 where it has none: its entries are left out); ``starts``: where each entry of G
+    (``targets``, flat in (M, N)) begins among the entries sorted by target; ``shape``: (M, N)."""
+
+    entries: np.ndarray
+    joints: np.ndarray
+    column: np.ndarray
+    starts: np.ndarray
+    targets: np.ndarray
+    shape: tuple
+
+    @classmethod
+    def of(cls, index, n_muscles: int, layout: FrameLayout, joint_map) -> "_ArmPlan":
+        rows, dofs, entries = index
+        column = np.full(len(joint_map.qpos0), -1)
+        column[joint_map.free] = np.arange(len(joint_map.free))
+        for joint, followed, _ in joint_map.deps:
+            column[joint] = column[followed]  # -1 where it follows a locked joint
+        joint_of_dof = np.full(layout.m.nv, -1)
+        joint_of_dof[layout.rest_dof] = np.arange(len(layout.rest_dof))
+        joints = joint_of_dof[dofs]
+        live = joints >= 0
+        live[live] = column[joints[live]] >= 0
+        n = len(joint_map.free)
+        target = rows[live] * n + column[joints[live]]
+        order = np.argsort(target, kind="stable")
+        target = target[order]
+        starts = np.flatnonzero(np.r_[True, target[1:] != target[:-1]]) if len(target) else np.zeros(0, int)
+        return cls(entries[live][order], joints[live][order], np.maximum(column, 0), starts, target[starts],
+                   (n_muscles, n))
+
+    def moment_arms(self, ten_j: np.ndarray, tangent: np.ndarray) -> np.ndarray:
+        """``G`` (B, M, N) from every frame's ``ten_J`` (B, nnz) and ``E`` (B, nq, N)."""
+        batch = len(ten_j)
+        slope = tangent[:, np.arange(len(self.column)), self.column]  # (B, nq): each joint's entry of E
+        G = np.zeros((batch, self.shape[0] * self.shape[1]))
+        if len(self.targets):
+            G[:, self.targets] = np.add.reduceat(ten_j[:, self.entries] * slope[:, self.joints], self.starts, axis=1)
+        return G.reshape(batch, *self.shape)
 
 
 def _inverse_body(body: StaticBody, floating: bool = False) -> InverseBody:
@@ -284,7 +334,7 @@ def solve_motion(body: StaticBody, q, qvel, qacc, faults=None, tau_nm=None, resi
         tau = tau_nm
     factor = None if body.curves is None else body.curves.velocity_factor(np.einsum("bmn,bn->bm", G, qvel))
     result, residual_nm = body.solve_torque(q, l_geo, G, tau, faults, objective, f_ref, solver, factor, residual,
-                                            device)
+                                            device, motion=tau_nm is None)  # a motion's frames: warm-started QPs
     control, clipped = (None, None) if result.activation is None else frame_controls(body, result.activation, t)
     fields = {k: getattr(result, k) for k in StaticResult.__dataclass_fields__}
     return MotionResult(**fields, qvel=qvel, qacc=qacc, tau_nm=tau, control=control, control_clipped=clipped,

@@ -40,6 +40,7 @@ from ..sim.spring import spring_for_model
 from ..solvers import BoxQP, solve_box_qp, uncrossed_box
 from ..status import Status, status_array
 from .muscles import MuscleCurves, read_muscle_curves
+from .qp_blocks import solve_in_pieces
 
 OBJECTIVES = ("activation", "tension")
 FAULT_KINDS = ("cut", "jam", "weak", "band")
@@ -86,12 +87,23 @@ def check_solver(solver: str) -> None:
         raise BodySchemaInputError(f"solver={solver!r}; allowed: ['newton', 'proxqp']")
 
 
+def _solve_box_qp(G, column_scale, tau_nm, x_ref, lo, hi, solver: str, device=None, motion: bool = False):
+    """``argmin ||x - x_ref||^2  s.t.  -(G c)^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,),
+    ``G c`` the moment arms ``G`` (B, M, N) with each muscle's row scaled by ``column_scale`` (B, M): the one QP,
+    ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the torque-reach
+    screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
+    ``PROXQP_EPS``) on torch ``device`` (None: the CPU), called per independent block and chunk of rows
+    (``statics.qp_blocks``, which scales each piece's G: no scaled copy of the whole); ``motion``: the rows are a
+    motion's consecutive frames, warm-started with ``"newton"`` (``statics.warm_start``). The caller discards the x
+    of rows not ``ok``."""
+    warm_tol_nm = STATIC_TOL_NM if motion and solver == "newton" else None
+    return solve_in_pieces(lambda *arrays: _solve_piece(*arrays, solver, device), G, column_scale, tau_nm, x_ref, lo,
+                           hi, device, warm_tol_nm)
+
+
 @torch.inference_mode()  # numpy in and out: no tensor here needs autograd's version counters
-def _solve_box_qp(G, tau_nm, x_ref, lo, hi, solver: str, device=None):
-    """``argmin ||x - x_ref||^2  s.t.  -G^T x = tau,  lo <= x <= hi`` per row (B, M) and its status codes (B,): the
-    one QP call, ``solvers.solve_box_qp`` by ``solver``: ``"newton"`` (the dual Newton to ``STATIC_TOL_NM``, the
-    torque-reach screen, proxsuite within ``PROXQP_MAX_ITER`` on what they leave) or ``"proxqp"`` (proxsuite alone to
-    ``PROXQP_EPS``) on torch ``device`` (None: the CPU); rows not ``ok`` are NaN."""
+def _solve_piece(G, tau_nm, x_ref, lo, hi, solver: str, device=None):
+    """``_solve_box_qp`` of one block and chunk: one solver call."""
     solution = solve_box_qp(BoxQP.build(G, tau_nm, x_ref, lo, hi, device=device), solver, tol=STATIC_TOL_NM,
                             fallback_max_iter=PROXQP_MAX_ITER, fallback_eps_abs=PROXQP_EPS, least_squares=False)
     return np.clip(to_numpy(solution.f_n), lo, hi), to_numpy(solution.status)
@@ -171,13 +183,14 @@ class StaticBody:
         return self.solve_torque(q, l_geo, G, tau, faults, objective, f_ref, solver)[0]
 
     def solve_torque(self, q, l_geo, G, tau_nm, faults: Faults, objective: str, f_ref=None, solver: str = "newton",
-                     active_factor=None, residual=None, device=None):
+                     active_factor=None, residual=None, device=None, motion: bool = False):
         """``(StaticResult, residual (B, R) [N m] or None)``: the optimization of ``solve`` on given kinematics, the
         muscles holding ``-G^T f = tau_nm`` (B, N) at tendon lengths ``l_geo`` (B, M) with moment arms ``G`` (B, M, N)
         (``statics.dynamics`` passes the torque a motion needs). ``active_factor`` (B, M): a factor on each muscle's
         active force (MuJoCo's force-velocity curve; None: 1). ``residual``: ``(directions (R, N), unit (R,))``
         residual actuators, each adding ``unit x`` [N m] along its direction with ``x^2`` in the objective, unbounded.
-        ``device``: the QP's torch device (None: the CPU). ``faults`` validated, ``objective`` checked by the caller."""
+        ``device``: the QP's torch device (None: the CPU). ``motion``: the rows are a motion's consecutive frames (the
+        QPs warm-started: ``statics.warm_start``). ``faults`` validated, ``objective`` checked by the caller."""
         bounds = self.fault_bounds(faults)
         lo, hi, s, p = self.tension_bounds(l_geo, faults, bounds)
         if s is not None and active_factor is not None:
@@ -189,11 +202,12 @@ class StaticBody:
         x_ref = np.zeros_like(lo) if objective == "activation" else self._f_ref(f_ref, lo.shape) / unit
         capped = hi if s is None else np.minimum(hi, p + s)
         columns = _Columns(G, tau_nm, lo, scale, offset, x_ref, residual)
-        f, status = _held(*columns.args(capped), solver, Status.OK, device)
+        f, status = _held(*columns.args(capped), solver, Status.OK, device, motion)
         if s is not None and (status != Status.OK).any():
             rest = status != Status.OK
             relaxed = np.minimum(hi, p + RELAXED_ACTIVATION * s)
-            f[rest], status[rest] = _held(*columns.args(relaxed, rest), solver, Status.ACTIVATION_ABOVE_ONE, device)
+            f[rest], status[rest] = _held(*columns.args(relaxed, rest), solver, Status.ACTIVATION_ABOVE_ONE, device,
+                                          motion)
         f, residual_nm = f[:, :lo.shape[1]], (f[:, lo.shape[1]:] if residual is not None else None)
         activation = None if s is None else np.where(s > 0, (f - p) / np.where(s > 0, s, 1.0), f * 0.0)  # NaN stays
         if activation is not None:  # a relaxed answer within the cap is the capped problem's answer too
@@ -246,19 +260,22 @@ class _Columns:
         return tuple(a[rows] for a in (self.G, self.tau, self.lo, hi, self.scale, self.offset, self.x_ref))
 
 
-def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status, device=None):
+def _held(G, tau_nm, lo, hi, scale, offset, x_ref, solver: str, held: Status, device=None, motion: bool = False):
     """Tensions ``f = scale x + offset`` (B, M) [N] in ``[lo, hi]`` holding each posture, the QP in x, and the status:
-    ``held`` where it holds, else ``infeasible`` (crossed bounds, a torque out of reach) or ``not_converged``."""
+    ``held`` where it holds, else ``infeasible`` (crossed bounds, a torque out of reach) or ``not_converged``;
+    ``motion``: the rows are consecutive frames (``_solve_box_qp``)."""
     positive = scale > 0
     unit = np.where(positive, scale, 1.0)
     x_lo = np.where(positive, (lo - offset) / unit, np.where(lo <= offset, 0.0, 1.0))  # scale 0: f = offset
     x_hi = np.where(positive, (hi - offset) / unit, np.where(offset <= hi, 0.0, -1.0))
-    Gx, tau_x = G * np.where(positive, scale, 0.0)[..., None], tau_nm + np.einsum("bmn,bm->bn", G, offset)
+    column_scale, tau_x = np.where(positive, scale, 0.0), tau_nm + np.einsum("bmn,bm->bn", G, offset)
     x_lo, crossed = uncrossed_box(x_lo, x_hi)
     x, code = np.full(lo.shape, np.nan), np.full(len(lo), Status.INFEASIBLE.code)  # crossed: infeasible
-    if (~crossed).any():
-        x[~crossed], code[~crossed] = _solve_box_qp(Gx[~crossed], tau_x[~crossed], x_ref[~crossed], x_lo[~crossed],
-                                                    x_hi[~crossed], solver, device)
+    if not crossed.any():  # every row: no copies
+        x, code = _solve_box_qp(G, column_scale, tau_x, x_ref, x_lo, x_hi, solver, device, motion)
+    elif not crossed.all():
+        x[~crossed], code[~crossed] = _solve_box_qp(*(a[~crossed] for a in (G, column_scale, tau_x, x_ref, x_lo, x_hi)),
+                                                    solver, device, motion)
     ok = code == Status.OK.code
     status = status_array(code)
     status[ok] = held

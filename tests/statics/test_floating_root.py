@@ -18,7 +18,8 @@ from lightning_bodyschema.statics.differentiate import differentiate
 from lightning_bodyschema.statics.root import root_derivatives
 
 # a torso floating on a free joint, a two-joint arm, four muscles with MuJoCo muscle actuators, an idle tendon
-# (a path without force: left out of the inverse model) and a spring tendon (kept: it pulls)
+# (a path without force: left out of the inverse model), a spring tendon (kept: it pulls) and a marker site (no
+# tendon passes it: left out)
 FLOATING_ARM = """
 <mujoco model="floating_arm">
   <compiler angle="radian"/>
@@ -29,6 +30,7 @@ FLOATING_ARM = """
       <geom type="box" size="0.1 0.08 0.2" mass="8"/>
       <site name="s_shoulder_front" pos="0.06 0 0.1"/>
       <site name="s_shoulder_back" pos="-0.06 0 0.1"/>
+      <site name="marker" pos="0 0 0.2"/>
       <body name="upper" pos="0 0.12 0.15">
         <joint name="shoulder" type="hinge" axis="0 1 0" range="-1.5 1.5" damping="0.5"/>
         <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.03" mass="1.5"/>
@@ -183,8 +185,9 @@ def test_cli_motion_with_root_columns(tmp_path, body):
 
 @pytest.mark.parametrize("floating", [False, True])
 def test_lean_inverse_is_mj_inverse(body, floating):
-    """The inverse model leaves out the idle tendon only, and its lean sequence gives mj_inverse's generalized
-    force on the whole model (idle tendon included) to 1e-12 of the force's scale, frame by frame."""
+    """The inverse model leaves out the idle tendon and the sites no tendon left passes only, and its lean sequence
+    gives mj_inverse's generalized force on the whole model (idle tendon and sites included) to 1e-12 of the force's
+    scale, frame by frame."""
     import mujoco
 
     from lightning_bodyschema.statics.dynamics import InverseBody
@@ -194,6 +197,10 @@ def test_lean_inverse_is_mj_inverse(body, floating):
     names = [mujoco.mj_id2name(inverse.m, mujoco.mjtObj.mjOBJ_TENDON, i) for i in range(inverse.m.ntendon)]
     # floating: the muscles' paths are the welded body's, the forces need only the tendon that pulls
     assert inverse.lean and sorted(names) == (["spring"] if floating else sorted(body.model.muscle_names + ["spring"]))
+    sites = {mujoco.mj_id2name(inverse.m, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(inverse.m.nsite)}
+    assert sites == ({"s_shoulder_back", "s_fore_bottom"} if floating else
+                     {"s_shoulder_front", "s_shoulder_back", "s_upper_front", "s_upper_back", "s_upper_low_f",
+                      "s_upper_low_b", "s_fore_top", "s_fore_bottom"})
     whole = FrameLayout.of(body, floating)
     whole.m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
     assert whole.m.ntendon == 6
