@@ -42,6 +42,7 @@ CHUNK = 4000  # train rows per basis block; --samples counts are rounded up to i
 RIDGE = 1e-10  # relative to the mean diagonal of each normal-equation matrix
 CELL_DEGREE = 11  # a cell's highest total degree where the checkpoint has no cells on the muscle (its myoArm cells')
 GATE_ROUNDS, GATE_RIDGE = 12, 1e-6  # a cell gate's Newton steps and ridge (per sample): separable data stays bounded
+MISGATE_RADII = (0.005, 0.01, 0.02, 0.05)  # how far from a true switch the cell gates' wrong answers lie [rad]
 NEAR_RAD = 0.01  # a posture this near a true switch of a muscle's state (along a joint it crosses) is "near"
 STATE_KEYS = 1000  # cell * STATE_KEYS + state: one key per (cell, wrapping state); codes stay below 3**6
 
@@ -194,15 +195,20 @@ class CellFit:
             phi = basis(z[rows], exponents)[0]
             gram = phi.T @ phi
             gram += RIDGE * float(gram.diagonal().mean()) * torch.eye(len(gram), dtype=gram.dtype)
-            self.table[int(key)] = (exponents, torch.linalg.solve(gram, phi.T @ y[rows]))
+            box = (z[rows].amin(0), z[rows].amax(0))  # where this key's samples are
+            self.table[int(key)] = (exponents, torch.linalg.solve(gram, phi.T @ y[rows]), box)
 
-    def predict(self, z, keys, dz_dq, fallback):
-        """Length [mm] and moment arms [mm/rad] at ``z`` by key; keys without a fit keep ``fallback`` (l, G)."""
+    def predict(self, z, keys, dz_dq, fallback, within_box: bool = False):
+        """Length [mm] and moment arms [mm/rad] at ``z`` by key; keys without a fit keep ``fallback`` (l, G), and
+        with ``within_box`` so do postures outside the box of their key's samples (a gate that picks a state where
+        it has no sample would extrapolate that state's polynomial)."""
         l_hat, g_hat = fallback[0].clone(), fallback[1].clone()
         for key in np.unique(keys):
             if int(key) not in self.table:
                 continue
-            rows, (exponents, coef) = torch.as_tensor(keys == key), self.table[int(key)]
+            rows, (exponents, coef, (lo, hi)) = torch.as_tensor(keys == key), self.table[int(key)]
+            if within_box:
+                rows &= ((z >= lo) & (z <= hi)).all(1)
             phi, dphi = basis(z[rows], exponents, slopes=True)
             l_hat[rows], g_hat[rows] = phi @ coef, (dphi @ coef) * dz_dq[None, :]
         return l_hat, g_hat
@@ -320,6 +326,10 @@ def table(result: dict) -> str:
     lines.append("(ii-c) per muscle, length p99 [mm] within / beyond {:g} rad of a true switch (share within): ".format(
         NEAR_RAD) + ", ".join(f"{m} {fmt([v for v in nf if v is not None])} ({100 * result['near_switch_share'][m]:.3g} %)"
                                for m, nf in result["ii-c_near_far_p99_mm"].items()))
+    wrong = result["cell_gate_wrong_near_switch"]
+    lines.append(f"gate per cell, wrong answers ({sum(wrong['postures'])} muscle-postures): share within " + ", ".join(
+        f"{1e3 * r:g}" for r in wrong["radii_rad"]) + " mrad of a true switch along a joint: " + ", ".join(
+        "-" if v is None else f"{100 * v:.3g} %" for v in wrong["share_within"]))
     for key, label in (("gate_accuracy", "whole-box gate"), ("cell_gate_accuracy", "gate per cell")):
         lines.append(f"{label}, share of postures in the right state: " + ", ".join(
             f"{m} {100 * a:.3g} %" for m, a in result[key].items()))
@@ -368,6 +378,11 @@ def run(args) -> dict:
     truth = (1e3 * l_eval, 1e3 * g_eval, crossed)
     result = score(args, schema, names, muscles, preds, truth, counts, states, marks)
     near = near_switch(model, q_eval, data["eval"][1], muscles, crossed)
+    wrong = np.stack([~p[0].numpy() for p in preds["cell_gate_right"]], 1)
+    result["cell_gate_wrong_near_switch"] = {"radii_rad": list(MISGATE_RADII), "postures": wrong.sum(0).tolist(),
+                                             "share_within": [float(np.mean(near_switch(model, q_eval, data["eval"][1],
+                                                                                        muscles, crossed, r)[wrong]))
+                                                              if wrong.any() else None for r in MISGATE_RADII]}
     result["near_switch_share"] = {names[m]: float(near[:, i].mean()) for i, m in enumerate(muscles)}
     result["ii-c_near_far_p99_mm"] = {names[m]: [float(np.percentile(e[near[:, i]], 99)) if near[:, i].any() else None,
                                                  float(np.percentile(e[~near[:, i]], 99))]
@@ -375,11 +390,12 @@ def run(args) -> dict:
     return result
 
 
-def near_switch(model, q: np.ndarray, labels: np.ndarray, muscles, crossed) -> np.ndarray:
-    """``(B, K)`` bool: a muscle's state differs ``NEAR_RAD`` away along some joint it crosses (either way)."""
-    near = np.zeros(labels.shape, bool)
+def near_switch(model, q: np.ndarray, labels: np.ndarray, muscles, crossed, reach: float = None) -> np.ndarray:
+    """``(B, K)`` bool: a muscle's state differs ``reach`` [rad] (``NEAR_RAD``) away along some joint it crosses
+    (either way)."""
+    near, reach = np.zeros(labels.shape, bool), NEAR_RAD if reach is None else reach
     for joint in range(q.shape[1]):
-        for step in (-NEAR_RAD, NEAR_RAD):
+        for step in (-reach, reach):
             moved = q.copy()
             moved[:, joint] = np.clip(moved[:, joint] + step, *model.q_range[joint])
             near |= (wrap_states(model, moved)[:, muscles] != labels) & crossed[muscles, joint][None, :]
@@ -411,7 +427,8 @@ def predict_muscle(fit, mark_coefs, data, col, y_train, groups, cut, pieces, cap
     out["iii-c"] = (*per_state.predict(z, cell * STATE_KEYS + gated, dz_dq, cells), distance)
     cell_gate = CellGate(z_train, cell_train, labels_train[:, col], crossed, gate_degree)
     gated_c, distance_c = cell_gate(z, cell, dz_dq)
-    out["iii-cg"] = (*per_state.predict(z, cell * STATE_KEYS + gated_c, dz_dq, cells), torch.as_tensor(distance_c))
+    out["iii-cg"] = (*per_state.predict(z, cell * STATE_KEYS + gated_c, dz_dq, cells, within_box=True),
+                     torch.as_tensor(distance_c))
     out["gate_right"] = (torch.as_tensor(gated == labels[:, col]), None, far)
     out["cell_gate_right"] = (torch.as_tensor(gated_c == labels[:, col]), None, far)
     x_flag = data["flag"][0]
