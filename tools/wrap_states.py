@@ -1,28 +1,36 @@
 #!/usr/bin/env python
 """Does fitting each muscle's length per wrapping state close the learned body's tail? An offline experiment.
 
-    python tools/wrap_states.py --ckpt runs/myoarm/.../last.ckpt [--muscles TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP]
-                                [--postures 2000] [--seed 1] [--samples 20000,40000,0] [--flag-share 0.01]
+    python tools/wrap_states.py --ckpt runs/myoarm/.../last.ckpt [--muscles TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP
+                                | all] [--postures 2000] [--seed 1] [--samples 20000,40000,0] [--flag-share 0.01]
+                                [--gate-degree 8] [--cell-gate-degree 4] [--json FILE]
 
 MuJoCo's length is smooth inside one wrapping state (``sim.wrapping.wrap_states``: which geoms a path wraps and on
 which side). The checkpoint's train postures (its data module, rebuilt from the checkpoint; ``--cache-dir``) are
-labelled by state, and for each of ``--muscles`` the length is fitted by least squares in the checkpoint's own
-basis for that muscle (its terms: the same degree and joint groups) to MuJoCo's length:
+labelled by state, and for each of ``--muscles`` the length is fitted by least squares to MuJoCo's length:
 
-* (i) one polynomial over every sample (the checkpoint's whole-box fit, before branches and cells);
-* (ii) one polynomial per wrapping state, the state known (a perfect gate: the label);
+* (i) one polynomial over every sample in the checkpoint's own whole-box basis for the muscle (its terms: the same
+  degree and joint groups; the checkpoint's fit before branches and cells);
+* (ii) one such polynomial per wrapping state, the state known (a perfect gate: the label);
 * (iii) the same polynomials picked by a learned gate: a least-squares polynomial classifier of the labels of
-  total degree ``--gate-degree`` over the joints the muscle crosses (one score per state, the largest wins), and a
-  flag band ``|g| / |grad g| <= r`` [rad] about its boundaries (``g``: the largest score less the second), ``r`` the
-  largest that flags at most ``--flag-share`` of ``--postures`` other random postures (``--seed`` + 1).
+  total degree ``--gate-degree`` over the joints the muscle crosses (one score per state, the largest wins);
+* (c) one polynomial per cell of the checkpoint's layout (``networks.cells``: its cut joints in its pieces, the
+  cell's local coordinates, the muscle's joint groups, total degree up to the checkpoint's cell degree), states
+  mixed and nothing trimmed; (ii-c) one per cell and state, the state known; (iii-c) the same picked by the gate of
+  (iii); (iii-cg) picked by a gate per cell (``CellGate``: a logistic regression of the cell's states, total degree
+  ``--cell-gate-degree``), a state's polynomial used only inside the box of its samples (else the cell's).
 
-A state with fewer samples than twice the muscle's terms keeps only its terms up to the highest total degree that
-has at most half as many terms as samples. Scored at ``--postures`` seeded uniform postures (``--seed``, as
-``tools/body_errors.py``): the worst of these muscles per posture (length [mm], moment arm [mm/rad] on the joints it
-crosses), median / p90 / p99 / max, beside the checkpoint's own body on the same muscles and on every muscle (the
-others kept as the checkpoint has them); (iii) over the postures it does not flag, with the flagged share. Each
-``--samples`` count (0: every train sample) refits (ii) on the first that many train samples: the samples it needs.
-One torch thread.
+A fit with fewer samples than twice its terms keeps only its terms up to the highest total degree that has at most
+half as many terms as samples. A gated fit flags the postures within ``|g| / |grad g| <= r`` [rad] of its gate's
+boundary (``g``: the largest score less the second), ``r`` the largest that flags at most ``--flag-share`` of
+``--postures`` other random postures (``--seed`` + 1). Scored at ``--postures`` seeded uniform postures (``--seed``,
+as ``tools/body_errors.py``): the worst of these muscles per posture (length [mm], moment arm [mm/rad] on the joints
+it crosses), median / p90 / p99 / max, beside the checkpoint's own body on the same muscles and on every muscle (the
+others kept as the checkpoint has them); gated fits also over the postures they do not flag; per muscle the length
+p50 / p99 of each fit; (ii-c)'s p99 within and beyond ``NEAR_RAD`` of a true switch (along a joint the muscle
+crosses); the gates' share of right states, and where the cell gates' wrong answers lie. Each ``--samples`` count
+(0: every train sample) refits (ii) on the first that many train samples: the samples it needs. ``--json``: the
+figures also to a file (written to a temporary name, then renamed). One torch thread.
 """
 import argparse
 import itertools
