@@ -296,6 +296,8 @@ def main(argv=None):
     parser.add_argument("--cache-dir", default="runs/cache")
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
+    if not all(part.strip().isdigit() for part in args.samples.split(",")):
+        raise BodySchemaInputError(f"--samples {args.samples!r}: expected train-sample counts >= 0, comma-separated")
     if args.postures < 100 or args.gate_degree < 1 or not 0.0 <= args.flag_share < 1.0:
         raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --flag-share "
                                    f"{args.flag_share}: expected >= 100 / >= 1 / in [0, 1)")
