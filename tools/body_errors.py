@@ -2,10 +2,11 @@
 """A checkpoint's learned body against MuJoCo's: muscle lengths, moment arms, torque (median and p99).
 
     python tools/body_errors.py --ckpt runs/myoarm/.../last.ckpt [--postures 2000] [--seed 1] [--worst 5]
-                                [--near-jumps]
+                                [--near-jumps] [--holdable]
 
 At ``--postures`` seeded uniform postures of the checkpoint's robot (its MJCF; a checkpoint without a model stops
-with one line): |l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
+with one line; ``--holdable``: uniform among the postures its true muscles can hold, the data's own distribution):
+|l_geo - l_mujoco| [mm]; |G - G_mujoco| [mm/rad] on the muscle-joint pairs the muscle crosses
 (MuJoCo's tendon Jacobian is nonzero), and the largest |G| on the pairs it does not cross (truly 0); the torque
 error ||tau - tau_bias|| [N m] and its ratio to the median ||tau_bias||; then the ``--worst`` muscles by length
 p99 (their share of postures off by more than 0.1 mm and their largest error: where a pooled p99 comes from).
@@ -84,7 +85,8 @@ def near_jumps_report(worst, q: np.ndarray, model, crossed: np.ndarray) -> str:
                                  (f"{BAD_LENGTH_MM}-1 mm", bulk, worst.length_muscle[bulk]),
                                  ("any posture, the tail's muscles", anywhere, worst.length_muscle[tail])):
         reach = jump_distance(model, q[rows], muscles, crossed)
-        shares = " / ".join(f"{100 * float(np.mean(reach <= x)):.0f} %" for x in (0.01, 0.05, 0.1, 0.3))
+        shares = " / ".join(f"{100 * float(np.mean(reach <= x)):.0f} %" if len(rows) else "-"
+                            for x in (0.01, 0.05, 0.1, 0.3))
         lines.append(f"| {label} | {len(rows)} | {shares} |")
     return "\n".join(lines)
 
@@ -114,6 +116,17 @@ def report(errors: dict) -> str:
         f"{100 * e['torque_ratio']:.3g} % | |"])
 
 
+def postures(schema, n: int, seed: int, holdable: bool) -> np.ndarray:
+    """``n`` seeded uniform postures of the checkpoint's robot, or with ``holdable`` uniform among those its true
+    muscles can hold (``generate_equilibrium_samples``: the distribution the data is drawn from; a posture no tension
+    holds never appears in the data, and its learned body there is an extrapolation)."""
+    if not holdable:
+        return schema.robot_model.sample_q(np.random.default_rng(seed), n)
+    from lightning_bodyschema.sim import generate_equilibrium_samples
+
+    return generate_equilibrium_samples(schema.robot_model, n, seed, schema.spring).q
+
+
 @exits_cleanly
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -122,6 +135,8 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--worst", type=int, default=5, help="muscles listed by length p99 (0: none)")
     parser.add_argument("--near-jumps", action="store_true", help="the tail's distance to the true path's jumps")
+    parser.add_argument("--holdable", action="store_true",
+                        help="postures uniform among those the true muscles can hold (the data's distribution)")
     args = parser.parse_args(argv)
     if args.postures < 1 or args.worst < 0:
         raise BodySchemaInputError(f"--postures {args.postures} / --worst {args.worst}: expected integers >= 1 / >= 0")
@@ -135,7 +150,7 @@ def main(argv=None):
     if not schema.has_physics:
         raise BodySchemaInputError(f"{args.ckpt}: its robot has no model (recorded data): there is no MuJoCo body "
                                    "to compare with")
-    q = schema.robot_model.sample_q(np.random.default_rng(args.seed), args.postures)
+    q = postures(schema, args.postures, args.seed, args.holdable)
     errors = dict(body_errors(schema, q), q=q)
     print(report(errors))
     if args.worst:

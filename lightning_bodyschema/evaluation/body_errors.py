@@ -89,6 +89,8 @@ def jump_distance(model, q: np.ndarray, muscle: np.ndarray, crossed: np.ndarray,
     joint's range), a jump where its second difference exceeds ``JUMP_MM``."""
     offsets = np.arange(-reach_rad, reach_rad + STEP_RAD / 2, STEP_RAD)
     case, joint = np.nonzero(crossed[muscle])  # one line per (posture, crossed joint)
+    if not len(case):  # no posture (or none whose muscle crosses a joint): nothing to probe
+        return np.full(len(q), np.inf)
     lines = np.repeat(q[case][:, None, :], len(offsets), 1)  # (P, T, N)
     lo, hi = model.q_range[joint, 0][:, None], model.q_range[joint, 1][:, None]
     along = q[case, joint][:, None] + offsets[None, :]

@@ -53,3 +53,4 @@ def test_a_true_jump_is_found_where_the_wrap_switches_and_not_on_a_smooth_path()
     found = jump_distance(arm, probes, np.full(2, tmaj), crossed, reach_rad=0.1)
     assert np.all(found <= np.array([0.05, 0.02]) + 1e-3) and np.all(found > 0)  # within one probe step
     assert np.isinf(jump_distance(arm, probes, np.full(2, bra), crossed, reach_rad=0.1)).all()
+    assert jump_distance(arm, probes[:0], np.zeros(0, np.int64), crossed).shape == (0,)  # no posture: none probed

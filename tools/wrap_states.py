@@ -1,0 +1,505 @@
+#!/usr/bin/env python
+"""Does fitting each muscle's length per wrapping state close the learned body's tail? An offline experiment.
+
+    python tools/wrap_states.py --ckpt runs/myoarm/.../last.ckpt [--muscles TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP
+                                | all] [--postures 2000] [--seed 1] [--samples 20000,40000,0] [--flag-share 0.01]
+                                [--gate-degree 8] [--cell-gate-degree 4] [--json FILE]
+
+MuJoCo's length is smooth inside one wrapping state (``sim.wrapping.wrap_states``: which geoms a path wraps and on
+which side). The checkpoint's train postures (its data module, rebuilt from the checkpoint; ``--cache-dir``) are
+labelled by state, and for each of ``--muscles`` the length is fitted by least squares to MuJoCo's length:
+
+* (i) one polynomial over every sample in the checkpoint's own whole-box basis for the muscle (its terms: the same
+  degree and joint groups; the checkpoint's fit before branches and cells);
+* (ii) one such polynomial per wrapping state, the state known (a perfect gate: the label);
+* (iii) the same polynomials picked by a learned gate: a least-squares polynomial classifier of the labels of
+  total degree ``--gate-degree`` over the joints the muscle crosses (one score per state, the largest wins);
+* (c) one polynomial per cell of the checkpoint's layout (``networks.cells``: its cut joints in its pieces, the
+  cell's local coordinates, the muscle's joint groups, total degree up to the checkpoint's cell degree), states
+  mixed and nothing trimmed; (ii-c) one per cell and state, the state known; (iii-c) the same picked by the gate of
+  (iii); (iii-cg) picked by a gate per cell (``CellGate``: a logistic regression of the cell's states, total degree
+  ``--cell-gate-degree``), a state's polynomial used only inside the box of its samples (else the cell's).
+
+A fit with fewer samples than twice its terms keeps only its terms up to the highest total degree that has at most
+half as many terms as samples. A gated fit flags the postures within ``|g| / |grad g| <= r`` [rad] of its gate's
+boundary (``g``: the largest score less the second), ``r`` the largest that flags at most ``--flag-share`` of
+``--postures`` other random postures (``--seed`` + 1). Scored at ``--postures`` seeded uniform postures (``--seed``,
+as ``tools/body_errors.py``): the worst of these muscles per posture (length [mm], moment arm [mm/rad] on the joints
+it crosses), median / p90 / p99 / max, beside the checkpoint's own body on the same muscles and on every muscle (the
+others kept as the checkpoint has them); gated fits also over the postures they do not flag; per muscle the length
+p50 / p99 of each fit; (ii-c)'s p99 within and beyond ``NEAR_RAD`` of a true switch (along a joint the muscle
+crosses); the gates' share of right states, and where the cell gates' wrong answers lie. Each ``--samples`` count
+(0: every train sample) refits (ii) on the first that many train samples: the samples it needs. ``--json``: the
+figures also to a file (written to a temporary name, then renamed). One torch thread.
+"""
+import argparse
+import itertools
+import json
+
+import numpy as np
+import torch
+
+from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.networks.basis import product_basis
+from lightning_bodyschema.networks.cells import cell_coordinates
+from lightning_bodyschema.sim.wrapping import wrap_states
+
+DEFAULT_MUSCLES = "TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP"
+CHUNK = 4000  # train rows per basis block; --samples counts are rounded up to it
+RIDGE = 1e-10  # relative to the mean diagonal of each normal-equation matrix
+CELL_DEGREE = 11  # a cell's highest total degree where the checkpoint has no cells on the muscle (its myoArm cells')
+GATE_ROUNDS, GATE_RIDGE = 12, 1e-6  # a cell gate's Newton steps and ridge (per sample): separable data stays bounded
+MISGATE_RADII = (0.005, 0.01, 0.02, 0.05)  # how far from a true switch the cell gates' wrong answers lie [rad]
+NEAR_RAD = 0.01  # a posture this near a true switch of a muscle's state (along a joint it crosses) is "near"
+STATE_KEYS = 1000  # cell * STATE_KEYS + state: one key per (cell, wrapping state); codes stay below 3**6
+
+
+def basis(x: torch.Tensor, exponents: torch.Tensor, slopes: bool = False):
+    """``phi (B, P)`` (and ``dphi/dx (B, N, P)``) of terms ``exponents (P, N)`` at normalized postures ``x``."""
+    return product_basis(x, exponents, max(1, int(exponents.max())), slopes)
+
+
+def state_normal_equations(x, y, labels, exponents, states, marks):
+    """Per state, ``phi^T phi`` and ``phi^T y`` and the count, summed over the train rows in blocks; a copy at each
+    row count in ``marks`` (the first that many rows): ``{rows: (gram (K, P, P), rhs (K, P), counts (K,))}``."""
+    k, p = len(states), len(exponents)
+    gram, rhs, counts, out = torch.zeros(k, p, p, dtype=torch.float64), torch.zeros(k, p, dtype=torch.float64), \
+        np.zeros(k, np.int64), {}
+    for start in range(0, len(x), CHUNK):
+        phi, rows = basis(x[start:start + CHUNK], exponents)[0], slice(start, start + CHUNK)
+        for i, state in enumerate(states):
+            at = torch.as_tensor(labels[rows] == state)
+            gram[i] += phi[at].T @ phi[at]
+            rhs[i] += phi[at].T @ y[rows][at]
+            counts[i] += int(at.sum())
+        if min(start + CHUNK, len(x)) in marks:
+            out[min(start + CHUNK, len(x))] = (gram.clone(), rhs.clone(), counts.copy())
+    return out
+
+
+def solve(gram: torch.Tensor, rhs: torch.Tensor, n: int, exponents: torch.Tensor) -> torch.Tensor:
+    """Coefficients ``(P,)`` from one state's normal equations, on its terms up to the highest total degree with at
+    most ``n / 2`` terms (module docstring); zero elsewhere."""
+    total = exponents.sum(1)
+    keep = total <= 0
+    for degree in range(int(total.max()), -1, -1):
+        keep = total <= degree
+        if 2 * int(keep.sum()) <= n:
+            break
+    g = gram[keep][:, keep]
+    g = g + RIDGE * float(g.diagonal().mean()) * torch.eye(len(g), dtype=g.dtype)
+    coef = torch.zeros(len(exponents), dtype=torch.float64)
+    coef[keep] = torch.linalg.solve(g, rhs[keep])
+    return coef
+
+
+def group_exponents(blocks, degree: int) -> torch.Tensor:
+    """Every monomial of total degree <= ``degree`` whose joints all lie in one group of ``blocks (N,)`` (a group id
+    per joint, -1: not crossed; the checkpoint's ``path_blocks`` row: lengths that add up over groups), as Legendre
+    exponents ``(P, N)``, the constant first."""
+    blocks, rows = np.asarray(blocks), {(0,) * len(blocks)}
+    for group in sorted(set(blocks.tolist()) - {-1}):
+        joints = np.flatnonzero(blocks == group)
+        for e in itertools.product(range(degree + 1), repeat=len(joints)):
+            if sum(e) <= degree:
+                row = np.zeros(len(blocks), np.int64)
+                row[joints] = e
+                rows.add(tuple(row.tolist()))
+    return torch.as_tensor(sorted(rows, key=lambda r: (sum(r), r)))
+
+
+def gate_exponents(crossed: np.ndarray, degree: int) -> torch.Tensor:
+    """Every monomial of total degree <= ``degree`` over the ``crossed (N,)`` joints, as Legendre exponents."""
+    return group_exponents(np.where(crossed, 0, -1), degree)
+
+
+def fit_gate(x, labels, states, exponents):
+    """Least squares of one-hot state indicators ``(S, K)`` on the gate's basis: weights ``(P, K)``."""
+    p = len(exponents)
+    gram, rhs = torch.zeros(p, p, dtype=torch.float64), torch.zeros(p, len(states), dtype=torch.float64)
+    onehot = torch.as_tensor(labels[:, None] == np.asarray(states)[None, :], dtype=torch.float64)
+    for start in range(0, len(x), CHUNK):
+        phi = basis(x[start:start + CHUNK], exponents)[0]
+        gram += phi.T @ phi
+        rhs += phi.T @ onehot[start:start + CHUNK]
+    return torch.linalg.solve(gram + RIDGE * float(gram.diagonal().mean()) * torch.eye(p, dtype=gram.dtype), rhs)
+
+
+def gate(x, weights, exponents, rad_per_unit):
+    """The gate at ``x``: the state index ``(B,)`` and the distance estimate ``|g| / |grad g|`` [rad] ``(B,)``."""
+    phi, dphi = basis(x, exponents, slopes=True)
+    scores, slopes = phi @ weights, dphi @ weights  # (B, K), (B, N, K)
+    if scores.shape[1] == 1:
+        return torch.zeros(len(x), dtype=torch.long), torch.full((len(x),), float("inf"), dtype=torch.float64)
+    return margin(scores, slopes, 1 / rad_per_unit)
+
+
+class MuscleFit:
+    """One muscle's fits (module docstring) in its checkpoint basis; lengths in mm, postures normalized."""
+
+    def __init__(self, exponents, states, coef_all, coef_state, gate_weights, gate_terms):
+        self.exponents, self.states, self.coef_all, self.coef_state = exponents, states, coef_all, coef_state
+        self.gate_weights, self.gate_terms = gate_weights, gate_terms
+
+    def predict(self, x, pick, rad_per_unit):
+        """Length [mm] ``(B,)`` and moment arms [mm/rad] ``(B, N)`` with coefficients ``pick (B, P)``."""
+        phi, dphi = basis(x, self.exponents, slopes=True)
+        return (phi * pick).sum(1), (dphi * pick[:, None, :]).sum(2) / rad_per_unit[None, :]
+
+    def pick(self, mode, x, labels, rad_per_unit, coef_state=None):
+        """Coefficients per posture ``(B, P)`` for ``mode`` "all" / "state" / "gate" and the gate's distance."""
+        coef_state = self.coef_state if coef_state is None else coef_state
+        far = torch.full((len(x),), float("inf"), dtype=torch.float64)
+        if mode == "all":
+            return self.coef_all.expand(len(x), -1), far
+        if mode == "state":  # a state the train samples never saw keeps the one polynomial
+            table = torch.stack([self.coef_all] + list(coef_state))
+            index = np.searchsorted(self.states, labels)
+            known = (index < len(self.states)) & (np.asarray(self.states)[np.minimum(index, len(self.states) - 1)]
+                                                   == labels)
+            return table[torch.as_tensor(np.where(known, index + 1, 0))], far
+        index, distance = gate(x, self.gate_weights, self.gate_terms, rad_per_unit)
+        return torch.stack(list(coef_state))[index], distance
+
+
+def fit_muscle(x, y, labels, exponents, crossed, gate_degree, marks):
+    """``MuscleFit`` on every train row and, per mark, the per-state coefficients on its first rows."""
+    states = np.unique(labels).tolist()
+    sums = state_normal_equations(x, y, labels, exponents, states, set(marks) | {len(x)})
+    gram, rhs, counts = sums[len(x)]
+    coef_all = solve(gram.sum(0), rhs.sum(0), int(counts.sum()), exponents)
+    coef_state = [solve(gram[i], rhs[i], int(counts[i]), exponents) for i in range(len(states))]
+    gate_terms = gate_exponents(crossed, gate_degree)
+    weights = fit_gate(x, labels, states, gate_terms)
+    by_mark = {n: [solve(g[i], r[i], int(c[i]), exponents) for i in range(len(states))]
+               for n, (g, r, c) in sums.items()}
+    return MuscleFit(exponents, states, coef_all, coef_state, weights, gate_terms), by_mark, counts
+
+
+def cell_keys(x: torch.Tensor, cut: np.ndarray, pieces: int):
+    """The checkpoint's cells (``networks.cells``: each joint in ``cut (N,)`` cut in ``pieces``): the cell ``(B,)``,
+    the cell's local coordinates ``z (B, N)`` (uncut joints as they are) and ``dz/dx (N,)``."""
+    piece, local = cell_coordinates(x, pieces)
+    joints = np.flatnonzero(cut)
+    cell = sum((piece[:, j].numpy() * pieces ** i for i, j in enumerate(joints)), np.zeros(len(x), np.int64))
+    z, dz_dx = x.clone(), torch.ones(x.shape[1], dtype=torch.float64)
+    z[:, joints], dz_dx[joints] = local[:, joints], float(pieces)
+    return np.asarray(cell, np.int64), z, dz_dx
+
+
+class CellFit:
+    """One polynomial per key (a cell, or a cell and a wrapping state) in the cell's coordinates, over the groups
+    ``blocks`` of joints, of the highest total degree <= ``cap`` with at most half as many terms as samples."""
+
+    def __init__(self, z, y, keys, blocks, cap):
+        self.table, terms = {}, {d: group_exponents(blocks, d) for d in range(cap + 1)}
+        for key in np.unique(keys):
+            rows = torch.as_tensor(keys == key)
+            fitting = [d for d in range(cap + 1) if 2 * len(terms[d]) <= int(rows.sum())]
+            if not fitting:
+                continue
+            exponents = terms[max(fitting)]
+            phi = basis(z[rows], exponents)[0]
+            gram = phi.T @ phi
+            gram += RIDGE * float(gram.diagonal().mean()) * torch.eye(len(gram), dtype=gram.dtype)
+            box = (z[rows].amin(0), z[rows].amax(0))  # where this key's samples are
+            self.table[int(key)] = (exponents, torch.linalg.solve(gram, phi.T @ y[rows]), box)
+
+    def predict(self, z, keys, dz_dq, fallback, within_box: bool = False):
+        """Length [mm] and moment arms [mm/rad] at ``z`` by key; keys without a fit keep ``fallback`` (l, G), and
+        with ``within_box`` so do postures outside the box of their key's samples (a gate that picks a state where
+        it has no sample would extrapolate that state's polynomial)."""
+        l_hat, g_hat = fallback[0].clone(), fallback[1].clone()
+        for key in np.unique(keys):
+            if int(key) not in self.table:
+                continue
+            rows, (exponents, coef, (lo, hi)) = torch.as_tensor(keys == key), self.table[int(key)]
+            if within_box:
+                rows &= ((z >= lo) & (z <= hi)).all(1)
+            phi, dphi = basis(z[rows], exponents, slopes=True)
+            l_hat[rows], g_hat[rows] = phi @ coef, (dphi @ coef) * dz_dq[None, :]
+        return l_hat, g_hat
+
+
+class CellGate:
+    """A gate per cell: one-vs-rest logistic regressions (``GATE_ROUNDS`` Newton steps, ridge ``GATE_RIDGE``) of the
+    cell's wrapping states on a polynomial of total degree <= ``degree`` in the cell's coordinates over the
+    ``crossed`` joints; a cell whose samples are all in one state answers it everywhere. The distance to the gate's
+    boundary ``|g| / |grad g|`` (``g``: the largest logit less the second) does not depend on the logits' scale."""
+
+    def __init__(self, z, cells, labels, crossed, degree):
+        self.table, terms = {}, {d: gate_exponents(crossed, d) for d in range(degree + 1)}
+        for cell in np.unique(cells):
+            rows = cells == cell
+            states = np.unique(labels[rows])
+            fitting = [d for d in range(1, degree + 1) if 4 * len(terms[d]) <= int(rows.sum())]
+            if len(states) == 1 or not fitting:
+                self.table[int(cell)] = (states[np.argmax([np.sum(labels[rows] == s) for s in states])], None, None)
+                continue
+            exponents = terms[max(fitting)]
+            phi = basis(z[torch.as_tensor(rows)], exponents)[0]
+            weights = torch.stack([logistic(phi, torch.as_tensor(labels[rows] == k, dtype=torch.float64))
+                                   for k in states], 1)
+            self.table[int(cell)] = (states, exponents, weights)
+
+    def __call__(self, z, cells, dz_dq):
+        """The gated state ``(B,)`` and the distance to the gate's boundary [rad] ``(B,)`` (inf: a one-state cell)."""
+        state, distance = np.zeros(len(z), np.int64), np.full(len(z), np.inf)
+        for cell in np.unique(cells):
+            rows = cells == cell
+            states, exponents, weights = self.table.get(int(cell), (np.array([0]), None, None))
+            if weights is None:
+                state[rows] = states
+                continue
+            phi, dphi = basis(z[torch.as_tensor(rows)], exponents, slopes=True)
+            index, reach = margin(phi @ weights, dphi @ weights, dz_dq)
+            state[rows], distance[rows] = states[index.numpy()], reach.numpy()
+        return state, distance
+
+
+def logistic(phi: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Weights ``(P,)`` of a ridge logistic regression of ``target (S,)`` in {0, 1} on ``phi (S, P)`` (Newton)."""
+    w = torch.zeros(phi.shape[1], dtype=torch.float64)
+    ridge = GATE_RIDGE * len(phi) * torch.eye(phi.shape[1], dtype=torch.float64)
+    for _ in range(GATE_ROUNDS):
+        p = torch.sigmoid(phi @ w)
+        hessian = phi.T @ (phi * (p * (1 - p))[:, None]) + ridge
+        w = w + torch.linalg.solve(hessian, phi.T @ (target - p) - ridge @ w)
+    return w
+
+
+def margin(scores: torch.Tensor, slopes: torch.Tensor, dz_dq: torch.Tensor):
+    """The winning column of ``scores (B, K)`` and ``|g| / |grad_q g|`` [rad], ``g`` its lead over the second;
+    ``slopes (B, N, K)`` d scores / d z, ``dz_dq (N,)``."""
+    top2, rows = torch.topk(scores, 2, dim=1).indices, torch.arange(len(scores))
+    g = scores[rows, top2[:, 0]] - scores[rows, top2[:, 1]]
+    grad = (slopes[rows, :, top2[:, 0]] - slopes[rows, :, top2[:, 1]]) * dz_dq[None, :]
+    return top2[:, 0], g.abs() / grad.norm(dim=1).clamp_min(1e-300)
+
+
+def percentiles(a: np.ndarray) -> list:
+    return [float(np.percentile(a, p)) for p in (50, 90, 99, 100)]
+
+
+@exits_cleanly
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--ckpt", required=True)
+    parser.add_argument("--muscles", default=DEFAULT_MUSCLES, help="names (comma-separated) or all")
+    parser.add_argument("--postures", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--samples", default="20000,40000,0", help="train-sample counts for (ii); 0: all")
+    parser.add_argument("--gate-degree", type=int, default=8)
+    parser.add_argument("--cell-gate-degree", type=int, default=4)
+    parser.add_argument("--flag-share", type=float, default=0.01)
+    parser.add_argument("--cache-dir", default="runs/cache")
+    parser.add_argument("--json", default=None, help="also write the figures to this file")
+    args = parser.parse_args(argv)
+    if not all(part.strip().isdigit() for part in args.samples.split(",")):
+        raise BodySchemaInputError(f"--samples {args.samples!r}: expected train-sample counts >= 0, comma-separated")
+    if args.postures < 100 or args.gate_degree < 1 or not 0.0 <= args.flag_share < 1.0:
+        raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --flag-share "
+                                   f"{args.flag_share}: expected >= 100 / >= 1 / in [0, 1)")
+    torch.set_num_threads(1)
+    result = run(args)
+    if args.json is not None:
+        write_json(result, args.json)
+    print(table(result))
+
+
+def write_json(result: dict, path: str) -> None:
+    import os
+    with open(path + ".tmp", "w") as f:  # a temporary name, then renamed: never a half-written file
+        json.dump(result, f, indent=1)
+    os.replace(path + ".tmp", path)
+
+
+def table(result: dict) -> str:
+    """The figures as markdown: one row per fit, the worst muscle per posture over these muscles and over all."""
+    fmt = lambda values: " / ".join(f"{v:.3g}" for v in values)  # noqa: E731
+    lines = ["states (code: train samples): " + "; ".join(f"{m} {dict(zip(s['codes'], s['train_samples']))}"
+                                                         for m, s in result["states"].items()), "",
+             f"| fit | postures | {', '.join(result['muscles'])}: worst length p50 / p90 / p99 / max [mm] | worst "
+             "moment arm p50 / p90 / p99 / max [mm/rad] | every muscle: worst length p50 / p90 / p99 / max [mm] | "
+             "> 0.1 mm |", "|---|---|---|---|---|---|"]
+    labels = dict(ROWS)
+    labels.update({f"{k}, unflagged": f"{labels[k]}, outside the flag band ({100 * f['flagged_share']:.3g} % "
+                   f"flagged, r = {1e3 * f['radius_rad']:.3g} mrad)" for k, f in result["flags"].items()})
+    for key, r in result["rows"].items():
+        label = labels.get(key, f"(ii) on the first {key[3:]} train samples")
+        lines.append(f"| {label} | {r['postures']} | {fmt(r['these_length_mm'])} | {fmt(r['these_arm_mm_per_rad'])} "
+                     f"| {fmt(r['all_length_mm'])} | {100 * r['bad_share_all']:.3g} % |")
+    lines += ["", "per muscle, length p50 / p99 [mm]: | " + " | ".join(result["muscles"]) + " |"]
+    for key, r in result["rows"].items():
+        lines.append(f"| {key} | " + " | ".join(fmt(v) for v in r["per_muscle_length_p50_p99_mm"].values()) + " |")
+    lines.append("(ii-c) per muscle, length p99 [mm] within / beyond {:g} rad of a true switch (share within): ".format(
+        NEAR_RAD) + ", ".join(f"{m} {fmt([v for v in nf if v is not None])} ({100 * result['near_switch_share'][m]:.3g} %)"
+                               for m, nf in result["ii-c_near_far_p99_mm"].items()))
+    wrong = result["cell_gate_wrong_near_switch"]
+    lines.append(f"gate per cell, wrong answers ({sum(wrong['postures'])} muscle-postures): share within " + ", ".join(
+        f"{1e3 * r:g}" for r in wrong["radii_rad"]) + " mrad of a true switch along a joint: " + ", ".join(
+        "-" if v is None else f"{100 * v:.3g} %" for v in wrong["share_within"]))
+    for key, label in (("gate_accuracy", "whole-box gate"), ("cell_gate_accuracy", "gate per cell")):
+        lines.append(f"{label}, share of postures in the right state: " + ", ".join(
+            f"{m} {100 * a:.3g} %" for m, a in result[key].items()))
+    return "\n".join(lines)
+
+
+def run(args) -> dict:
+    from lightning_bodyschema.schemas.loading import load_datamodule, load_schema
+
+    schema = load_schema(args.ckpt).eval()
+    model, path, norm = schema.robot_model, schema.length_net, schema.normalizer
+    names = [n.removesuffix("_tendon") for n in model.muscle_names]
+    wanted = names if args.muscles == "all" else [m.strip().removesuffix("_tendon") for m in args.muscles.split(",")
+                                                  if m.strip()]
+    unknown = [m for m in wanted if m not in names]
+    if unknown or not hasattr(path, "exponents"):
+        raise BodySchemaInputError(f"--muscles {unknown}: not muscles of this body ({names}), or the checkpoint's "
+                                   f"path is not per_muscle")
+    muscles = [names.index(m) for m in wanted]
+    q_train = np.asarray(load_datamodule(args.ckpt, cache_dir=args.cache_dir).splits["train"][0], np.float64)
+    q_eval = model.sample_q(np.random.default_rng(args.seed), args.postures)
+    q_flag = model.sample_q(np.random.default_rng(args.seed + 1), args.postures)
+    encode = lambda q: norm.encode_q(torch.as_tensor(q, dtype=torch.float64))  # noqa: E731
+    rad_per_unit = 0.5 * (norm.q_hi - norm.q_lo).to(torch.float64)  # dq/dx of the normalized postures
+    marks = sorted({min(-(-(int(n) or len(q_train)) // CHUNK) * CHUNK, len(q_train)) for n in args.samples.split(",")})
+    data = {"train": (encode(q_train), wrap_states(model, q_train)[:, muscles]),
+            "eval": (encode(q_eval), wrap_states(model, q_eval)[:, muscles]),
+            "flag": (encode(q_flag), None)}
+    l_train_mm = torch.as_tensor(1e3 * model.kinematics(q_train)[0][:, muscles])
+    l_eval, g_eval, _ = model.kinematics(q_eval)
+    crossed = np.abs(g_eval).max(0) > 1e-12
+    blocks = schema.hparams.get("path_blocks")
+    preds, counts, states = {}, [], []
+    for col, m in enumerate(muscles):
+        exponents = path.exponents[path.term_mask[m].cpu()].cpu()
+        fit, mark_coefs, n_state = fit_muscle(data["train"][0], l_train_mm[:, col], data["train"][1][:, col],
+                                              exponents, crossed[m], args.gate_degree, marks)
+        groups = np.where(crossed[m], 0, -1) if blocks is None else np.asarray(blocks[m])
+        cut = np.asarray(path.cell_cut[m]) if path.pieces > 1 else crossed[m]
+        cap = int(path.cell_degrees[m]) if path.pieces > 1 and int(path.cell_degrees[m]) else CELL_DEGREE
+        for mode, value in predict_muscle(fit, mark_coefs, data, col, l_train_mm[:, col], groups, cut,
+                                          max(path.pieces, 2), cap, rad_per_unit, crossed[m],
+                                          args.cell_gate_degree).items():
+            preds.setdefault(mode, []).append(value)
+        counts.append(n_state), states.append(fit.states)
+    truth = (1e3 * l_eval, 1e3 * g_eval, crossed)
+    result = score(args, schema, names, muscles, preds, truth, counts, states, marks)
+    near = near_switch(model, q_eval, data["eval"][1], muscles, crossed)
+    wrong = np.stack([~p[0].numpy() for p in preds["cell_gate_right"]], 1)
+    result["cell_gate_wrong_near_switch"] = {"radii_rad": list(MISGATE_RADII), "postures": wrong.sum(0).tolist(),
+                                             "share_within": [float(np.mean(near_switch(model, q_eval, data["eval"][1],
+                                                                                        muscles, crossed, r)[wrong]))
+                                                              if wrong.any() else None for r in MISGATE_RADII]}
+    result["near_switch_share"] = {names[m]: float(near[:, i].mean()) for i, m in enumerate(muscles)}
+    result["ii-c_near_far_p99_mm"] = {names[m]: [float(np.percentile(e[near[:, i]], 99)) if near[:, i].any() else None,
+                                                 float(np.percentile(e[~near[:, i]], 99))]
+                                      for i, (m, e) in enumerate(zip(muscles, result.pop("_ii-c_errors").T))}
+    return result
+
+
+def near_switch(model, q: np.ndarray, labels: np.ndarray, muscles, crossed, reach: float = None) -> np.ndarray:
+    """``(B, K)`` bool: a muscle's state differs ``reach`` [rad] (``NEAR_RAD``) away along some joint it crosses
+    (either way)."""
+    near, reach = np.zeros(labels.shape, bool), NEAR_RAD if reach is None else reach
+    for joint in range(q.shape[1]):
+        for step in (-reach, reach):
+            moved = q.copy()
+            moved[:, joint] = np.clip(moved[:, joint] + step, *model.q_range[joint])
+            near |= (wrap_states(model, moved)[:, muscles] != labels) & crossed[muscles, joint][None, :]
+    return near
+
+
+def predict_muscle(fit, mark_coefs, data, col, y_train, groups, cut, pieces, cap, rad_per_unit, crossed,
+                   gate_degree) -> dict:
+    """One muscle's predictions at the eval postures, ``{fit name: (l_mm (B,), G (B, N) [mm/rad], distance (B,))}``:
+    the whole-box fits (i)-(iii), (ii) per train-sample count, and the same in the checkpoint's cells."""
+    (x, labels), (x_train, labels_train) = data["eval"], data["train"]
+    far = torch.full((len(x),), float("inf"), dtype=torch.float64)
+    out = {}
+    for mode, name in (("all", "i"), ("state", "ii"), ("gate", "iii")):
+        pick, distance = fit.pick(mode, x, labels[:, col], rad_per_unit)
+        out[name] = (*fit.predict(x, pick, rad_per_unit), distance)
+    for n, coef_state in mark_coefs.items():
+        out[f"ii@{n}"] = (*fit.predict(x, fit.pick("state", x, labels[:, col], rad_per_unit, coef_state)[0],
+                                       rad_per_unit), far)
+    cell_train, z_train, dz_dx = cell_keys(x_train, cut, pieces)
+    cell, z, _ = cell_keys(x, cut, pieces)
+    dz_dq = dz_dx / rad_per_unit
+    cells = CellFit(z_train, y_train, cell_train, groups, cap).predict(z, cell, dz_dq, out["i"][:2])
+    out["c"] = (*cells, far)
+    per_state = CellFit(z_train, y_train, cell_train * STATE_KEYS + labels_train[:, col], groups, cap)
+    out["ii-c"] = (*per_state.predict(z, cell * STATE_KEYS + labels[:, col], dz_dq, cells), far)
+    index, distance = gate(x, fit.gate_weights, fit.gate_terms, rad_per_unit)
+    gated = np.asarray(fit.states)[index.numpy()]
+    out["iii-c"] = (*per_state.predict(z, cell * STATE_KEYS + gated, dz_dq, cells), distance)
+    cell_gate = CellGate(z_train, cell_train, labels_train[:, col], crossed, gate_degree)
+    gated_c, distance_c = cell_gate(z, cell, dz_dq)
+    out["iii-cg"] = (*per_state.predict(z, cell * STATE_KEYS + gated_c, dz_dq, cells, within_box=True),
+                     torch.as_tensor(distance_c))
+    out["gate_right"] = (torch.as_tensor(gated == labels[:, col]), None, far)
+    out["cell_gate_right"] = (torch.as_tensor(gated_c == labels[:, col]), None, far)
+    x_flag = data["flag"][0]
+    flag_cell, z_flag, _ = cell_keys(x_flag, cut, pieces)
+    out["reach"] = (gate(x_flag, fit.gate_weights, fit.gate_terms, rad_per_unit)[1],
+                    torch.as_tensor(cell_gate(z_flag, flag_cell, dz_dq)[1]), None)
+    return out
+
+
+ROWS = (("checkpoint", "the checkpoint's body"), ("i", "(i) one polynomial over every sample"),
+        ("ii", "(ii) one polynomial per wrapping state, perfect gate"),
+        ("iii", "(iii) the same, learned gate"), ("c", "(c) the checkpoint's cells, one polynomial per cell"),
+        ("ii-c", "(ii-c) per wrapping state in each cell, perfect gate"), ("iii-c", "(iii-c) the same, learned gate"),
+        ("iii-cg", "(iii-cg) the same, a logistic gate per cell"))
+
+
+def score(args, schema, names, muscles, preds, truth, counts, states, marks) -> dict:
+    """Every figure of the module docstring, as a dict."""
+    l_mm, g_mm, crossed = truth
+    q_eval = schema.robot_model.sample_q(np.random.default_rng(args.seed), args.postures)
+    l_ck, g_ck, _ = schema.body_si(torch.as_tensor(q_eval))
+    preds["checkpoint"] = [(torch.as_tensor(1e3 * l_ck[:, m]), torch.as_tensor(1e3 * g_ck[:, m]), None)
+                           for m in muscles]
+    others = [m for m in range(len(names)) if m not in muscles]
+    rest_l = np.abs(1e3 * l_ck[:, others] - l_mm[:, others]).max(1, initial=0.0)
+    rest_g = np.where(crossed[others][None], np.abs(1e3 * g_ck[:, others] - g_mm[:, others]), 0).max((1, 2),
+                                                                                                     initial=0.0)
+
+    def errors(key):
+        lengths = np.stack([np.abs(p[0].numpy() - l_mm[:, m]) for p, m in zip(preds[key], muscles)], 1)
+        arms = np.stack([np.where(crossed[m], np.abs(p[1].numpy() - g_mm[:, m]), 0).max(1)
+                         for p, m in zip(preds[key], muscles)], 1)
+        return lengths, arms
+
+    def row(key, keep=None):
+        lengths, arms = errors(key)
+        keep = np.ones(len(lengths), bool) if keep is None else keep
+        worst_l, worst_g = lengths.max(1)[keep], arms.max(1)[keep]
+        all_l = np.maximum(worst_l, rest_l[keep])
+        return {"these_length_mm": percentiles(worst_l), "these_arm_mm_per_rad": percentiles(worst_g),
+                "all_length_mm": percentiles(all_l), "all_arm_mm_per_rad": percentiles(np.maximum(worst_g, rest_g[keep])),
+                "bad_share_all": float(np.mean(all_l > 0.1)), "postures": int(keep.sum()),
+                "per_muscle_length_p50_p99_mm": {names[m]: [float(np.percentile(lengths[keep, i], p)) for p in (50, 99)]
+                                                 for i, m in enumerate(muscles)}}
+
+    nearest = lambda i, key: np.min(np.stack([p[i].numpy() for p in preds[key]], 1), 1)  # noqa: E731
+    out = {"muscles": [names[m] for m in muscles],
+           "states": {names[m]: {"codes": s, "train_samples": c.tolist()} for m, s, c in zip(muscles, states, counts)},
+           "gate_accuracy": {names[m]: float(p[0].float().mean()) for m, p in zip(muscles, preds["gate_right"])},
+           "cell_gate_accuracy": {names[m]: float(p[0].float().mean())
+                                  for m, p in zip(muscles, preds["cell_gate_right"])}, "rows": {}, "flags": {}}
+    for key, reach in (("iii", 0), ("iii-c", 0), ("iii-cg", 1)):
+        radius = float(np.quantile(nearest(reach, "reach"), args.flag_share)) if args.flag_share > 0 else 0.0
+        flagged = nearest(2, key) <= radius
+        out["flags"][key] = {"radius_rad": radius, "flagged_share": float(flagged.mean())}
+        out["rows"][f"{key}, unflagged"] = row(key, ~flagged)
+    out["rows"] = {**{key: row(key) for key, _ in ROWS}, **out["rows"]}
+    out["_ii-c_errors"] = errors("ii-c")[0]
+    out["rows"].update({f"ii@{n}": row(f"ii@{n}") for n in marks})
+    return out
+
+
+if __name__ == "__main__":
+    main()
