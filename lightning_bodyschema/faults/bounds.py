@@ -112,16 +112,22 @@ class FaultBounds:
         """(B, M) [m]: the lower of a jam's l_fixed and a band's hi, +inf where free."""
         return minimum(where(self.jam, self.l_fixed_m, np.inf), where(self.band, self.band_hi_m, np.inf))
 
+    @cached_property
+    def length_bounds_set(self):
+        """``(has_lo, lo, has_hi, hi)`` (B, M): where a motor-length bound is set and its value [m] (0 where free),
+        once per bounds: every ``tension_box`` and ``motor_length_m`` call (a controller's every tick) reads them."""
+        has_lo, has_hi = isfinite(self.l_lo_m), isfinite(self.l_hi_m)
+        return has_lo, where(has_lo, self.l_lo_m, 0.0), has_hi, where(has_hi, self.l_hi_m, 0.0)
+
     def tension_box(self, l_geo_m):
         """``(lo, hi)`` (B, M) [N]: the tensions that meet every bound at muscle lengths ``l_geo_m`` (module
         docstring); lo > hi where they cross (then no tension meets them)."""
         if self.k_n is None:
             raise ValueError("FaultBounds without a spring has no tension box")
-        l_lo, l_hi = self.l_lo_m, self.l_hi_m
+        has_lo, l_lo, has_hi, l_hi = self.length_bounds_set
         with np.errstate(over="ignore", invalid="ignore"):  # an absurd stretch overflows to inf: crossed, as it should
-            has_hi, has_lo = isfinite(l_hi), isfinite(l_lo)
-            by_hi = spring_tension_n(l_geo_m - where(has_hi, l_hi, 0.0), self.k_n, self.alpha_per_m)
-            by_lo = spring_tension_n(l_geo_m - where(has_lo, l_lo, 0.0), self.k_n, self.alpha_per_m)
+            by_hi = spring_tension_n(l_geo_m - l_hi, self.k_n, self.alpha_per_m)
+            by_lo = spring_tension_n(l_geo_m - l_lo, self.k_n, self.alpha_per_m)
             return (maximum(self.f_lo_n, where(has_hi, by_hi, 0.0)),
                     minimum(self.f_hi_n, where(has_lo, by_lo, np.inf)))
 
@@ -134,7 +140,7 @@ class FaultBounds:
         if self.k_n is None:
             raise ValueError("FaultBounds without a spring has no motor lengths")
         l_motor, l_lo = l_geo_m - spring_elongation_m(f_n, self.k_n, self.alpha_per_m), self.l_lo_m
-        l_motor = where((f_n <= 0.0) & isfinite(l_lo), maximum(l_motor, l_lo), l_motor)
+        l_motor = where((f_n <= 0.0) & self.length_bounds_set[0], maximum(l_motor, l_lo), l_motor)
         return minimum(l_motor, self.l_hi_m)
 
     def broken(self, l_motor_m, f_n):
