@@ -65,16 +65,18 @@ class SwitchSnapshot:
             return np.full(len(x), np.inf), np.full(len(x), -1, dtype=np.int64)
         basis = self.gate_terms(x)  # (B, P', 1 + N): each term, then its slopes
         gate = np.swapaxes(basis, 1, 2) @ self.gate  # (B, 1 + N, G)
-        grad = gate[:, 1:] / half_range[None, :, None]  # d g / d q [1/rad]
-        distance = np.abs(gate[:, 0]) / np.maximum(np.linalg.norm(grad, axis=1), 1e-300)  # (B, G)
-        rows, cols = np.nonzero(distance <= SWITCH_REACH_RAD)  # within reach: is there a jump? (few rows)
-        if len(rows):
+        grad = gate[:, 1:] / half_range[:, None]  # d g / d q [1/rad]
+        norm = np.sqrt(np.add.reduce(grad * grad, axis=1))  # np.linalg.norm's arithmetic, without its checks
+        distance = np.abs(gate[:, 0]) / np.maximum(norm, 1e-300)  # (B, G)
+        within = distance <= SWITCH_REACH_RAD
+        if within.any():  # within reach: is there a jump? (few rows)
+            rows, cols = np.nonzero(within)
             jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols])
             jump_m *= length_scale_m[self.muscles[cols]]
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
-        which = np.argmin(distance, axis=1)
-        nearest = distance[np.arange(len(x)), which]
-        return nearest, np.where(np.isfinite(nearest), self.muscles[which], -1)
+        which = distance.argmin(1)
+        nearest = np.take_along_axis(distance, which[:, None], 1)[:, 0]
+        return nearest, np.where(nearest < np.inf, self.muscles[which], -1)
 
 
 def switch_distance(path, x, half_range, length_scale_m, snapshot: SwitchSnapshot = None) -> tuple[np.ndarray,
@@ -100,8 +102,8 @@ class PostureSwitches:
         self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
 
     def __call__(self, q_rad):
-        x = np.clip(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo, self.x_hi)
-        return self.snapshot(x, self.half_range, self.length_scale_m)
+        x = np.minimum(np.maximum(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo), self.x_hi)
+        return self.snapshot(x, self.half_range, self.length_scale_m)  # (np.clip's answer, without its dispatch)
 
 
 def _host(a) -> np.ndarray:
