@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .arrays import encode_q
-from .basis import ProductTerms, TermsSnapshot
+from .basis import ProductTerms, TermsSnapshot, dense_terms
 
 SWITCH_REACH_RAD = 0.005  # a posture this close to a learned switch is flagged [rad] (RESULTS.md "Hold every posture":
 # 0.65 % of uniform myoArm postures; 10 mrad: 1.2 %)
@@ -56,7 +56,7 @@ class SwitchSnapshot:
         """The terms ``coef (G, P)`` uses, as the path's own basis evaluation in numpy (``basis.TermsSnapshot``:
         each term and its slopes), and their coefficients ``(P', G)``."""
         cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
-        terms = TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host()
+        terms = PlacedTerms(TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host())
         return terms, coef[:, cols].T.cpu().numpy()
 
     def __call__(self, x: np.ndarray, half_range: np.ndarray, length_scale_m: np.ndarray):
@@ -74,9 +74,29 @@ class SwitchSnapshot:
             jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols])
             jump_m *= length_scale_m[self.muscles[cols]]
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
-        which = distance.argmin(1)
-        nearest = np.take_along_axis(distance, which[:, None], 1)[:, 0]
-        return nearest, np.where(nearest < np.inf, self.muscles[which], -1)
+        nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)
+        return nearest, np.where(nearest < np.inf, self.muscles[distance.argmin(1)], -1)
+
+
+class PlacedTerms:
+    """``TermsSnapshot``'s call ``(B, P, 1 + N)`` (each term, then its slopes) for terms over the joints themselves,
+    whose slots lie on distinct columns: ``dense_terms``' products put in place by one gather from ``[phi, slot
+    slopes, 0]`` instead of a scatter onto zeros (each entry is one product either way: the same values, but for
+    the sign of a zero, which no switch distance reads: they take ``|g|`` and ``|grad g|``)."""
+
+    def __init__(self, terms: TermsSnapshot):
+        n_terms, sources = terms.column.shape  # (P, 1 + slots): the column of phi (0) and of each slot's slope
+        if any(len(set(row)) < sources for row in terms.column.tolist()):
+            raise ValueError("PlacedTerms: two slots of a term share a column (a scatter would add them)")
+        place = np.full((n_terms, 1 + terms.n_columns), sources * n_terms)  # the appended zero
+        terms_index = np.arange(n_terms)[:, None]
+        place[terms_index, terms.column] = np.arange(sources) * n_terms + terms_index
+        self.terms, self.place = terms, place.reshape(-1)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        phi, slopes = dense_terms(self.terms, x)
+        flat = np.concatenate([phi, *slopes, np.zeros((len(x), 1))], 1)
+        return flat.take(self.place, 1).reshape(len(x), phi.shape[1], -1)
 
 
 def switch_distance(path, x, half_range, length_scale_m, snapshot: SwitchSnapshot = None) -> tuple[np.ndarray,
