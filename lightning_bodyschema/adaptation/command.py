@@ -48,7 +48,8 @@ def command_status(x_si, bounds: FaultBounds, l_lo_m, l_hi_m, bad=None, diagnost
     bad_input, non_finite, out_of_range (outside the plausible lengths or <= 0), fault_not_met (a jam or band broken
     by more than ``FAULT_TOL_M``, a cut muscle pulling more than ``FAULT_TOL_N``), ok; rows not ok are NaN.
     worst (``diagnostics``, else None): per-case (B,) arrays of how far the raw output broke each bound (NaN where
-    not finite).
+    not finite), and every finite row's clipped command whatever its status (``clipped_l_motor_m``, ``clipped_f_n``
+    (B, M); NaN rows elsewhere).
     """
     xp = torch if torch.is_tensor(x_si) else np
     pos = (lambda a: a.clamp_min(0.0)) if xp is torch else (lambda a: np.maximum(a, 0.0))  # noqa: E731
@@ -74,7 +75,10 @@ def command_status(x_si, bounds: FaultBounds, l_lo_m, l_hi_m, bad=None, diagnost
              xp.where(bounds.band, pos(xp.maximum(bounds.band_lo_m - l_motor, l_motor - bounds.band_hi_m)), 0.0),
              outside)
     worst = xp.where(finite[:, None], xp.amax(xp.stack(worst, 1), 2), float("nan"))  # (B, 6): one pass, not six
-    return out + ({name: worst[:, i] for i, name in enumerate(DIAGNOSTICS)},)
+    diagnostics = {name: worst[:, i] for i, name in enumerate(DIAGNOSTICS)}
+    diagnostics.update(clipped_l_motor_m=xp.where(finite[:, None], l_motor, float("nan")),
+                       clipped_f_n=xp.where(finite[:, None], f_safe, float("nan")))
+    return out + (diagnostics,)
 
 
 # what ``command_status`` reports per case with ``diagnostics``
@@ -96,12 +100,8 @@ def safe_command(x_si, faults, f_limit_n=None, l_range_m=None) -> AdaptationResu
     bounds = faults.on_host() if isinstance(faults, FaultBounds) else FaultBounds.from_faults(faults, f_limit_n)
     lo, hi = (0.0, np.inf) if l_range_m is None else (np.maximum(l_range_m[0], 0.0), l_range_m[1])
     with np.errstate(invalid="ignore", over="ignore"):  # NaN rows are non_finite
-        l_motor, f, status, worst = command_status(x, bounds, lo, hi, diagnostics=True)
-        m = x.shape[1] // 2
-        finite = np.isfinite(x).all(1, keepdims=True)
-        clipped_f = np.where(finite, np.minimum(np.maximum(x[:, m:], 0.0), bounds.f_limit_n), np.nan)
-    worst.update(clipped_l_motor_m=np.where(finite, x[:, :m], np.nan), clipped_f_n=clipped_f)
-    return AdaptationResult(l_motor, f, statuses(status), worst)
+        l_motor, f, status, diagnostics = command_status(x, bounds, lo, hi, diagnostics=True)
+    return AdaptationResult(l_motor, f, statuses(status), diagnostics)
 
 
 def statuses(codes: np.ndarray) -> np.ndarray:

@@ -1,6 +1,8 @@
 """``Adapter``: ``BodySchema.adapt`` for one fault set, prepared once and called every control tick."""
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import numpy as np
 import torch
 
@@ -95,10 +97,12 @@ class Adapter:
         """``adapts_in_si``: ``adapt_si``'s command through ``safe_command`` and the physics check, with the schema's
         own status where it gave one (class docstring)."""
         schema = self.schema
-        with torch.inference_mode(False), torch.no_grad():  # on the schema's device until here
+        # ordinary tensors (no_grad; inference mode left only where it is on: a controller's tick is outside it)
+        leave = torch.inference_mode(False) if torch.is_inference_mode_enabled() else nullcontext()
+        with leave, torch.no_grad():  # on the schema's device until here
             answer = schema.adapt_si(torch.as_tensor(q, device=schema.device), self.bounds, self.variant,
                                      **self.options)
-        l_motor, f = (to_numpy(a, np.float64) for a in answer[:2])
+        l_motor, f = to_numpy(answer[0], np.float64), to_numpy(answer[1], np.float64)
         why = np.asarray(answer[2], dtype=object) if len(answer) > 2 else np.full(len(q), Status.OK, dtype=object)
         refused = why != Status.OK
         result = safe_command(np.where(refused[:, None], np.nan, np.concatenate([l_motor, f], 1)), self.bounds,

@@ -112,18 +112,30 @@ class FaultBounds:
         """(B, M) [m]: the lower of a jam's l_fixed and a band's hi, +inf where free."""
         return minimum(where(self.jam, self.l_fixed_m, np.inf), where(self.band, self.band_hi_m, np.inf))
 
+    @cached_property
+    def length_bounds_set(self):
+        """``(has_lo, lo, has_hi, hi, any_lo, any_hi)``: where a motor-length bound is set (B, M) and its value [m]
+        (0 where free), and whether any is set at all (numpy; torch: True, no data-dependent branch in a traced
+        graph), once per bounds: every ``tension_box`` and ``motor_length_m`` call (a controller's every tick) reads
+        them, and skips the arithmetic of a kind of bound no muscle has (its answer there is the other operand)."""
+        has_lo, has_hi = isfinite(self.l_lo_m), isfinite(self.l_hi_m)
+        traced = namespace(has_lo) is not np
+        return (has_lo, where(has_lo, self.l_lo_m, 0.0), has_hi, where(has_hi, self.l_hi_m, 0.0),
+                traced or bool(has_lo.any()), traced or bool(has_hi.any()))
+
     def tension_box(self, l_geo_m):
         """``(lo, hi)`` (B, M) [N]: the tensions that meet every bound at muscle lengths ``l_geo_m`` (module
-        docstring); lo > hi where they cross (then no tension meets them)."""
+        docstring); lo > hi where they cross (then no tension meets them). New arrays (tensors) either way."""
         if self.k_n is None:
             raise ValueError("FaultBounds without a spring has no tension box")
-        l_lo, l_hi = self.l_lo_m, self.l_hi_m
+        has_lo, l_lo, has_hi, l_hi, any_lo, any_hi = self.length_bounds_set
+        whole = np.shape(l_geo_m) != self.f_lo_n.shape  # lengths that broadcast the bounds: no skip
         with np.errstate(over="ignore", invalid="ignore"):  # an absurd stretch overflows to inf: crossed, as it should
-            has_hi, has_lo = isfinite(l_hi), isfinite(l_lo)
-            by_hi = spring_tension_n(l_geo_m - where(has_hi, l_hi, 0.0), self.k_n, self.alpha_per_m)
-            by_lo = spring_tension_n(l_geo_m - where(has_lo, l_lo, 0.0), self.k_n, self.alpha_per_m)
-            return (maximum(self.f_lo_n, where(has_hi, by_hi, 0.0)),
-                    minimum(self.f_hi_n, where(has_lo, by_lo, np.inf)))
+            lo = maximum(self.f_lo_n, where(has_hi, spring_tension_n(l_geo_m - l_hi, self.k_n, self.alpha_per_m),
+                                            0.0)) if any_hi or whole else self.f_lo_n.copy()  # max(0, 0)
+            hi = minimum(self.f_hi_n, where(has_lo, spring_tension_n(l_geo_m - l_lo, self.k_n, self.alpha_per_m),
+                                            np.inf)) if any_lo or whole else self.f_hi_n.copy()  # min(f_hi, inf)
+            return lo, hi
 
     def motor_length_m(self, l_geo_m, f_n):
         """``l_motor = l_geo - delta(f)`` (B, M) [m]: the motor lengths that give tensions ``f_n`` at muscle lengths
@@ -133,9 +145,11 @@ class FaultBounds:
         the exported graph)."""
         if self.k_n is None:
             raise ValueError("FaultBounds without a spring has no motor lengths")
-        l_motor, l_lo = l_geo_m - spring_elongation_m(f_n, self.k_n, self.alpha_per_m), self.l_lo_m
-        l_motor = where((f_n <= 0.0) & isfinite(l_lo), maximum(l_motor, l_lo), l_motor)
-        return minimum(l_motor, self.l_hi_m)
+        has_lo, _, _, _, any_lo, any_hi = self.length_bounds_set
+        l_motor = l_geo_m - spring_elongation_m(f_n, self.k_n, self.alpha_per_m)
+        if any_lo:
+            l_motor = where((f_n <= 0.0) & has_lo, maximum(l_motor, self.l_lo_m), l_motor)
+        return minimum(l_motor, self.l_hi_m) if any_hi or l_motor.shape != self.l_hi_m.shape else l_motor  # min(l, inf)
 
     def broken(self, l_motor_m, f_n):
         """``(length_m, cut_n)`` (B, M): how far ``l_motor_m`` lies outside its length bounds (a jam, a band) [m] and

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .arrays import encode_q
-from .basis import ProductTerms, TermsSnapshot
+from .basis import ProductTerms, TermsSnapshot, dense_terms
 
 SWITCH_REACH_RAD = 0.005  # a posture this close to a learned switch is flagged [rad] (RESULTS.md "Hold every posture":
 # 0.65 % of uniform myoArm postures; 10 mrad: 1.2 %)
@@ -56,7 +56,7 @@ class SwitchSnapshot:
         """The terms ``coef (G, P)`` uses, as the path's own basis evaluation in numpy (``basis.TermsSnapshot``:
         each term and its slopes), and their coefficients ``(P', G)``."""
         cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
-        terms = TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host()
+        terms = PlacedTerms(TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host())
         return terms, coef[:, cols].T.cpu().numpy()
 
     def __call__(self, x: np.ndarray, half_range: np.ndarray, length_scale_m: np.ndarray):
@@ -65,16 +65,38 @@ class SwitchSnapshot:
             return np.full(len(x), np.inf), np.full(len(x), -1, dtype=np.int64)
         basis = self.gate_terms(x)  # (B, P', 1 + N): each term, then its slopes
         gate = np.swapaxes(basis, 1, 2) @ self.gate  # (B, 1 + N, G)
-        grad = gate[:, 1:] / half_range[None, :, None]  # d g / d q [1/rad]
-        distance = np.abs(gate[:, 0]) / np.maximum(np.linalg.norm(grad, axis=1), 1e-300)  # (B, G)
-        rows, cols = np.nonzero(distance <= SWITCH_REACH_RAD)  # within reach: is there a jump? (few rows)
-        if len(rows):
+        grad = gate[:, 1:] / half_range[:, None]  # d g / d q [1/rad]
+        norm = np.sqrt(np.add.reduce(grad * grad, axis=1))  # np.linalg.norm's arithmetic, without its checks
+        distance = np.abs(gate[:, 0]) / np.maximum(norm, 1e-300)  # (B, G)
+        within = distance <= SWITCH_REACH_RAD
+        if within.any():  # within reach: is there a jump? (few rows)
+            rows, cols = np.nonzero(within)
             jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols])
             jump_m *= length_scale_m[self.muscles[cols]]
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
-        which = np.argmin(distance, axis=1)
-        nearest = distance[np.arange(len(x)), which]
-        return nearest, np.where(np.isfinite(nearest), self.muscles[which], -1)
+        nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)
+        return nearest, np.where(nearest < np.inf, self.muscles[distance.argmin(1)], -1)
+
+
+class PlacedTerms:
+    """``TermsSnapshot``'s call ``(B, P, 1 + N)`` (each term, then its slopes) for terms over the joints themselves,
+    whose slots lie on distinct columns: ``dense_terms``' products put in place by one gather from ``[phi, slot
+    slopes, 0]`` instead of a scatter onto zeros (each entry is one product either way: the same values, but for
+    the sign of a zero, which no switch distance reads: they take ``|g|`` and ``|grad g|``)."""
+
+    def __init__(self, terms: TermsSnapshot):
+        n_terms, sources = terms.column.shape  # (P, 1 + slots): the column of phi (0) and of each slot's slope
+        if any(len(set(row)) < sources for row in terms.column.tolist()):
+            raise ValueError("PlacedTerms: two slots of a term share a column (a scatter would add them)")
+        place = np.full((n_terms, 1 + terms.n_columns), sources * n_terms)  # the appended zero
+        terms_index = np.arange(n_terms)[:, None]
+        place[terms_index, terms.column] = np.arange(sources) * n_terms + terms_index
+        self.terms, self.place = terms, place.reshape(-1)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        phi, slopes = dense_terms(self.terms, x)
+        flat = np.concatenate([phi, *slopes, np.zeros((len(x), 1))], 1)
+        return flat.take(self.place, 1).reshape(len(x), phi.shape[1], -1)
 
 
 def switch_distance(path, x, half_range, length_scale_m, snapshot: SwitchSnapshot = None) -> tuple[np.ndarray,
@@ -100,8 +122,8 @@ class PostureSwitches:
         self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
 
     def __call__(self, q_rad):
-        x = np.clip(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo, self.x_hi)
-        return self.snapshot(x, self.half_range, self.length_scale_m)
+        x = np.minimum(np.maximum(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo), self.x_hi)
+        return self.snapshot(x, self.half_range, self.length_scale_m)  # (np.clip's answer, without its dispatch)
 
 
 def _host(a) -> np.ndarray:

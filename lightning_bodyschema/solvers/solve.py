@@ -110,23 +110,37 @@ def solve_box_qp(problem: BoxQP, solver: str = "newton", *, tol: float = NEWTON_
         f[rows], status[rows], iterations[rows] = _no_equilibrium_yet(problem.take(rows), f[rows],
                                                                       status[rows] == _INFEASIBLE, iterations[rows],
                                                                       options)
-    return _certified(problem, f, status, iterations, options.certify, direction)
+    # no equilibrium case left unsettled or proven: nothing to certify (the least-squares rows have w > 0)
+    return _certified(problem, f, status, iterations, options.certify and any_equilibrium, direction)
 
 
 def _certified(problem: BoxQP, f, status, iterations, certify: bool, direction=None) -> Solution:
     """The ``Solution`` with ``INFEASIBLE`` only where a checked certificate proves it (``Solution.certificate``,
     ``separating_direction``) or the box crosses: an equilibrium case claimed ``INFEASIBLE`` without one becomes
     ``NOT_CONVERGED`` (nothing proved it), one left ``NOT_CONVERGED`` with one becomes ``INFEASIBLE``.
-    ``direction (B, N)``: the Newton's own proofs (``NewtonResult.direction``, NaN where none), tried first."""
+    ``direction (B, N)``: the Newton's own proofs (``NewtonResult.direction``, NaN where none), tried first.
+    ``certify`` False: no case needs a certificate (or none is asked for); every certificate NaN."""
     certificate = torch.full_like(problem.tau_nm, torch.nan)
-    claim = ((status == _INFEASIBLE) | (status == _NOT_CONVERGED)) & ~problem.crossed & (problem.w_m2 == 0)
-    if not certify or not _some(claim):
+    claim = _claims(problem, status) if certify else None
+    if claim is None:
         return Solution(f, status, iterations, problem, certificate)
     certificate[claim] = separating_direction(problem.take(claim), f[claim],
                                               None if direction is None else direction[claim])
     proven = ~torch.isnan(certificate[:, 0])
     status = torch.where(claim, torch.where(proven, _INFEASIBLE, _NOT_CONVERGED), status).to(torch.int32)
     return Solution(f, status, iterations, problem, certificate)
+
+
+def _claims(problem: BoxQP, status):
+    """(B,) bool: the equilibrium cases in an uncrossed box whose status claims no solution (``INFEASIBLE`` or
+    ``NOT_CONVERGED``), the ones ``_certified`` settles by a certificate; None where there is none (a few cases read
+    as host lists first, as ``_left``: most rows at batch 1 are crossed boxes or solved ones)."""
+    if status.shape[0] <= FEW_CASES and not any(
+            code in (_INFEASIBLE, _NOT_CONVERGED) and not crossed and w == 0
+            for code, crossed, w in zip(status.tolist(), problem.crossed.tolist(), problem.w_m2.tolist())):
+        return None
+    claim = ((status == _INFEASIBLE) | (status == _NOT_CONVERGED)) & ~problem.crossed & (problem.w_m2 == 0)
+    return claim if _some(claim) else None
 
 
 def separating_direction(problem: BoxQP, f_n, direction=None) -> torch.Tensor:

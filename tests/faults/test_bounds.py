@@ -95,6 +95,37 @@ def test_numpy_torch_and_the_traced_graph_agree():
     assert not traced[2].any()
 
 
+def test_a_kind_of_length_bound_no_muscle_has_leaves_the_tension_limits_and_the_spring_alone():
+    """Without a length bound the box is [0, the tension limit] and the motor length the spring's alone; with jams
+    only (upper bounds, no lower one) the box's upper end is still the limit; each as where every kind is computed
+    (torch, which never skips one); the box is the caller's to change, and lengths that broadcast the bounds get the
+    full shape."""
+    l_geo, faults = _cases(n=64)
+    none = np.full(faults.cut.shape, np.nan)
+    f = np.random.default_rng(5).uniform(-5.0, 150.0, l_geo.shape)
+    ulps = 4 * np.finfo(np.float64).eps
+    for jams, bands in ((False, False), (True, False), (False, True)):
+        kept = Faults(faults.cut, faults.fix & jams, np.where(jams, faults.l_fixed_m, np.nan), faults.f_max_n,
+                      faults.l_band_m if bands else np.stack([none, none], -1))
+        bounds = FaultBounds.from_faults(kept, SPRING.f_max_n, SPRING)
+        lo, hi = bounds.tension_box(l_geo)
+        l_motor = bounds.motor_length_m(l_geo, f)
+        assert ((lo == 0).all() and (l_motor == _motor(l_geo, f)).all()) or jams or bands
+        assert (hi == np.where(kept.cut, 0.0, kept.f_limit(SPRING.f_max_n))).all() or bands
+        assert (lo > 0).any() or not (jams or bands)  # the other kinds are computed
+        on_torch = FaultBounds.from_faults(kept, SPRING.f_max_n, SPRING, like=torch.zeros(0, dtype=torch.float64))
+        for a, b in zip(on_torch.tension_box(torch.from_numpy(l_geo)), (lo, hi)):
+            np.testing.assert_allclose(a.numpy(), b, rtol=ulps, atol=0)
+        np.testing.assert_allclose(on_torch.motor_length_m(torch.from_numpy(l_geo), torch.from_numpy(f)).numpy(),
+                                   l_motor, rtol=ulps, atol=0)
+        again = [a.copy() for a in (lo, hi)]
+        lo[:], hi[:] = np.nan, np.nan  # the caller owns the box: the next one is the same
+        assert all(np.array_equal(a, b) for a, b in zip(bounds.tension_box(l_geo), again))
+        one = bounds.take(np.arange(1))
+        assert [a.shape for a in one.tension_box(l_geo)] == [l_geo.shape] * 2
+        assert one.motor_length_m(l_geo, f).shape == l_geo.shape
+
+
 def test_invalid_rows_are_those_validate_refuses():
     names = ["a", "b", "c"]
     good = Faults.from_names(names, cut=[["a"]], jam=[{"b": 0.2}], band=[{"c": [0.1, 0.2]}])

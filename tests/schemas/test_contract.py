@@ -145,6 +145,29 @@ def _adaptation_breaches(schema, q, b: int, m: int, n: int) -> list[str]:
     return []
 
 
+def test_an_si_schema_is_handed_ordinary_tensors_without_grad_in_inference_mode_or_out_of_it(dm):
+    """Lightning's val/test/predict loops run under inference mode: ``adapt_si`` still gets ordinary tensors (a
+    schema may build autograd graphs of its own) and no grad, as outside it."""
+    seen = []
+
+    class Probe(ExactBodySchema):
+        def adapt_si(self, q_rad, bounds, variant, **options):
+            seen.append((torch.is_inference_mode_enabled(), torch.is_grad_enabled(), q_rad.is_inference()))
+            return super().adapt_si(q_rad, bounds, variant, **options)
+
+    from lightning_bodyschema.faults import Faults
+
+    schema = Probe(robot=dm.robot)
+    schema.normalizer.load_state_dict(dm.normalizer.state_dict())
+    q = _postures(dm, 2)[0]
+    adapter = schema.adapter(Faults.none(len(q), schema.n_muscles), check_physics=False)
+    outside = adapter(q)
+    with torch.inference_mode():
+        inside = adapter(q)
+    assert seen == [(False, False, False)] * 2
+    np.testing.assert_array_equal(inside.f_n, outside.f_n)
+
+
 class _NarrowCommand(ExactBodySchema):
     """Breaks ``generate``: the tensions only."""
 
