@@ -1,6 +1,6 @@
 // A CPU allocator for a control loop: every block libtorch frees is kept for the next request of its size, so after
 // the first calls a package call's intermediate tensors reuse the blocks of earlier calls (no malloc, free or fresh
-// page per call: about a fifth of a batch-1 call of the myoArm package with the system allocator). Blocks are never
+// page per call; BENCHMARKS.md, "Deploy: exported adapter tail latency", has what that saves). Blocks are never
 // returned to the system: the pool holds the most blocks of each size that were live at once (a package's
 // intermediates, a few MB). Install it once, before loading anything (use_reusing_cpu_allocator()); tensors made
 // before keep their own deleter. Thread-safe (one mutex; a control loop's calls do not contend for it).
