@@ -72,6 +72,9 @@ def _rewrite(graph, node) -> bool:
     return True
 
 
+_VALUES = ("val", "tensor_meta", "example_value")  # what describes the product's own output, not its provenance
+
+
 def _emitter(graph, node):
     """``emit(op, *args)``: a new node of ``graph`` with ``node``'s provenance and its fake value (what later passes
     and the compiler read)."""
@@ -79,7 +82,7 @@ def _emitter(graph, node):
 
     def emit(op, *args):
         new = graph.call_function(op, args)
-        new.meta.update({key: value for key, value in node.meta.items() if key != "val"})
+        new.meta.update({key: value for key, value in node.meta.items() if key not in _VALUES})
         values = [arg.meta["val"] if isinstance(arg, torch.fx.Node) else arg for arg in args]
         with fake_mode:
             new.meta["val"] = op(*values)
