@@ -1,16 +1,18 @@
 // A control loop a user can copy: load the package once, allocate the input buffers once, one call per tick.
-//   control_loop PACKAGE.pt2 [--ticks 10000] [--cut muscle] [--json] [--sha256 HEX]
+//   control_loop PACKAGE.pt2 [--ticks 10000] [--cut muscle] [--json] [--sha256 HEX] [--system-allocator]
 // Each tick writes the next posture of a slow sweep inside the joint ranges (metadata) into the q buffer (a real
 // controller writes its reference posture and current faults there), calls the package and uses the command only
 // when the status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
 // growth [kB] over the loop. Runs a diffusion or a structured package alike; --sha256 refuses a package whose digest
-// is not HEX before loading it (exit 1).
+// is not HEX before loading it (exit 1). libtorch's CPU tensors come from bodyschema::ReusingCpuAllocator (a call's
+// intermediates reuse earlier calls' blocks); --system-allocator keeps libtorch's default (malloc per tensor).
 #include <algorithm>
 #include <chrono>
 #include <fstream>
 #include <iostream>
 
 #include "adapter.h"
+#include "reusing_allocator.h"
 
 namespace {
 
@@ -32,22 +34,25 @@ double percentile(std::vector<double> v, double p) {
 
 int main(int argc, char** argv) {
   if (argc < 2) {
-    std::cerr << "usage: control_loop PACKAGE.pt2 [--ticks N] [--cut muscle] [--json] [--sha256 HEX]\n";
+    std::cerr << "usage: control_loop PACKAGE.pt2 [--ticks N] [--cut muscle] [--json] [--sha256 HEX] "
+                 "[--system-allocator]\n";
     return 2;
   }
   long ticks = 10000;
   std::string cut, pinned;
-  bool json = false;
+  bool json = false, system_allocator = false;
   for (int i = 2; i < argc; ++i) {
     std::string flag = argv[i];
     if (flag == "--ticks" && i + 1 < argc) ticks = std::stol(argv[++i]);
     else if (flag == "--cut" && i + 1 < argc) cut = argv[++i];
     else if (flag == "--json") json = true;
     else if (flag == "--sha256" && i + 1 < argc) pinned = argv[++i];
+    else if (flag == "--system-allocator") system_allocator = true;
     else { std::cerr << "error: unknown option " << flag << "\n"; return 2; }
   }
   if (ticks < 1) { std::cerr << "error: --ticks must be >= 1\n"; return 2; }
   at::set_num_threads(1);
+  if (!system_allocator) bodyschema::use_reusing_cpu_allocator();  // before loading: the package's tensors too
   using clock = std::chrono::steady_clock;
   auto t_load = clock::now();
   auto adapter = bodyschema::open_adapter(argv[1], pinned);

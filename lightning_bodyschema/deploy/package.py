@@ -101,9 +101,11 @@ def _torch_notes_silenced():
 
 
 def exported_program(module, batch):
-    """``torch.export`` of a package module (``package_module``) for ``batch`` (``parse_batch``'s): the program
-    ``export_package`` compiles."""
+    """``torch.export`` of a package module (``package_module``) for ``batch`` (``parse_batch``'s), its small
+    products written as multiply-sums (``products.fuse_small_products``): the program ``export_package`` compiles."""
     from torch.export import Dim, export
+
+    from .products import fuse_small_products
 
     example = module.example_inputs(2 if batch == "dynamic" else batch)
     shapes = None
@@ -119,7 +121,7 @@ def exported_program(module, batch):
             raise BodySchemaInputError(f"{module.kind} adapter: its code fixes the batch size when traced, so it "
                                        "cannot be exported for a dynamic batch; give a static one (--batch-sizes "
                                        "1)") from None
-    return program
+        return fuse_small_products(program)
 
 
 def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:

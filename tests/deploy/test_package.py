@@ -176,6 +176,11 @@ def test_structured_package_equals_python_in_python_and_cpp(struct_package, stru
             np.testing.assert_allclose(line["f_n"], ref.f_n[i], rtol=0, atol=1e-2)
     run = _adapt_once(cpp_build, struct_package, "--q", "0.1,0.1", "--cut", "tail_flexor")
     assert run.returncode == 1 and "unknown muscle 'tail_flexor'" in run.stderr and run.stderr.count("\n") == 1
+    # the control loop's sweep: the same ok ticks with its reusing CPU allocator (the default) and the system's
+    loops = [subprocess.run([str(cpp_build / "control_loop"), struct_package, "--ticks", "300", "--json", *extra],
+                            capture_output=True, text=True, timeout=300) for extra in ([], ["--system-allocator"])]
+    assert all(loop.returncode == 0 for loop in loops), [loop.stderr for loop in loops]
+    assert json.loads(loops[0].stdout)["ok_ticks"] == json.loads(loops[1].stdout)["ok_ticks"] > 0
     with pytest.raises(BodySchemaInputError, match="unknown muscle 'tail_flexor'"):
         Faults.from_names(adapter.muscle_names, cut=[["tail_flexor"]])
     with pytest.raises(BodySchemaInputError, match="another robot"):

@@ -64,16 +64,18 @@ _BODY_ROUNDINGS = 256  # a polynomial's terms or a layer's width summed (a few h
 
 @pytest.mark.slow
 @pytest.mark.parametrize("which", ["mlp", "per_muscle"])
-def test_the_exported_program_is_the_eager_module(which, request):
-    """The package's program (``deploy.package.exported_program``: torch.export with a dynamic batch) answers as the
-    eager module, at the batch it was traced with and at 1."""
+@pytest.mark.parametrize("batch", ["dynamic", 1])
+def test_the_exported_program_is_the_eager_module(which, batch, request):
+    """The package's program (``deploy.package.exported_program``: torch.export, its small float64 products as
+    multiply-sums where the batch is static) answers as the eager module: a dynamic batch's at the batch it was traced
+    with and at 1, a static batch 1's on each of the first cases."""
     from lightning_bodyschema.deploy.package import exported_program
 
     schema, (q, faults) = (request.getfixturevalue(name) for name in {
         "mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", "paths_cases")}[which])
     module = StructuredAdapterModule(schema).eval()
-    program = exported_program(module, "dynamic").module()
-    for rows in (np.arange(len(q)), np.arange(1)):
+    program = exported_program(module, batch).module()
+    for rows in (np.arange(len(q)), np.arange(1)) if batch == "dynamic" else np.arange(8)[:, None]:
         inputs = module_inputs(q[rows], faults.take(rows))
         with torch.no_grad():
             got, want = program(*inputs), module(*inputs)
