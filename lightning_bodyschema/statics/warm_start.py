@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from ..status import Status
 
 SEED_EVERY = 32  # frames between two seeds (64 ms at 2 ms frames): on the benchmark's reach and squat every other
@@ -64,4 +65,4 @@ def exact_step(G, tau_nm, x_ref, lo, hi, guess, tol_nm: float):
                        (at_lo & at_hi) | (at_lo & (unclipped <= lo)) | (at_hi & (unclipped >= hi)))
     residual = (torch.bmm(Gt, x.unsqueeze(-1)).squeeze(-1) + tau).abs().amax(1)
     held = kept.all(1) & (residual <= tol_nm) & (info == 0)  # NaN residuals compare False
-    return x.numpy(), held.numpy()
+    return to_numpy(x), to_numpy(held)
