@@ -33,7 +33,34 @@ DESCRIPTION = ("Train and evaluate body schemas of musculoskeletal robots (AE, V
                "tools/predict.py, tools/adapt_cases.py, or schema.adapt from Python.")
 
 
+class _HeldSeedNote(logging.Filter):
+    """Holds Lightning's "Seed set to N" line (logged before the classes are built) until they are: a bad option
+    then prints its one error line alone, and a good run still says its seed."""
+
+    def __init__(self):
+        super().__init__()
+        self.holding, self.held = True, []
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.holding and "Seed set to" in str(record.msg):
+            self.held.append(record)
+            return False
+        return True
+
+    def release(self) -> None:
+        self.holding, held, self.held = False, self.held, []
+        for record in held:
+            logging.getLogger(record.name).handle(record)
+
+
+_SEED_NOTE = _HeldSeedNote()
+
+
 class BodySchemaCLI(LightningCLI):
+    def instantiate_classes(self) -> None:
+        super().instantiate_classes()
+        _SEED_NOTE.release()
+
     @staticmethod
     def subcommands() -> dict[str, set[str]]:
         """fit, validate and test; no predict (see the module docstring)."""
@@ -197,6 +224,8 @@ def run(args: list[str]) -> "BodySchemaCLI":
     warnings.filterwarnings("ignore", message=".*configure_optimizers` will be overridden by.*")
     for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
         logging.getLogger(name).addFilter(_no_tip)  # the same function: added once however often run() is
+    _SEED_NOTE.holding, _SEED_NOTE.held = True, []
+    logging.getLogger("lightning.fabric.utilities.seed").addFilter(_SEED_NOTE)
     try:
         return BodySchemaCLI(BodySchema, EquilibriumDataModule, **_cli_kwargs(args))
     except Exception as err:  # jsonargparse wraps errors raised while instantiating classes
