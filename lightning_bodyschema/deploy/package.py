@@ -79,7 +79,8 @@ def package_metadata(schema, module, ckpt_sha256: str, batch) -> dict[str, str]:
               "muscle_names": list(robot.muscle_names), "q_range_rad": np.asarray(robot.q_range, float).tolist(),
               "inputs": list(INPUTS), "outputs": ["l_motor_m", "f_n", "status"], "units": UNITS,
               "status_codes": STATUS_CODES, "spring": spring, "seeds": module.seeds, "checkpoint_sha256": ckpt_sha256,
-              "batch": batch, "programs": ",".join(map(str, program_batches(batch))), "fault_tol_m": FAULT_TOL_M, "fault_tol_n": FAULT_TOL_N, "dtype": str(module.dtype)}
+              "batch": batch, "programs": ",".join(map(str, program_batches(batch))), "fault_tol_m": FAULT_TOL_M,
+              "fault_tol_n": FAULT_TOL_N, "dtype": str(module.dtype)}
     return {key: value if isinstance(value, str) else json.dumps(value) for key, value in values.items()}
 
 

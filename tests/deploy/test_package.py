@@ -224,7 +224,8 @@ def test_dynamic_package_holds_a_batch1_program_that_answers_alike(request, whic
     assert adapter.program_for(1) == "1" and adapter.program_for(7) == adapter.program_for(2) == "dynamic"
     tensors = adapter.inputs(cases[0][:7], cases[1].take(np.arange(7)))
     for rows in (np.arange(1), np.arange(7)):
-        (l_dyn, f_dyn, s_dyn), (l_one, f_one, s_one) = (_by_program(adapter, k, tensors, rows) for k in ("dynamic", "1"))
+        l_dyn, f_dyn, s_dyn = _by_program(adapter, "dynamic", tensors, rows)
+        l_one, f_one, s_one = _by_program(adapter, "1", tensors, rows)
         ok = s_dyn == STATUS_CODES["ok"]
         assert (s_one == s_dyn).all() and (len(rows) == 1 or ok.any())
         np.testing.assert_allclose(l_one[ok], l_dyn[ok], rtol=0, atol=atol_m)
