@@ -6,7 +6,9 @@
 Draws ``--cases`` postures inside the joint ranges, each with one cut muscle and (seven cases in ten) a jammed one,
 its ``l_fixed`` 6 mm below to 3 mm above the learned or healthy length there (binding and not), and compares the
 package (``load_exported``) with ``schema.adapter(faults, check_physics=False)`` (diffusion: the package's steps):
-prints the statuses of each, how many agree, and the largest difference of the ok rows [m, N]. Exits 1 when a
+prints the statuses of each, how many agree, and the largest difference of the ok rows [m, N], once per program
+the package holds: a dynamic package answers all cases in one call (its dynamic program) and one case per call
+(its batch-1 program, ``"programs": "dynamic,1"``); a static batch-1 package one case per call. Exits 1 when a
 status differs or an ok row is off by more than 1e-5 m or 1e-2 N (the package's contract), 2 on bad input.
 """
 import sys
@@ -61,19 +63,23 @@ def main(argv=None):
     q, faults = mixed_cases(schema, args.cases, args.seed)
     options = {"n_steps": package.metadata["n_steps"]} if package.kind == "diffusion" else {}
     ref = schema.adapter(faults, check_physics=False, **options)(q)
-    got = package(q, faults) if package.metadata["batch"] == "dynamic" else _one_by_one(package, q, faults)
-    same = got.status == ref.status
-    ok = same & (got.status == "ok")
-    dl = float(np.abs(got.l_motor_m[ok] - ref.l_motor_m[ok]).max(initial=0.0))
-    df = float(np.abs(got.f_n[ok] - ref.f_n[ok]).max(initial=0.0))
-    print(f"{package.kind} package, {args.cases} cases: package {counts(got.status)}, python {counts(ref.status)}; "
-          f"{int(same.sum())}/{args.cases} statuses equal; ok rows: max |dl| {dl:.3g} m, max |df| {df:.3g} N")
-    if not same.all() or dl > TOL_M or df > TOL_N:
+    failed = False
+    for key in package.programs:
+        got = package(q, faults) if key == "dynamic" else _one_by_one(package, q, faults)
+        same = got.status == ref.status
+        ok = same & (got.status == "ok")
+        dl = float(np.abs(got.l_motor_m[ok] - ref.l_motor_m[ok]).max(initial=0.0))
+        df = float(np.abs(got.f_n[ok] - ref.f_n[ok]).max(initial=0.0))
+        print(f"{package.kind} package, program for batch {key}, {args.cases} cases: package {counts(got.status)}, "
+              f"python {counts(ref.status)}; {int(same.sum())}/{args.cases} statuses equal; ok rows: max |dl| "
+              f"{dl:.3g} m, max |df| {df:.3g} N")
+        failed |= not same.all() or dl > TOL_M or df > TOL_N
+    if failed:
         sys.exit(1)
 
 
 def _one_by_one(package, q, faults):
-    """A package exported for batch 1: one call per case."""
+    """One call per case (a one-case call runs the package's batch-1 program)."""
     from lightning_bodyschema.adaptation.command import AdaptationResult
 
     rows = [package(q[i:i + 1], faults.take([i])) for i in range(len(q))]

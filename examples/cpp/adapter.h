@@ -2,8 +2,11 @@
 // Inputs, in order (float64 unless said): q_ref (B, N) [rad]; cut, jam (B, M) masks 0/1; l_fixed_m (B, M) [m];
 // f_weak_n (B, M) [N]; band_lo_m, band_hi_m (B, M) [m] (NaN where a fault does not apply); seed () int64.
 // Outputs: l_motor_m (B, M) [m], f_n (B, M) [N] (NaN rows unless ok), status (B,) int32 (metadata "status_codes").
-// The same for a diffusion and a structured package (metadata "schema_kind"). A package holds a compiled shared
-// library and loading it runs its code: pin the SHA-256 the export printed (open_adapter's `sha256`).
+// The same for a diffusion and a structured package (metadata "schema_kind"). A dynamic-batch package holds two
+// programs (metadata "programs": "dynamic,1"): "model" for any batch and "batch1" for exactly one case; Adapter::run
+// calls "batch1" for one case. A static package, and one written before, holds "model" alone. A package holds
+// compiled shared libraries and loading it runs their code: pin the SHA-256 the export printed (open_adapter's
+// `sha256`).
 #pragma once
 
 #include <torch/csrc/inductor/aoti_package/model_package_loader.h>
@@ -69,7 +72,8 @@ inline std::vector<double> parse_numbers(const std::string& json) {
 }
 
 struct Adapter {
-  std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;
+  std::unique_ptr<torch::inductor::AOTIModelPackageLoader> loader;  // "model": the package's first program
+  std::unique_ptr<torch::inductor::AOTIModelPackageLoader> batch1;  // "batch1" where the package holds it
   std::vector<std::string> joints, muscles;
   std::vector<double> q_range;  // lo, hi of each joint [rad], in joint order
   std::map<int, std::string> status_names;
@@ -78,15 +82,13 @@ struct Adapter {
 
   // Throws std::runtime_error (with the reason) for a missing, corrupt or foreign package.
   explicit Adapter(const std::string& path) {
-    try {
-      loader = std::make_unique<torch::inductor::AOTIModelPackageLoader>(path);
-    } catch (const std::exception& e) {
-      std::string what = e.what();
-      throw std::runtime_error("cannot load adapter package " + path + ": " + what.substr(0, what.find('\n')));
-    }
+    loader = load_program(path, "model");
     auto meta = loader->get_metadata();
     if (meta["format"] != "lightning_bodyschema.adapter/1")
       throw std::runtime_error(path + " is not a lightning_bodyschema adapter package");
+    const std::string programs = meta.count("programs") ? "," + meta.at("programs") + "," : "";
+    if (programs.find(",1,") != std::string::npos && programs.rfind(",1,", 0) != 0)  // a second program, for 1 case
+      batch1 = load_program(path, "batch1");
     joints = parse_string_list(meta.at("joint_names"));
     muscles = parse_string_list(meta.at("muscle_names"));
     status_names = parse_status_codes(meta.at("status_codes"));
@@ -114,8 +116,24 @@ struct Adapter {
             torch::full({batch, m}, nan, f64), torch::scalar_tensor(default_seed, torch::kInt64)};
   }
 
-  // One call: {l_motor_m (B, M), f_n (B, M), status (B,)}.
-  std::vector<torch::Tensor> run(const std::vector<torch::Tensor>& inputs) { return loader->run(inputs); }
+  // The program a call with `batch` cases runs: "batch1" for one case where the package holds it, else "model".
+  std::string program_for(int64_t batch) const { return batch == 1 && batch1 ? "batch1" : "model"; }
+
+  // One call: {l_motor_m (B, M), f_n (B, M), status (B,)}, by the program_for its number of cases.
+  std::vector<torch::Tensor> run(const std::vector<torch::Tensor>& inputs) {
+    return (inputs[0].size(0) == 1 && batch1 ? batch1 : loader)->run(inputs);
+  }
+
+ private:
+  static std::unique_ptr<torch::inductor::AOTIModelPackageLoader> load_program(const std::string& path,
+                                                                               const std::string& name) {
+    try {
+      return std::make_unique<torch::inductor::AOTIModelPackageLoader>(path, name);
+    } catch (const std::exception& e) {
+      std::string what = e.what();
+      throw std::runtime_error("cannot load adapter package " + path + ": " + what.substr(0, what.find('\n')));
+    }
+  }
 };
 
 // The package at `path`, or nullptr after printing "error: <reason>" on stderr (a program then exits 1). With a

@@ -3,7 +3,8 @@
 // Each tick writes the next posture of a slow sweep inside the joint ranges (metadata) into the q buffer (a real
 // controller writes its reference posture and current faults there), calls the package and uses the command only
 // when the status is 0 (ok). Prints the call latency percentiles [us], the first call's latency and the resident memory
-// growth [kB] over the loop. Runs a diffusion or a structured package alike; --sha256 refuses a package whose digest
+// growth [kB] over the loop and the package's program the loop calls ("batch1" where the package holds one, else
+// "model"). Runs a diffusion or a structured package alike; --sha256 refuses a package whose digest
 // is not HEX before loading it (exit 1). libtorch's CPU tensors come from bodyschema::ReusingCpuAllocator (a call's
 // intermediates reuse earlier calls' blocks); --system-allocator keeps libtorch's default (malloc per tensor).
 #include <algorithm>
@@ -85,12 +86,13 @@ int main(int argc, char** argv) {
     std::cout << "{\"ticks\": " << ticks << ", \"load_ms\": " << load_ms << ", \"first_call_us\": " << first_us
               << ", \"p50_us\": " << percentile(lat_us, 50) << ", \"p99_us\": " << percentile(lat_us, 99)
               << ", \"p999_us\": " << percentile(lat_us, 99.9) << ", \"max_us\": " << percentile(lat_us, 100)
-              << ", \"rss_growth_kb\": " << rss_growth << ", \"ok_ticks\": " << sent << "}" << std::endl;
+              << ", \"rss_growth_kb\": " << rss_growth << ", \"ok_ticks\": " << sent << ", \"program\": \""
+              << adapter->program_for(1) << "\"}" << std::endl;
   } else {
     std::cout << ticks << " ticks, " << sent << " ok; load " << load_ms << " ms, first call " << first_us
               << " us; p50 " << percentile(lat_us, 50) << " us, p99 " << percentile(lat_us, 99) << " us, p99.9 "
               << percentile(lat_us, 99.9) << " us, max " << percentile(lat_us, 100) << " us; RSS growth "
-              << rss_growth << " kB" << std::endl;
+              << rss_growth << " kB; program " << adapter->program_for(1) << std::endl;
   }
   return 0;
 }

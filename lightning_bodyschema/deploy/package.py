@@ -1,12 +1,15 @@
 """Export a schema's prepared adapter (``AdapterModule`` for the diffusion schema, ``StructuredAdapterModule`` for
 the structured one) to one AOTInductor ``.pt2`` package, and load it back.
 
-``export_package(schema, out)`` traces the module with ``torch.export`` and compiles it with
-``torch._inductor.aoti_compile_and_package`` (a C++ compiler is needed, tens of seconds); the package carries its
-metadata (``package_metadata``: the schema kind, names, units, status codes, the checkpoint's hash, ...) as strings,
-readable from Python (``aoti_load_package(p).get_metadata()``) and C++ (``AOTIModelPackageLoader::get_metadata``).
+``export_package(schema, out)`` traces the module with ``torch.export`` and compiles it with AOTInductor (a C++
+compiler is needed, tens of seconds per program). A dynamic-batch package holds two programs: ``"model"`` (any
+batch 1..MAX_BATCH, the one a plain ``aoti_load_package`` loads) and ``"batch1"`` (the same adapter compiled for
+exactly one case); a static ``batch=N`` package holds ``"model"`` alone. Each program carries the package's
+metadata (``package_metadata``: the schema kind, names, units, status codes, the checkpoint's hash, and
+``"programs"``: the batches it holds, ``"dynamic,1"`` or ``"N"``; absent in a one-program package written before)
+as strings, readable from Python (``get_metadata()``) and C++ (``AOTIModelPackageLoader::get_metadata``).
 ``load_exported(path, expected_sha256=None)`` returns ``ExportedAdapter``: ``(q_ref, faults) -> AdaptationResult``
-without the schema, for either kind.
+without the schema, for either kind; a call with one case runs the ``"batch1"`` program where the package has one.
 
 A package holds a compiled shared library: loading one runs its code (unlike a checkpoint read with
 ``weights_only=True``). Pin the digest the export prints (``expected_sha256``): a file whose SHA-256 differs is
@@ -48,9 +51,25 @@ def file_sha256(path: str) -> str:
     return digest.hexdigest()
 
 
+def program_batches(batch) -> list:
+    """The batches a package exported for ``batch`` (``parse_batch``'s) holds programs for, the first named
+    ``"model"``: a dynamic batch also gets a static batch-1 program (one case per call, a control loop's call,
+    without the dynamic program's shape checks and loops)."""
+    return ["dynamic", 1] if batch == "dynamic" else [batch]
+
+
+def program_name(index: int, batch) -> str:
+    """The name of a package's ``index``-th program (``program_batches``): ``"model"`` first (the name every
+    AOTInductor loader opens by default, so a package keeps loading in code that knows one program), then
+    ``"batch<N>"``."""
+    return "model" if index == 0 else f"batch{batch}"
+
+
 def package_metadata(schema, module, ckpt_sha256: str, batch) -> dict[str, str]:
     """The package's metadata: every value a string (JSON for lists and dicts); ``schema_kind`` is
-    ``"diffusion"`` or ``"structured"`` (``n_steps``: denoising steps, or the structured package's Newton steps)."""
+    ``"diffusion"`` or ``"structured"`` (``n_steps``: denoising steps, or the structured package's Newton steps);
+    ``batch``: the ``"model"`` program's; ``programs``: every program's batch, comma-separated, in
+    ``program_batches`` order."""
     robot = schema.robot_model
     spring = {name: np.asarray(getattr(schema.spring, name), float).tolist()
               for name in ("k_n", "alpha_per_m", "f_max_n")}
@@ -60,7 +79,8 @@ def package_metadata(schema, module, ckpt_sha256: str, batch) -> dict[str, str]:
               "muscle_names": list(robot.muscle_names), "q_range_rad": np.asarray(robot.q_range, float).tolist(),
               "inputs": list(INPUTS), "outputs": ["l_motor_m", "f_n", "status"], "units": UNITS,
               "status_codes": STATUS_CODES, "spring": spring, "seeds": module.seeds, "checkpoint_sha256": ckpt_sha256,
-              "batch": batch, "fault_tol_m": FAULT_TOL_M, "fault_tol_n": FAULT_TOL_N, "dtype": str(module.dtype)}
+              "batch": batch, "programs": ",".join(map(str, program_batches(batch))), "fault_tol_m": FAULT_TOL_M,
+              "fault_tol_n": FAULT_TOL_N, "dtype": str(module.dtype)}
     return {key: value if isinstance(value, str) else json.dumps(value) for key, value in values.items()}
 
 
@@ -124,21 +144,32 @@ def exported_program(module, batch):
         return fuse_small_products(program)
 
 
+def compiled_program(program, metadata: dict[str, str]) -> list:
+    """AOTInductor's files for one exported program with ``metadata``: one entry of ``package_aoti``'s dict."""
+    gm = program.module(check_guards=False)  # as aoti_compile_and_package compiles it
+    args, kwargs = program.example_inputs
+    with _torch_notes_silenced():
+        return torch._inductor.aot_compile(gm, args, kwargs, options={"aot_inductor.package": True,
+                                                                        "aot_inductor.metadata": metadata})
+
+
 def export_package(schema, out: str, n_steps: int = 20, batch="dynamic", ckpt_sha256: str = "", seeds=None) -> str:
-    """Write the AOTInductor package of ``schema``'s adapter (``package_module``) to ``out`` (atomically: a
-    temporary file in the same folder, then a rename). Returns ``out``."""
+    """Write the AOTInductor package of ``schema``'s adapter (``package_module``) to ``out``: one program per
+    ``program_batches(batch)``, named by ``program_name`` (atomically: a temporary file in the same folder, then a
+    rename). Returns ``out``."""
+    from torch._inductor.package import package_aoti
+
     module = package_module(schema, n_steps, seeds).eval()
     batch = parse_batch(batch)
-    program = exported_program(module, batch)
     metadata = package_metadata(schema, module, ckpt_sha256, batch)
+    files = {program_name(i, b): compiled_program(exported_program(module, b), metadata)
+             for i, b in enumerate(program_batches(batch))}
     folder = os.path.dirname(os.path.abspath(out))
     os.makedirs(folder, exist_ok=True)
     handle, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".pt2", dir=folder)
     os.close(handle)
     try:
-        with _torch_notes_silenced():
-            torch._inductor.aoti_compile_and_package(program, package_path=tmp,
-                                                     inductor_configs={"aot_inductor.metadata": metadata})
+        package_aoti(tmp, files)
         os.chmod(tmp, default_file_mode())  # as open() would make it: a controller running as another user reads it
         os.replace(tmp, out)
     finally:
@@ -151,17 +182,23 @@ class ExportedAdapter:
     """A loaded package of either kind: ``adapter(q_ref (B, N) [rad], faults) -> AdaptationResult`` (``Status``
     members, NaN rows where not ok; ``diagnostics["status_code"]`` the package's integer codes). ``metadata``: the
     parsed metadata (``schema_kind``: ``"diffusion"`` or ``"structured"``); ``run(*tensors)``: the raw package
-    call (``INPUTS`` in order)."""
+    call (``INPUTS`` in order), by the program for that many cases (``programs``: batch -> runner, e.g.
+    ``{"dynamic": ..., "1": ...}``) or else the ``"model"`` program."""
 
-    def __init__(self, runner, metadata: dict, path: str):
-        self.runner, self.path = runner, path
+    def __init__(self, programs: dict, metadata: dict, path: str):
+        self.programs, self.path = programs, path
         self.metadata = {key: _parsed(value) for key, value in metadata.items()}
         self.joint_names, self.muscle_names = self.metadata["joint_names"], self.metadata["muscle_names"]
         self.kind = self.metadata.get("schema_kind", "diffusion")
         self.seed = int(self.metadata["seeds"][0])
 
+    def program_for(self, n_cases: int) -> str:
+        """The key in ``programs`` of the program a call with ``n_cases`` cases runs: the one compiled for that
+        batch where the package holds it (a one-case call in a dynamic package: ``"1"``), else the first."""
+        return str(n_cases) if str(n_cases) in self.programs else next(iter(self.programs))
+
     def run(self, *tensors):
-        return self.runner(*tensors)
+        return self.programs[self.program_for(len(tensors[0]))](*tensors)
 
     def inputs(self, q_ref, faults, seed=None) -> tuple:
         """The package's input tensors (contiguous float64, one row per case) for ``q_ref`` and ``faults``."""
@@ -206,22 +243,33 @@ def load_exported(path: str, muscle_names=None, joint_names=None, expected_sha25
     if broken is not None:
         raise BodySchemaInputError(f"{path!r} is corrupt: member {broken!r} fails its CRC check")
     try:
-        with _torch_notes_silenced():
-            runner = torch._inductor.aoti_load_package(path)
-        metadata = runner.get_metadata()
+        programs, metadata = _load_programs(path)
     except Exception as error:  # noqa: BLE001  (torch raises RuntimeError and others; one line for all)
         raise BodySchemaInputError(f"{path!r} could not be loaded as an AOTInductor package: "
                                    f"{str(error).splitlines()[0] if str(error) else type(error).__name__}") from None
     if metadata.get("format") != FORMAT:
         raise BodySchemaInputError(f"{path!r} is not a lightning_bodyschema adapter package (format "
                                    f"{metadata.get('format')!r}, expected {FORMAT!r})")
-    adapter = ExportedAdapter(runner, metadata, path)
+    adapter = ExportedAdapter(programs, metadata, path)
     for what, expected, packaged in (("muscles", muscle_names, adapter.muscle_names),
                                      ("joints", joint_names, adapter.joint_names)):
         if expected is not None and list(expected) != list(packaged):
             raise BodySchemaInputError(f"{path!r} was exported for another robot: its {what} are {packaged}, "
                                        f"this robot's are {list(expected)}")
     return adapter
+
+
+def _load_programs(path: str) -> tuple[dict, dict]:
+    """Every program of the package at ``path`` (loaded once each) as batch -> runner, the ``"model"`` program
+    first, and its metadata. A package without ``"programs"`` metadata (written with one program) holds
+    ``"model"`` alone."""
+    from torch.export.pt2_archive import _package as pt2
+
+    with _torch_notes_silenced():
+        runners = pt2.load_pt2(path).aoti_runners
+    metadata = runners["model"].get_metadata()
+    batches = str(metadata.get("programs", metadata.get("batch"))).split(",")
+    return {b: runners[program_name(i, b)] for i, b in enumerate(batches)}, metadata
 
 
 def check_digest(path: str, expected_sha256: str) -> None:

@@ -66,6 +66,20 @@ def struct_package(struct30, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def legacy_package(struct30, tmp_path_factory):
+    """struct30's batch-1 package as written before packages held several programs: one program, no "programs"
+    metadata (aoti_compile_and_package, as the export then called it)."""
+    from lightning_bodyschema.deploy.package import exported_program, package_metadata, package_module
+
+    module = package_module(struct30).eval()
+    metadata = package_metadata(struct30, module, "test-session", 1)
+    del metadata["programs"]
+    path = str(tmp_path_factory.mktemp("deploy") / "legacy.pt2")
+    return torch._inductor.aoti_compile_and_package(exported_program(module, 1), package_path=path,
+                                                    inductor_configs={"aot_inductor.metadata": metadata})
+
+
+@pytest.fixture(scope="session")
 def package(diff60, tmp_path_factory):
     """The briefly trained paper-arm diffusion schema's adapter package (20 steps, dynamic batch)."""
     from lightning_bodyschema.deploy import export_package

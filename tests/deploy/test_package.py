@@ -133,6 +133,7 @@ def test_cpp_refuses_corrupt_packages_and_unknown_muscles(package, cpp_build, tm
                            file_sha256(package).upper()], capture_output=True, text=True, timeout=300)
     assert loop.returncode == 0, loop.stderr
     assert json.loads(loop.stdout)["ok_ticks"] == 200
+    assert json.loads(loop.stdout)["program"] == "batch1"  # one case per tick: the dynamic package's batch-1 program
     forged = tmp_path / "forged.pt2"  # one byte changed: refused by its digest before it is loaded
     data = bytearray(open(package, "rb").read())
     data[len(data) // 2] ^= 1
@@ -152,6 +153,7 @@ def test_structured_package_equals_python_in_python_and_cpp(struct_package, stru
     rows = [adapter(q[i:i + 1], faults.take([i])) for i in range(len(q))]  # a batch-1 package: one call per case
     got = AdaptationResult(*(np.concatenate([getattr(r, k) for r in rows]) for k in ("l_motor_m", "f_n", "status")))
     assert adapter.kind == "structured" and adapter.metadata["schema_class"].endswith("StructuredSchema")
+    assert adapter.metadata["programs"] == 1 and list(adapter.programs) == ["1"]  # a static export: one program
     ok = got.status == "ok"
     assert (got.status == ref.status).all() and 5 <= ok.sum() < len(q)
     np.testing.assert_allclose(got.l_motor_m[ok], ref.l_motor_m[ok], rtol=0, atol=1e-5)
@@ -181,6 +183,7 @@ def test_structured_package_equals_python_in_python_and_cpp(struct_package, stru
                             capture_output=True, text=True, timeout=300) for extra in ([], ["--system-allocator"])]
     assert all(loop.returncode == 0 for loop in loops), [loop.stderr for loop in loops]
     assert json.loads(loops[0].stdout)["ok_ticks"] == json.loads(loops[1].stdout)["ok_ticks"] > 0
+    assert {json.loads(loop.stdout)["program"] for loop in loops} == {"model"}
     with pytest.raises(BodySchemaInputError, match="unknown muscle 'tail_flexor'"):
         Faults.from_names(adapter.muscle_names, cut=[["tail_flexor"]])
     with pytest.raises(BodySchemaInputError, match="another robot"):
@@ -199,3 +202,48 @@ def test_per_muscle_package_equals_python_at_any_batch(paths_package, struct_pat
         np.testing.assert_allclose(got.l_motor_m[ok], ref.l_motor_m[rows][ok], rtol=0, atol=1e-5)
         np.testing.assert_allclose(got.f_n[ok], ref.f_n[rows][ok], rtol=0, atol=1e-2)
         assert np.isnan(got.l_motor_m[~ok]).all() and np.isnan(got.f_n[~ok]).all()
+
+
+def _by_program(adapter, key, tensors, rows):
+    """``adapter``'s program ``key`` on ``rows`` of ``tensors`` (the package's inputs), one call per case for a
+    static batch-1 program: (l_motor_m, f_n, status) as numpy."""
+    program = adapter.programs[key]
+    calls = [[t[r:r + 1] for t in tensors[:-1]] for r in rows] if key == "1" else [[t[rows] for t in tensors[:-1]]]
+    outs = [program(*call, tensors[-1]) for call in calls]
+    return tuple(torch.cat([out[k] for out in outs]).numpy() for k in range(3))
+
+
+@pytest.mark.parametrize("which, atol_m, atol_n", [("package", 1e-6, 2e-3), ("paths_package", 1e-5, 1e-2)])
+def test_dynamic_package_holds_a_batch1_program_that_answers_alike(request, which, atol_m, atol_n):
+    """A dynamic export holds the dynamic program and a static batch-1 one (dispatched to for one case): the same
+    statuses and ok commands (the package's tolerances) at batch 1 and at batch 7."""
+    path = request.getfixturevalue(which)
+    cases = request.getfixturevalue("mixed_cases" if which == "package" else "paths_cases")
+    adapter = load_exported(path)
+    assert adapter.metadata["programs"] == "dynamic,1" and list(adapter.programs) == ["dynamic", "1"]
+    assert adapter.program_for(1) == "1" and adapter.program_for(7) == adapter.program_for(2) == "dynamic"
+    tensors = adapter.inputs(cases[0][:7], cases[1].take(np.arange(7)))
+    for rows in (np.arange(1), np.arange(7)):
+        l_dyn, f_dyn, s_dyn = _by_program(adapter, "dynamic", tensors, rows)
+        l_one, f_one, s_one = _by_program(adapter, "1", tensors, rows)
+        ok = s_dyn == STATUS_CODES["ok"]
+        assert (s_one == s_dyn).all() and (len(rows) == 1 or ok.any())
+        np.testing.assert_allclose(l_one[ok], l_dyn[ok], rtol=0, atol=atol_m)
+        np.testing.assert_allclose(f_one[ok], f_dyn[ok], rtol=0, atol=atol_n)
+        assert np.isnan(l_one[~ok]).all() and np.isnan(f_one[~ok]).all()
+
+
+def test_a_package_written_with_one_program_still_loads_and_runs(legacy_package, struct_package, struct_cases,
+                                                                  cpp_build):
+    """A package from before the batch-1 program (one "model" program, no "programs" metadata) answers as the
+    static package of the same schema, in Python and C++ (which run its only program)."""
+    q, faults = struct_cases
+    legacy, static = load_exported(legacy_package), load_exported(struct_package)
+    assert "programs" not in legacy.metadata and list(legacy.programs) == ["1"] and legacy.program_for(1) == "1"
+    for i in range(6):
+        got, ref = legacy(q[i:i + 1], faults.take([i])), static(q[i:i + 1], faults.take([i]))
+        assert got.status[0] == ref.status[0]
+        np.testing.assert_allclose(got.l_motor_m, ref.l_motor_m, rtol=0, atol=1e-12)  # the same compiled program
+    loop = subprocess.run([str(cpp_build / "control_loop"), legacy_package, "--ticks", "50", "--json"],
+                          capture_output=True, text=True, timeout=300)
+    assert loop.returncode == 0 and json.loads(loop.stdout)["program"] == "model", loop.stderr
