@@ -507,7 +507,7 @@ class MarginFit:
                 self.fits[j, k] = float(np.mean(y))
 
     def __call__(self, z, cells, dz_dq, truth_mm=None):
-        """The state ``(B,)``, the distance ``(B,)`` [rad] and, given the true margins ``(B, J, 5)`` [mm], the p99 of
+        """The state ``(B,)``, the distance ``(B,)`` [rad] and, given the true margins ``(B, J, 9)`` [mm], the p99 of
         the regression's largest residual over the margins [mm] (else None)."""
         value = np.full((len(z), *self.shape), np.nan)
         slope = np.zeros((len(z), *self.shape, z.shape[1]))

@@ -17,21 +17,23 @@ there is relative to them: where ``p0``, the centre and ``p1`` line up the path 
 and no change of code (a set of postures of dimension two lower than a switch of the codes).
 
 ``wrap_margins(model, q)`` gives the smooth signed quantities MuJoCo's choice is made of, per muscle and wrapping
-geom, in metres, in the geom's 2D wrapping frame (``d0``, ``d1`` the sites before and after, ``r`` the radius, ``t``
-the point of the segment ``d0 d1`` nearest the centre, ``u`` the unit direction opposite the side site):
+geom, in metres, in the geom's 2D wrapping frame (``d0``, ``d1`` the sites before and after, ``r`` the radius,
+``turn`` = ``d0 x d1 / |d1 - d0|`` the centre's signed distance from the line through them, ``u`` the unit direction
+opposite the side site), each free of the kinks of a minimum or a clamp (MARGINS, in order):
 
-* ``clear`` = ``min(|d0|, |d1|) - r``: both sites outside the circle (else nothing wraps);
-* ``cross`` = ``r - |t|``: the straight segment cuts the circle; with the side site inside the geom, ``|t| - r`` (it
-  wraps unless the segment cuts it);
-* ``turn`` = ``d0 x d1 / |d1 - d0|``: positive where the short way round is side 1;
-* ``before`` = ``r (d0 / |d0|) x u``, ``after`` = ``r u x (d1 / |d1|)`` (NaN without a side site, or inside): both of
-  the sign of ``turn`` where the side site lies behind the geom, opposite the short wedge between the two sites.
+* ``clear0``, ``clear1`` = ``|d0| - r``, ``|d1| - r``: each site outside the circle (else nothing wraps);
+* ``upper``, ``lower`` = ``r - turn``, ``r + turn``: the line through the sites cuts the circle where both are >= 0;
+* ``foot0``, ``foot1`` = ``-(d1 - d0) . d0 / |d1 - d0|``, ``(d1 - d0) . d1 / |d1 - d0|``: the foot of the centre on
+  that line lies between the sites where both are > 0 (so the segment itself cuts the circle);
+* ``before``, ``after`` = ``r (d0 / |d0|) x u``, ``r u x (d1 / |d1|)`` (NaN without a side site): both of the sign of
+  ``turn`` where the side site lies behind the geom, opposite the short wedge between the two sites;
+* ``inside`` = ``r - |s|`` (``s`` the side site in the geom's frame, 3D; NaN without one): MuJoCo's inside wrap.
 
-MuJoCo 4.0 (measured against its wrap points on myoArm, 2000 postures: every wrapping geom agrees) wraps where
-``clear > 0`` and the segment cuts the circle or the side site is behind, the long way round (side ``3 - short``)
-where the side site is behind, else the short way (``states_from_margins``). Each margin is smooth in the posture
-(``t`` inside the segment); a state switches only where one of them crosses zero, so the switch is where a smooth
-function crosses zero, and ``|m| / |grad m|`` estimates how far it is.
+MuJoCo 4.0 (measured against its wrap points on myoArm, 2000 postures: every wrapping geom agrees) wraps where both
+sites are outside and the segment cuts the circle or the side site is behind (inside wrap: where the segment does
+not cut it), the long way round (side ``3 - short``) where the side site is behind, else the short way, side 1 where
+``turn > 0`` (``states_from_margins``). A state switches only where one margin crosses zero, so the switch is where
+a smooth function crosses zero, and ``|m| / |grad m|`` estimates how far it is.
 
 numpy and MuJoCo only; one posture per MuJoCo call, the labelling batched over a chunk of postures.
 """
@@ -45,7 +47,7 @@ from ..errors import BodySchemaInputError
 CHUNK = 4096  # postures whose wrap points are held at once (memory: CHUNK x muscles x points x 3 floats)
 _GEOM_WRAPS = (int(mujoco.mjtWrap.mjWRAP_SPHERE), int(mujoco.mjtWrap.mjWRAP_CYLINDER))
 _SPHERE = int(mujoco.mjtWrap.mjWRAP_SPHERE)
-MARGINS = ("clear", "cross", "turn", "before", "after")  # wrap_margins' last axis
+MARGINS = ("clear0", "clear1", "upper", "lower", "foot0", "foot1", "before", "after", "inside")  # last axis
 
 
 def wrap_geoms(model) -> list[list[tuple[int, int, bool]]]:
@@ -127,7 +129,7 @@ def _slot_codes(points, centre: np.ndarray, frame: np.ndarray, slots: np.ndarray
 
 
 def wrap_margins(model, q) -> np.ndarray:
-    """``(B, M, J, 5)`` [m]: each muscle's margins (``MARGINS``, module docstring) at each of its wrapping geoms
+    """``(B, M, J, 9)`` [m]: each muscle's margins (``MARGINS``, module docstring) at each of its wrapping geoms
     ``J`` in path order (``wrap_geoms``; NaN past a muscle's last geom) at postures ``q (B, N)`` [rad]."""
     if not getattr(model, "has_physics", True):
         raise BodySchemaInputError("wrap_margins needs the robot's MJCF (recorded data has no wrapping geoms)")
@@ -147,17 +149,20 @@ def wrap_margins(model, q) -> np.ndarray:
 
 
 def states_from_margins(margins: np.ndarray) -> np.ndarray:
-    """``(B, M)`` int64 codes of ``wrap_states`` from margins ``(B, M, J, 5)`` (``wrap_margins``, or a regression
+    """``(B, M)`` int64 codes of ``wrap_states`` from margins ``(B, M, J, 9)`` (``wrap_margins``, or a regression
     of them): the module docstring's rule, per geom."""
     return (_slot_states(margins) * 3 ** np.arange(margins.shape[2])).sum(-1)
 
 
 def _slot_states(margins: np.ndarray) -> np.ndarray:
-    """``(..., J)`` codes 0 / 1 / 2 per wrapping geom from margins ``(..., J, 5)`` (NaN geoms: 0)."""
-    clear, cross, turn, before, after = np.moveaxis(margins, -1, 0)
-    with np.errstate(invalid="ignore"):
-        behind = np.where(turn > 0, np.minimum(before, after) > 0, np.maximum(before, after) < 0)  # NaN: False
-        wrapped = (clear > 0) & ((cross >= 0) | behind)
+    """``(..., J)`` codes 0 / 1 / 2 per wrapping geom from margins ``(..., J, 9)`` (NaN geoms: 0)."""
+    clear0, clear1, upper, lower, foot0, foot1, before, after, inside = np.moveaxis(margins, -1, 0)
+    turn = 0.5 * (lower - upper)
+    with np.errstate(invalid="ignore"):  # NaN compares False: no side site, or no geom
+        cuts = (upper >= 0) & (lower >= 0) & (foot0 > 0) & (foot1 > 0)
+        within = inside > 0
+        behind = ~within & np.where(turn > 0, np.minimum(before, after) > 0, np.maximum(before, after) < 0)
+        wrapped = (clear0 > 0) & (clear1 > 0) & np.where(within, ~cuts, cuts | behind)
         short = np.where(turn > 0, 1, 2)
     return np.where(wrapped, np.where(behind, 3 - short, short), 0)
 
@@ -202,22 +207,18 @@ def _local_points(model, full: np.ndarray, table: np.ndarray, sphere: np.ndarray
 
 
 def _margins(ends: np.ndarray, side: np.ndarray, radius: np.ndarray, sided: np.ndarray) -> np.ndarray:
-    """``(B, S, 5)`` margins (``MARGINS``) from ``_local_points``' 2D sites and side sites; ``radius``, ``sided``
+    """``(B, S, 9)`` margins (``MARGINS``) from ``_local_points``' 2D sites and side sites; ``radius``, ``sided``
     per slot ``(S,)``."""
     d0, d1, r = ends[:, :, 0], ends[:, :, 1], radius[None, :]
-    inside = sided[None, :] & (side[..., 2] < r)  # MuJoCo's wrap_inside: the side site within the geom
-    dif = d1 - d0
-    a = np.clip(-(dif * d0).sum(-1) / np.maximum((dif * dif).sum(-1), 1e-300), 0.0, 1.0)
-    reach = np.linalg.norm(d0 + a[..., None] * dif, axis=-1)
+    length = np.maximum(np.linalg.norm(d1 - d0, axis=-1), 1e-300)
+    along = (d1 - d0) / length[..., None]
     unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)  # noqa: E731
     away = -unit(side[..., :2])
-    clear = np.minimum(np.linalg.norm(d0, axis=-1), np.linalg.norm(d1, axis=-1)) - r
-    cross = np.where(inside, reach - r, r - reach)
-    turn = _cross2(d0, d1) / np.maximum(np.linalg.norm(dif, axis=-1), 1e-300)
-    acts = sided[None, :] & ~inside
-    before = np.where(acts, r * _cross2(unit(d0), away), np.nan)
-    after = np.where(acts, r * _cross2(away, unit(d1)), np.nan)
-    return np.stack([clear, cross, turn, before, after], -1)
+    turn = _cross2(d0, d1) / length
+    present = lambda v: np.where(sided[None, :], v, np.nan)  # noqa: E731
+    return np.stack([np.linalg.norm(d0, axis=-1) - r, np.linalg.norm(d1, axis=-1) - r, r - turn, r + turn,
+                     -(along * d0).sum(-1), (along * d1).sum(-1), present(r * _cross2(unit(d0), away)),
+                     present(r * _cross2(away, unit(d1))), present(r - side[..., 2])], -1)
 
 
 def _cross2(u: np.ndarray, v: np.ndarray) -> np.ndarray:

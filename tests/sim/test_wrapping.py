@@ -82,9 +82,10 @@ def test_the_margins_give_the_states_and_cross_zero_where_they_switch():
     np.testing.assert_array_equal(states_from_margins(margins), codes)
     np.testing.assert_array_equal(codes[:, 2], np.where((theta > -release) & (theta < np.pi / 2), 1, 0))
     strap = dict(zip(MARGINS, margins[:, 0, 0].T))
-    # the segment from (-D, 0) to D (cos, sin) theta passes D |sin(theta / 2)| from the post's axis
-    np.testing.assert_allclose(strap["cross"], R - D * np.abs(np.sin(theta / 2)), rtol=0, atol=1e-12 * D)
-    np.testing.assert_array_equal(np.sign(strap["turn"]), -np.sign(theta))  # the short way flips at 0
+    # the line from (-D, 0) to D (cos, sin) theta passes D sin(theta / 2) from the post's axis, on the side of -theta
+    np.testing.assert_allclose(strap["upper"], R + D * np.sin(theta / 2), rtol=0, atol=1e-12 * D)
+    np.testing.assert_allclose(strap["lower"], R - D * np.sin(theta / 2), rtol=0, atol=1e-12 * D)
+    assert np.all(strap["foot0"] > 0) and np.all(strap["foot1"] > 0)  # the foot: between the sites, for |theta| < pi
     assert np.all(np.isnan(strap["before"])) and np.all(np.isnan(margins[:, 0, 1])) and np.isnan(margins[:, 2, 1]).all()
     # the sided strap's switch at pi / 2 (a jump: straight to under the post) is the zero of its "after" margin,
     # r u x d1 / |d1| = -R cos(theta) with u = +y (away from the side site), d1 along theta
