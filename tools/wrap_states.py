@@ -307,9 +307,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if not all(part.strip().isdigit() for part in args.samples.split(",")):
         raise BodySchemaInputError(f"--samples {args.samples!r}: expected train-sample counts >= 0, comma-separated")
-    if args.postures < 100 or args.gate_degree < 1 or not 0.0 <= args.flag_share < 1.0:
-        raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --flag-share "
-                                   f"{args.flag_share}: expected >= 100 / >= 1 / in [0, 1)")
+    if args.postures < 100 or min(args.gate_degree, args.margin_degree) < 1 or not 0.0 <= args.flag_share < 1.0:
+        raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --margin-degree "
+                                   f"{args.margin_degree} / --flag-share {args.flag_share}: expected >= 100 / >= 1 / "
+                                   ">= 1 / in [0, 1)")
     torch.set_num_threads(1)
     result = run(args)
     if args.json is not None:
