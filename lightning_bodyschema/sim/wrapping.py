@@ -184,7 +184,7 @@ def _margin_slots(model) -> list[tuple]:
 
 def _local_points(model, full: np.ndarray, table: np.ndarray, sphere: np.ndarray):
     """Each slot's sites before and after in its 2D wrapping frame ``(B, S, 2, 2)`` and its side site in the geom's
-    3D frame ``(B, S, 4)``: the 2D projection, then the 3D distance from the centre (zero without a side site)."""
+    3D frame ``(B, S, 3)``: the 2D projection, then the 3D distance from the centre (zero without a side site)."""
     m, d = model.mj_model, model._data
     geom, before, after, sided = table[:, 2], table[:, 3], table[:, 4], table[:, 5] >= 0
     side_site = np.where(sided, table[:, 5], 0)
