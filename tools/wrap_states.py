@@ -3,7 +3,7 @@
 
     python tools/wrap_states.py --ckpt runs/myoarm/.../last.ckpt [--muscles TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP
                                 | all] [--postures 2000] [--seed 1] [--samples 20000,40000,0] [--flag-share 0.01]
-                                [--gate-degree 8] [--cell-gate-degree 4] [--json FILE]
+                                [--gate-degree 8] [--cell-gate-degree 4] [--margin-degree 8] [--json FILE]
 
 MuJoCo's length is smooth inside one wrapping state (``sim.wrapping.wrap_states``: which geoms a path wraps and on
 which side). The checkpoint's train postures (its data module, rebuilt from the checkpoint; ``--cache-dir``) are
@@ -18,17 +18,22 @@ labelled by state, and for each of ``--muscles`` the length is fitted by least s
   cell's local coordinates, the muscle's joint groups, total degree up to the checkpoint's cell degree), states
   mixed and nothing trimmed; (ii-c) one per cell and state, the state known; (iii-c) the same picked by the gate of
   (iii); (iii-cg) picked by a gate per cell (``CellGate``: a logistic regression of the cell's states, total degree
-  ``--cell-gate-degree``), a state's polynomial used only inside the box of its samples (else the cell's).
+  ``--cell-gate-degree``), a state's polynomial used only inside the box of its samples (else the cell's);
+  (iv-cm) picked by MuJoCo's own rule applied to regressed margins (``sim.wrapping.wrap_margins``: each wrapping
+  geom's smooth signed quantities, [mm], fitted per cell by least squares over the joints they move with, total
+  degree up to ``--margin-degree``; ``MarginFit``), each state's polynomial used wherever it is picked, as in (ii-c).
 
 A fit with fewer samples than twice its terms keeps only its terms up to the highest total degree that has at most
 half as many terms as samples. A gated fit flags the postures within ``|g| / |grad g| <= r`` [rad] of its gate's
-boundary (``g``: the largest score less the second), ``r`` the largest that flags at most ``--flag-share`` of
+boundary (``g``: the largest score less the second; (iv-cm): the nearest zero of a margin whose sign alone decides
+the state), ``r`` the largest that flags at most ``--flag-share`` of
 ``--postures`` other random postures (``--seed`` + 1). Scored at ``--postures`` seeded uniform postures (``--seed``,
 as ``tools/body_errors.py``): the worst of these muscles per posture (length [mm], moment arm [mm/rad] on the joints
 it crosses), median / p90 / p99 / max, beside the checkpoint's own body on the same muscles and on every muscle (the
 others kept as the checkpoint has them); gated fits also over the postures they do not flag; per muscle the length
 p50 / p99 of each fit; (ii-c)'s p99 within and beyond ``NEAR_RAD`` of a true switch (along a joint the muscle
-crosses); the gates' share of right states, and where the cell gates' wrong answers lie. Each ``--samples`` count
+crosses); the gates' share of right states, and where the cell gates' and the margins' wrong answers lie (within
+``MISGATE_RADII`` / ``MARGIN_RADII`` of a true switch); the margins' regression residual. Each ``--samples`` count
 (0: every train sample) refits (ii) on the first that many train samples: the samples it needs. ``--json``: the
 figures also to a file (written to a temporary name, then renamed). One torch thread.
 """
@@ -43,7 +48,7 @@ from lightning_bodyschema.apps.common import exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
 from lightning_bodyschema.networks.cells import cell_coordinates
-from lightning_bodyschema.sim.wrapping import wrap_states
+from lightning_bodyschema.sim.wrapping import states_from_margins, wrap_margins, wrap_states
 
 DEFAULT_MUSCLES = "TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP"
 CHUNK = 4000  # train rows per basis block; --samples counts are rounded up to it
@@ -51,6 +56,9 @@ RIDGE = 1e-10  # relative to the mean diagonal of each normal-equation matrix
 CELL_DEGREE = 11  # a cell's highest total degree where the checkpoint has no cells on the muscle (its myoArm cells')
 GATE_ROUNDS, GATE_RIDGE = 12, 1e-6  # a cell gate's Newton steps and ridge (per sample): separable data stays bounded
 MISGATE_RADII = (0.005, 0.01, 0.02, 0.05)  # how far from a true switch the cell gates' wrong answers lie [rad]
+MARGIN_RADII = (0.001, 0.005, 0.01)  # the same for the margins' gate [rad]
+MARGIN_STEP = 1e-3  # [rad] a joint moves a margin when this step along it does (at MARGIN_PROBES train postures)
+MARGIN_PROBES = 200
 NEAR_RAD = 0.01  # a posture this near a true switch of a muscle's state (along a joint it crosses) is "near"
 STATE_KEYS = 1000  # cell * STATE_KEYS + state: one key per (cell, wrapping state); codes stay below 3**6
 
@@ -293,14 +301,16 @@ def main(argv=None):
     parser.add_argument("--gate-degree", type=int, default=8)
     parser.add_argument("--cell-gate-degree", type=int, default=4)
     parser.add_argument("--flag-share", type=float, default=0.01)
+    parser.add_argument("--margin-degree", type=int, default=8, help="(iv-cm): a margin's highest cell degree")
     parser.add_argument("--cache-dir", default="runs/cache")
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
     if not all(part.strip().isdigit() for part in args.samples.split(",")):
         raise BodySchemaInputError(f"--samples {args.samples!r}: expected train-sample counts >= 0, comma-separated")
-    if args.postures < 100 or args.gate_degree < 1 or not 0.0 <= args.flag_share < 1.0:
-        raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --flag-share "
-                                   f"{args.flag_share}: expected >= 100 / >= 1 / in [0, 1)")
+    if args.postures < 100 or min(args.gate_degree, args.margin_degree) < 1 or not 0.0 <= args.flag_share < 1.0:
+        raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --margin-degree "
+                                   f"{args.margin_degree} / --flag-share {args.flag_share}: expected >= 100 / >= 1 / "
+                                   ">= 1 / in [0, 1)")
     torch.set_num_threads(1)
     result = run(args)
     if args.json is not None:
@@ -336,11 +346,15 @@ def table(result: dict) -> str:
     lines.append("(ii-c) per muscle, length p99 [mm] within / beyond {:g} rad of a true switch (share within): ".format(
         NEAR_RAD) + ", ".join(f"{m} {fmt([v for v in nf if v is not None])} ({100 * result['near_switch_share'][m]:.3g} %)"
                                for m, nf in result["ii-c_near_far_p99_mm"].items()))
-    wrong = result["cell_gate_wrong_near_switch"]
-    lines.append(f"gate per cell, wrong answers ({sum(wrong['postures'])} muscle-postures): share within " + ", ".join(
-        f"{1e3 * r:g}" for r in wrong["radii_rad"]) + " mrad of a true switch along a joint: " + ", ".join(
-        "-" if v is None else f"{100 * v:.3g} %" for v in wrong["share_within"]))
-    for key, label in (("gate_accuracy", "whole-box gate"), ("cell_gate_accuracy", "gate per cell")):
+    for key, label in (("cell_gate_wrong_near_switch", "gate per cell"), ("margin_gate_wrong_near_switch", "margins")):
+        wrong = result[key]
+        lines.append(f"{label}, wrong answers ({sum(wrong['postures'])} muscle-postures): share within " + ", ".join(
+            f"{1e3 * r:g}" for r in wrong["radii_rad"]) + " mrad of a true switch along a joint: " + ", ".join(
+            "-" if v is None else f"{100 * v:.3g} %" for v in wrong["share_within"]))
+    lines.append("margins, regression residual p99 (largest over a muscle's margins) [mm]: " + ", ".join(
+        f"{m} {v:.3g}" for m, v in result["margin_residual_p99_mm"].items()))
+    for key, label in (("gate_accuracy", "whole-box gate"), ("cell_gate_accuracy", "gate per cell"),
+                       ("margin_gate_accuracy", "margins")):
         lines.append(f"{label}, share of postures in the right state: " + ", ".join(
             f"{m} {100 * a:.3g} %" for m, a in result[key].items()))
     return "\n".join(lines)
@@ -368,6 +382,8 @@ def run(args) -> dict:
     data = {"train": (encode(q_train), wrap_states(model, q_train)[:, muscles]),
             "eval": (encode(q_eval), wrap_states(model, q_eval)[:, muscles]),
             "flag": (encode(q_flag), None)}
+    margins_train = 1e3 * wrap_margins(model, q_train)[:, muscles]  # [mm]: (T, K, J, 5)
+    margin_eval_mm = 1e3 * wrap_margins(model, q_eval)[:, muscles]
     l_train_mm = torch.as_tensor(1e3 * model.kinematics(q_train)[0][:, muscles])
     l_eval, g_eval, _ = model.kinematics(q_eval)
     crossed = np.abs(g_eval).max(0) > 1e-12
@@ -382,7 +398,9 @@ def run(args) -> dict:
         cap = int(path.cell_degrees[m]) if path.pieces > 1 and int(path.cell_degrees[m]) else CELL_DEGREE
         for mode, value in predict_muscle(fit, mark_coefs, data, col, l_train_mm[:, col], groups, cut,
                                           max(path.pieces, 2), cap, rad_per_unit, crossed[m],
-                                          args.cell_gate_degree).items():
+                                          args.cell_gate_degree,
+                                          (margins_train[:, col], margin_joints(model, q_train, m), args.margin_degree,
+                                           margin_eval_mm[:, col])).items():
             preds.setdefault(mode, []).append(value)
         counts.append(n_state), states.append(fit.states)
     truth = (1e3 * l_eval, 1e3 * g_eval, crossed)
@@ -393,6 +411,11 @@ def run(args) -> dict:
                                              "share_within": [float(np.mean(near_switch(model, q_eval, data["eval"][1],
                                                                                         muscles, crossed, r)[wrong]))
                                                               if wrong.any() else None for r in MISGATE_RADII]}
+    wrong_m = np.stack([~p[0].numpy() for p in preds["margin_gate_right"]], 1)
+    result["margin_gate_wrong_near_switch"] = {
+        "radii_rad": list(MARGIN_RADII), "postures": wrong_m.sum(0).tolist(),
+        "share_within": [float(np.mean(near_switch(model, q_eval, data["eval"][1], muscles, crossed, r)[wrong_m]))
+                         if wrong_m.any() else None for r in MARGIN_RADII]}
     result["near_switch_share"] = {names[m]: float(near[:, i].mean()) for i, m in enumerate(muscles)}
     result["ii-c_near_far_p99_mm"] = {names[m]: [float(np.percentile(e[near[:, i]], 99)) if near[:, i].any() else None,
                                                  float(np.percentile(e[~near[:, i]], 99))]
@@ -413,7 +436,7 @@ def near_switch(model, q: np.ndarray, labels: np.ndarray, muscles, crossed, reac
 
 
 def predict_muscle(fit, mark_coefs, data, col, y_train, groups, cut, pieces, cap, rad_per_unit, crossed,
-                   gate_degree) -> dict:
+                   gate_degree, margin_data) -> dict:
     """One muscle's predictions at the eval postures, ``{fit name: (l_mm (B,), G (B, N) [mm/rad], distance (B,))}``:
     the whole-box fits (i)-(iii), (ii) per train-sample count, and the same in the checkpoint's cells."""
     (x, labels), (x_train, labels_train) = data["eval"], data["train"]
@@ -443,16 +466,80 @@ def predict_muscle(fit, mark_coefs, data, col, y_train, groups, cut, pieces, cap
     out["cell_gate_right"] = (torch.as_tensor(gated_c == labels[:, col]), None, far)
     x_flag = data["flag"][0]
     flag_cell, z_flag, _ = cell_keys(x_flag, cut, pieces)
+    margins_train, moving, degree, margins_true = margin_data
+    margin_fit = MarginFit(z_train, cell_train, margins_train, moving, degree)
+    code_m, distance_m, residual = margin_fit(z, cell, dz_dq, margins_true)
+    out["iv-cm"] = (*per_state.predict(z, cell * STATE_KEYS + code_m, dz_dq, cells),  # as (ii-c): a rule, not a guess
+                    torch.as_tensor(distance_m))
+    out["margin_gate_right"] = (torch.as_tensor(code_m == labels[:, col]), residual, far)
     out["reach"] = (gate(x_flag, fit.gate_weights, fit.gate_terms, rad_per_unit)[1],
-                    torch.as_tensor(cell_gate(z_flag, flag_cell, dz_dq)[1]), None)
+                    torch.as_tensor(cell_gate(z_flag, flag_cell, dz_dq)[1]),
+                    torch.as_tensor(margin_fit(z_flag, flag_cell, dz_dq)[1]))
     return out
+
+
+def margin_joints(model, q: np.ndarray, muscle: int) -> np.ndarray:
+    """``(J, N)`` bool: the joints each of the muscle's wrapping geoms' margins move with (``MARGIN_STEP`` along the
+    joint at the first ``MARGIN_PROBES`` postures ``q``): the sites and the geom ride on these joints only."""
+    probe = q[:MARGIN_PROBES]
+    base = wrap_margins(model, probe)[:, muscle]
+    moved = []
+    for joint in range(q.shape[1]):
+        step = probe.copy()
+        step[:, joint] += MARGIN_STEP
+        change = np.abs(np.nan_to_num(wrap_margins(model, step)[:, muscle] - base, posinf=0.0, neginf=0.0))
+        moved.append(change.max((0, 2)) > 1e-12)  # [m]; a still margin changes by rounding only
+    return np.stack(moved, 1)
+
+
+class MarginFit:
+    """(iv-cm): each wrapping geom's margins (``sim.wrapping.MARGINS``, [mm]) regressed per cell by least squares
+    (``CellFit``: a polynomial in the cell's coordinates over the joints the margin moves with, total degree up to
+    ``degree``); the state is MuJoCo's rule applied to the regressed margins (``states_from_margins``), and the
+    distance to its switch ``min |m| / |grad m|`` [rad] over the margins whose sign alone would change the state."""
+
+    def __init__(self, z, cells, margins_mm, moving, degree):
+        self.shape, self.fits = margins_mm.shape[1:], {}
+        for j, k in itertools.product(range(self.shape[0]), range(self.shape[1])):
+            y = margins_mm[:, j, k]
+            if np.isfinite(y).all() and moving[j].any():
+                self.fits[j, k] = CellFit(z, torch.as_tensor(y), cells, np.where(moving[j], 0, -1), degree)
+            elif np.isfinite(y).all():  # a geom riding with both its sites: its margins are constants
+                self.fits[j, k] = float(np.mean(y))
+
+    def __call__(self, z, cells, dz_dq, truth_mm=None):
+        """The state ``(B,)``, the distance ``(B,)`` [rad] and, given the true margins ``(B, J, 9)`` [mm], the p99 of
+        the regression's largest residual over the margins [mm] (else None)."""
+        value = np.full((len(z), *self.shape), np.nan)
+        slope = np.zeros((len(z), *self.shape, z.shape[1]))
+        for (j, k), fit in self.fits.items():
+            if isinstance(fit, float):
+                value[:, j, k] = fit
+                continue
+            fallback = (torch.zeros(len(z), dtype=torch.float64), torch.zeros(len(z), z.shape[1], dtype=torch.float64))
+            v, g = fit.predict(z, cells, dz_dq, fallback)
+            value[:, j, k], slope[:, j, k] = v.numpy(), g.numpy()
+        state = states_from_margins(value[:, None])[:, 0]
+        reach = np.full(len(z), np.inf)
+        for j, k in self.fits:
+            flipped = value.copy()
+            flipped[:, j, k] = -flipped[:, j, k]
+            changes = states_from_margins(flipped[:, None])[:, 0] != state
+            distance = np.abs(value[:, j, k]) / np.maximum(np.linalg.norm(slope[:, j, k], axis=1), 1e-300)
+            reach = np.where(changes, np.minimum(reach, distance), reach)
+        residual = None
+        if truth_mm is not None:
+            error = np.nan_to_num(np.abs(value - truth_mm), nan=0.0, posinf=0.0)
+            residual = float(np.percentile(error.max((1, 2)), 99))
+        return state, reach, residual
 
 
 ROWS = (("checkpoint", "the checkpoint's body"), ("i", "(i) one polynomial over every sample"),
         ("ii", "(ii) one polynomial per wrapping state, perfect gate"),
         ("iii", "(iii) the same, learned gate"), ("c", "(c) the checkpoint's cells, one polynomial per cell"),
         ("ii-c", "(ii-c) per wrapping state in each cell, perfect gate"), ("iii-c", "(iii-c) the same, learned gate"),
-        ("iii-cg", "(iii-cg) the same, a logistic gate per cell"))
+        ("iii-cg", "(iii-cg) the same, a logistic gate per cell"),
+        ("iv-cm", "(iv-cm) the same, the state from margins regressed per cell"))
 
 
 def score(args, schema, names, muscles, preds, truth, counts, states, marks) -> dict:
@@ -490,7 +577,10 @@ def score(args, schema, names, muscles, preds, truth, counts, states, marks) -> 
            "gate_accuracy": {names[m]: float(p[0].float().mean()) for m, p in zip(muscles, preds["gate_right"])},
            "cell_gate_accuracy": {names[m]: float(p[0].float().mean())
                                   for m, p in zip(muscles, preds["cell_gate_right"])}, "rows": {}, "flags": {}}
-    for key, reach in (("iii", 0), ("iii-c", 0), ("iii-cg", 1)):
+    out["margin_gate_accuracy"] = {names[m]: float(p[0].float().mean())
+                                   for m, p in zip(muscles, preds["margin_gate_right"])}
+    out["margin_residual_p99_mm"] = {names[m]: p[1] for m, p in zip(muscles, preds["margin_gate_right"])}
+    for key, reach in (("iii", 0), ("iii-c", 0), ("iii-cg", 1), ("iv-cm", 2)):
         radius = float(np.quantile(nearest(reach, "reach"), args.flag_share)) if args.flag_share > 0 else 0.0
         flagged = nearest(2, key) <= radius
         out["flags"][key] = {"radius_rad": radius, "flagged_share": float(flagged.mean())}
