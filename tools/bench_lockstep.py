@@ -102,7 +102,15 @@ def lockstep(trees: dict, ckpt: str, cases: str, metrics, rounds: int) -> dict:
 
 def main(argv=None):
     if argv is None and sys.argv[1:2] == ["--worker"]:
-        return worker(*sys.argv[2:5])
+        return worker(*sys.argv[2:5])  # imports the package from its tree: nothing of it may be imported before
+    from lightning_bodyschema.apps.common import exits_cleanly
+
+    return exits_cleanly(_compare)(argv)
+
+
+def _compare(argv):
+    from lightning_bodyschema.errors import BodySchemaInputError
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--ckpt", required=True, help="a trained StructuredSchema checkpoint of configs/myoarm.yaml")
     parser.add_argument("--base", required=True, help="the git revision to compare against, e.g. 6b06edf")
@@ -112,7 +120,8 @@ def main(argv=None):
     metrics = args.metrics.split(",")
     bad = [m for m in metrics if m not in METRICS]
     if bad or args.rounds < 1:
-        parser.error(f"--metrics {bad} / --rounds {args.rounds}: metrics from {list(METRICS)}, rounds >= 1")
+        raise BodySchemaInputError(f"--metrics {bad} / --rounds {args.rounds}: metrics from {list(METRICS)}, "
+                                   "rounds >= 1")
     with tempfile.TemporaryDirectory() as tmp:
         base = os.path.join(tmp, "base")
         subprocess.run(["git", "-C", ROOT, "worktree", "add", "--detach", "-q", base, args.base], check=True)

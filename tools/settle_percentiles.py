@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from lightning_bodyschema.apps.common import exits_cleanly
+from lightning_bodyschema.errors import BodySchemaInputError
 
 
 @exits_cleanly
@@ -26,7 +27,7 @@ def main(argv=None):
     parser.add_argument("--cache-dir", default="runs/cache", help="the fit's data.cache_dir (default: runs/cache)")
     args = parser.parse_args(argv)
     if args.n_per_condition < 1:
-        parser.error(f"--n-per-condition {args.n_per_condition}: must be >= 1")
+        raise BodySchemaInputError(f"--n-per-condition {args.n_per_condition}: must be >= 1")
     torch.set_num_threads(1)
     from lightning_bodyschema.evaluation.benchmark import run_fault_benchmark
     from lightning_bodyschema.evaluation.cases import HealthyPool, make_binding_cases
