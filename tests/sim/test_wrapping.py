@@ -97,7 +97,7 @@ def test_the_margins_give_the_states_and_cross_zero_where_they_switch():
     # the sided strap's switch at pi / 2 (a jump: straight to under the post) is the zero of its "after" margin,
     # r u x d1 / |d1| = -R cos(theta) with u = +y (away from the side site), d1 along theta
     after = margins[:, 2, 0, MARGINS.index("after")]
-    np.testing.assert_allclose(after, -R * np.cos(theta), rtol=0, atol=1e-12 * R)
+    np.testing.assert_allclose(after, -R * np.cos(theta), rtol=0, atol=rounding_tol(PATH_ROUNDINGS, D))
     length = body.kinematics(np.array([[np.pi / 2 - 1e-4], [np.pi / 2 + 1e-4]]))[0][:, 2]
     assert length[0] - length[1] > R  # the path under the post is longer by an arc: the state is the jump
 
