@@ -6,10 +6,10 @@ where its gate is positive. Near the gate's zero set the learned length may sit 
 (myoArm: the zero set lies a median 8 mrad from MuJoCo's jump where one is found nearby), so a command there is not
 exact: the adapter reports such postures (``near_path_switch``) instead of commanding them as if exact.
 
-``switch_distance`` estimates each posture's distance [rad, Euclidean over the joints] to every learned switch to
+``PostureSwitches`` estimates each posture's distance [rad, Euclidean over the joints] to every learned switch to
 first order, ``|g(q)| / |grad_q g(q)|`` (exact for a plane; near a curved zero set, where the flag matters, close),
-and, within reach, keeps the switches whose two branches differ there by at least ``JUMP_FLOOR_M`` (a degree-8 gate also changes
-sign where both branches agree: no jump, nothing to flag). Muscles whose cells replaced their branches
+and, within reach, keeps the switches whose two branches differ there by at least ``JUMP_FLOOR_M`` (a degree-8 gate
+also changes sign where both branches agree: no jump, nothing to flag). Muscles whose cells replaced their branches
 (``networks.cells``) do not switch by a gate and are not counted: a trimmed cell fits the larger side of a jump
 inside it and says nothing of where the smaller side begins (RESULTS.md "Hold every posture").
 
@@ -36,19 +36,23 @@ def gated_muscles(path) -> torch.Tensor:
     return torch.nonzero(path.branched).flatten()
 
 
-class SwitchSnapshot:
+class PostureSwitches:
     """A fitted ``PerMusclePath``'s learned switches frozen in numpy (the gates in use and their branches'
-    difference, each on its own terms only), for ``switch_distance``; rebuilt when the path changes (a schema keeps
-    it in its inference cache)."""
+    difference, each on its own terms only), with the schema's normalization (``q_lo``, ``q_hi`` (N,) [rad]:
+    ``arrays.encode_q``), the path's box and the lengths' scale ``length_scale_m`` (M,) [m per normalized unit];
+    rebuilt when the path changes (a schema keeps it in its inference cache). A call ``(q_rad (B, N))`` gives each
+    posture's distance [rad] to the nearest learned switch and its muscle, ``(B,)`` each (``inf``, -1: none)."""
 
-    def __init__(self, path):
+    def __init__(self, path, q_lo, q_hi, length_scale_m):
+        self.q_lo, self.q_hi, self.x_lo, self.x_hi, self.length_scale_m = (
+            _host(a) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
+        self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
         self.muscles = gated_muscles(path).cpu().numpy()
         if not len(self.muscles):
             return
         index = torch.as_tensor(self.muscles, device=path.coef.device)
-        gate = path.gate[index]
         diff = (path.coef_alt[index] - path.coef[index]) * path.term_mask[index]
-        self.gate_terms, self.gate = self._columns(path, gate)
+        self.gate_terms, self.gate = self._columns(path, path.gate[index])
         self.gap_terms, self.gap = self._columns(path, diff)
 
     @staticmethod
@@ -59,20 +63,20 @@ class SwitchSnapshot:
         terms = PlacedTerms(TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host())
         return terms, coef[:, cols].T.cpu().numpy()
 
-    def __call__(self, x: np.ndarray, half_range: np.ndarray, length_scale_m: np.ndarray):
-        """``(distance (B,), muscle (B,))``: ``switch_distance``'s answer at normalized postures ``x (B, N)``."""
+    def __call__(self, q_rad):
         if not len(self.muscles):
-            return np.full(len(x), np.inf), np.full(len(x), -1, dtype=np.int64)
+            return np.full(len(q_rad), np.inf), np.full(len(q_rad), -1, dtype=np.int64)
+        x = np.minimum(np.maximum(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo), self.x_hi)
         basis = self.gate_terms(x)  # (B, P', 1 + N): each term, then its slopes
         gate = np.swapaxes(basis, 1, 2) @ self.gate  # (B, 1 + N, G)
-        grad = gate[:, 1:] / half_range[:, None]  # d g / d q [1/rad]
+        grad = gate[:, 1:] / self.half_range[:, None]  # d g / d q [1/rad]
         norm = np.sqrt(np.add.reduce(grad * grad, axis=1))  # np.linalg.norm's arithmetic, without its checks
         distance = np.abs(gate[:, 0]) / np.maximum(norm, 1e-300)  # (B, G)
         within = distance <= SWITCH_REACH_RAD
         if within.any():  # within reach: is there a jump? (few rows)
             rows, cols = np.nonzero(within)
             jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols])
-            jump_m *= length_scale_m[self.muscles[cols]]
+            jump_m *= self.length_scale_m[self.muscles[cols]]
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
         nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)
         return nearest, np.where(nearest < np.inf, self.muscles[distance.argmin(1)], -1)
@@ -99,39 +103,12 @@ class PlacedTerms:
         return flat.take(self.place, 1).reshape(len(x), phi.shape[1], -1)
 
 
-def switch_distance(path, x, half_range, length_scale_m, snapshot: SwitchSnapshot = None) -> tuple[np.ndarray,
-                                                                                                  np.ndarray]:
-    """Each posture's distance [rad] to the nearest learned switch of ``path`` (a ``PerMusclePath``) and its muscle,
-    ``(B,)`` each (``inf``, -1: none), at normalized postures ``x (B, N)``; ``half_range (N,)``: rad per normalized
-    unit, ``length_scale_m (M,)``: m per normalized length unit; ``snapshot``: ``SwitchSnapshot(path)`` when the
-    caller keeps one. A gate's zero set within ``SWITCH_REACH_RAD`` where its branches differ by less than
-    ``JUMP_FLOOR_M`` is no switch (inf)."""
-    snapshot = SwitchSnapshot(path) if snapshot is None else snapshot
-    return snapshot(_host(x), _host(half_range), _host(length_scale_m))
-
-
-class PostureSwitches:
-    """``SwitchSnapshot`` at postures in radians, all in numpy: the schema's normalization (``q_lo``, ``q_hi``
-    (N,) [rad]: ``arrays.encode_q``), the path's box and the lengths' scale (M,) [m per normalized unit] held as host
-    copies. A call ``(q_rad (B, N))`` gives ``switch_distance``'s answer."""
-
-    def __init__(self, path, q_lo, q_hi, length_scale_m):
-        self.snapshot = SwitchSnapshot(path)
-        self.q_lo, self.q_hi, self.x_lo, self.x_hi, self.length_scale_m = (
-            _host(a) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
-        self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
-
-    def __call__(self, q_rad):
-        x = np.minimum(np.maximum(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo), self.x_hi)
-        return self.snapshot(x, self.half_range, self.length_scale_m)  # (np.clip's answer, without its dispatch)
-
-
 def _host(a) -> np.ndarray:
     return np.asarray(a.detach().cpu() if torch.is_tensor(a) else a, np.float64)
 
 
 def switch_diagnostics(distance_rad: np.ndarray, muscle: np.ndarray) -> dict:
-    """``switch_distance``'s answer as the adapter's per-row diagnostics: ``near_path_switch`` (within
+    """``PostureSwitches``' answer as the adapter's per-row diagnostics: ``near_path_switch`` (within
     ``SWITCH_REACH_RAD``), ``path_switch_distance_rad``, ``path_switch_muscle``."""
     return {"near_path_switch": distance_rad <= SWITCH_REACH_RAD, "path_switch_distance_rad": distance_rad,
             "path_switch_muscle": muscle}

@@ -5,8 +5,8 @@ import torch
 
 from lightning_bodyschema.networks.basis import ProductTerms, TermsSnapshot
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
-from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD, PlacedTerms, gated_muscles, \
-    switch_diagnostics, switch_distance
+from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD, PlacedTerms, PostureSwitches, \
+    gated_muscles, switch_diagnostics
 
 CROSSING = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)  # muscle 0 jumps; 1 and 2 are smooth
 NORMAL = np.array([1.0, 0.3, 0.0])  # muscle 0's switching surface: NORMAL . x = 0.2 (normalized units)
@@ -31,6 +31,12 @@ def _fitted():
     return path
 
 
+def switch_distance(path, x, length_scale_m):
+    """``PostureSwitches``' answer at normalized postures ``x``: radians ``x * HALF_RANGE`` in a range of
+    ``+-HALF_RANGE`` (its normalization gives ``x`` back)."""
+    return PostureSwitches(path, -HALF_RANGE, HALF_RANGE, length_scale_m)((x * HALF_RANGE).numpy())
+
+
 def _true_distance_rad(x):
     """Distance [rad] from ``x`` to the plane in joint space: the plane's normal in rad is NORMAL / HALF_RANGE."""
     normal_rad = NORMAL / HALF_RANGE.numpy()
@@ -41,7 +47,7 @@ def test_the_distance_to_a_learned_switch_is_the_distance_to_the_true_surface_ne
     path = _fitted()
     assert gated_muscles(path).tolist() == [0]
     x = torch.rand(3000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) * 1.8 - 0.9
-    distance, muscle = switch_distance(path, x, HALF_RANGE, torch.ones(3, dtype=torch.float64))
+    distance, muscle = switch_distance(path, x, torch.ones(3, dtype=torch.float64))
     truth = _true_distance_rad(x.numpy())
     near = truth < 0.1  # where the flag matters: within 0.1 rad (a tenth of the smallest joint's half range)
     assert near.sum() > 100 and (muscle == 0).all()
@@ -60,10 +66,10 @@ def test_a_gate_whose_branches_agree_within_the_floor_is_no_switch():
     x[:, 0] = 0.2 - 0.3 * x[:, 1] + offset_rad * float(np.linalg.norm(NORMAL / HALF_RANGE.numpy()))
     scale_m = torch.full((3,), 0.5 * JUMP_FLOOR_M / 2.1, dtype=torch.float64)  # the largest jump: half the floor
     near = _true_distance_rad(x.numpy()) < 0.5 * SWITCH_REACH_RAD
-    distance, muscle = switch_distance(path, x, HALF_RANGE, scale_m)
+    distance, muscle = switch_distance(path, x, scale_m)
     assert near.sum() > 50 and np.isinf(distance[near]).all() and (muscle[near] == -1).all()
     assert not switch_diagnostics(distance, muscle)["near_path_switch"].any()
-    flagged = switch_diagnostics(*switch_distance(path, x, HALF_RANGE, 4 * scale_m))["near_path_switch"]
+    flagged = switch_diagnostics(*switch_distance(path, x, 4 * scale_m))["near_path_switch"]
     assert flagged[near].all()  # the smallest jump: twice the floor
 
 
@@ -71,7 +77,7 @@ def test_a_path_without_switches_reports_none():
     path = PerMusclePath(CROSSING, degree=4, n_hidden=0).double()
     x = torch.rand(50, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(6)) * 2 - 1
     path.fit_polynomial(x, x[:, :3] ** 2)
-    distance, muscle = switch_distance(path, x, HALF_RANGE, torch.ones(3, dtype=torch.float64))
+    distance, muscle = switch_distance(path, x, torch.ones(3, dtype=torch.float64))
     assert np.isinf(distance).all() and (muscle == -1).all()
     assert not switch_diagnostics(distance, muscle)["near_path_switch"].any()
 
