@@ -26,8 +26,8 @@ from .cells import cell_cuts, evaluate_cells, set_cell_layout
 from .degrees import block_sizes, muscle_degrees
 from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
-from .polynomial import (check_blocks, check_crossing, check_degrees, normal_equations, solve_normal_equations,
-                         term_exponents, term_mask)
+from .polynomial import (check_blocks, check_crossing, check_degrees, solve_normal_equations, term_exponents,
+                         term_mask)
 from .snapshot import PathSnapshot, few_for, has_cells
 from .trim import trimmed_refits
 
@@ -160,18 +160,15 @@ class PerMusclePath(nn.Module):
             refresh_branches(self)
 
     def _fit_whole_box(self, x: torch.Tensor, y: torch.Tensor, ridge: float, chunk: int) -> tuple:
-        """The box and ``coef`` of every sample: ``(x, y)`` in float64, the normal equations and ``order``."""
+        """The box and ``coef`` of every sample: ``(x, y)`` in float64, the normal equations and ``order (M, P)``
+        (each muscle's terms first)."""
         x, y = x.to(torch.float64), y.to(torch.float64)
         self.x_lo.copy_(x.amin(0))
         self.x_hi.copy_(x.amax(0))
         gram, rhs = self._normal_equations(x, y, chunk)
-        return x, y, gram, rhs, self._solve_normal_equations(gram, rhs, ridge)
-
-    def _solve_normal_equations(self, gram: torch.Tensor, rhs: torch.Tensor, ridge: float) -> torch.Tensor:
-        """``coef`` from every term's normal equations; returns ``order (M, P)``, each muscle's terms first."""
         coef, order = solve_normal_equations(self.term_mask, gram, rhs, ridge)
         self.coef.copy_(coef)
-        return order
+        return x, y, gram, rhs, order
 
     @torch.no_grad()
     @one_thread()
@@ -187,12 +184,19 @@ class PerMusclePath(nn.Module):
                 gram_rows, rhs_rows = self._normal_equations(x[rows], y[rows], chunk)
                 gram.add_(sign * gram_rows)
                 rhs.add_(sign * rhs_rows)
-            self._solve_normal_equations(gram, rhs, ridge)
+            self.coef.copy_(solve_normal_equations(self.term_mask, gram, rhs, ridge)[0])
         return trimmed_refits(self, x, y, refit, factor, rounds, chunk)
 
     def _normal_equations(self, x: torch.Tensor, y: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` of this path's terms (``polynomial.normal_equations``)."""
-        return normal_equations(lambda rows: self.basis(rows)[0], self.coef.shape[1], x, y, chunk)
+        """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` of this path's terms at ``x (S, N)``, ``y (S, M)`` float64,
+        summed over chunks of samples (the chunks bound the memory; no sample: zeros)."""
+        gram = x.new_zeros(len(self.exponents), len(self.exponents))
+        rhs = x.new_zeros(len(self.exponents), y.shape[1])
+        for start in range(0, len(x), chunk):
+            phi = self.basis(x[start:start + chunk])[0]
+            gram += phi.T @ phi
+            rhs += phi.T @ y[start:start + chunk]
+        return gram, rhs
 
     # ------------------------------------------------------------------ the network
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,7 @@ set of normal equations. Plain numpy and PyTorch, no Lightning."""
 from __future__ import annotations
 
 import itertools
-from typing import Callable, Optional
+from typing import Optional
 
 import numpy as np
 import torch
@@ -75,18 +75,6 @@ def check_degrees(degrees, n_muscles: int, least: int = 1, name: str = "degrees"
         raise BodySchemaInputError(f"{name}={degrees!r} must be {n_muscles} integers >= {least}, one per muscle"
                                    + (" (0: no cells)" if name == "cell_degrees" else ""))
     return values.astype(np.int64)
-
-
-def normal_equations(basis: Callable, n_terms: int, x: torch.Tensor, y: torch.Tensor, chunk: int):
-    """``phi^T phi (P, P)`` and ``phi^T y (P, M)`` of ``basis(x) (S, P)`` summed over chunks of samples (the chunks
-    bound the memory; no sample: zeros)."""
-    gram = torch.zeros(n_terms, n_terms, dtype=torch.float64, device=x.device)
-    rhs = torch.zeros(n_terms, y.shape[1], dtype=torch.float64, device=x.device)
-    for start in range(0, len(x), chunk):
-        phi = basis(x[start:start + chunk])
-        gram += phi.T @ phi
-        rhs += phi.T @ y[start:start + chunk]
-    return gram, rhs
 
 
 def solve_normal_equations(mask: torch.Tensor, gram: torch.Tensor, rhs: torch.Tensor, ridge: float):
