@@ -3,11 +3,10 @@ the fit: ``networks.cell_fit``).
 
 A wrapping path's length is smooth in pieces; over a smaller box the same degree fits far better (RESULTS.md
 "Per-muscle paths on myoArm"). A celled muscle has ``pieces ** n`` cells over the ``n`` joints that cut its box
-(``cell_cuts``: every crossed joint, or with ``cell_joints="largest_group"`` only its largest group of joints whose
-effects add up), each a polynomial in the cell's coordinates (``cell_inputs``: each cut joint's range within the cell
-mapped to [-1, 1], the joints kept whole as they are). The length at a posture is its cell's polynomial where that
-cell was fitted and the moment arm that polynomial's exact derivative (the length steps by about the fit's error at a
-cell's edge); joints a muscle does not cross cut nothing (exactly zero moment arm). Plain PyTorch, no Lightning.
+(``cell_cuts``), each a polynomial in the cell's coordinates (``cell_inputs``). The length at a posture is its cell's
+polynomial where that cell was fitted and the moment arm that polynomial's exact derivative (the length steps by about
+the fit's error at a cell's edge); joints a muscle does not cross cut nothing (exactly zero moment arm). Plain
+PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -69,14 +68,13 @@ def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray
 
 
 def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarray, degrees: np.ndarray,
-                pieces: int, cut: Optional[np.ndarray] = None) -> tuple:
+                pieces: int, cut: np.ndarray) -> tuple:
     """The cell layout, in numpy (a skeleton is built on the meta device), from each muscle's cell degree ``degrees
-    (M,)`` (0: no cells) and its cutting joints ``cut (M, N)`` (``cell_cuts``; None: the crossed ones):
+    (M,)`` (0: no cells) and its cutting joints ``cut (M, N)`` (``cell_cuts``):
     ``muscles (Mc,)``, ``strides (Mc, N)`` (``pieces ** rank`` on the joints each cuts, 0 elsewhere), the cell terms'
     ``exponents (C, N + E)`` (each celled muscle's own terms up to its cell degree, in ``cell_inputs``' coordinates),
     each muscle's term columns ``order (Mc, K)`` (padding on column 0) and ``valid (Mc, K)``, the most cells of a
     muscle, and ``extra (E,)``: the joints some celled muscle crosses uncut."""
-    cut = crossing if cut is None else cut
     muscles = np.flatnonzero(degrees > 0)
     mask = term_mask[muscles] & (exponents.sum(1)[None, :] <= degrees[muscles, None])
     uncut = crossing[muscles] & ~cut[muscles]
@@ -159,19 +157,10 @@ def _by_cell(terms, coef, z, cell, slopes):
     cells' coefficients ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, one basis and contraction per
     cell."""
     order = torch.argsort(cell)
-    x_sorted = z[order]
-    y = z.new_empty(len(z), len(coef))
-    dy = z.new_empty(len(z), len(coef), z.shape[1]) if slopes else None
-    start = 0
-    for c, count in enumerate(torch.bincount(cell).tolist()):
-        if count:
-            rows = slice(start, start + count)
-            y[rows], dy_c = terms.contract(terms(x_sorted[rows], slopes), coef[:, c])
-            if slopes:
-                dy[rows] = dy_c
-            start += count
+    parts = [terms.contract(terms(rows, slopes), coef[:, c])
+             for c, rows in enumerate(z[order].split(torch.bincount(cell).tolist())) if len(rows)]
     inverse = torch.argsort(order)
-    return y[inverse], None if dy is None else dy[inverse]
+    return torch.cat([y for y, _ in parts])[inverse], torch.cat([dy for _, dy in parts])[inverse] if slopes else None
 
 
 def set_cell_layout(path, degrees) -> None:
