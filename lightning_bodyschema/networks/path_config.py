@@ -2,7 +2,7 @@
 checked in one place, for the network and for ``StructuredSchema``'s ``path_*`` arguments alike. Plain Python."""
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Optional
 
 from ..errors import BodySchemaInputError
@@ -20,19 +20,8 @@ SCHEMA_GATE_DEGREE = 8  # ``StructuredSchema(path_gate_degree=...)``'s default (
 
 @dataclass(frozen=True)
 class PathConfig:
-    """A per-muscle path's options (``StructuredSchema``'s ``path_*`` arguments: ``SCHEMA_NAMES``).
-
-    degree, max_terms, term_budget: each muscle's polynomial has the highest total degree ``<= degree`` with at most
-        ``max_terms`` terms, then what a ``term_budget`` (the most terms of all muscles) leaves raises the lowest
-        degrees first (``degrees.muscle_degrees``); ``degrees``: each muscle's ``(M,)`` instead.
-    hidden, n_hidden: width and hidden layers of each muscle's MLP (0: none).
-    branches, gate_degree: 2: two polynomials and a gate of total degree ``<= gate_degree`` (``networks.branches``).
-    cells, cell_degrees, cell_trim, cell_joints, cell_keep: pieces per joint (1: no cells; ``networks.cells``), the
-        fit's cell degree per muscle (a checkpoint rebuilds it), each cell refitted without the samples it misses by
-        more than ``cell_trim`` times the median, which joints cut a box (``CELL_JOINTS``) and what kept cells must
-        improve (``CELL_KEEP``; ``cell_fit._kept``).
-    blocks: None, or ``(M, N)`` ints: each muscle's length a sum of one polynomial per group of its joints.
-    """
+    """A per-muscle path's options: each field is the ``StructuredSchema`` argument ``SCHEMA_NAMES`` names, whose
+    docstring states its contract (``n_hidden``: ``path_layers``, ``cells``: ``path_cells``, ...)."""
 
     degree: int = 6
     hidden: int = 32
@@ -77,7 +66,3 @@ class PathConfig:
             if getattr(self, field) not in allowed:
                 raise BodySchemaInputError(f"{name(field)}={getattr(self, field)!r}; allowed: {list(allowed)}")
         return self
-
-    def options(self) -> dict:
-        """Every option by name."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}

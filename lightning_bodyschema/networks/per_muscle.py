@@ -1,12 +1,10 @@
 """Per-muscle path models: each muscle's length over only the joints it crosses, with exact moment arms.
 
-``PerMusclePath`` is a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles (total
-degree ``<= degree``, terms only over the joints the muscle crosses: ``networks.polynomial``), fitted by least squares
-(``fit_polynomial``), plus optionally a small MLP per muscle trained on what it leaves (``networks.muscle_mlp``).
-Where a wrap switches sides the path jumps and one polynomial rings: ``branches=2`` gives such muscles a second
-polynomial and a gate whose sign picks it (``networks.branches``), ``cells=2`` the muscles fitted worst one polynomial
-per cell of their box (``networks.cells``). ``with_jacobian(x)`` gives the lengths and their exact derivative, exactly
-0 on a joint a muscle does not cross. Plain PyTorch, no Lightning.
+``PerMusclePath`` is a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles, terms
+only over the joints the muscle crosses (``networks.polynomial``), fitted by least squares (``fit_polynomial``), plus
+optionally a small MLP per muscle (``networks.muscle_mlp``), two branches and a gate (``networks.branched``) and cells
+(``networks.cells``) where one polynomial rings. ``with_jacobian(x)`` gives the lengths and their exact derivative,
+exactly 0 on a joint a muscle does not cross. Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
