@@ -2,12 +2,9 @@
 
 ``fit_branches`` gives every muscle whose one-polynomial residual has a heavy tail a second polynomial (same terms)
 and a gate (a polynomial over the same joints, the highest total degree ``<= gate_degree`` with at most
-``GATE_TERMS`` terms) whose sign picks the branch, from the samples alone, batched over muscles: labels two ways (the
-residual split in two clusters, or a first gate fitted to the sign of the largest residuals; then alternating fits
-and reassignment), both branches refitted and the gate a logistic regression of the labels; a muscle keeps the better
-labelling where it halves the one polynomial's p99 residual on the fitted samples, its largest residual is at most
-``SWING`` times the one polynomial's (a branch turned on away from its samples can swing by metres) and each branch
-holds ``SAMPLES_PER_TERM`` samples per term. The state and evaluation: ``networks.branched``. Plain PyTorch.
+``GATE_TERMS`` terms) whose sign picks the branch, from the samples alone, batched over muscles: labels two ways
+(``_labels_by_residual``, ``_labels_by_gate``), both branches refitted, the gate a logistic regression of the labels,
+the better labelling kept where it pays (``_fit_group``). The state and evaluation: ``networks.branched``.
 """
 from __future__ import annotations
 
@@ -153,16 +150,11 @@ def _fit_pair(phi, y_m, labels, system, b, order_m, valid_m, ridge, chunk, refin
     n_terms = phi.shape[1]
     coefs = [_scatter(order_m, solve_systems(a, r, valid_m, ridge, scale), n_terms)
              for a, r in zip(systems, (b - rhs_b, rhs_b))]
-    for _ in range(refine):
-        grads = _gradients(phi, y_m, labels, coefs)
+    for _ in range(refine):  # per branch phi^T (y - phi coef) over its samples
+        grads = [((y_m - phi @ coef.T) * mask).T @ phi for coef, mask in zip(coefs, (~labels, labels))]
         coefs = [c + _scatter(order_m, solve_systems(a, g.gather(1, order_m), valid_m, ridge, scale), n_terms)
                  for c, a, g in zip(coefs, systems, grads)]
     return coefs
-
-
-def _gradients(phi, y_m, labels, coefs):
-    """``phi^T (y - phi coef)`` over each branch's samples (``~labels``, then ``labels``): two ``(M', P)``."""
-    return [((y_m - phi @ coef.T) * mask).T @ phi for coef, mask in zip(coefs, (~labels, labels))]
 
 
 def _reassign(y, pred_a, pred_b, side):
@@ -232,8 +224,7 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     gate_order, gate_valid = _gate_terms(path, muscles, order_g, valid_m, gate_degree)
     order_m, gate_terms = local[order_g], (local[gate_order], gate_valid)
     pair = lambda labels, idx=slice(None), refine=0: _fit_pair(  # noqa: E731
-        phi, y_m[:, idx], labels, system[idx], b[idx], order_m[idx], valid_m[idx],
-        BRANCH_RIDGE, chunk, refine)
+        phi, y_m[:, idx], labels, system[idx], b[idx], order_m[idx], valid_m[idx], BRANCH_RIDGE, chunk, refine)
     labels = [_labels_by_residual(phi, y_m, r_m, pair), _labels_by_gate(phi, y_m, r_m, pair, gate_terms, chunk)]
     both = torch.cat([torch.arange(len(muscles), device=x.device)] * 2)  # the two candidates of every muscle, batched
     labels = torch.cat(labels, 1)
@@ -245,7 +236,8 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     p99, worst = torch.quantile(miss, 0.99, dim=0).view(2, -1), miss.amax(0).view(2, -1)
     pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles), device=p99.device)
     keep = p99.min(0).values * 2 <= torch.quantile(r_m.abs(), 0.99, dim=0)  # the branches halve the p99
-    keep &= worst.gather(0, p99.argmin(0)[None])[0] <= SWING * r_m.abs().amax(0)  # and no branch swings away
+    # and no branch swings away (a branch turned on away from its samples can swing by metres)
+    keep &= worst.gather(0, p99.argmin(0)[None])[0] <= SWING * r_m.abs().amax(0)
     small = torch.minimum(labels.sum(0), len(labels) - labels.sum(0))[pick]  # and both are well determined
     keep &= small >= SAMPLES_PER_TERM * valid_m.sum(1)
     kept, pick = muscles[keep], pick[keep]
