@@ -146,29 +146,21 @@ class ProductTerms(nn.Module):
                 after = factors[k] if after is None else after * factors[k]
         return Basis(phi, dphi, True)
 
-    def layout(self, coef: torch.Tensor, grouped: bool):
-        """Coefficients ``coef (M, P)`` (terms in their original order) as ``contract`` takes them for a dense or a
-        grouped basis: once per evaluation, for all its blocks of rows (a gather of every coefficient per joint)."""
-        if not grouped:
-            return coef
+    def layout(self, coef: torch.Tensor):
+        """Coefficients ``coef (M, P)`` (terms in their original order) as ``contract`` takes them for a grouped
+        basis: once per evaluation, for all its blocks of rows (a gather of every coefficient per joint)."""
         return coef.index_select(1, self.perm).T, [coef.index_select(1, getattr(self, f"joint_terms{j}")).T
                                                    for j in range(self.n_joints)]
 
     def contract(self, basis: "Basis", coef, slopes: bool = True):
-        """``y (B, M)`` of coefficients ``coef`` (``(M, P)`` in the terms' original order, or ``layout``'s for the
-        basis's path) and, when the basis has slopes and ``slopes``, ``dy (B, M, N)`` (else None)."""
-        if torch.is_tensor(coef) and basis.grouped:
-            coef = self.layout(coef, True)
+        """``y (B, M)`` of coefficients ``coef`` (``(M, P)`` in the terms' original order, or ``layout``'s for a
+        grouped basis) and, when the basis has slopes and ``slopes``, ``dy (B, M, N)`` (else None)."""
+        slopes = slopes and basis.dphi is not None
         if not basis.grouped:
-            y = basis.phi @ coef.T
-            if basis.dphi is None or not slopes:
-                return y, None
-            return y, torch.einsum("bpn,mp->bmn", basis.dphi, coef)
-        by_term, by_joint = coef
+            return basis.phi @ coef.T, torch.einsum("bpn,mp->bmn", basis.dphi, coef) if slopes else None
+        by_term, by_joint = self.layout(coef) if torch.is_tensor(coef) else coef
         y = basis.phi.T @ by_term
-        if basis.dphi is None or not slopes:
-            return y, None
-        return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, by_joint)], -1)
+        return y, torch.stack([d.T @ w for d, w in zip(basis.dphi, by_joint)], -1) if slopes else None
 
 
 def dense_terms(terms, x, scale=None):

@@ -122,7 +122,7 @@ class PerMusclePath(nn.Module):
         """The whole-box coefficients (masked: exactly zero off each muscle's terms) and the branched muscles'
         ``(muscles, alt, gate)`` (``branched.branch_parts``; or None), laid out for a dense basis (an exported
         program's) or a grouped one (``ProductTerms.layout``)."""
-        layout = lambda coef: self.terms.layout(coef, not dense)  # noqa: E731
+        layout = (lambda coef: coef) if dense else self.terms.layout  # noqa: E731
         parts = branch_parts(self)
         branches = None if parts is None else (parts[0], layout(parts[1]), layout(parts[2]))
         return layout(self.coef * self.term_mask), branches
