@@ -92,7 +92,8 @@ class PathSnapshot(Frozen):
             basis = self.terms(xp.concatenate([inside, z], 1), self.scale)
         else:
             basis = self.terms(inside)  # (B, P, 1 + N)
-        candidates = _box_product(self.box, basis[:, :self.n_terms])  # (B, R, 1 + N)
+        flat = xp.swapaxes(basis[:, :self.n_terms], 0, 1).reshape(self.n_terms, -1)  # one (R, P) x (P, B (1 + N))
+        candidates = xp.swapaxes(product(self.box, flat).reshape(len(self.box), len(x64), -1), 0, 1)  # (B, R, 1 + N)
         gate = candidates[:, :, 0][:, self.gate_col]
         choice = xp.where((gate > 0) & self.gated, self.alt_col, self.box_col)
         if self.cells:
@@ -104,13 +105,6 @@ class PathSnapshot(Frozen):
         picked = pick(candidates, choice)  # (B, M, 1 + N)
         y, dy = picked[..., 0], picked[..., 1:]
         return y + (dy @ (x64 - inside)[:, :, None])[..., 0], dy
-
-
-def _box_product(box, basis):
-    """``(B, R, K)``: rows ``box (R, P)`` times ``basis (B, P, K)``, as one ``(R, P) x (P, B K)`` product."""
-    xp = namespace(box)
-    flat = xp.swapaxes(basis, 0, 1).reshape(basis.shape[1], -1)
-    return xp.swapaxes(product(box, flat).reshape(len(box), basis.shape[0], -1), 0, 1)
 
 
 class GravitySnapshot(Frozen):
