@@ -93,8 +93,8 @@ class PathSnapshot(Frozen):
         else:
             basis = self.terms(inside)  # (B, P, 1 + N)
         flat = xp.swapaxes(basis[:, :self.n_terms], 0, 1).reshape(self.n_terms, -1)  # one (R, P) x (P, B (1 + N))
-        candidates = xp.swapaxes(product(self.box, flat).reshape(len(self.box), len(x64), -1), 0, 1)  # (B, R, 1 + N)
-        gate = candidates[:, :, 0][:, self.gate_col]
+        candidates = xp.swapaxes(product(self.box, flat).reshape(len(self.box), basis.shape[0], -1), 0, 1)
+        gate = candidates[:, :, 0][:, self.gate_col]  # candidates (B, R, 1 + N): each row's value and slopes
         choice = xp.where((gate > 0) & self.gated, self.alt_col, self.box_col)
         if self.cells:
             cell = cell_index(piece, self.stride)  # (B, Mc): each celled muscle's cell
