@@ -33,13 +33,11 @@ def branch_parts(path):
     return muscles, path.coef_alt[muscles] * path.term_mask[muscles], path.gate[muscles]
 
 
-def replace_where(y, dy, muscles, where, y_new, dy_new, copy: bool = True):
-    """``y (B, M)`` and ``dy (B, M, N)`` (or None) with the columns ``muscles`` taken from ``y_new (B, M')``,
-    ``dy_new (B, M', N)`` where ``where (B, M')``: a branched muscle's second polynomial where its gate is positive,
-    a celled muscle's cell polynomial where its cell was fitted. Copies, or with ``copy=False`` written in place."""
-    y = y.clone() if copy else y
+def replace_where(y, dy, muscles, where, y_new, dy_new):
+    """``y (B, M)`` and ``dy (B, M, N)`` (or None), written in place, with the columns ``muscles`` taken from
+    ``y_new (B, M')``, ``dy_new (B, M', N)`` where ``where (B, M')``: a branched muscle's second polynomial where its
+    gate is positive, a celled muscle's cell polynomial where its cell was fitted."""
     y[:, muscles] = torch.where(where, y_new, y[:, muscles])
     if dy is not None:
-        dy = dy.clone() if copy else dy
         dy[:, muscles] = torch.where(where[:, :, None], dy_new, dy[:, muscles])
     return y, dy

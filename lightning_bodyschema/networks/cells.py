@@ -115,9 +115,10 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
 
 
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
-    """``y (B, M)`` and ``dy (B, M, N)`` (or None) with every celled muscle's cell polynomial where its cell was
-    fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms, the postures
-    sorted by cell, one product per cell; exported, one basis of every cell term for any batch (``_contract``)."""
+    """``y (B, M)`` and ``dy (B, M, N)`` (or None; both written in place) with every celled muscle's cell polynomial
+    where its cell was fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms,
+    the postures sorted by cell, one product per cell; exported, one basis of every cell term for any batch
+    (``_contract``)."""
     k, z = cell_inputs(path, x)
     if torch.compiler.is_exporting():
         cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
@@ -125,13 +126,12 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         y_cell, dy_cell = _contract(path, basis, cell)
         dy_cell = None if dy is None else _fold(path, dy_cell)
         return replace_where(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
-    y, dy = y.clone(), None if dy is None else dy.clone()  # written in place below, group by group
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
         y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
         y, dy = replace_where(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
-                            None if dy_cell is None else _fold(path, dy_cell), copy=False)
+                            None if dy_cell is None else _fold(path, dy_cell))
     return y, dy
 
 
