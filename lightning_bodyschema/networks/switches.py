@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from .arrays import encode_q
-from .basis import ProductTerms, TermsSnapshot, dense_terms
+from .basis import ProductTerms, TermsSnapshot
 
 SWITCH_REACH_RAD = 0.005  # a posture this close to a learned switch is flagged [rad] (RESULTS.md "Hold every posture":
 # 0.65 % of uniform myoArm postures; 10 mrad: 1.2 %)
@@ -60,8 +60,7 @@ class PostureSwitches:
         """The terms ``coef (G, P)`` uses, as the path's own basis evaluation in numpy (``basis.TermsSnapshot``:
         each term and its slopes), and their coefficients ``(P', G)``."""
         cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
-        terms = PlacedTerms(TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host())
-        return terms, coef[:, cols].T.cpu().numpy()
+        return TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host(), coef[:, cols].T.cpu().numpy()
 
     def __call__(self, q_rad):
         if not len(self.muscles):
@@ -80,27 +79,6 @@ class PostureSwitches:
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
         nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)
         return nearest, np.where(nearest < np.inf, self.muscles[distance.argmin(1)], -1)
-
-
-class PlacedTerms:
-    """``TermsSnapshot``'s call ``(B, P, 1 + N)`` (each term, then its slopes) for terms over the joints themselves,
-    whose slots lie on distinct columns: ``dense_terms``' products put in place by one gather from ``[phi, slot
-    slopes, 0]`` instead of a scatter onto zeros (each entry is one product either way: the same values, but for
-    the sign of a zero, which no switch distance reads: they take ``|g|`` and ``|grad g|``)."""
-
-    def __init__(self, terms: TermsSnapshot):
-        n_terms, sources = terms.column.shape  # (P, 1 + slots): the column of phi (0) and of each slot's slope
-        if any(len(set(row)) < sources for row in terms.column.tolist()):
-            raise ValueError("PlacedTerms: two slots of a term share a column (a scatter would add them)")
-        place = np.full((n_terms, 1 + terms.n_columns), sources * n_terms)  # the appended zero
-        terms_index = np.arange(n_terms)[:, None]
-        place[terms_index, terms.column] = np.arange(sources) * n_terms + terms_index
-        self.terms, self.place = terms, place.reshape(-1)
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        phi, slopes = dense_terms(self.terms, x)
-        flat = np.concatenate([phi, *slopes, np.zeros((len(x), 1))], 1)
-        return flat.take(self.place, 1).reshape(len(x), phi.shape[1], -1)
 
 
 def _host(a) -> np.ndarray:

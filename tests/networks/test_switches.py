@@ -1,12 +1,10 @@
 """Where a learned path switches (networks.switches): the distance to a gate's zero set, against a known surface."""
 import numpy as np
-import pytest
 import torch
 
-from lightning_bodyschema.networks.basis import ProductTerms, TermsSnapshot
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
-from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD, PlacedTerms, PostureSwitches, \
-    gated_muscles, switch_diagnostics
+from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD, PostureSwitches, gated_muscles, \
+    switch_diagnostics
 
 CROSSING = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)  # muscle 0 jumps; 1 and 2 are smooth
 NORMAL = np.array([1.0, 0.3, 0.0])  # muscle 0's switching surface: NORMAL . x = 0.2 (normalized units)
@@ -80,16 +78,3 @@ def test_a_path_without_switches_reports_none():
     distance, muscle = switch_distance(path, x, torch.ones(3, dtype=torch.float64))
     assert np.isinf(distance).all() and (muscle == -1).all()
     assert not switch_diagnostics(distance, muscle)["near_path_switch"].any()
-
-
-def test_the_gates_basis_placed_by_a_gather_is_the_scatter_of_the_path_basis():
-    """``PlacedTerms`` (a gather) gives every entry of ``TermsSnapshot``'s scatter onto zeros, on terms of up to
-    three joints and degree 8, inside the box and beyond it; terms whose slots share a column are refused."""
-    exponents = np.array([[0, 0, 0], [1, 0, 0], [0, 8, 0], [2, 3, 0], [1, 1, 1], [0, 4, 5], [8, 0, 3]])
-    snapshot = TermsSnapshot(ProductTerms(exponents)).on_host()
-    x = np.random.default_rng(8).uniform(-1.3, 1.3, (500, 3))
-    placed, scattered = PlacedTerms(snapshot)(x), snapshot(x)
-    assert placed.shape == scattered.shape == (500, len(exponents), 4)
-    assert (placed == scattered).all() and np.count_nonzero(scattered) > 0.5 * scattered.size
-    with pytest.raises(ValueError, match="share a column"):
-        PlacedTerms(TermsSnapshot(ProductTerms(exponents, columns=np.array([0, 0, 1]))).on_host())
