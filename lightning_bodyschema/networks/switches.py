@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .._numpy import to_numpy
 from .arrays import encode_q
 from .basis import ProductTerms, TermsSnapshot
 
@@ -45,7 +46,7 @@ class PostureSwitches:
 
     def __init__(self, path, q_lo, q_hi, length_scale_m):
         self.q_lo, self.q_hi, self.x_lo, self.x_hi, self.length_scale_m = (
-            _host(a) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
+            to_numpy(a, np.float64) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
         self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
         self.muscles = gated_muscles(path).cpu().numpy()
         if not len(self.muscles):
@@ -79,10 +80,6 @@ class PostureSwitches:
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
         nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)
         return nearest, np.where(nearest < np.inf, self.muscles[distance.argmin(1)], -1)
-
-
-def _host(a) -> np.ndarray:
-    return np.asarray(a.detach().cpu() if torch.is_tensor(a) else a, np.float64)
 
 
 def switch_diagnostics(distance_rad: np.ndarray, muscle: np.ndarray) -> dict:
