@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 
 from .basis import product_basis
+from .branched import refresh_branches
 from .branches import SAMPLES_PER_TERM
 from .cells import cell_degree, cell_index, cell_inputs, set_cell_layout
 from .trim import trimmed_refits
@@ -22,7 +23,7 @@ CELL_TRIM_ROUNDS = 20  # refits of a trimmed cell at most (it stops when its kep
 def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None:
     """Cells for the muscles of a fitted ``PerMusclePath`` that a smooth polynomial fits worst (module docstring):
     sets the path's cell layout (``cells.set_cell_layout``) and coefficients, and clears ``branched`` where
-    cells replace the branches. ``x (S, N)``, ``y (S, M)`` float64, normalized."""
+    cells replace the branches (``branched.refresh_branches``). ``x (S, N)``, ``y (S, M)`` float64, normalized."""
     set_cell_layout(path, torch.zeros_like(path.cell_degrees))
     r = torch.cat([y[i:i + chunk] - path(x[i:i + chunk]) for i in range(0, len(x), chunk)]).abs()
     median = r.median(0).values
@@ -38,16 +39,16 @@ def fit_cells(path, x: torch.Tensor, y: torch.Tensor, chunk: int = 8192) -> None
     _fit_each_cell(path, x, y[:, path.cell_muscles], r[:, path.cell_muscles], chunk)
     muscles = path.cell_muscles
     miss = torch.cat([y[i:i + chunk, muscles] - path(x[i:i + chunk])[:, muscles] for i in range(0, len(x), chunk)])
-    miss, own = miss.abs(), r[:, muscles]
-    keep = _kept(miss, own, path.config.cell_keep)
+    keep = _kept(miss.abs(), r[:, muscles], path.config.cell_keep)
     coef, fitted = path.cell_coef[keep], path.cell_fitted[keep]
     degrees = path.cell_degrees.clone()
     degrees[muscles[~keep]] = 0
     set_cell_layout(path, degrees)  # the kept muscles' own terms come first in either layout: same columns
     path.cell_coef.copy_(coef[:, :path.cell_coef.shape[1], :path.cell_coef.shape[2]])
     path.cell_fitted.copy_(fitted[:, :path.cell_fitted.shape[1]])
-    if hasattr(path, "branched"):
+    if path.branches == 2:
         path.branched[path.cell_muscles] = False
+        refresh_branches(path)
 
 
 def _kept(miss: torch.Tensor, own: torch.Tensor, rule: str) -> torch.Tensor:

@@ -154,8 +154,6 @@ class PerMusclePath(nn.Module):
             refresh_branches(self)  # before the cells: their candidates are the muscles the branches leave worst
         if self.pieces > 1:
             fit_cells(self, x, y, chunk)
-        if self.branches == 2:
-            refresh_branches(self)
 
     def _fit_whole_box(self, x: torch.Tensor, y: torch.Tensor, ridge: float, chunk: int) -> tuple:
         """The box and ``coef`` of every sample: ``(x, y)`` in float64, the normal equations and ``order (M, P)``
