@@ -26,7 +26,7 @@ from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
 from .polynomial import (check_blocks, check_crossing, check_degrees, solve_normal_equations, term_exponents,
                          term_mask)
-from .snapshot import PathSnapshot, few_for, has_cells
+from .snapshot import PathSnapshot, few_rows, has_cells
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -93,14 +93,14 @@ class PerMusclePath(nn.Module):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
         ``snapshot``: ``snapshot()`` when the caller keeps it. Inside the box of the fitted samples (``x_lo``,
         ``x_hi``) the polynomial itself; outside, its first-order extension from the nearest point ``c`` of the box,
-        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_for``) the snapshot;
+        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_rows``) the snapshot;
         above, blocks of rows (a grouped basis), the cells a cell at a time; exported, one path for any batch."""
         x64 = x.to(torch.float64)
-        if few_for(self, x64):
+        exporting = torch.compiler.is_exporting()
+        if not exporting and len(x) <= few_rows(self):
             y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
-        exporting = torch.compiler.is_exporting()
         derive = slopes or not torch.equal(inside, x64)
         coefs = self._coefficients(exporting)  # once per call
         blocks = [inside] if exporting else inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))

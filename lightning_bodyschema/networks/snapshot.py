@@ -29,15 +29,10 @@ def has_cells(path) -> bool:
 
 
 def few_rows(path) -> int:
-    """The most postures ``path`` evaluates by its snapshot: their stacked basis within ``FEW_ELEMENTS``."""
+    """The most postures ``path`` evaluates by its snapshot (their stacked basis within ``FEW_ELEMENTS``), never in an
+    exported program (one path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
     terms = len(path.few_terms.exponents) if has_cells(path) else path.coef.shape[1]
     return FEW_ELEMENTS // (terms * (1 + path.crossing.shape[1]))
-
-
-def few_for(path, x) -> bool:
-    """Whether ``path`` evaluates postures ``x (B, N)`` by its snapshot (``few_rows``), never in an exported program
-    (one path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
-    return not torch.compiler.is_exporting() and len(x) <= few_rows(path)
 
 
 class PathSnapshot(Frozen):

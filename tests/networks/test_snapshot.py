@@ -61,15 +61,19 @@ def test_few_postures_answer_as_the_blockwise_evaluation(path, monkeypatch):
 def test_the_few_postures_path_is_taken_within_its_work_budget(path, monkeypatch):
     per_posture = len(path.few_terms.exponents) * (1 + 3)  # its stacked basis: whole-box and cell terms x (1 + joints)
     monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 10 * per_posture)
+    calls, original = [], few_postures.PathSnapshot.__call__
+    monkeypatch.setattr(few_postures.PathSnapshot, "__call__", lambda self, x: calls.append(len(x)) or original(self, x))
     x = _postures(11, 3)
-    assert few_postures.few_for(path, x[:10]) and not few_postures.few_for(path, x)
+    path.with_jacobian(x[:10])
+    path.with_jacobian(x)  # one posture above the budget: blocks of rows
+    assert few_postures.few_rows(path) == 10 and calls == [10]
 
 
 def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     x = _postures(40, 2).clamp(-0.89, 0.89)  # inside the box: the polynomials themselves
     x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)]
     y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
-    assert len(x) > 30 and few_postures.few_for(path, x)
+    assert 30 < len(x) <= few_postures.few_rows(path)
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
 
 
