@@ -62,7 +62,7 @@ def test_the_few_postures_path_is_taken_within_its_work_budget(path, monkeypatch
     per_posture = len(path.few_terms.exponents) * (1 + 3)  # its stacked basis: whole-box and cell terms x (1 + joints)
     monkeypatch.setattr(few_postures, "FEW_ELEMENTS", 10 * per_posture)
     calls, original = [], few_postures.PathSnapshot.__call__
-    monkeypatch.setattr(few_postures.PathSnapshot, "__call__", lambda snap, x: calls.append(len(x)) or original(snap, x))
+    monkeypatch.setattr(few_postures.PathSnapshot, "__call__", lambda it, q: calls.append(len(q)) or original(it, q))
     x = _postures(11, 3)
     path.with_jacobian(x[:10])
     path.with_jacobian(x)  # one posture above the budget: blocks of rows
