@@ -135,14 +135,6 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     return y, dy
 
 
-def cell_spread(path) -> torch.Tensor:
-    """Every celled muscle's coefficients in each of its cells on every cell term, ``(Mc, C, T)``, zero off its own
-    terms (the padding's zeros added onto column 0): ``snapshot.PathSnapshot``'s cell rows."""
-    coef = path.cell_coef
-    index = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
-    return coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, index, coef)
-
-
 def _contract(path, basis, cell: torch.Tensor):
     """Exported: each celled muscle's cell polynomial ``(B, Mc)`` and slopes ``(B, Mc, N + E)`` (or None) at its
     ``cell (B, Mc)``, its own columns of a dense basis of every cell term times its cell's coefficients (a gather; a

@@ -14,7 +14,7 @@ import torch
 from .arrays import Frozen, as_dtype, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
 from .basis import TermsSnapshot
 from .branched import branch_parts
-from .cells import cell_index, cell_inputs, cell_spread
+from .cells import cell_index, cell_inputs
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
 
@@ -50,7 +50,10 @@ class PathSnapshot(Frozen):
             self.pieces, self.cell_extra, self.scale = path.pieces, path.cell_extra, path.few_scale
             self.cell_unfold = path.cell_unfold  # (``cells.cell_inputs`` in an exported program)
             self.stride, self.rows, self.fitted = path.cell_stride, path.cell_rows, path.cell_fitted
-            self.spread = cell_spread(path)
+            coef = path.cell_coef  # spread (Mc, C, T): each celled muscle's coefficients in each of its cells on every
+            # cell term, zero off its own terms (the padding's zeros added onto column 0)
+            order = path.cell_order[:, None, :].expand(-1, coef.shape[1], -1)
+            self.spread = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, order, coef)
 
     def _choices(self, path) -> None:
         """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere, the

@@ -12,7 +12,7 @@ from physics_checks import assert_exports_with_a_dynamic_batch, term_sum_tol
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
 from lightning_bodyschema.networks.cell_fit import _kept, _trimmed, thin_cell_terms
-from lightning_bodyschema.networks.cells import cell_coordinates, cell_cuts, cell_degree, cell_spread
+from lightning_bodyschema.networks.cells import cell_coordinates, cell_cuts, cell_degree
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 from lightning_bodyschema.networks.polynomial import term_exponents
 
@@ -147,10 +147,10 @@ def test_a_nan_posture_answers_nan_in_its_row_only_in_the_blocks_and_the_snapsho
 
 
 def test_the_cells_spread_coefficients_are_each_muscles_own(fitted):
-    """``cell_spread``: in each cell, a muscle's coefficients on the cell terms it uses and zero elsewhere, so a
+    """``PathSnapshot.spread``: in each cell, a muscle's coefficients on the cell terms it uses and zero elsewhere, so a
     product with any basis row equals the product with that muscle's own columns; the kept ones answer as the
     ones built per call."""
-    spread = cell_spread(fitted)  # (celled muscles, cells, cell terms)
+    spread = fitted.snapshot().spread  # (celled muscles, cells, cell terms)
     assert spread.shape == (3, 4, len(fitted.cell_exponents))
     v = torch.rand(len(fitted.cell_exponents), generator=torch.Generator().manual_seed(7), dtype=torch.float64)
     own = torch.einsum("mk,mck->mc", v[fitted.cell_order] * fitted.cell_valid, fitted.cell_coef)
