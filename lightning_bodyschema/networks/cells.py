@@ -117,14 +117,15 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None; both written in place) with every celled muscle's cell polynomial
     where its cell was fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms,
-    the postures sorted by cell, one product per cell; exported, one basis of every cell term for any batch
-    (``_contract``)."""
+    the postures sorted by cell, one product per cell; exported, one basis of every cell term for any batch."""
     k, z = cell_inputs(path, x)
-    if torch.compiler.is_exporting():
+    if torch.compiler.is_exporting():  # each celled muscle's own columns of the basis times its cell's coefficients,
+        # gathered (a scatter would fix the batch under vmap)
         cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
         basis = path.cell_terms_all(z, dy is not None, dense=True)
-        y_cell, dy_cell = _contract(path, basis, cell)
-        dy_cell = None if dy is None else _fold(path, dy_cell)
+        coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
+        y_cell = (basis.phi[:, order] * coef).sum(-1)
+        dy_cell = None if dy is None else _fold(path, torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef))
         return replace_where(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
@@ -133,15 +134,6 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         y, dy = replace_where(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
                             None if dy_cell is None else _fold(path, dy_cell))
     return y, dy
-
-
-def _contract(path, basis, cell: torch.Tensor):
-    """Exported: each celled muscle's cell polynomial ``(B, Mc)`` and slopes ``(B, Mc, N + E)`` (or None) at its
-    ``cell (B, Mc)``, its own columns of a dense basis of every cell term times its cell's coefficients (a gather; a
-    scatter would fix the batch under vmap)."""
-    coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
-    y = (basis.phi[:, order] * coef).sum(-1)
-    return y, None if basis.dphi is None else torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef)
 
 
 def _by_cell(terms, coef, z, cell, slopes):
