@@ -103,7 +103,6 @@ class ProductTerms(nn.Module):
                 self.joint_counts[j] += len(cols)
 
     def _apply(self, fn, *args, **kwargs):
-        """Dtype casts leave the float64 tables alone (device moves apply)."""
         return apply_keeping_dtype(self, ("to_values", "to_slopes"), super()._apply, fn, *args, **kwargs)
 
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":

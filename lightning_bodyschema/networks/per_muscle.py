@@ -139,7 +139,6 @@ class PerMusclePath(nn.Module):
         return replace_where(y, dy, muscles, gate_value > 0, *self.terms.contract(basis, alt))
 
     def _apply(self, fn, *args, **kwargs):
-        """Device moves apply to the coefficients; dtype casts do not (they stay float64)."""
         return apply_keeping_dtype(self, ("coef", "coef_alt", "gate", "cell_coef"), super()._apply, fn, *args, **kwargs)
 
     @torch.no_grad()

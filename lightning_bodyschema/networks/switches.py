@@ -11,9 +11,7 @@ first order, ``|g(q)| / |grad_q g(q)|`` (exact for a plane; near a curved zero s
 and, within reach, keeps the switches whose two branches differ there by at least ``JUMP_FLOOR_M`` (a degree-8 gate
 also changes sign where both branches agree: no jump, nothing to flag). Muscles whose cells replaced their branches
 (``networks.cells``) do not switch by a gate and are not counted: a trimmed cell fits the larger side of a jump
-inside it and says nothing of where the smaller side begins (RESULTS.md "Hold every posture").
-
-In numpy, on the path's own basis evaluation (``basis.TermsSnapshot``) over the few terms a gate uses; no Lightning.
+inside it and says nothing of where the smaller side begins (RESULTS.md "Hold every posture"). In numpy; no Lightning.
 """
 from __future__ import annotations
 
