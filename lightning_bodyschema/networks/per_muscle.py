@@ -38,7 +38,6 @@ def degrees_within_tolerance(crossing, x: torch.Tensor, y: torch.Tensor, scale: 
     """Each muscle's degree when a term budget goes only where it is needed: a first one-polynomial fit with at most
     ``max_terms`` terms per muscle on ``x (S, N)``, ``y (S, M)``; the muscles whose p99 residual times ``scale (M,)``
     exceeds ``tolerance`` (same units) then share ``budget`` (``muscle_degrees`` with ``eligible``)."""
-    crossing = check_crossing(crossing)
     first = PerMusclePath(crossing, degree=degree, n_hidden=0, max_terms=max_terms, blocks=blocks).to(x.device)
     first.fit_polynomial(x, y)
     p99 = torch.quantile((first(x.to(torch.float64)) - y.to(torch.float64)).abs() * scale.to(x.device), 0.99, dim=0)

@@ -24,10 +24,7 @@ def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[n
             joints = [j for j, b in enumerate(pattern) if b == group]
             for e in itertools.product(range(degree + 1), repeat=len(joints)):
                 if sum(e) <= degree:
-                    full = [0] * len(pattern)
-                    for j, k in zip(joints, e):
-                        full[j] = k
-                    terms.add(tuple(full))
+                    terms.add(tuple(dict(zip(joints, e)).get(j, 0) for j in range(len(pattern))))
     return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, crossing.shape[1])
 
 
