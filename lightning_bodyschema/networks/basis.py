@@ -70,7 +70,6 @@ class ProductTerms(nn.Module):
                    for key in self.supports]
         perm = np.concatenate(members) if members else np.zeros(0, np.int64)
         values, slopes = power_matrices(self.degree)
-        long = dict(dtype=torch.long)
         # each term's factors in ``n_slots`` slots: the joints it uses, ascending, then joints it does not use
         # (exponent 0: a factor of exactly 1, a slope of exactly 0); the dense basis gathers these, not all N
         self.n_slots = max(1, int((exponents > 0).sum(1).max(initial=0)))
@@ -80,19 +79,15 @@ class ProductTerms(nn.Module):
         self.n_columns, self.n_terms = int(columns.max(initial=-1)) + 1, len(exponents)
         slot_column = columns[slot_joint]  # (P, slots): each slot's slope's output column
         flat_index = np.arange(self.n_terms)[:, None] * self.n_columns + slot_column  # its place in (P, columns)
-        for name, value in dict(perm=torch.tensor(perm, **long), slot_index=torch.tensor(flat.T.reshape(-1), **long),
-                                exponents=torch.tensor(exponents, **long),
-                                slot_column=torch.tensor(slot_column, **long),
-                                flat_index=torch.tensor(flat_index.T.copy(), **long),  # (slots, P)
-                                to_values=torch.tensor(values), to_slopes=torch.tensor(slopes)).items():
-            self.register_buffer(name, value, persistent=False)
+        tables = dict(perm=perm, slot_index=flat.T.reshape(-1), exponents=exponents, slot_column=slot_column,
+                      flat_index=flat_index.T.copy(), to_values=values, to_slopes=slopes)  # int64 or float64
         for g, (key, cols) in enumerate(zip(self.supports, members)):
-            self.register_buffer(f"exp{g}", torch.tensor(exponents[cols][:, list(key)].T.copy(), **long),
-                                 persistent=False)  # (|support|, P_g)
+            tables[f"exp{g}"] = exponents[cols][:, list(key)].T.copy()  # (|support|, P_g)
         for j in range(self.n_joints):  # the terms that use joint j, in the grouped order
-            self.register_buffer(f"joint_terms{j}", torch.tensor(
-                np.concatenate([cols for key, cols in zip(self.supports, members) if j in key] or
-                               [np.zeros(0, np.int64)]), **long), persistent=False)
+            tables[f"joint_terms{j}"] = np.concatenate([cols for key, cols in zip(self.supports, members) if j in key]
+                                                       or [np.zeros(0, np.int64)])
+        for name, value in tables.items():
+            self.register_buffer(name, torch.tensor(value), persistent=False)
         # where each support's terms sit: its rows of phi, and per joint it uses its rows of that joint's derivatives
         ends = np.cumsum([len(cols) for cols in members]).tolist()
         self.group_rows = [(end - len(cols), end) for end, cols in zip(ends, members)]
