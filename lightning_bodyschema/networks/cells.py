@@ -17,13 +17,11 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from ..errors import BodySchemaInputError
 from .arrays import as_index, clip, namespace, take
 from .basis import ProductTerms
 from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .degrees import term_count
-from .path_config import CELL_JOINTS
 from .polynomial import check_degrees
 
 
@@ -53,11 +51,10 @@ def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[in
 
 
 def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray:
-    """``(M, N)`` bool: the joints that cut each muscle's box into cells. ``"crossed"``: every joint it crosses;
-    ``"largest_group"``: only the joints of its largest groups of ``blocks`` (``polynomial.check_blocks``), the
-    others left whole (BIClong: 8 cells over its shoulder, its elbow whole, instead of 32 over both)."""
-    if rule not in CELL_JOINTS:
-        raise BodySchemaInputError(f"cell_joints={rule!r}; allowed: {list(CELL_JOINTS)}")
+    """``(M, N)`` bool: the joints that cut each muscle's box into cells by ``rule`` (``PathConfig.cell_joints``,
+    checked). ``"crossed"``: every joint it crosses; ``"largest_group"``: only the joints of its largest groups of
+    ``blocks`` (``polynomial.check_blocks``), the others left whole (BIClong: 8 cells over its shoulder, its elbow
+    whole, instead of 32 over both)."""
     crossing = np.asarray(crossing, dtype=bool)
     if rule == "crossed":
         return crossing.copy()
