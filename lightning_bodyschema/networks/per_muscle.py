@@ -65,11 +65,11 @@ class PerMusclePath(nn.Module):
         degrees = muscle_degrees(crossing, config.degree, config.max_terms, config.term_budget, blocks=blocks) \
             if config.degrees is None else check_degrees(config.degrees, len(crossing))
         self.degree = int(degrees.max())
-        exponents = term_exponents(crossing, degrees, blocks)
+        exponents = term_exponents(blocks, degrees)
         self.register_buffer("crossing", torch.tensor(crossing))
         self.register_buffer("exponents", torch.tensor(exponents))
         self.terms = ProductTerms(exponents)  # the evaluation's basis, a support at a time (no state-dict entry)
-        mask = term_mask(crossing, exponents, degrees, blocks)
+        mask = term_mask(blocks, exponents, degrees)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
         if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)

@@ -4,7 +4,6 @@ set of normal equations. Plain numpy and PyTorch, no Lightning."""
 from __future__ import annotations
 
 import itertools
-from typing import Optional
 
 import numpy as np
 import torch
@@ -13,11 +12,10 @@ from ..errors import BodySchemaInputError
 from .branches import group_system, solve_systems
 
 
-def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[np.ndarray] = None) -> np.ndarray:
+def term_exponents(blocks: np.ndarray, degrees: np.ndarray) -> np.ndarray:
     """``(P, N)`` exponents of every product term some muscle uses (nonzero exponents only on the joints it
-    crosses, all within one of its ``blocks`` when given, total degree at most its own), ordered by total degree
-    then lexicographically, the constant first."""
-    blocks = check_blocks(crossing, blocks)
+    crosses, all within one of its groups of ``blocks``: ``check_blocks``'s, total degree at most its own), ordered
+    by total degree then lexicographically, the constant first."""
     terms = set()
     for pattern, degree in {(tuple(b), int(d)) for b, d in zip(blocks.tolist(), degrees)}:  # per pattern, once
         for group in sorted(set(pattern) - {-1}):
@@ -25,14 +23,12 @@ def term_exponents(crossing: np.ndarray, degrees: np.ndarray, blocks: Optional[n
             for e in itertools.product(range(degree + 1), repeat=len(joints)):
                 if sum(e) <= degree:
                     terms.add(tuple(dict(zip(joints, e)).get(j, 0) for j in range(len(pattern))))
-    return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, crossing.shape[1])
+    return np.array(sorted(terms, key=lambda e: (sum(e), e)), dtype=np.int64).reshape(-1, blocks.shape[1])
 
 
-def term_mask(crossing: np.ndarray, exponents: np.ndarray, degrees: np.ndarray,
-              blocks: Optional[np.ndarray] = None) -> np.ndarray:
-    """``(M, P)`` bool: the terms each muscle uses (nonzero exponents only on the joints it crosses, all within one
-    of its ``blocks`` when given, total degree at most its own)."""
-    blocks = check_blocks(crossing, blocks).astype(np.int16)
+def term_mask(blocks: np.ndarray, exponents: np.ndarray, degrees: np.ndarray) -> np.ndarray:
+    """``(M, P)`` bool: the terms of ``exponents`` each muscle uses (as ``term_exponents``)."""
+    blocks = blocks.astype(np.int16)
     support = exponents > 0
     lowest = np.where(support[None], blocks[:, None, :], np.iinfo(np.int16).max).min(-1)  # (M, P)
     highest = np.where(support[None], blocks[:, None, :], -1).max(-1)

@@ -10,13 +10,12 @@ from lightning_bodyschema.networks.basis import ProductTerms, product_basis
 from lightning_bodyschema.networks.polynomial import term_exponents
 from lightning_bodyschema.networks.snapshot import TermsSnapshot
 
-CROSSING = np.array([[1, 1, 1, 0, 0], [0, 0, 0, 1, 1], [1, 0, 0, 1, 0], [0, 1, 0, 0, 0]], dtype=bool)
 BLOCKS = np.array([[0, 0, 0, -1, -1], [-1, -1, -1, 0, 0], [0, -1, -1, 1, -1], [-1, 0, -1, -1, -1]])
 
 
 @pytest.fixture(scope="module")
 def terms():
-    exponents = term_exponents(CROSSING, np.array([16, 12, 16, 16]), BLOCKS)  # supports of 0 to 3 joints
+    exponents = term_exponents(BLOCKS, np.array([16, 12, 16, 16]))  # supports of 0 to 3 joints
     return exponents, ProductTerms(exponents)
 
 

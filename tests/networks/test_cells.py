@@ -171,7 +171,7 @@ def test_a_trimmed_cell_fits_the_larger_side_of_a_jump_exactly():
     least squares rings over the whole cell; trimmed, it recovers the polynomial of the larger side to 1e-9 and
     misses the corner by about the jump."""
     x = torch.rand(4000, 2, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 2 - 1
-    exponents = torch.as_tensor(term_exponents(np.ones((1, 2), bool), np.array([4])))
+    exponents = torch.as_tensor(term_exponents(np.zeros((1, 2), np.int64), np.array([4])))
     phi = product_basis(x, exponents, 4)[0]
     true = torch.linspace(-1, 1, len(exponents), dtype=torch.float64)[:, None]  # (K, 1)
     corner = (x[:, 0] > 0.5) & (x[:, 1] > 0.5)
