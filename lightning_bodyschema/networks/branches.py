@@ -22,7 +22,7 @@ BRANCH_RIDGE = 1e-15  # each branch's ridge, times the whole sample's diagonal (
 # larger ridge biases a polynomial fitted on part of the box, where the basis is far from orthogonal)
 CANDIDATE_TAIL = 8.0  # a muscle is a candidate when its p99.9 residual exceeds this many medians
 TAIL_FLOOR = 1e-3  # and this (in the units of y: a normalized length, this fraction of its spread)
-HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_reassign)
+HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_labels_by_gate)
 SWING = 4.0  # a kept gated model's largest residual is at most this many times the one polynomial's
 SAMPLES_PER_TERM = 3  # a kept branch's samples per term of its polynomial (fewer: it interpolates, and swings)
 NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a jump: the first gate's samples
@@ -157,15 +157,6 @@ def _fit_pair(phi, y_m, labels, system, b, order_m, valid_m, ridge, chunk, refin
     return coefs
 
 
-def _reassign(y, pred_a, pred_b, side):
-    """New labels ``(S, M')``: the gate's ``side``, switched where its branch misses by more than ``HEAVY_TAIL``
-    times the median miss and the other branch fits better (far from the switch each branch is extrapolated, and
-    there a slight miss says nothing)."""
-    miss_b, miss_a = (y - pred_b).abs(), (y - pred_a).abs()
-    own, other = torch.where(side, miss_b, miss_a), torch.where(side, miss_a, miss_b)
-    return side ^ ((own > HEAVY_TAIL * own.median(0).values) & (other < own))
-
-
 def _gate_terms(path, muscles, order_m, valid_m, gate_degree):
     """Each muscle's gate terms: ``(order (M', Kg), valid (M', Kg))``, its terms of total degree at most its gate
     degree (a muscle's terms run by total degree, so they come first)."""
@@ -187,13 +178,17 @@ def _labels_by_residual(phi, y_m, r_m, fit_pair):
 
 def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
     """Labels from a gate first fitted to the sign of the one polynomial's largest residuals (next to a jump its
-    sign tells the side), then ``ROUNDS`` times: both branches fitted on the gate's sides, samples their branch
-    misses switched (``_reassign``), the gate refitted (a switching surface slanted across joints)."""
+    sign tells the side), then ``ROUNDS`` times: both branches fitted on the gate's sides, a sample switched where
+    its branch misses by more than ``HEAVY_TAIL`` times the median miss and the other branch fits better (far from
+    the switch each branch is extrapolated, and there a slight miss says nothing), the gate refitted (a switching
+    surface slanted across joints)."""
     near = (r_m.abs() >= torch.quantile(r_m.abs(), 1 - NEAR_FRACTION, dim=0)).to(torch.float64)
     beta = fit_gate(phi, r_m > 0, *gate_terms, chunk, weight=near / near.mean(0))
     for _ in range(ROUNDS):
         side = _predict(phi, [_scatter(gate_terms[0], beta, phi.shape[1])])[0] > 0
-        labels = _reassign(y_m, *_predict(phi, fit_pair(side)), side)
+        miss_a, miss_b = ((y_m - pred).abs() for pred in _predict(phi, fit_pair(side)))
+        own, other = torch.where(side, miss_b, miss_a), torch.where(side, miss_a, miss_b)
+        labels = side ^ ((own > HEAVY_TAIL * own.median(0).values) & (other < own))
         beta = fit_gate(phi, labels, *gate_terms, chunk, beta, GATE_STEPS // ROUNDS)
     return labels
 
