@@ -28,25 +28,18 @@ JUMP_FLOOR_M = 1e-4  # a gate's zero counts as a switch where its branches diffe
 # body_errors.BAD_LENGTH_MM: a posture whose worst muscle misses by more is a bad one)
 
 
-def gated_muscles(path) -> torch.Tensor:
-    """The muscles of a ``PerMusclePath`` whose length a gate switches (``branched``), ``(G,)`` long."""
-    if getattr(path, "branches", 1) != 2:
-        return torch.zeros(0, dtype=torch.long, device=path.coef.device)
-    return torch.nonzero(path.branched).flatten()
-
-
 class PostureSwitches:
-    """A fitted ``PerMusclePath``'s learned switches frozen in numpy (the gates in use and their branches'
-    difference, each on its own terms only), with the schema's normalization (``q_lo``, ``q_hi`` (N,) [rad]:
-    ``arrays.encode_q``), the path's box and the lengths' scale ``length_scale_m`` (M,) [m per normalized unit];
-    rebuilt when the path changes (a schema keeps it in its inference cache). A call ``(q_rad (B, N))`` gives each
-    posture's distance [rad] to the nearest learned switch and its muscle, ``(B,)`` each (``inf``, -1: none)."""
+    """A fitted ``PerMusclePath``'s learned switches frozen in numpy (``muscles``: those a gate switches; the gates
+    and their branches' difference, each on its own terms only), with the schema's normalization (``q_lo``, ``q_hi``
+    (N,) [rad]: ``arrays.encode_q``), the path's box and the lengths' scale ``length_scale_m`` (M,) [m per normalized
+    unit]; rebuilt when the path changes (a schema keeps it in its inference cache). A call ``(q_rad (B, N))`` gives
+    each posture's distance [rad] to the nearest learned switch and its muscle, ``(B,)`` each (``inf``, -1: none)."""
 
     def __init__(self, path, q_lo, q_hi, length_scale_m):
         self.q_lo, self.q_hi, self.x_lo, self.x_hi, self.length_scale_m = (
             to_numpy(a, np.float64) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
         self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
-        self.muscles = gated_muscles(path).cpu().numpy()
+        self.muscles = to_numpy(torch.nonzero(path.branched).flatten()) if path.branches == 2 else np.zeros(0, np.int64)
         if not len(self.muscles):
             return
         index = torch.as_tensor(self.muscles, device=path.coef.device)

@@ -3,8 +3,7 @@ import numpy as np
 import torch
 
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
-from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD, PostureSwitches, gated_muscles, \
-    switch_diagnostics
+from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD, PostureSwitches, switch_diagnostics
 
 CROSSING = np.array([[1, 1, 0], [0, 1, 0], [1, 0, 1]], dtype=bool)  # muscle 0 jumps; 1 and 2 are smooth
 NORMAL = np.array([1.0, 0.3, 0.0])  # muscle 0's switching surface: NORMAL . x = 0.2 (normalized units)
@@ -43,7 +42,7 @@ def _true_distance_rad(x):
 
 def test_the_distance_to_a_learned_switch_is_the_distance_to_the_true_surface_near_it():
     path = _fitted()
-    assert gated_muscles(path).tolist() == [0]
+    assert PostureSwitches(path, -HALF_RANGE, HALF_RANGE, torch.ones(3)).muscles.tolist() == [0]
     x = torch.rand(3000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) * 1.8 - 0.9
     distance, muscle = switch_distance(path, x, torch.ones(3, dtype=torch.float64))
     truth = _true_distance_rad(x.numpy())
