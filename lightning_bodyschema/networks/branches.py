@@ -50,12 +50,10 @@ def solve_systems(system, b, valid, ridge, scale=None):
     return torch.linalg.solve(system, (b * valid).unsqueeze(-1)).squeeze(-1) * valid
 
 
-def group_system(gram, rhs, muscles, terms, valid=None):
+def group_system(gram, rhs, muscles, terms, valid):
     """The normal equations of ``muscles`` over their own ``terms (G, K)`` (indices into every term's ``gram (P, P)``
     and ``rhs (P, M)``): ``(G, K, K)`` and ``(G, K)``, padded entries (``~valid (G, K)``) 0."""
     system, b = gram[terms[:, :, None], terms[:, None, :]], rhs.T[muscles].gather(1, terms)
-    if valid is None:
-        return system, b
     return system * (valid[:, :, None] & valid[:, None, :]), b * valid
 
 

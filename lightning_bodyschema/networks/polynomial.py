@@ -79,7 +79,7 @@ def solve_normal_equations(mask: torch.Tensor, gram: torch.Tensor, rhs: torch.Te
     for k in torch.unique(counts).tolist():
         muscles = torch.nonzero(counts == k).flatten()
         terms = order[muscles, :k]
-        system, b = group_system(gram, rhs, muscles, terms)
-        solution = solve_systems(system, b, torch.ones_like(b, dtype=torch.bool), ridge)
+        every = torch.ones_like(terms, dtype=torch.bool)  # no padding: each muscle of the group has k terms
+        solution = solve_systems(*group_system(gram, rhs, muscles, terms, every), every, ridge)
         coef[muscles] = coef[muscles].scatter(1, terms, solution)
     return coef * mask, order
