@@ -64,9 +64,9 @@ def test_kinematics_and_features_match_mujoco(robot, jump, monkeypatch):
     """Frame poses, joint anchors and axes as mj_kinematics (both ways of composing the tree: a few postures jump
     pointers, many go node by node); each frame's columns the gradients of its potential features ``-g . p`` and
     ``-g . R[:, k]`` by MuJoCo's body Jacobians, through the couplings' tangent ``E``."""
-    from lightning_bodyschema.networks import gravity as gravity_module
+    from lightning_bodyschema.networks import snapshot as snapshot_module
 
-    monkeypatch.setattr(gravity_module, "JUMP_ROWS", 64 if jump else 0)
+    monkeypatch.setattr(snapshot_module, "JUMP_ROWS", 64 if jump else 0)
     m, data, tree = robot.mj_model, mujoco.MjData(robot.mj_model), gravity_tree(robot)
     gravity = GravityTorque(tree)
     q = robot.sample_q(np.random.default_rng(2), 4)
