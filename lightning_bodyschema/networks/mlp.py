@@ -74,32 +74,24 @@ class AEEncoder(nn.Module):
     """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)): one MLP whose output is split (z_q
     and z_latent share the hidden features; paper: one encoder)."""
 
+    latent_parts = 1  # outputs of size z_latent_dim after z_q
+
     def __init__(self, x_dim: int, q_dim: int, z_latent_dim: int, hidden: int = 64,
                  n_hidden_layers: int = 2, activation: ActivationSpec = "tanh"):
         super().__init__()
         check_dims(x_dim=x_dim, q_dim=q_dim, z_latent_dim=z_latent_dim)
         self.q_dim, self.z_latent_dim = q_dim, z_latent_dim
-        self.mlp = MLP(x_dim, hidden, q_dim + self._n_latent_outputs(), n_hidden_layers, activation)
+        self.mlp = MLP(x_dim, hidden, q_dim + self.latent_parts * z_latent_dim, n_hidden_layers, activation)
 
-    def _n_latent_outputs(self) -> int:
-        return self.z_latent_dim
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.mlp(x)
-        return out[..., :self.q_dim], out[..., self.q_dim:]
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return self.mlp(x).split([self.q_dim] + [self.z_latent_dim] * self.latent_parts, dim=-1)
 
 
 class VAEEncoder(AEEncoder):
     """h_enc^vae: x (B, x_dim) -> (z_q, mu, logvar), mu and logvar (B, z_latent_dim): log sigma^2 rather than the
     paper's sigma (unconstrained; ``sigma = exp(0.5 * logvar)``)."""
 
-    def _n_latent_outputs(self) -> int:
-        return 2 * self.z_latent_dim
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        out = self.mlp(x)
-        q_end, mu_end = self.q_dim, self.q_dim + self.z_latent_dim
-        return out[..., :q_end], out[..., q_end:mu_end], out[..., mu_end:]
+    latent_parts = 2
 
 
 class Decoder(nn.Module):
@@ -116,8 +108,8 @@ class Decoder(nn.Module):
         return self.mlp(torch.cat([q, z_latent], dim=-1))
 
     def frozen(self) -> Optional["FrozenMLP"]:
-        """An inference-only snapshot for latent descent (``FrozenMLP``: free columns z_latent, fixed q, so
-        ``frozen.forward(z, frozen.first_bias(q))`` is ``self(q, z)``); None without a hand-written derivative."""
+        """An inference-only snapshot for latent descent (``FrozenMLP``: free columns z_latent, fixed q: its
+        ``first_bias(q)``); None without a hand-written derivative."""
         return FrozenMLP.of(self.mlp, slice(self.q_dim, None))
 
 
@@ -150,16 +142,12 @@ class EpsMLP(nn.Module):
         self.x_dim, self.q_dim, self.n_timesteps = x_dim, q_dim, n_timesteps
         self.mlp = MLP(x_dim + 1 + q_dim, hidden, x_dim, n_hidden, activation)
 
-    def _inputs(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """Concatenate [x_t, t/T, q] -> (B, x_dim + 1 + q_dim)."""
+    def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         if isinstance(t, torch.Tensor):
             t_feat = (t.detach().to(x_t.dtype) / self.n_timesteps).reshape(-1, 1).expand(x_t.shape[0], 1)
         else:
             t_feat = x_t.new_full((x_t.shape[0], 1), t / self.n_timesteps)
-        return torch.cat([x_t, t_feat, q], dim=-1)
-
-    def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        return self.mlp(self._inputs(x_t, t, q))
+        return self.mlp(torch.cat([x_t, t_feat, q], dim=-1))
 
     def frozen(self) -> Optional["FrozenMLP"]:
         """An inference-only snapshot for sampling loops: free columns x_t, fixed columns [t/T, q] (``FrozenMLP``).
@@ -258,14 +246,3 @@ class FrozenMLP:
         for (_, w, _), s in zip(reversed(self.hidden), reversed(saved[:-1])):
             g = ops.act_backward(torch.mm(g, w, out=grads[0]), s, grad_input=grads[1])
         return g
-
-    def forward(self, x_free: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """Output (B, out) for free input ``x_free`` and a ``first_bias``."""
-        h, _ = self.trunk(x_free, bias, self.w1_free_t, self.buffers(len(x_free), x_free), self.eager)
-        return torch.addmm(self.out_b, h, self.out_w_t)
-
-    def vjp(self, x_free: torch.Tensor, bias: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """``v^T d out / d x_free`` (B, n_free) at ``x_free``."""
-        bufs = self.buffers(len(x_free), x_free)
-        _, saved = self.trunk(x_free, bias, self.w1_free_t, bufs, self.eager)
-        return self.back(v, self.out_w, saved, bufs, self.eager) @ self.w1_free
