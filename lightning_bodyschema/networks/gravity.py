@@ -106,18 +106,9 @@ class GravityTorque(nn.Module):
         """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
         return apply_keeping_dtype(self, list(self._buffers), super()._apply, fn, *args, **kwargs)
 
-    # ------------------------------------------------------------------ kinematics
-    def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
-        """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
-        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics, by
-        ``GravitySnapshot.world``); ``full``: every joint's posture (``GravitySnapshot.full``) when the caller has it."""
-        tree = GravitySnapshot(self)
-        frames, before = tree.world(tree.full(q.to(torch.float64)) if full is None else full)
-        anchor_axis = before[..., :3, :] @ self.anchor_axis
-        return frames[..., :3, 3], frames[..., :3, :3], anchor_axis[..., 0], anchor_axis[..., 1]
-
+    # ------------------------------------------------------------------ the kinematics' tables
     def _register_nodes(self, tree, chain: list) -> None:
-        """The node tree of ``kinematics``: per body its offset, then each of its joints in order, each node's parent
+        """The node tree of ``GravitySnapshot.kinematics``: per body its offset, then each of its joints in order, each node's parent
         the node before it (a body's offset: its parent body's last node), an identity node last (every root's
         parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform (0 on a
         joint's node), the one-hot map of the joint motions onto their nodes, and the picks of ``GravitySnapshot._pick``."""
@@ -154,7 +145,8 @@ class GravityTorque(nn.Module):
         q = q.to(torch.float64)
         tree = GravitySnapshot(self)
         full = tree.full(q)
-        p, R, o, a = self.kinematics(q, full)
+        frames, o, a = tree.kinematics(full)
+        p, R = frames[..., :3, 3], frames[..., :3, :3]
         ga = a @ self.gravity_cross_T  # (B, J, 3)
         hinge = self.hinge[:, None]
         mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
@@ -182,17 +174,15 @@ class GravityTorque(nn.Module):
         ``(S,)``. Each fit is a QR of the features (``trim.solve_triangular``), not the normal equations, whose
         squared condition number would lose the directions the postures determine only weakly."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
-        self.coef.copy_(solve_triangular(self._triangular(q, tau, chunk)))
-        def refit(keep, new):
-            self.coef.copy_(solve_triangular(self._triangular(q[new], tau[new], chunk)))
-        return trimmed_refits(self, q, tau, refit, factor, rounds, chunk)
+        self._fit(q, tau, chunk)
+        return trimmed_refits(self, q, tau, lambda keep, new: self._fit(q[new], tau[new], chunk), factor, rounds, chunk)
 
-    def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
-        """``R`` of the QR of ``[Y | tau]`` (every posture and joint a row), one chunk of postures at a time: the QR
-        of the previous ``R`` stacked on the chunk's rows (the same ``R`` up to row signs)."""
+    def _fit(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> None:
+        """``coef`` from ``R`` of the QR of ``[Y | tau]`` (every posture and joint a row), one chunk of postures at a
+        time: the QR of the previous ``R`` stacked on the chunk's rows (the same ``R`` up to row signs)."""
         R = torch.zeros(0, len(self.coef) + 1, dtype=torch.float64, device=q.device)
         for start in range(0, len(q), chunk):
             rows = torch.cat([self.features(q[start:start + chunk]), tau[start:start + chunk, :, None]], -1)
             R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
-        return R
+        self.coef.copy_(solve_triangular(R))
 

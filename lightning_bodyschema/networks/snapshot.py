@@ -116,7 +116,7 @@ def _box_product(box, basis):
 class GravitySnapshot(Frozen):
     """A fitted ``GravityTorque``'s torque ``tau (B, N)`` [N m] at float64 postures ``q (B, N)`` [rad or m], from
     the tree's buffers and, from its coefficients, per frame ``(s, m)`` ``(F, 4, 1)``, each moving joint's mass below
-    it ``(J,)``, the offsets and spring rates ``(N,)``; and the tree's kinematics (``full``, ``world``, ``slopes``).
+    it ``(J,)``, the offsets and spring rates ``(N,)``; and the tree's kinematics (``full``, ``kinematics``, ``slopes``).
     One built in an exported program (``GravityTorque.forward`` under ``vmap``) reads columns by lists of joints and
     picks poses by products with one-hot matrices: a gather would fix the batch size under ``vmap``."""
 
@@ -133,14 +133,8 @@ class GravitySnapshot(Frozen):
 
     def __call__(self, q):
         full = self.full(q)
-        return self.torque(q, full, *self.world(full))
-
-    def torque(self, q, full, frames, before):
-        """``tau (B, N)`` at ``q`` from every joint's ``full (B, nq)``, the frames' world poses ``(B, F, 4, 4)`` and
-        the nodes' before the moving joints ``(B, J, 4, 4)``."""
+        frames, o, a = self.kinematics(full)
         w = (frames[..., :3, :] @ self.moment_mass)[..., 0]
-        anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
-        o, a = anchor_axis[..., 0], anchor_axis[..., 1]
         w_joint = rows_product(self.moves_frame, w)
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
@@ -160,16 +154,18 @@ class GravitySnapshot(Frozen):
         or its coupling's slope."""
         return horner(self.slope_horner, self._columns(full, "slope_index") - self.slope_qpos0)
 
-    def world(self, full):
-        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
-        at every joint's ``full (B, nq)``: each chain joint's motion ``I + sin M_sin + versine M_versine + angle
-        M_angle`` in its body's frame, each node's pose the product along its ancestors (``_node_poses``)."""
+    def kinematics(self, full):
+        """The frames' world poses ``(B, F, 4, 4)`` and the moving joints' anchors ``o (B, J, 3)`` and axes
+        ``a (B, J, 3)`` at every joint's ``full (B, nq)`` (MuJoCo's mj_kinematics): each chain joint's motion
+        ``I + sin M_sin + versine M_versine + angle M_angle`` in its body's frame, each node's pose the product along
+        its ancestors (``_node_poses``)."""
         angle = (self._columns(full, "chain_joint_index") - self.chain_qpos0)[:, :, None, None]
         by_sin, by_versine, by_angle = self.motion_terms
         xp = self.xp
         motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
         world = self._node_poses(motion)
-        return self._pick("frame_node", world), self._pick("before_node", world)
+        anchor_axis = self._pick("before_node", world)[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
+        return self._pick("frame_node", world), anchor_axis[..., 0], anchor_axis[..., 1]
 
     def _node_poses(self, motion):
         """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``: by pointer

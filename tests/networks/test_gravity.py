@@ -71,7 +71,9 @@ def test_kinematics_and_features_match_mujoco(robot, jump, monkeypatch):
     gravity = GravityTorque(tree)
     q = robot.sample_q(np.random.default_rng(2), 4)
     full, tangent = robot.joint_map.full_q(q), robot.joint_map.tangent(q)
-    p, R, o, a = (t.numpy() for t in gravity.kinematics(torch.as_tensor(q)))
+    snapshot = GravitySnapshot(gravity)
+    frames, o, a = snapshot.kinematics(snapshot.full(torch.as_tensor(q)))
+    p, R, o, a = (t.numpy() for t in (frames[..., :3, 3], frames[..., :3, :3], o, a))
     Y = gravity.features(torch.as_tensor(q)).numpy()
     bodies = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name) for name in tree.frame_names]
     jp, jr, g = np.zeros((3, m.nv)), np.zeros((3, m.nv)), m.opt.gravity
