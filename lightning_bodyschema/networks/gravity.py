@@ -108,10 +108,11 @@ class GravityTorque(nn.Module):
 
     # ------------------------------------------------------------------ the kinematics' tables
     def _register_nodes(self, tree, chain: list) -> None:
-        """The node tree of ``GravitySnapshot.kinematics``: per body its offset, then each of its joints in order, each node's parent
-        the node before it (a body's offset: its parent body's last node), an identity node last (every root's
-        parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform (0 on a
-        joint's node), the one-hot map of the joint motions onto their nodes, and the picks of ``GravitySnapshot._pick``."""
+        """The node tree of ``GravitySnapshot.kinematics``: per body its offset, then each of its joints in order, each
+        node's parent the node before it (a body's offset: its parent body's last node), an identity node last (every
+        root's parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform
+        (0 on a joint's node), the one-hot map of the joint motions onto their nodes, and the picks of
+        ``GravitySnapshot._pick``."""
         parent, last, joint_node, self.node_chain, const = [], {}, {}, [], []
         for i, p in enumerate(tree.body_parent.tolist()):
             parent.append(last[p] if p >= 0 else -1)

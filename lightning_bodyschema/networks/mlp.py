@@ -197,22 +197,19 @@ class FrozenMLP:
         return cls(mlp, free) if type(mlp.net[1]) in _FROZEN_ACTIVATIONS else None
 
     def __init__(self, mlp: MLP, free: slice):
-        copy = functools.partial(torch.clone, memory_format=torch.contiguous_format)
-        with torch.no_grad():
-            linears = list(mlp.net)[::2]
-            self.silu = type(mlp.net[1]) is nn.SiLU
-            w1 = linears[0].weight.detach()
-            free_cols = range(*free.indices(mlp.in_dim))
-            rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
-            self.w1_free_t, self.w1_free = copy(w1[:, free].t()), copy(w1[:, free])  # (n_free, H), (H, n_free)
-            self.w1_rest_t = copy(w1[:, rest_cols].t())  # (n_rest, H)
-            self.b1 = copy(linears[0].bias.detach())
-            # hidden-to-hidden layers: (W^T for the forward pass, W for the backward pass, b)
-            self.hidden = [(copy(m.weight.detach().t()), copy(m.weight.detach()), copy(m.bias.detach()))
-                           for m in linears[1:-1]]
-            out = linears[-1]
-            self.out_w_t, self.out_w = copy(out.weight.detach().t()), copy(out.weight.detach())
-            self.out_b = copy(out.bias.detach())
+        copy = lambda t: t.detach().clone(memory_format=torch.contiguous_format)  # noqa: E731
+        first, *hidden, out = list(mlp.net)[::2]
+        self.silu = type(mlp.net[1]) is nn.SiLU
+        free_cols = range(*free.indices(mlp.in_dim))
+        rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
+        w1_free = first.weight[:, free]
+        self.w1_free_t, self.w1_free = copy(w1_free.t()), copy(w1_free)  # (n_free, H), (H, n_free)
+        self.w1_rest_t = copy(first.weight[:, rest_cols].t())  # (n_rest, H)
+        self.b1 = copy(first.bias)
+        # hidden-to-hidden layers: (W^T for the forward pass, W for the backward pass, b)
+        self.hidden = [(copy(m.weight.t()), copy(m.weight), copy(m.bias)) for m in hidden]
+        self.out_w_t, self.out_w = copy(out.weight.t()), copy(out.weight)
+        self.out_b = copy(out.bias)
         aten = torch.ops.aten
         act, backward = (aten.silu, aten.silu_backward) if self.silu else (aten.tanh, aten.tanh_backward)
         self.traceable = ActivationOps(act.out, backward.grad_input)

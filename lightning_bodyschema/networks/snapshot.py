@@ -116,9 +116,9 @@ def _box_product(box, basis):
 class GravitySnapshot(Frozen):
     """A fitted ``GravityTorque``'s torque ``tau (B, N)`` [N m] at float64 postures ``q (B, N)`` [rad or m], from
     the tree's buffers and, from its coefficients, per frame ``(s, m)`` ``(F, 4, 1)``, each moving joint's mass below
-    it ``(J,)``, the offsets and spring rates ``(N,)``; and the tree's kinematics (``full``, ``kinematics``, ``slopes``).
-    One built in an exported program (``GravityTorque.forward`` under ``vmap``) reads columns by lists of joints and
-    picks poses by products with one-hot matrices: a gather would fix the batch size under ``vmap``."""
+    it ``(J,)``, the offsets and spring rates ``(N,)``; and the tree's kinematics (``full``, ``kinematics``,
+    ``slopes``). One built in an exported program (``GravityTorque.forward`` under ``vmap``) reads columns by lists of
+    joints and picks poses by products with one-hot matrices: a gather would fix the batch size under ``vmap``."""
 
     def __init__(self, gravity):
         self.__dict__.update(gravity.named_buffers(recurse=False))

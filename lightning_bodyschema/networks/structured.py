@@ -56,10 +56,7 @@ class JacobianMLP(nn.Module):
         self.residual = block == "residual"
         sizes = [in_dim] + [hidden] * n_hidden + [out_dim]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
-        if norm == "layer":
-            self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(n_hidden))
-        else:
-            self.norms = None
+        self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(n_hidden)) if norm == "layer" else None
 
     def _steps(self):
         """(layer, norm or None, adds its input) for every layer after the input layer (indexed, not sliced: a
