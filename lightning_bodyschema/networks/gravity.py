@@ -14,8 +14,6 @@ traceable under ``torch.export`` and ``torch.vmap``. Plain PyTorch, no Lightning
 """
 from __future__ import annotations
 
-from typing import Optional
-
 import numpy as np
 import torch
 from torch import nn
@@ -159,12 +157,11 @@ class GravityTorque(nn.Module):
         ones = torch.ones_like(q)
         return torch.cat([per_free, torch.diag_embed(ones), torch.diag_embed(q)], -1)
 
-    def forward(self, q: torch.Tensor, snapshot: Optional[GravitySnapshot] = None) -> torch.Tensor:
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
-        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves: its ``GravitySnapshot`` (``snapshot``
-        when the caller keeps one; exported, one built in the trace)."""
-        q = q.to(torch.float64)
-        return (GravitySnapshot(self) if snapshot is None or torch.compiler.is_exporting() else snapshot)(q)
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves: a ``GravitySnapshot`` built on the call
+        (a caller that keeps one calls it)."""
+        return GravitySnapshot(self)(q.to(torch.float64))
 
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()
