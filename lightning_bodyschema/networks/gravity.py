@@ -77,12 +77,12 @@ class GravityTorque(nn.Module):
         buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
                        gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
                        free_select=torch.tensor(tree.free_select, **f64), full_base=torch.tensor(tree.full_base, **f64),
-                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
+                       dep_scatter=torch.eye(len(tree.qpos0), **f64)[tree.dep_joint],  # one-hot rows
                        motion_eye=torch.eye(4, **f64), motion_terms=_motion_terms(tree, chain), anchor_axis=anchor_axis,
                        chain_qpos0=qpos0[chain],
                        moves_frame=torch.tensor(tree.moves_frame, **f64),
                        hinge=torch.tensor(tree.jnt_type[moving] == _HINGE, **f64),
-                       free_scatter=self._one_hot(tree.free_column, n_free),
+                       free_scatter=torch.eye(n_free, **f64)[tree.free_column],
                        dep_follows_qpos0=qpos0[lists["dep_follows_index"]], dep_qpos0=qpos0[lists["dep_index"]],
                        slope_qpos0=qpos0[lists["slope_index"]], dep_horner=horner(tree.dep_coef),
                        slope_horner=horner(tree.slope_coef),
@@ -92,13 +92,6 @@ class GravityTorque(nn.Module):
         self._register_nodes(tree, chain)
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
         self.all_hinges = bool(moving.size) and bool((tree.jnt_type[moving] == _HINGE).all())
-
-    @staticmethod
-    def _one_hot(rows, width: int) -> torch.Tensor:
-        """(len(rows), width) float64 with a 1 at each row's entry."""
-        out = torch.zeros(len(rows), width, dtype=torch.float64)
-        out[torch.arange(len(rows)), torch.as_tensor(rows, dtype=torch.long)] = 1.0
-        return out
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
@@ -135,7 +128,7 @@ class GravityTorque(nn.Module):
         picks.update(frame_node=[last[i] for i in tree.frame_body.tolist()],
                      before_node=[joint_node[j] - 1 for j in tree.moving_joint.tolist()])
         for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
-            self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
+            self.register_buffer(name, torch.eye(n + 1, dtype=torch.float64)[rows], persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
 
     # ------------------------------------------------------------------ the regressor
