@@ -8,9 +8,8 @@ joint's mass column is ``-g . a_j`` (its moment columns 0). Coupled joints add t
 ``d q_j / d q_free`` (``tau_free = E^T tau_full``). Per free joint an offset and a linear spring
 (``tau_j += c0_j + c1_j q_j``) represent joint springs.
 
-Forward kinematics is MuJoCo's, in closed form in float64 (each body at its parent's pose times its offset, then each
-joint: a hinge rotates by ``q - qpos0`` about its axis through its anchor, a slide translates); batched, no autograd,
-traceable under ``torch.export`` and ``torch.vmap``. Plain PyTorch, no Lightning.
+Forward kinematics is MuJoCo's in closed form, float64, batched, traceable under ``torch.export`` and ``torch.vmap``
+(``networks.snapshot.GravitySnapshot.kinematics``). Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
 
@@ -74,7 +73,7 @@ class GravityTorque(nn.Module):
         # the couplings' and slopes' polynomials as ``GravitySnapshot.full`` and ``slopes`` take them: each
         # one's gather and ``qpos0`` there, its coefficient columns the highest power first
         horner = lambda coef: torch.tensor(coef, **f64).T.flip(0).contiguous()  # noqa: E731
-        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
+        buffers = dict(gravity=torch.tensor(tree.gravity, **f64),
                        gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
                        free_select=torch.tensor(tree.free_select, **f64), full_base=torch.tensor(tree.full_base, **f64),
                        dep_scatter=torch.eye(len(tree.qpos0), **f64)[tree.dep_joint],  # one-hot rows
@@ -147,8 +146,7 @@ class GravityTorque(nn.Module):
         per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
         weighted = per_joint.flatten(2) * tree.slopes(full)[..., None]
         per_free = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
-        ones = torch.ones_like(q)
-        return torch.cat([per_free, torch.diag_embed(ones), torch.diag_embed(q)], -1)
+        return torch.cat([per_free, torch.diag_embed(torch.ones_like(q)), torch.diag_embed(q)], -1)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass

@@ -66,7 +66,6 @@ class MLP(nn.Module):
         self.in_dim, self.out_dim = in_dim, out_dim
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """x (B, in_dim) -> (B, out_dim)."""
         return self.net(x)
 
 
@@ -185,10 +184,9 @@ class FrozenMLP:
     folded into a bias once (``first_bias``). Plain pre-transposed tensors, no autograd, no ``nn.Module`` dispatch.
     The weights are copied when it is built and never follow the module; whoever holds one decides when to rebuild.
 
-    Blocks a sampler fuses its own arithmetic around: ``trunk(u, bias, w1_t, bufs) -> (h, saved)`` (last hidden
-    features for a first-layer weight ``w1_t``, e.g. ``w1_free_t`` or a scaled copy), the output layer
-    (``out_w_t``, ``out_w``, ``out_b``: out = out_b + h out_w_t) and ``back(g_h, saved, bufs)`` (dL/dh_last ->
-    dL/d first pre-activation; times ``w1_free`` it is dL/dx_free). Only SiLU and Tanh (``of`` returns None else).
+    Blocks a sampler fuses its own arithmetic around: ``trunk``, the output layer (``out = out_b + h out_w_t``,
+    ``out_w`` its transpose) and ``back`` (times ``w1_free``: dL/dx_free). Only SiLU and Tanh (``of`` returns None
+    else).
     """
 
     @classmethod
@@ -227,8 +225,9 @@ class FrozenMLP:
         return [new() for _ in range(n_layers)], [new() for _ in range(n_layers)], [new() for _ in range(2)]
 
     def trunk(self, u: torch.Tensor, bias: torch.Tensor, w1_t: torch.Tensor, bufs, ops: ActivationOps):
-        """Last hidden features (B, H) of free input ``u (B, n_free)`` and what ``back`` needs (every layer's
-        pre-activation for SiLU, output for Tanh), written into ``bufs`` (``buffers``)."""
+        """Last hidden features (B, H) of free input ``u (B, n_free)`` for a first-layer weight ``w1_t``
+        (``w1_free_t`` or a scaled copy) and what ``back`` needs (every layer's pre-activation for SiLU, output for
+        Tanh), written into ``bufs`` (``buffers``)."""
         pre, post, _ = bufs
         ops.act(torch.addmm(bias, u, w1_t, out=pre[0]), out=post[0])
         for i, (w_t, _, b) in enumerate(self.hidden, start=1):

@@ -156,9 +156,9 @@ class GravitySnapshot(Frozen):
 
     def kinematics(self, full):
         """The frames' world poses ``(B, F, 4, 4)`` and the moving joints' anchors ``o (B, J, 3)`` and axes
-        ``a (B, J, 3)`` at every joint's ``full (B, nq)`` (MuJoCo's mj_kinematics): each chain joint's motion
-        ``I + sin M_sin + versine M_versine + angle M_angle`` in its body's frame, each node's pose the product along
-        its ancestors (``_node_poses``)."""
+        ``a (B, J, 3)`` at every joint's ``full (B, nq)`` (MuJoCo's mj_kinematics): each body at its parent's pose
+        times its offset, then each joint's motion ``I + sin M_sin + versine M_versine + angle M_angle`` (a hinge
+        rotates by ``q - qpos0`` about its axis through its anchor, a slide translates; ``_node_poses``)."""
         angle = (self._columns(full, "chain_joint_index") - self.chain_qpos0)[:, :, None, None]
         by_sin, by_versine, by_angle = self.motion_terms
         xp = self.xp
