@@ -63,7 +63,6 @@ class MLP(nn.Module):
             layers += [nn.Linear(w_in, w_out), act()]
         layers.append(nn.Linear(widths[-1], out_dim))
         self.net = nn.Sequential(*layers)
-        self.in_dim, self.out_dim = in_dim, out_dim
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
@@ -198,8 +197,8 @@ class FrozenMLP:
         copy = lambda t: t.detach().clone(memory_format=torch.contiguous_format)  # noqa: E731
         first, *hidden, out = list(mlp.net)[::2]
         self.silu = type(mlp.net[1]) is nn.SiLU
-        free_cols = range(*free.indices(mlp.in_dim))
-        rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
+        free_cols = range(*free.indices(first.in_features))
+        rest_cols = [i for i in range(first.in_features) if i not in free_cols]  # in input order
         w1_free = first.weight[:, free]
         self.w1_free_t, self.w1_free = copy(w1_free.t()), copy(w1_free)  # (n_free, H), (H, n_free)
         self.w1_rest_t = copy(first.weight[:, rest_cols].t())  # (n_rest, H)

@@ -58,13 +58,6 @@ class JacobianMLP(nn.Module):
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
         self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(n_hidden)) if norm == "layer" else None
 
-    def _steps(self):
-        """(layer, norm or None, adds its input) for every layer after the input layer (indexed, not sliced: a
-        slice of a ModuleList builds a new one)."""
-        layers, last = list(self.layers), len(self.layers) - 1
-        for i in range(last):
-            yield layers[i + 1], None if self.norms is None else self.norms[i], self.residual and i < last - 1
-
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self._through_layers(x, False)[0]
 
@@ -79,12 +72,14 @@ class JacobianMLP(nn.Module):
     def _through_layers(self, x: torch.Tensor, tangents: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         """``(y, dy/dx)``, the Jacobian None without ``tangents`` (``F.linear``, not the modules: no hook dispatch per
         layer)."""
-        first = self.layers[0]
+        first, *rest = self.layers  # unpacked, not sliced: a slice of a ModuleList builds a new one
         h = F.linear(x, first.weight, first.bias)
         # d h / d x (1, in, width), rows = input directions, broadcast over B; contiguous (a matmul of the transposed
         # layout is many times slower)
         tangent = first.weight.T.contiguous().unsqueeze(0) if tangents else None
-        for layer, norm, residual in self._steps():
+        for i, layer in enumerate(rest):
+            norm = None if self.norms is None else self.norms[i]
+            residual = self.residual and i < len(rest) - 1  # residual hidden steps add their input; the output never
             z = h if norm is None else norm(h)
             a = F.silu(z)
             if tangents:
