@@ -123,9 +123,9 @@ class GravityTorque(nn.Module):
         pointer, picks = np.array([q if q >= 0 else n for q in parent] + [n]), {}
         while (pointer[:n] < n).any():  # log2(depth) rounds
             picks[f"node_pointer{len(picks)}"], pointer = pointer, pointer[pointer]
-        self.n_rounds = len(picks)
         picks.update(frame_node=[last[i] for i in tree.frame_body.tolist()],
                      before_node=[joint_node[j] - 1 for j in tree.moving_joint.tolist()])
+        self.pick_names = list(picks)  # the pointer rounds in order, then the frames' and the moving joints' nodes
         for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
             self.register_buffer(name, torch.eye(n + 1, dtype=torch.float64)[rows], persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
@@ -136,13 +136,12 @@ class GravityTorque(nn.Module):
         q = q.to(torch.float64)
         tree = GravitySnapshot(self)
         full = tree.full(q)
-        frames, o, a = tree.kinematics(full)
-        p, R = frames[..., :3, 3], frames[..., :3, :3]
+        frames, o, a = tree.kinematics(full)  # the frames' positions p: [..., :3, 3], rotations R: [..., :3, :3]
         ga = a @ self.gravity_cross_T  # (B, J, 3)
         hinge = self.hinge[:, None]
-        mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
+        mass = -(torch.einsum("bjc,bfc->bjf", ga, frames[..., :3, 3]) - (ga * o).sum(-1, keepdim=True)) * hinge \
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
-        moment = -torch.einsum("bjc,bfck->bjfk", ga, R) * hinge[..., None]
+        moment = -torch.einsum("bjc,bfck->bjfk", ga, frames[..., :3, :3]) * hinge[..., None]
         per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
         weighted = per_joint.flatten(2) * tree.slopes(full)[..., None]
         per_free = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)

@@ -178,10 +178,10 @@ class FrozenMLP:
     """Inference-only snapshot of an ``MLP``: its forward and reverse-mode backward pass written out by hand (the
     samplers' loops; ``networks.structured.JacobianMLP`` carries forward-mode tangents instead).
 
-    Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice: what the
-    loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer contribution is
-    folded into a bias once (``first_bias``). Plain pre-transposed tensors, no autograd, no ``nn.Module`` dispatch.
-    The weights are copied when it is built and never follow the module; whoever holds one decides when to rebuild.
+    The input is split into *free* columns (a slice: what the loop updates, x_t or z_latent) and the rest (fixed for a
+    whole loop: t/T and q), whose first-layer contribution is folded into a bias once (``first_bias``). Plain
+    pre-transposed tensors, no autograd, no ``nn.Module`` dispatch. The weights are copied when it is built and never
+    follow the module; whoever holds one decides when to rebuild.
 
     Blocks a sampler fuses its own arithmetic around: ``trunk``, the output layer (``out = out_b + h out_w_t``,
     ``out_w`` its transpose) and ``back`` (times ``w1_free``: dL/dx_free). Only SiLU and Tanh (``of`` returns None

@@ -122,9 +122,12 @@ class GravitySnapshot(Frozen):
 
     def __init__(self, gravity):
         self.__dict__.update(gravity.named_buffers(recurse=False))
-        self.node_parent, self.node_chain, self.n_rounds = gravity.node_parent, gravity.node_chain, gravity.n_rounds
+        self.node_parent, self.node_chain = gravity.node_parent, gravity.node_chain
         self.coupled, self.all_hinges, self.index_lists = gravity.coupled, gravity.all_hinges, gravity.index_lists
         self.traced = torch.compiler.is_exporting()
+        # the rows each pick takes (``GravityTorque._register_nodes``): one-hot matrices when traced, else indices
+        *self.pointers, self.frame_rows, self.before_rows = (getattr(gravity, name if self.traced else f"{name}_index")
+                                                             for name in gravity.pick_names)
         n_frames, n_free, coef = gravity.n_frames, gravity.n_free, gravity.coef
         order = torch.arange(4 * n_frames, device=coef.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
         self.moment_mass = coef.index_select(0, order).view(-1, 4, 1)
@@ -164,19 +167,18 @@ class GravitySnapshot(Frozen):
         xp = self.xp
         motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
         world = self._node_poses(motion)
-        anchor_axis = self._pick("before_node", world)[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
-        return self._pick("frame_node", world), anchor_axis[..., 0], anchor_axis[..., 1]
+        anchor_axis = self._pick(self.before_rows, world)[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
+        return self._pick(self.frame_rows, world), anchor_axis[..., 0], anchor_axis[..., 1]
 
     def _node_poses(self, motion):
-        """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``: by pointer
-        jumping up to ``JUMP_ROWS`` postures, in numpy and exported (any batch), else one product per node, parents
-        first."""
+        """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``: pointer
+        jumping (up to ``JUMP_ROWS`` postures, numpy, exported), else one product per node, parents first."""
         xp = self.xp
         if xp is np or torch.compiler.is_exporting() or motion.shape[0] <= JUMP_ROWS:
             moved = self.node_motion @ motion.reshape(*motion.shape[:2], 16)
             world = self.node_const + moved.reshape(*moved.shape[:2], 4, 4)
-            for k in range(self.n_rounds):
-                world = self._pick(f"node_pointer{k}", world) @ world
+            for rows in self.pointers:
+                world = self._pick(rows, world) @ world
             return world
         nodes = []
         for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
@@ -188,11 +190,11 @@ class GravitySnapshot(Frozen):
         """``full``'s columns at the index buffer ``name``."""
         return full[:, self.index_lists[name]] if self.traced else take(full, getattr(self, name), 1)
 
-    def _pick(self, name: str, poses):
-        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``GravityTorque._register_nodes``)."""
+    def _pick(self, rows, poses):
+        """``(B, K, 4, 4)``: the ``rows`` of ``poses (B, L, 4, 4)`` (a gather, or traced a one-hot product)."""
         if self.traced:
-            return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
-        return take(poses, getattr(self, f"{name}_index"), 1)
+            return (rows @ poses.flatten(2)).unflatten(2, (4, 4))
+        return take(poses, rows, 1)
 
 
 class BodySnapshot(Frozen):
