@@ -52,7 +52,7 @@ def test_the_numpy_torque_answers_as_the_torch_one_and_as_mujoco(robot):
     gravity.fit_trimmed(*_postures(robot, 300, 0))
     host = GravitySnapshot(gravity).on_host()
     q, tau = _postures(robot, 9, 1)
-    traced = gravity.features(q) @ gravity.coef  # the features' path, no snapshot
+    traced = gravity.features(q) @ gravity.coef  # the regressor's path, not the snapshot's factored torque
     for rows in (1, 4, 9):
         assert _relative(torch.as_tensor(host(q[:rows].numpy())), gravity(q[:rows])) < 1e-12
         assert _relative(gravity(q[:rows]), traced[:rows]) < 1e-12
