@@ -22,6 +22,17 @@ def rounding_tol(roundings: int, *scales, dtype=torch.float64) -> float:
 SPRING_ROUNDINGS = 8  # l_geo - delta(f): f / k, a log1p (an ulp or two), a division by alpha, a subtraction
 
 
+def frozen_pass(frozen, x_free, bias, v=None):
+    """A ``FrozenMLP``'s output ``(B, out)`` at free input ``x_free`` and a ``first_bias`` by the blocks the samplers
+    run (``trunk``, the output layer, ``back``), and with ``v (B, out)`` also ``v^T d out / d x_free`` (B, n_free)."""
+    bufs = frozen.buffers(len(x_free), x_free)
+    h, saved = frozen.trunk(x_free, bias, frozen.w1_free_t, bufs, frozen.eager)
+    out = torch.addmm(frozen.out_b, h, frozen.out_w_t)
+    if v is None:
+        return out
+    return out, frozen.back(v, frozen.out_w, saved, bufs, frozen.eager) @ frozen.w1_free
+
+
 def spring_length_tol(*lengths_m) -> float:
     """The same motor length ``l_geo - delta(f)`` [m] written two ways (numpy's or torch's log1p, another order):
     a few roundings at the lengths' scale (~1e-15 m at lengths below 1 m); a spring off by 1% (k or alpha) moves

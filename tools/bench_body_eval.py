@@ -9,7 +9,7 @@ torque, in ms per call (medians of ``--repeats`` rounds; at batch 1 each round t
 run it from another worktree (its ``PYTHONPATH``) on the same checkpoint for a side-by-side figure. With ``--paths``
 (a per-muscle checkpoint) also the length model by the few-postures path and by blocks of rows
 (``networks.snapshot.FEW_ELEMENTS`` forced), and a gravity torque's forward kinematics by pointer jumping and node
-by node (``networks.gravity.JUMP_ROWS`` forced), and ``body_si`` in numpy and in torch
+by node (``networks.snapshot.JUMP_ROWS`` forced), and ``body_si`` in numpy and in torch
 (``schemas.structured_body.HOST_ROWS`` forced): the figures behind the three thresholds. One torch thread; the load average
 is printed with the figures.
 """

@@ -8,13 +8,10 @@ joint's mass column is ``-g . a_j`` (its moment columns 0). Coupled joints add t
 ``d q_j / d q_free`` (``tau_free = E^T tau_full``). Per free joint an offset and a linear spring
 (``tau_j += c0_j + c1_j q_j``) represent joint springs.
 
-Forward kinematics is MuJoCo's, in closed form in float64 (each body at its parent's pose times its offset, then each
-joint: a hinge rotates by ``q - qpos0`` about its axis through its anchor, a slide translates); batched, no autograd,
-traceable under ``torch.export`` and ``torch.vmap``. Plain PyTorch, no Lightning.
+Forward kinematics is MuJoCo's in closed form, float64, batched, traceable under ``torch.export`` and ``torch.vmap``
+(``networks.snapshot.GravitySnapshot.kinematics``). Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
-
-from typing import Optional
 
 import numpy as np
 import torch
@@ -22,7 +19,7 @@ from torch import nn
 
 from ..errors import BodySchemaInputError
 from .arrays import apply_keeping_dtype
-from .snapshot import JUMP_ROWS, GravitySnapshot, full_posture, joint_motions, joint_slopes, world_poses
+from .snapshot import GravitySnapshot
 from .trim import solve_triangular, trimmed_refits
 
 _HINGE = 3  # mujoco.mjtJoint's hinge; the tree's other joints are slides (sim.model refuses any other kind)
@@ -63,151 +60,98 @@ class GravityTorque(nn.Module):
         n_free, n_frames = tree.free_select.shape[0], tree.n_frames
         if n_frames == 0:
             raise BodySchemaInputError("gravity torque: no body moves with a free joint")
-        self.n_free, self.n_frames, self.frame_names = n_free, n_frames, list(tree.frame_names)
-        f64 = dict(dtype=torch.float64)
+        self.n_free, self.n_frames, self.coupled = n_free, n_frames, bool(tree.dep_joint.size)
+        f64, moving = dict(dtype=torch.float64), tree.moving_joint
         chain = [j for joints in tree.body_joints for j in joints]  # the joints of the bodies the FK visits
-        self.chain_joint, self.chain_index = chain, {j: k for k, j in enumerate(chain)}
         qpos0 = torch.tensor(tree.qpos0, **f64)
-        anchor_axis = torch.zeros(len(tree.moving_joint), 4, 2, **f64)  # per moving joint [anchor; 1], [axis; 0]
-        anchor_axis[:, :3, 0], anchor_axis[:, 3, 0] = torch.tensor(tree.jnt_pos[tree.moving_joint], **f64), 1.0
-        anchor_axis[:, :3, 1] = torch.tensor(tree.jnt_axis[tree.moving_joint], **f64)
+        anchor_axis = torch.zeros(len(moving), 4, 2, **f64)  # per moving joint [anchor; 1], [axis; 0]
+        anchor_axis[:, :3, 0], anchor_axis[:, 3, 0] = torch.tensor(tree.jnt_pos[moving], **f64), 1.0
+        anchor_axis[:, :3, 1] = torch.tensor(tree.jnt_axis[moving], **f64)
         self.slides = int((tree.jnt_type[chain] != _HINGE).sum())  # slide joints the kinematics visits
-        self.dep_joint, self.dep_follows = tree.dep_joint.tolist(), tree.dep_follows.tolist()
-        self.body_parent, self.body_joints = tree.body_parent.tolist(), [list(j) for j in tree.body_joints]
-        self.frame_body = tree.frame_body.tolist()
-        self.moving_joint, self.slope_of = tree.moving_joint.tolist(), tree.slope_of.tolist()
-        self.coupled = bool(self.dep_joint)
-        self.index_lists = dict(dep_follows_index=self.dep_follows, dep_index=self.dep_joint, slope_index=self.slope_of,
-                                chain_joint_index=chain)
-        # the couplings' and slopes' polynomials as ``snapshot.full_posture`` and ``joint_slopes`` take them: each
+        self.index_lists = lists = dict(dep_follows_index=tree.dep_follows.tolist(), dep_index=tree.dep_joint.tolist(),
+                                        slope_index=tree.slope_of.tolist(), chain_joint_index=chain)
+        # the couplings' and slopes' polynomials as ``GravitySnapshot.full`` and ``slopes`` take them: each
         # one's gather and ``qpos0`` there, its coefficient columns the highest power first
         horner = lambda coef: torch.tensor(coef, **f64).T.flip(0).contiguous()  # noqa: E731
-        buffers = dict(gravity=torch.tensor(tree.gravity, **f64), qpos0=qpos0,
+        buffers = dict(gravity=torch.tensor(tree.gravity, **f64),
                        gravity_cross_T=_cross_matrices(tree.gravity)[0].T.clone(),  # g x v as a product (vmap)
                        free_select=torch.tensor(tree.free_select, **f64), full_base=torch.tensor(tree.full_base, **f64),
-                       dep_scatter=self._one_hot(tree.dep_joint, len(tree.qpos0)),
+                       dep_scatter=torch.eye(len(tree.qpos0), **f64)[tree.dep_joint],  # one-hot rows
                        motion_eye=torch.eye(4, **f64), motion_terms=_motion_terms(tree, chain), anchor_axis=anchor_axis,
                        chain_qpos0=qpos0[chain],
                        moves_frame=torch.tensor(tree.moves_frame, **f64),
-                       hinge=torch.tensor(tree.jnt_type[tree.moving_joint] == _HINGE, **f64),
-                       free_scatter=self._one_hot(tree.free_column, n_free),
-                       dep_follows_qpos0=qpos0[self.dep_follows], dep_qpos0=qpos0[self.dep_joint],
-                       slope_qpos0=qpos0[self.slope_of], dep_horner=horner(tree.dep_coef),
+                       hinge=torch.tensor(tree.jnt_type[moving] == _HINGE, **f64),
+                       free_scatter=torch.eye(n_free, **f64)[tree.free_column],
+                       dep_follows_qpos0=qpos0[lists["dep_follows_index"]], dep_qpos0=qpos0[lists["dep_index"]],
+                       slope_qpos0=qpos0[lists["slope_index"]], dep_horner=horner(tree.dep_coef),
                        slope_horner=horner(tree.slope_coef),
-                       **{name: torch.as_tensor(rows, dtype=torch.long) for name, rows in self.index_lists.items()})
+                       **{name: torch.as_tensor(rows, dtype=torch.long) for name, rows in lists.items()})
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
-        self._register_nodes(tree)
+        self._register_nodes(tree, chain)
         self.register_buffer("coef", torch.zeros(4 * n_frames + 2 * n_free, **f64))
-        self.all_hinges = bool(tree.jnt_type[tree.moving_joint].size) and bool(
-            (tree.jnt_type[tree.moving_joint] == _HINGE).all())
-
-    @staticmethod
-    def _one_hot(rows, width: int) -> torch.Tensor:
-        """(len(rows), width) float64 with a 1 at each row's entry."""
-        out = torch.zeros(len(rows), width, dtype=torch.float64)
-        out[torch.arange(len(rows)), torch.as_tensor(rows, dtype=torch.long)] = 1.0
-        return out
+        self.all_hinges = bool(moving.size) and bool((tree.jnt_type[moving] == _HINGE).all())
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to every buffer; dtype casts do not (the kinematics and coefficients stay float64)."""
         return apply_keeping_dtype(self, list(self._buffers), super()._apply, fn, *args, **kwargs)
 
-    # ------------------------------------------------------------------ kinematics
-    def full_q(self, q: torch.Tensor) -> torch.Tensor:
-        """Every joint (B, nq) from the free joints (B, N) (``snapshot.full_posture``)."""
-        return full_posture(self, q, self._columns)
-
-    def _columns(self, full: torch.Tensor, name: str) -> torch.Tensor:
-        """``full``'s columns at the index buffer ``name``: ``index_select``, or exported indexing by the list of
-        joints (an ``index_select`` would fix the batch under vmap)."""
-        if torch.compiler.is_exporting():
-            return full[:, self.index_lists[name]]
-        return full.index_select(1, getattr(self, name))
-
-    def kinematics(self, q: torch.Tensor, full: Optional[torch.Tensor] = None):
-        """World poses of the frames ``p (B, F, 3)``, ``R (B, F, 3, 3)`` and of the moving joints' anchors
-        ``o (B, J, 3)`` and axes ``a (B, J, 3)``, at free-joint postures ``q (B, N)`` (MuJoCo's mj_kinematics);
-        ``full``: ``full_q(q)`` when the caller has it."""
-        frames, before = self._poses(self.full_q(q.to(torch.float64)) if full is None else full)
-        anchor_axis = before[..., :3, :] @ self.anchor_axis
-        return frames[..., :3, 3], frames[..., :3, :3], anchor_axis[..., 0], anchor_axis[..., 1]
-
-    def _poses(self, full: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
-        at every joint's ``full (B, nq)``: each node's pose the product along its ancestors (``snapshot.world_poses``;
-        pointer jumping up to ``JUMP_ROWS`` postures and in an exported program)."""
-        motion = joint_motions(self, full, self._columns)
-        jump = torch.compiler.is_exporting() or len(motion) <= JUMP_ROWS
-        world = world_poses(self, motion, lambda k, poses: self._pick(f"node_pointer{k}", poses), jump)
-        return self._pick("frame_node", world), self._pick("before_node", world)
-
-    def _register_nodes(self, tree) -> None:
-        """The node tree of ``kinematics``: per body its offset, then each of its joints in order, each node's parent
-        the node before it (a body's offset: its parent body's last node), an identity node last (every root's
-        parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform (0 on a
-        joint's node), the one-hot map of the joint motions onto their nodes, and the picks of ``_pick``."""
+    # ------------------------------------------------------------------ the kinematics' tables
+    def _register_nodes(self, tree, chain: list) -> None:
+        """The node tree of ``GravitySnapshot.kinematics``: per body its offset, then each of its joints in order, each
+        node's parent the node before it (a body's offset: its parent body's last node), an identity node last (every
+        root's parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform
+        (0 on a joint's node), the one-hot map of the joint motions onto their nodes, and the picks of
+        ``GravitySnapshot._pick``."""
         parent, last, joint_node, self.node_chain, const = [], {}, {}, [], []
-        for i, p in enumerate(self.body_parent):
+        for i, p in enumerate(tree.body_parent.tolist()):
             parent.append(last[p] if p >= 0 else -1)
             self.node_chain.append(-1)
             const.append(np.eye(4))
             const[-1][:3, :3], const[-1][:3, 3] = tree.body_rot[i], tree.body_pos[i]
-            for j in self.body_joints[i]:
+            for j in tree.body_joints[i]:
                 parent.append(len(parent) - 1)
-                self.node_chain.append(self.chain_index[j])
+                self.node_chain.append(chain.index(j))
                 const.append(np.zeros((4, 4)))
                 joint_node[j] = len(parent) - 1
             last[i] = len(parent) - 1
         n, self.node_parent = len(parent), parent
-        motion = np.zeros((n + 1, len(self.chain_joint)))
+        motion = np.zeros((n + 1, len(chain)))
         motion[[k for k, c in enumerate(self.node_chain) if c >= 0], [c for c in self.node_chain if c >= 0]] = 1.0
         for name, value in dict(node_const=np.stack(const + [np.eye(4)]), node_motion=motion).items():
             self.register_buffer(name, torch.tensor(value, dtype=torch.float64), persistent=False)
         pointer, picks = np.array([q if q >= 0 else n for q in parent] + [n]), {}
         while (pointer[:n] < n).any():  # log2(depth) rounds
             picks[f"node_pointer{len(picks)}"], pointer = pointer, pointer[pointer]
-        self.n_rounds = len(picks)
-        picks.update(frame_node=[last[i] for i in self.frame_body],
-                     before_node=[joint_node[j] - 1 for j in self.moving_joint])
+        picks.update(frame_node=[last[i] for i in tree.frame_body.tolist()],
+                     before_node=[joint_node[j] - 1 for j in tree.moving_joint.tolist()])
+        self.pick_names = list(picks)  # the pointer rounds in order, then the frames' and the moving joints' nodes
         for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
-            self.register_buffer(name, self._one_hot(rows, n + 1), persistent=False)
+            self.register_buffer(name, torch.eye(n + 1, dtype=torch.float64)[rows], persistent=False)
             self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
-
-    def _pick(self, name: str, poses: torch.Tensor) -> torch.Tensor:
-        """``(B, K, 4, 4)`` rows of ``poses (B, L, 4, 4)`` picked by ``name`` (``_register_nodes``): a gather, or
-        exported a product with its one-hot matrix (a gather under ``vmap`` fixes the batch size)."""
-        if torch.compiler.is_exporting():
-            return (getattr(self, name) @ poses.flatten(2)).unflatten(2, (4, 4))
-        return poses.index_select(1, getattr(self, f"{name}_index"))
 
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:
         """``Y (B, N, P)`` with ``tau = Y @ coef`` (module docstring for the columns)."""
         q = q.to(torch.float64)
-        full = self.full_q(q)
-        p, R, o, a = self.kinematics(q, full)
+        tree = GravitySnapshot(self)
+        full = tree.full(q)
+        frames, o, a = tree.kinematics(full)  # the frames' positions p: [..., :3, 3], rotations R: [..., :3, :3]
         ga = a @ self.gravity_cross_T  # (B, J, 3)
         hinge = self.hinge[:, None]
-        mass = -(torch.einsum("bjc,bfc->bjf", ga, p) - (ga * o).sum(-1, keepdim=True)) * hinge \
+        mass = -(torch.einsum("bjc,bfc->bjf", ga, frames[..., :3, 3]) - (ga * o).sum(-1, keepdim=True)) * hinge \
             - (a @ self.gravity)[..., None] * (1.0 - hinge)
-        moment = -torch.einsum("bjc,bfck->bjfk", ga, R) * hinge[..., None]
+        moment = -torch.einsum("bjc,bfck->bjfk", ga, frames[..., :3, :3]) * hinge[..., None]
         per_joint = torch.cat([mass[..., None], moment], -1) * self.moves_frame[..., None]  # (B, J, F, 4)
-        weighted = per_joint.flatten(2) * joint_slopes(self, full, self._columns)[..., None]
-        tree = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
-        ones = torch.ones_like(q)
-        return torch.cat([tree, torch.diag_embed(ones), torch.diag_embed(q)], -1)
+        weighted = per_joint.flatten(2) * tree.slopes(full)[..., None]
+        per_free = torch.einsum("bjp,jn->bnp", weighted, self.free_scatter)
+        return torch.cat([per_free, torch.diag_embed(torch.ones_like(q)), torch.diag_embed(q)], -1)
 
-    def forward(self, q: torch.Tensor, snapshot: Optional[GravitySnapshot] = None) -> torch.Tensor:
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
         """``tau (B, N)`` [N m] = ``features(q) @ coef``, by each joint's torque from the frames' world first mass
-        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves: its ``GravitySnapshot`` (``snapshot``
-        when the caller keeps one); exported, built in the trace on this module's poses and columns (``_poses``,
-        ``_columns``: no gather that would fix the batch under vmap)."""
-        q = q.to(torch.float64)
-        if not torch.compiler.is_exporting():
-            return (GravitySnapshot(self) if snapshot is None else snapshot)(q)
-        full = self.full_q(q)
-        return GravitySnapshot(self).torque(q, full, *self._poses(full), self._columns)
+        moments ``w_f = m_f p_f + R_f s_f`` summed over the frames it moves: a ``GravitySnapshot`` built on the call
+        (a caller that keeps one calls it)."""
+        return GravitySnapshot(self)(q.to(torch.float64))
 
     # ------------------------------------------------------------------ the fit
     @torch.no_grad()
@@ -218,17 +162,15 @@ class GravityTorque(nn.Module):
         ``(S,)``. Each fit is a QR of the features (``trim.solve_triangular``), not the normal equations, whose
         squared condition number would lose the directions the postures determine only weakly."""
         q, tau = q.to(self.coef.device, torch.float64), tau.to(self.coef.device, torch.float64)
-        self.coef.copy_(solve_triangular(self._triangular(q, tau, chunk)))
-        def refit(keep, new):
-            self.coef.copy_(solve_triangular(self._triangular(q[new], tau[new], chunk)))
-        return trimmed_refits(self, q, tau, refit, factor, rounds, chunk)
+        self._fit(q, tau, chunk)
+        return trimmed_refits(self, q, tau, lambda keep, new: self._fit(q[new], tau[new], chunk), factor, rounds, chunk)
 
-    def _triangular(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> torch.Tensor:
-        """``R`` of the QR of ``[Y | tau]`` (every posture and joint a row), one chunk of postures at a time: the QR
-        of the previous ``R`` stacked on the chunk's rows (the same ``R`` up to row signs)."""
+    def _fit(self, q: torch.Tensor, tau: torch.Tensor, chunk: int) -> None:
+        """``coef`` from ``R`` of the QR of ``[Y | tau]`` (every posture and joint a row), one chunk of postures at a
+        time: the QR of the previous ``R`` stacked on the chunk's rows (the same ``R`` up to row signs)."""
         R = torch.zeros(0, len(self.coef) + 1, dtype=torch.float64, device=q.device)
         for start in range(0, len(q), chunk):
             rows = torch.cat([self.features(q[start:start + chunk]), tau[start:start + chunk, :, None]], -1)
             R = torch.linalg.qr(torch.cat([R, rows.flatten(0, 1)]), mode="r").R
-        return R
+        self.coef.copy_(solve_triangular(R))
 

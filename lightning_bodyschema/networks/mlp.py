@@ -63,10 +63,8 @@ class MLP(nn.Module):
             layers += [nn.Linear(w_in, w_out), act()]
         layers.append(nn.Linear(widths[-1], out_dim))
         self.net = nn.Sequential(*layers)
-        self.in_dim, self.out_dim = in_dim, out_dim
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """x (B, in_dim) -> (B, out_dim)."""
         return self.net(x)
 
 
@@ -74,32 +72,24 @@ class AEEncoder(nn.Module):
     """h_enc^ae: x (B, x_dim) -> (z_q (B, q_dim), z_latent (B, z_latent_dim)): one MLP whose output is split (z_q
     and z_latent share the hidden features; paper: one encoder)."""
 
+    latent_parts = 1  # outputs of size z_latent_dim after z_q
+
     def __init__(self, x_dim: int, q_dim: int, z_latent_dim: int, hidden: int = 64,
                  n_hidden_layers: int = 2, activation: ActivationSpec = "tanh"):
         super().__init__()
         check_dims(x_dim=x_dim, q_dim=q_dim, z_latent_dim=z_latent_dim)
         self.q_dim, self.z_latent_dim = q_dim, z_latent_dim
-        self.mlp = MLP(x_dim, hidden, q_dim + self._n_latent_outputs(), n_hidden_layers, activation)
+        self.mlp = MLP(x_dim, hidden, q_dim + self.latent_parts * z_latent_dim, n_hidden_layers, activation)
 
-    def _n_latent_outputs(self) -> int:
-        return self.z_latent_dim
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.mlp(x)
-        return out[..., :self.q_dim], out[..., self.q_dim:]
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return self.mlp(x).split([self.q_dim] + [self.z_latent_dim] * self.latent_parts, dim=-1)
 
 
 class VAEEncoder(AEEncoder):
     """h_enc^vae: x (B, x_dim) -> (z_q, mu, logvar), mu and logvar (B, z_latent_dim): log sigma^2 rather than the
     paper's sigma (unconstrained; ``sigma = exp(0.5 * logvar)``)."""
 
-    def _n_latent_outputs(self) -> int:
-        return 2 * self.z_latent_dim
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        out = self.mlp(x)
-        q_end, mu_end = self.q_dim, self.q_dim + self.z_latent_dim
-        return out[..., :q_end], out[..., q_end:mu_end], out[..., mu_end:]
+    latent_parts = 2
 
 
 class Decoder(nn.Module):
@@ -116,8 +106,8 @@ class Decoder(nn.Module):
         return self.mlp(torch.cat([q, z_latent], dim=-1))
 
     def frozen(self) -> Optional["FrozenMLP"]:
-        """An inference-only snapshot for latent descent (``FrozenMLP``: free columns z_latent, fixed q, so
-        ``frozen.forward(z, frozen.first_bias(q))`` is ``self(q, z)``); None without a hand-written derivative."""
+        """An inference-only snapshot for latent descent (``FrozenMLP``: free columns z_latent, fixed q: its
+        ``first_bias(q)``); None without a hand-written derivative."""
         return FrozenMLP.of(self.mlp, slice(self.q_dim, None))
 
 
@@ -150,16 +140,12 @@ class EpsMLP(nn.Module):
         self.x_dim, self.q_dim, self.n_timesteps = x_dim, q_dim, n_timesteps
         self.mlp = MLP(x_dim + 1 + q_dim, hidden, x_dim, n_hidden, activation)
 
-    def _inputs(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        """Concatenate [x_t, t/T, q] -> (B, x_dim + 1 + q_dim)."""
+    def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
         if isinstance(t, torch.Tensor):
             t_feat = (t.detach().to(x_t.dtype) / self.n_timesteps).reshape(-1, 1).expand(x_t.shape[0], 1)
         else:
             t_feat = x_t.new_full((x_t.shape[0], 1), t / self.n_timesteps)
-        return torch.cat([x_t, t_feat, q], dim=-1)
-
-    def forward(self, x_t: torch.Tensor, t: int | torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-        return self.mlp(self._inputs(x_t, t, q))
+        return self.mlp(torch.cat([x_t, t_feat, q], dim=-1))
 
     def frozen(self) -> Optional["FrozenMLP"]:
         """An inference-only snapshot for sampling loops: free columns x_t, fixed columns [t/T, q] (``FrozenMLP``).
@@ -192,15 +178,14 @@ class FrozenMLP:
     """Inference-only snapshot of an ``MLP``: its forward and reverse-mode backward pass written out by hand (the
     samplers' loops; ``networks.structured.JacobianMLP`` carries forward-mode tangents instead).
 
-    Guided denoising and latent descent both run through it. The input is split into *free* columns (a slice: what the
-    loop updates, x_t or z_latent) and the rest (fixed for a whole loop: t/T and q), whose first-layer contribution is
-    folded into a bias once (``first_bias``). Plain pre-transposed tensors, no autograd, no ``nn.Module`` dispatch.
-    The weights are copied when it is built and never follow the module; whoever holds one decides when to rebuild.
+    The input is split into *free* columns (a slice: what the loop updates, x_t or z_latent) and the rest (fixed for a
+    whole loop: t/T and q), whose first-layer contribution is folded into a bias once (``first_bias``). Plain
+    pre-transposed tensors, no autograd, no ``nn.Module`` dispatch. The weights are copied when it is built and never
+    follow the module; whoever holds one decides when to rebuild.
 
-    Blocks a sampler fuses its own arithmetic around: ``trunk(u, bias, w1_t, bufs) -> (h, saved)`` (last hidden
-    features for a first-layer weight ``w1_t``, e.g. ``w1_free_t`` or a scaled copy), the output layer
-    (``out_w_t``, ``out_w``, ``out_b``: out = out_b + h out_w_t) and ``back(g_h, saved, bufs)`` (dL/dh_last ->
-    dL/d first pre-activation; times ``w1_free`` it is dL/dx_free). Only SiLU and Tanh (``of`` returns None else).
+    Blocks a sampler fuses its own arithmetic around: ``trunk``, the output layer (``out = out_b + h out_w_t``,
+    ``out_w`` its transpose) and ``back`` (times ``w1_free``: dL/dx_free). Only SiLU and Tanh (``of`` returns None
+    else).
     """
 
     @classmethod
@@ -209,22 +194,19 @@ class FrozenMLP:
         return cls(mlp, free) if type(mlp.net[1]) in _FROZEN_ACTIVATIONS else None
 
     def __init__(self, mlp: MLP, free: slice):
-        copy = functools.partial(torch.clone, memory_format=torch.contiguous_format)
-        with torch.no_grad():
-            linears = list(mlp.net)[::2]
-            self.silu = type(mlp.net[1]) is nn.SiLU
-            w1 = linears[0].weight.detach()
-            free_cols = range(*free.indices(mlp.in_dim))
-            rest_cols = [i for i in range(mlp.in_dim) if i not in free_cols]  # in input order
-            self.w1_free_t, self.w1_free = copy(w1[:, free].t()), copy(w1[:, free])  # (n_free, H), (H, n_free)
-            self.w1_rest_t = copy(w1[:, rest_cols].t())  # (n_rest, H)
-            self.b1 = copy(linears[0].bias.detach())
-            # hidden-to-hidden layers: (W^T for the forward pass, W for the backward pass, b)
-            self.hidden = [(copy(m.weight.detach().t()), copy(m.weight.detach()), copy(m.bias.detach()))
-                           for m in linears[1:-1]]
-            out = linears[-1]
-            self.out_w_t, self.out_w = copy(out.weight.detach().t()), copy(out.weight.detach())
-            self.out_b = copy(out.bias.detach())
+        copy = lambda t: t.detach().clone(memory_format=torch.contiguous_format)  # noqa: E731
+        first, *hidden, out = list(mlp.net)[::2]
+        self.silu = type(mlp.net[1]) is nn.SiLU
+        free_cols = range(*free.indices(first.in_features))
+        rest_cols = [i for i in range(first.in_features) if i not in free_cols]  # in input order
+        w1_free = first.weight[:, free]
+        self.w1_free_t, self.w1_free = copy(w1_free.t()), copy(w1_free)  # (n_free, H), (H, n_free)
+        self.w1_rest_t = copy(first.weight[:, rest_cols].t())  # (n_rest, H)
+        self.b1 = copy(first.bias)
+        # hidden-to-hidden layers: (W^T for the forward pass, W for the backward pass, b)
+        self.hidden = [(copy(m.weight.t()), copy(m.weight), copy(m.bias)) for m in hidden]
+        self.out_w_t, self.out_w = copy(out.weight.t()), copy(out.weight)
+        self.out_b = copy(out.bias)
         aten = torch.ops.aten
         act, backward = (aten.silu, aten.silu_backward) if self.silu else (aten.tanh, aten.tanh_backward)
         self.traceable = ActivationOps(act.out, backward.grad_input)
@@ -242,8 +224,9 @@ class FrozenMLP:
         return [new() for _ in range(n_layers)], [new() for _ in range(n_layers)], [new() for _ in range(2)]
 
     def trunk(self, u: torch.Tensor, bias: torch.Tensor, w1_t: torch.Tensor, bufs, ops: ActivationOps):
-        """Last hidden features (B, H) of free input ``u (B, n_free)`` and what ``back`` needs (every layer's
-        pre-activation for SiLU, output for Tanh), written into ``bufs`` (``buffers``)."""
+        """Last hidden features (B, H) of free input ``u (B, n_free)`` for a first-layer weight ``w1_t``
+        (``w1_free_t`` or a scaled copy) and what ``back`` needs (every layer's pre-activation for SiLU, output for
+        Tanh), written into ``bufs`` (``buffers``)."""
         pre, post, _ = bufs
         ops.act(torch.addmm(bias, u, w1_t, out=pre[0]), out=post[0])
         for i, (w_t, _, b) in enumerate(self.hidden, start=1):
@@ -258,14 +241,3 @@ class FrozenMLP:
         for (_, w, _), s in zip(reversed(self.hidden), reversed(saved[:-1])):
             g = ops.act_backward(torch.mm(g, w, out=grads[0]), s, grad_input=grads[1])
         return g
-
-    def forward(self, x_free: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-        """Output (B, out) for free input ``x_free`` and a ``first_bias``."""
-        h, _ = self.trunk(x_free, bias, self.w1_free_t, self.buffers(len(x_free), x_free), self.eager)
-        return torch.addmm(self.out_b, h, self.out_w_t)
-
-    def vjp(self, x_free: torch.Tensor, bias: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """``v^T d out / d x_free`` (B, n_free) at ``x_free``."""
-        bufs = self.buffers(len(x_free), x_free)
-        _, saved = self.trunk(x_free, bias, self.w1_free_t, bufs, self.eager)
-        return self.back(v, self.out_w, saved, bufs, self.eager) @ self.w1_free

@@ -30,9 +30,9 @@ def muscle_mlp_parameters(n_muscles: int, n_joints: int, hidden: int, n_hidden: 
 def muscle_mlp(path, x: torch.Tensor, slopes: bool):
     """The MLPs of ``path`` (its ``weights``, ``biases``, ``crossing``) on masked inputs ``x (B, N)``: ``(B, M)``
     and, with ``slopes``, ``(B, M, N)`` (else None)."""
-    mask = path.crossing.to(x.dtype)  # (M, N)
-    h = torch.einsum("bn,mnk->bmk", x, path.weights[0] * mask[:, :, None]) + path.biases[0].transpose(0, 1)
-    tangent = (path.weights[0] * mask[:, :, None]).unsqueeze(0) if slopes else None  # (1, M, N, K)
+    first = path.weights[0] * path.crossing.to(x.dtype)[:, :, None]  # (M, N, K): nothing from an uncrossed joint
+    h = torch.einsum("bn,mnk->bmk", x, first) + path.biases[0].transpose(0, 1)
+    tangent = first.unsqueeze(0) if slopes else None  # (1, M, N, K)
     for w, b in zip(path.weights[1:], path.biases[1:]):
         a = F.silu(h)
         if slopes:

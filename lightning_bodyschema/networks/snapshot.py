@@ -108,14 +108,18 @@ class PathSnapshot(Frozen):
 class GravitySnapshot(Frozen):
     """A fitted ``GravityTorque``'s torque ``tau (B, N)`` [N m] at float64 postures ``q (B, N)`` [rad or m], from
     the tree's buffers and, from its coefficients, per frame ``(s, m)`` ``(F, 4, 1)``, each moving joint's mass below
-    it ``(J,)``, the offsets and spring rates ``(N,)``. Each joint's motion is one 4x4 sum ``I + sin M_sin + versine
-    M_versine + angle M_angle``; the world poses as ``world_poses``."""
+    it ``(J,)``, the offsets and spring rates ``(N,)``; and the tree's kinematics (``full``, ``kinematics``,
+    ``slopes``). One built in an exported program (``GravityTorque.forward`` under ``vmap``) reads columns by lists of
+    joints and picks poses by products with one-hot matrices: a gather would fix the batch size under ``vmap``."""
 
     def __init__(self, gravity):
         self.__dict__.update(gravity.named_buffers(recurse=False))
-        self.pointers = [getattr(gravity, f"node_pointer{k}_index") for k in range(gravity.n_rounds)]
-        self.node_parent, self.node_chain, self.n_rounds = gravity.node_parent, gravity.node_chain, gravity.n_rounds
-        self.coupled, self.all_hinges = gravity.coupled, gravity.all_hinges
+        self.node_parent, self.node_chain = gravity.node_parent, gravity.node_chain
+        self.coupled, self.all_hinges, self.index_lists = gravity.coupled, gravity.all_hinges, gravity.index_lists
+        self.traced = torch.compiler.is_exporting()
+        # the rows each pick takes (``GravityTorque._register_nodes``): one-hot matrices when traced, else indices
+        *self.pointers, self.frame_rows, self.before_rows = (getattr(gravity, name if self.traced else f"{name}_index")
+                                                             for name in gravity.pick_names)
         n_frames, n_free, coef = gravity.n_frames, gravity.n_free, gravity.coef
         order = torch.arange(4 * n_frames, device=coef.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
         self.moment_mass = coef.index_select(0, order).view(-1, 4, 1)
@@ -123,73 +127,66 @@ class GravitySnapshot(Frozen):
         self.offset, self.rate = coef[4 * n_frames:4 * n_frames + n_free], coef[4 * n_frames + n_free:]
 
     def __call__(self, q):
-        full = full_posture(self, q, self._columns)
-        return self.torque(q, full, *self._world(joint_motions(self, full, self._columns)), self._columns)
-
-    def torque(self, q, full, frames, before, columns):
-        """``tau (B, N)`` at ``q`` from every joint's ``full (B, nq)``, the frames' world poses ``(B, F, 4, 4)`` and
-        the nodes' before the moving joints ``(B, J, 4, 4)`` (``columns``: ``full_posture``'s)."""
+        full = self.full(q)
+        frames, o, a = self.kinematics(full)
         w = (frames[..., :3, :] @ self.moment_mass)[..., 0]
-        anchor_axis = before[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
-        o, a = anchor_axis[..., 0], anchor_axis[..., 1]
         w_joint = rows_product(self.moves_frame, w)
         tau = -((a @ self.gravity_cross_T) * (w_joint - self.mass_joint[:, None] * o)).sum(-1)
         if not self.all_hinges:
             tau = self.hinge * tau + (1.0 - self.hinge) * (-(a @ self.gravity) * self.mass_joint)
-        return (tau * joint_slopes(self, full, columns)) @ self.free_scatter + self.offset + self.rate * q
+        return (tau * self.slopes(full)) @ self.free_scatter + self.offset + self.rate * q
+
+    def full(self, q):
+        """Every joint ``(B, nq)`` from the free joints ``q (B, N)`` (``sim.joints.JointMap.full_q``)."""
+        full = q @ self.free_select + self.full_base
+        if not self.coupled:
+            return full
+        value = horner(self.dep_horner, self._columns(full, "dep_follows_index") - self.dep_follows_qpos0)
+        return full + (value + self.dep_qpos0 - self._columns(full, "dep_index")) @ self.dep_scatter
+
+    def slopes(self, full):
+        """``(B, J)`` ``d q_full[j] / d q[free_column[j]]`` of each moving joint at every joint's ``full (B, nq)``: 1,
+        or its coupling's slope."""
+        return horner(self.slope_horner, self._columns(full, "slope_index") - self.slope_qpos0)
+
+    def kinematics(self, full):
+        """The frames' world poses ``(B, F, 4, 4)`` and the moving joints' anchors ``o (B, J, 3)`` and axes
+        ``a (B, J, 3)`` at every joint's ``full (B, nq)`` (MuJoCo's mj_kinematics): each body at its parent's pose
+        times its offset, then each joint's motion ``I + sin M_sin + versine M_versine + angle M_angle`` (a hinge
+        rotates by ``q - qpos0`` about its axis through its anchor, a slide translates; ``_node_poses``)."""
+        angle = (self._columns(full, "chain_joint_index") - self.chain_qpos0)[:, :, None, None]
+        by_sin, by_versine, by_angle = self.motion_terms
+        xp = self.xp
+        motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
+        world = self._node_poses(motion)
+        anchor_axis = self._pick(self.before_rows, world)[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
+        return self._pick(self.frame_rows, world), anchor_axis[..., 0], anchor_axis[..., 1]
+
+    def _node_poses(self, motion):
+        """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``: pointer
+        jumping (up to ``JUMP_ROWS`` postures, numpy, exported), else one product per node, parents first."""
+        xp = self.xp
+        if xp is np or torch.compiler.is_exporting() or motion.shape[0] <= JUMP_ROWS:
+            moved = self.node_motion @ motion.reshape(*motion.shape[:2], 16)
+            world = self.node_const + moved.reshape(*moved.shape[:2], 4, 4)
+            for rows in self.pointers:
+                world = self._pick(rows, world) @ world
+            return world
+        nodes = []
+        for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
+            T = self.node_const[i] if chain < 0 else motion[:, chain]
+            nodes.append(xp.broadcast_to(T, (motion.shape[0], 4, 4)) if parent < 0 else nodes[parent] @ T)
+        return xp.stack(nodes, 1)
 
     def _columns(self, full, name: str):
-        """``full``'s columns at the index ``name``."""
-        return take(full, getattr(self, name), 1)
+        """``full``'s columns at the index buffer ``name``."""
+        return full[:, self.index_lists[name]] if self.traced else take(full, getattr(self, name), 1)
 
-    def _world(self, motion):
-        """The world poses ``(B, F, 4, 4)`` of the frames and ``(B, J, 4, 4)`` of the nodes before the moving joints
-        from the chain joints' motions ``(B, C, 4, 4)``."""
-        jump = self.xp is np or torch.compiler.is_exporting() or motion.shape[0] <= JUMP_ROWS  # exported: any batch
-        world = world_poses(self, motion, lambda k, poses: take(poses, self.pointers[k], 1), jump)
-        return take(world, self.frame_node_index, 1), take(world, self.before_node_index, 1)
-
-
-def full_posture(tree, q, columns):
-    """Every joint ``(B, nq)`` of a ``GravityTorque``'s tree (the module or its snapshot) from the free joints
-    ``q (B, N)`` (``sim.joints.JointMap.full_q``); ``columns(full, name)``: ``full``'s columns at the index ``name``."""
-    full = q @ tree.free_select + tree.full_base
-    if not tree.coupled:
-        return full
-    value = horner(tree.dep_horner, columns(full, "dep_follows_index") - tree.dep_follows_qpos0)
-    return full + (value + tree.dep_qpos0 - columns(full, "dep_index")) @ tree.dep_scatter
-
-
-def joint_motions(tree, full, columns):
-    """Every chain joint's motion ``(B, C, 4, 4)`` in its body's frame at every joint's ``full (B, nq)`` of a
-    ``GravityTorque``'s tree (the module or its snapshot): ``I + sin M_sin + versine M_versine + angle M_angle``."""
-    angle = (columns(full, "chain_joint_index") - tree.chain_qpos0)[:, :, None, None]
-    by_sin, by_versine, by_angle = tree.motion_terms
-    xp = namespace(full)
-    return tree.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
-
-
-def joint_slopes(tree, full, columns):
-    """``(B, J)`` ``d q_full[j] / d q[free_column[j]]`` of each moving joint of a ``GravityTorque``'s tree at every
-    joint's ``full (B, nq)``: 1, or its coupling's slope (``columns``: ``full_posture``'s)."""
-    return horner(tree.slope_horner, columns(full, "slope_index") - tree.slope_qpos0)
-
-
-def world_poses(tree, motion, pick, jump: bool):
-    """Every node's world pose ``(B, nodes + 1, 4, 4)`` of a ``GravityTorque``'s tree (the module or its snapshot)
-    from the chain joints' motions ``(B, C, 4, 4)``: with ``jump`` by pointer jumping (``pick(k, poses)``: the rows
-    of round k's pointers), else one product per node, parents first."""
-    if jump:
-        moved = tree.node_motion @ motion.reshape(*motion.shape[:2], 16)
-        world = tree.node_const + moved.reshape(*moved.shape[:2], 4, 4)
-        for k in range(tree.n_rounds):
-            world = pick(k, world) @ world
-        return world
-    xp, nodes = namespace(motion), []
-    for i, (parent, chain) in enumerate(zip(tree.node_parent, tree.node_chain)):
-        T = tree.node_const[i] if chain < 0 else motion[:, chain]
-        nodes.append(xp.broadcast_to(T, (motion.shape[0], 4, 4)) if parent < 0 else nodes[parent] @ T)
-    return xp.stack(nodes, 1)
+    def _pick(self, rows, poses):
+        """``(B, K, 4, 4)``: the ``rows`` of ``poses (B, L, 4, 4)`` (a gather, or traced a one-hot product)."""
+        if self.traced:
+            return (rows @ poses.flatten(2)).unflatten(2, (4, 4))
+        return take(poses, rows, 1)
 
 
 class BodySnapshot(Frozen):

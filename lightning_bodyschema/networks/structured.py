@@ -56,51 +56,40 @@ class JacobianMLP(nn.Module):
         self.residual = block == "residual"
         sizes = [in_dim] + [hidden] * n_hidden + [out_dim]
         self.layers = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:]))
-        if norm == "layer":
-            self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(n_hidden))
-        else:
-            self.norms = None
-
-    def _steps(self):
-        """(layer, norm or None, adds its input) for every layer after the input layer (indexed, not sliced: a
-        slice of a ModuleList builds a new one)."""
-        layers, last = list(self.layers), len(self.layers) - 1
-        for i in range(last):
-            yield layers[i + 1], None if self.norms is None else self.norms[i], self.residual and i < last - 1
+        self.norms = nn.ModuleList(nn.LayerNorm(hidden) for _ in range(n_hidden)) if norm == "layer" else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        first = self.layers[0]
-        h = F.linear(x, first.weight, first.bias)  # F.linear, not the module: no hook dispatch per layer
-        for layer, norm, residual in self._steps():
-            a = F.silu(h if norm is None else norm(h))
-            out = F.linear(a, layer.weight, layer.bias)
-            h = h + out if residual else out
-        return h
+        return self._through_layers(x, False)[0]
 
     def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(y (B, out), dy/dx (B, out, in)): tangents (B, in, width) pushed through every layer with the values,
         ``JACOBIAN_CHUNK`` postures at a time (each row's numbers do not depend on the others)."""
         if len(x) <= JACOBIAN_CHUNK:
-            return self._with_jacobian(x)
-        values, jacobians = zip(*(self._with_jacobian(part) for part in x.split(JACOBIAN_CHUNK)))
+            return self._through_layers(x, True)
+        values, jacobians = zip(*(self._through_layers(part, True) for part in x.split(JACOBIAN_CHUNK)))
         return torch.cat(values), torch.cat(jacobians)
 
-    def _with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        first = self.layers[0]
+    def _through_layers(self, x: torch.Tensor, tangents: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(y, dy/dx)``, the Jacobian None without ``tangents`` (``F.linear``, not the modules: no hook dispatch per
+        layer)."""
+        first, *rest = self.layers  # unpacked, not sliced: a slice of a ModuleList builds a new one
         h = F.linear(x, first.weight, first.bias)
         # d h / d x (1, in, width), rows = input directions, broadcast over B; contiguous (a matmul of the transposed
         # layout is many times slower)
-        tangent = first.weight.T.contiguous().unsqueeze(0)
-        for layer, norm, residual in self._steps():
+        tangent = first.weight.T.contiguous().unsqueeze(0) if tangents else None
+        for i, layer in enumerate(rest):
+            norm = None if self.norms is None else self.norms[i]
+            residual = self.residual and i < len(rest) - 1  # residual hidden steps add their input; the output never
             z = h if norm is None else norm(h)
             a = F.silu(z)
-            slope = silu_slope(z, a)
-            scaled = tangent * slope.unsqueeze(1) if norm is None else _layer_norm_tangent(h, tangent, norm, slope)
-            step = F.linear(scaled, layer.weight)
+            if tangents:
+                slope = silu_slope(z, a)
+                scaled = tangent * slope.unsqueeze(1) if norm is None else _layer_norm_tangent(h, tangent, norm, slope)
+                step = F.linear(scaled, layer.weight)
+                tangent = tangent + step if residual else step
             out = F.linear(a, layer.weight, layer.bias)
             h = h + out if residual else out
-            tangent = tangent + step if residual else step
-        return h, tangent.transpose(1, 2)
+        return h, None if tangent is None else tangent.transpose(1, 2)
 
 
 def _layer_norm_tangent(h: torch.Tensor, tangent: torch.Tensor, norm: nn.LayerNorm, slope: torch.Tensor):

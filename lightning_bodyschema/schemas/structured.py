@@ -304,7 +304,7 @@ class StructuredSchema(LearnedBody, BodySchema):
             if torch.compiler.is_exporting():
                 return self.torque_net(q).to(q_n.dtype)
             snapshot = self.inference_cache.get("gravity_snapshot", lambda: GravitySnapshot(self.torque_net))
-            return self.torque_net(q, snapshot).to(q_n.dtype)
+            return snapshot(q).to(q_n.dtype)
         scale = self.tau_scale_nm.to(q_n.dtype)
         if self.hparams.torque_model in ("direct", "polynomial"):
             return scale * self.torque_net(q_n)

@@ -52,7 +52,7 @@ def test_the_numpy_torque_answers_as_the_torch_one_and_as_mujoco(robot):
     gravity.fit_trimmed(*_postures(robot, 300, 0))
     host = GravitySnapshot(gravity).on_host()
     q, tau = _postures(robot, 9, 1)
-    traced = gravity.features(q) @ gravity.coef  # the features' path, no snapshot
+    traced = gravity.features(q) @ gravity.coef  # the regressor's path, not the snapshot's factored torque
     for rows in (1, 4, 9):
         assert _relative(torch.as_tensor(host(q[:rows].numpy())), gravity(q[:rows])) < 1e-12
         assert _relative(gravity(q[:rows]), traced[:rows]) < 1e-12
@@ -64,14 +64,16 @@ def test_kinematics_and_features_match_mujoco(robot, jump, monkeypatch):
     """Frame poses, joint anchors and axes as mj_kinematics (both ways of composing the tree: a few postures jump
     pointers, many go node by node); each frame's columns the gradients of its potential features ``-g . p`` and
     ``-g . R[:, k]`` by MuJoCo's body Jacobians, through the couplings' tangent ``E``."""
-    from lightning_bodyschema.networks import gravity as gravity_module
+    from lightning_bodyschema.networks import snapshot as snapshot_module
 
-    monkeypatch.setattr(gravity_module, "JUMP_ROWS", 64 if jump else 0)
+    monkeypatch.setattr(snapshot_module, "JUMP_ROWS", 64 if jump else 0)
     m, data, tree = robot.mj_model, mujoco.MjData(robot.mj_model), gravity_tree(robot)
     gravity = GravityTorque(tree)
     q = robot.sample_q(np.random.default_rng(2), 4)
     full, tangent = robot.joint_map.full_q(q), robot.joint_map.tangent(q)
-    p, R, o, a = (t.numpy() for t in gravity.kinematics(torch.as_tensor(q)))
+    snapshot = GravitySnapshot(gravity)
+    frames, o, a = snapshot.kinematics(snapshot.full(torch.as_tensor(q)))
+    p, R, o, a = (t.numpy() for t in (frames[..., :3, 3], frames[..., :3, :3], o, a))
     Y = gravity.features(torch.as_tensor(q)).numpy()
     bodies = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name) for name in tree.frame_names]
     jp, jr, g = np.zeros((3, m.nv)), np.zeros((3, m.nv)), m.opt.gravity
