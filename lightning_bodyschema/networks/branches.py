@@ -63,11 +63,6 @@ def _scatter(order, values, n_terms):
     return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_add_(1, order, values)
 
 
-def _predict(phi, coefs):
-    """``phi @ coef.T`` for every ``coef (M', P)`` in ``coefs``: a list of ``(S, M')``."""
-    return [phi @ coef.T for coef in coefs]
-
-
 def _subset_systems(phi_all, y, labels, order, valid, chunk):
     """Normal equations of each muscle's own terms on its labelled samples only: ``labels (S, M')`` bool,
     ``y (S, M')``; ``((M', K, K), (M', K))``. Each muscle's samples are gathered and padded (weight 0)."""
@@ -169,7 +164,7 @@ def _labels_by_residual(phi, y_m, r_m, fit_pair):
     fitted on their labels, each sample to the branch that fits it better (a wrap switching at one angle)."""
     labels = _minority(otsu_labels(r_m))[0]
     for _ in range(ROUNDS):
-        pred_a, pred_b = _predict(phi, fit_pair(labels))
+        pred_a, pred_b = (phi @ coef.T for coef in fit_pair(labels))
         labels = _minority((y_m - pred_b).abs() < (y_m - pred_a).abs())[0]
     return labels
 
@@ -183,8 +178,8 @@ def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
     near = (r_m.abs() >= torch.quantile(r_m.abs(), 1 - NEAR_FRACTION, dim=0)).to(torch.float64)
     beta = fit_gate(phi, r_m > 0, *gate_terms, chunk, weight=near / near.mean(0))
     for _ in range(ROUNDS):
-        side = _predict(phi, [_scatter(gate_terms[0], beta, phi.shape[1])])[0] > 0
-        miss_a, miss_b = ((y_m - pred).abs() for pred in _predict(phi, fit_pair(side)))
+        side = phi @ _scatter(gate_terms[0], beta, phi.shape[1]).T > 0
+        miss_a, miss_b = ((y_m - phi @ coef.T).abs() for coef in fit_pair(side))
         own, other = torch.where(side, miss_b, miss_a), torch.where(side, miss_a, miss_b)
         labels = side ^ ((own > HEAVY_TAIL * own.median(0).values) & (other < own))
         beta = fit_gate(phi, labels, *gate_terms, chunk, beta, GATE_STEPS // ROUNDS)
@@ -224,7 +219,7 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     coef_a, coef_b = pair(labels, both, REFINE)
     gate = _scatter(gate_terms[0][both], fit_gate(phi, labels, gate_terms[0][both], gate_terms[1][both], chunk),
                     phi.shape[1])
-    pred_a, pred_b, g = _predict(phi, [coef_a, coef_b, gate])
+    pred_a, pred_b, g = (phi @ coef.T for coef in (coef_a, coef_b, gate))
     miss = (y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs()
     p99, worst = torch.quantile(miss, 0.99, dim=0).view(2, -1), miss.amax(0).view(2, -1)
     pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles), device=p99.device)
