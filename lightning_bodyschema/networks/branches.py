@@ -12,7 +12,7 @@ import contextlib
 
 import torch
 
-from .degrees import muscle_degrees
+from .polynomial import group_system, muscle_degrees, solve_systems
 
 ROUNDS = 3  # alternations of branch fits and reassignment
 REFINE = 4  # refinement steps of each branch's final least squares
@@ -39,22 +39,6 @@ def one_thread():
         yield
     finally:
         torch.set_num_threads(before)
-
-
-def solve_systems(system, b, valid, ridge, scale=None):
-    """Each muscle's ridge-regularized normal equations ``(M, K, K) x = (M, K)``, padded terms (``~valid``) 0; the
-    ridge is ``ridge`` times ``scale (M, 1)`` (default: the mean of the system's diagonal)."""
-    if scale is None:
-        scale = system.diagonal(dim1=1, dim2=2).mean(1, keepdim=True).clamp_min(1e-300)
-    system = system + torch.diag_embed(torch.where(valid, ridge * scale, torch.ones_like(scale)))
-    return torch.linalg.solve(system, (b * valid).unsqueeze(-1)).squeeze(-1) * valid
-
-
-def group_system(gram, rhs, muscles, terms, valid):
-    """The normal equations of ``muscles`` over their own ``terms (G, K)`` (indices into every term's ``gram (P, P)``
-    and ``rhs (P, M)``): ``(G, K, K)`` and ``(G, K)``, padded entries (``~valid (G, K)``) 0."""
-    system, b = gram[terms[:, :, None], terms[:, None, :]], rhs.T[muscles].gather(1, terms)
-    return system * (valid[:, :, None] & valid[:, None, :]), b * valid
 
 
 def _scatter(order, values, n_terms):

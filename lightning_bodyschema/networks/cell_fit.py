@@ -8,8 +8,9 @@ import torch
 
 from .basis import product_basis
 from .branched import refresh_branches
-from .branches import SAMPLES_PER_TERM, solve_systems
+from .branches import SAMPLES_PER_TERM
 from .cells import cell_degree, cell_index, cell_inputs, set_cell_layout
+from .polynomial import solve_systems
 from .trim import trimmed_refits
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
