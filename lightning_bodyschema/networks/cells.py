@@ -50,14 +50,12 @@ def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[in
 
 
 def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray:
-    """``(M, N)`` bool: the joints that cut each muscle's box into cells by ``rule`` (``PathConfig.cell_joints``,
-    checked). ``"crossed"``: every joint it crosses; ``"largest_group"``: only the joints of its largest groups of
-    ``blocks`` (``polynomial.check_blocks``), the others left whole (BIClong: 8 cells over its shoulder, its elbow
-    whole, instead of 32 over both)."""
-    crossing = np.asarray(crossing, dtype=bool)
+    """``(M, N)`` bool: the joints that cut each muscle's box (``crossing (M, N)`` bool) into cells by ``rule``
+    (``PathConfig.cell_joints``, checked). ``"crossed"``: every joint it crosses; ``"largest_group"``: only the
+    joints of its largest groups of ``blocks`` (``polynomial.check_blocks``), the others left whole (BIClong: 8 cells
+    over its shoulder, its elbow whole, instead of 32 over both)."""
     if rule == "crossed":
         return crossing.copy()
-    blocks = np.asarray(blocks)
     size = ((blocks[:, :, None] == blocks[:, None, :]) & crossing[:, None, :]).sum(-1)  # each joint's group's size
     size = np.where(crossing, size, 0)
     return crossing & (size == size.max(1, keepdims=True))

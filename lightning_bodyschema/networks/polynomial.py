@@ -78,9 +78,8 @@ def term_mask(blocks: np.ndarray, exponents: np.ndarray, degrees: np.ndarray) ->
 
 def check_blocks(crossing: np.ndarray, blocks) -> np.ndarray:
     """``blocks (M, N)`` int: a group id per crossed joint (-1 on the others), the joints whose effects on a muscle's
-    length do not add up sharing one (``sim.separable.separable_blocks``); None: one group of every crossed
-    joint. One ``BodySchemaInputError`` unless it marks exactly the crossed joints."""
-    crossing = np.asarray(crossing, dtype=bool)
+    length do not add up sharing one (``sim.separable.separable_blocks``); None: one group of every crossed joint
+    (``crossing``: ``check_crossing``'s). One ``BodySchemaInputError`` unless it marks exactly the crossed joints."""
     if blocks is None:
         return np.where(crossing, 0, -1)
     values = np.asarray(blocks)
