@@ -12,7 +12,7 @@ import contextlib
 
 import torch
 
-from .degrees import muscle_degrees
+from .polynomial import group_system, muscle_degrees, solve_systems
 
 ROUNDS = 3  # alternations of branch fits and reassignment
 REFINE = 4  # refinement steps of each branch's final least squares
@@ -41,31 +41,10 @@ def one_thread():
         torch.set_num_threads(before)
 
 
-def solve_systems(system, b, valid, ridge, scale=None):
-    """Each muscle's ridge-regularized normal equations ``(M, K, K) x = (M, K)``, padded terms (``~valid``) 0; the
-    ridge is ``ridge`` times ``scale (M, 1)`` (default: the mean of the system's diagonal)."""
-    if scale is None:
-        scale = system.diagonal(dim1=1, dim2=2).mean(1, keepdim=True).clamp_min(1e-300)
-    system = system + torch.diag_embed(torch.where(valid, ridge * scale, torch.ones_like(scale)))
-    return torch.linalg.solve(system, (b * valid).unsqueeze(-1)).squeeze(-1) * valid
-
-
-def group_system(gram, rhs, muscles, terms, valid):
-    """The normal equations of ``muscles`` over their own ``terms (G, K)`` (indices into every term's ``gram (P, P)``
-    and ``rhs (P, M)``): ``(G, K, K)`` and ``(G, K)``, padded entries (``~valid (G, K)``) 0."""
-    system, b = gram[terms[:, :, None], terms[:, None, :]], rhs.T[muscles].gather(1, terms)
-    return system * (valid[:, :, None] & valid[:, None, :]), b * valid
-
-
 def _scatter(order, values, n_terms):
     """``(M, K)`` per-muscle coefficients (in ``order``) as ``(M, P)`` over every term (padded entries hold 0 and
     may repeat a column: they are added)."""
     return torch.zeros(len(order), n_terms, dtype=values.dtype, device=values.device).scatter_add_(1, order, values)
-
-
-def _predict(phi, coefs):
-    """``phi @ coef.T`` for every ``coef (M', P)`` in ``coefs``: a list of ``(S, M')``."""
-    return [phi @ coef.T for coef in coefs]
 
 
 def _subset_systems(phi_all, y, labels, order, valid, chunk):
@@ -169,7 +148,7 @@ def _labels_by_residual(phi, y_m, r_m, fit_pair):
     fitted on their labels, each sample to the branch that fits it better (a wrap switching at one angle)."""
     labels = _minority(otsu_labels(r_m))[0]
     for _ in range(ROUNDS):
-        pred_a, pred_b = _predict(phi, fit_pair(labels))
+        pred_a, pred_b = (phi @ coef.T for coef in fit_pair(labels))
         labels = _minority((y_m - pred_b).abs() < (y_m - pred_a).abs())[0]
     return labels
 
@@ -183,8 +162,8 @@ def _labels_by_gate(phi, y_m, r_m, fit_pair, gate_terms, chunk):
     near = (r_m.abs() >= torch.quantile(r_m.abs(), 1 - NEAR_FRACTION, dim=0)).to(torch.float64)
     beta = fit_gate(phi, r_m > 0, *gate_terms, chunk, weight=near / near.mean(0))
     for _ in range(ROUNDS):
-        side = _predict(phi, [_scatter(gate_terms[0], beta, phi.shape[1])])[0] > 0
-        miss_a, miss_b = ((y_m - pred).abs() for pred in _predict(phi, fit_pair(side)))
+        side = phi @ _scatter(gate_terms[0], beta, phi.shape[1]).T > 0
+        miss_a, miss_b = ((y_m - phi @ coef.T).abs() for coef in fit_pair(side))
         own, other = torch.where(side, miss_b, miss_a), torch.where(side, miss_a, miss_b)
         labels = side ^ ((own > HEAVY_TAIL * own.median(0).values) & (other < own))
         beta = fit_gate(phi, labels, *gate_terms, chunk, beta, GATE_STEPS // ROUNDS)
@@ -224,7 +203,7 @@ def _fit_group(path, x, y, r, gram, rhs, order, muscles, gate_degree, chunk):
     coef_a, coef_b = pair(labels, both, REFINE)
     gate = _scatter(gate_terms[0][both], fit_gate(phi, labels, gate_terms[0][both], gate_terms[1][both], chunk),
                     phi.shape[1])
-    pred_a, pred_b, g = _predict(phi, [coef_a, coef_b, gate])
+    pred_a, pred_b, g = (phi @ coef.T for coef in (coef_a, coef_b, gate))
     miss = (y_m[:, both] - torch.where(g > 0, pred_b, pred_a)).abs()
     p99, worst = torch.quantile(miss, 0.99, dim=0).view(2, -1), miss.amax(0).view(2, -1)
     pick = p99.argmin(0) * len(muscles) + torch.arange(len(muscles), device=p99.device)

@@ -10,6 +10,7 @@ from .basis import product_basis
 from .branched import refresh_branches
 from .branches import SAMPLES_PER_TERM
 from .cells import cell_degree, cell_index, cell_inputs, set_cell_layout
+from .polynomial import solve_systems
 from .trim import trimmed_refits
 
 CELL_MEDIANS = 4.0  # a candidate's median residual exceeds this many times the median muscle's
@@ -114,15 +115,13 @@ def _trimmed(phi, y, gram, rhs, solution, factor: float, least: int) -> torch.Te
     where fewer than ``least`` would stay. Where a wrap switches sides inside the cell, the trimmed polynomial fits
     the larger side and misses the smaller by about the jump (one over both rings over the whole cell)."""
     system, b = gram.expand(y.shape[1], -1, -1).clone(), rhs.T.clone()  # (Mg, K, K), (Mg, K)
-    eye = torch.eye(len(gram), dtype=gram.dtype, device=gram.device)
-    fitted = [solution]
+    every, fitted = torch.ones_like(b, dtype=torch.bool), [solution]
 
     def refit(keep, new):
         rows = torch.nonzero((new != keep).any(1)).flatten()
         phi_r, sign = phi[rows], new[rows].to(phi.dtype) - keep[rows].to(phi.dtype)  # +1 back in, -1 dropped
         system.add_((phi_r.T[None] * sign.T[:, None, :]) @ phi_r)
         b.add_((sign * y[rows]).T @ phi_r)
-        ridge = CELL_RIDGE * system.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * eye
-        fitted[0] = torch.linalg.solve(system + ridge, b.unsqueeze(-1)).squeeze(-1).T
+        fitted[0] = solve_systems(system, b, every, CELL_RIDGE).T
     trimmed_refits(lambda p: p @ fitted[0], phi, y, refit, factor, CELL_TRIM_ROUNDS, len(phi), True, least)
     return fitted[0]

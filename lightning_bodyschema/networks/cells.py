@@ -21,8 +21,7 @@ from .arrays import as_index, clip, namespace, take
 from .basis import ProductTerms
 from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
-from .degrees import term_count
-from .polynomial import check_degrees
+from .polynomial import check_degrees, term_count
 
 
 def cell_coordinates(x, pieces: int):
@@ -42,7 +41,7 @@ def cell_index(piece: torch.Tensor, stride: torch.Tensor) -> torch.Tensor:
 
 def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[int] = None) -> int:
     """The highest total degree ``<= degree`` whose polynomial over ``joints`` (a number, or the sizes of the groups
-    whose effects add up: ``degrees.term_count``) has ``SAMPLES_PER_TERM`` samples per term in each of the
+    whose effects add up: ``polynomial.term_count``) has ``SAMPLES_PER_TERM`` samples per term in each of the
     ``pieces ** cut`` cells of its ``cut`` cutting joints (None: all its joints) when ``samples`` spread evenly (at
     least 1)."""
     sizes = (joints,) if isinstance(joints, (int, np.integer)) else tuple(joints)
@@ -51,14 +50,12 @@ def cell_degree(joints, degree: int, pieces: int, samples: int, cut: Optional[in
 
 
 def cell_cuts(crossing: np.ndarray, blocks: np.ndarray, rule: str) -> np.ndarray:
-    """``(M, N)`` bool: the joints that cut each muscle's box into cells by ``rule`` (``PathConfig.cell_joints``,
-    checked). ``"crossed"``: every joint it crosses; ``"largest_group"``: only the joints of its largest groups of
-    ``blocks`` (``polynomial.check_blocks``), the others left whole (BIClong: 8 cells over its shoulder, its elbow
-    whole, instead of 32 over both)."""
-    crossing = np.asarray(crossing, dtype=bool)
+    """``(M, N)`` bool: the joints that cut each muscle's box (``crossing (M, N)`` bool) into cells by ``rule``
+    (``PathConfig.cell_joints``, checked). ``"crossed"``: every joint it crosses; ``"largest_group"``: only the
+    joints of its largest groups of ``blocks`` (``polynomial.check_blocks``), the others left whole (BIClong: 8 cells
+    over its shoulder, its elbow whole, instead of 32 over both)."""
     if rule == "crossed":
         return crossing.copy()
-    blocks = np.asarray(blocks)
     size = ((blocks[:, :, None] == blocks[:, None, :]) & crossing[:, None, :]).sum(-1)  # each joint's group's size
     size = np.where(crossing, size, 0)
     return crossing & (size == size.max(1, keepdims=True))

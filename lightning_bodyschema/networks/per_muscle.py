@@ -21,11 +21,10 @@ from .branched import add_branches, branch_parts, refresh_branches, replace_wher
 from .branches import fit_branches, one_thread
 from .cell_fit import fit_cells
 from .cells import cell_cuts, evaluate_cells, set_cell_layout
-from .degrees import block_sizes, muscle_degrees
 from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
-from .polynomial import (check_blocks, check_crossing, check_degrees, solve_normal_equations, term_exponents,
-                         term_mask)
+from .polynomial import (block_sizes, check_blocks, check_crossing, check_degrees, muscle_degrees,
+                         solve_normal_equations, term_exponents, term_mask)
 from .snapshot import PathSnapshot, few_rows, has_cells
 from .trim import trimmed_refits
 

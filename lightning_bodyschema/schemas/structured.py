@@ -77,7 +77,7 @@ class StructuredSchema(LearnedBody, BodySchema):
             most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
         path_term_budget: None, or the most polynomial terms over all muscles together: what ``path_terms`` leaves
             raises the lowest degrees first, one degree at a time up to ``path_degree`` (the muscles that cross many
-            joints, which ``path_terms`` holds low; ``networks.degrees.muscle_degrees``).
+            joints, which ``path_terms`` holds low; ``networks.polynomial.muscle_degrees``).
         path_tolerance_mm: None, or with ``path_term_budget`` a length error [mm]: the budget goes only to the
             muscles whose p99 training residual after a first fit at ``path_terms`` exceeds it
             (``networks.per_muscle.degrees_within_tolerance``).

@@ -13,8 +13,8 @@ from physics_checks import term_sum_tol
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.cells import cell_degree
-from lightning_bodyschema.networks.degrees import block_sizes, muscle_degrees, term_count
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
+from lightning_bodyschema.networks.polynomial import block_sizes, muscle_degrees, term_count
 from lightning_bodyschema.sim.separable import joint_groups
 
 # muscle 0: f(x0, x1) + g(x2); muscle 1: one group over x0 and x2 (they interact); muscle 2: x1 alone
