@@ -99,7 +99,7 @@ class PerMusclePath(nn.Module):
             y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
-        derive = slopes or not torch.equal(inside, x64)
+        derive = slopes or exporting or not torch.equal(inside, x64)  # exported: torch.equal has no vmap rule
         coefs = self._coefficients(exporting)  # once per call
         blocks = [inside] if exporting else inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
         parts = [self._smooth(rows, derive, exporting, coefs) for rows in blocks]

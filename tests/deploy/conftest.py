@@ -42,6 +42,21 @@ def struct_paths(dm):
 
 
 @pytest.fixture(scope="session")
+def struct_poly(dm):
+    """A per-muscle StructuredSchema of the paper arm with a polynomial torque (configs/myoelbow.yaml's kind): no
+    BodySnapshot covers it, so its package evaluates ``schema.body`` under vmap."""
+    from physics_checks import fit_structured
+
+    return fit_structured(dm, length_model="per_muscle", path_degree=8, torque_model="polynomial")[0]
+
+
+@pytest.fixture(scope="session")
+def poly_cases(struct_poly, dm):
+    """(q_ref, faults): 42 mixed cases for struct_poly."""
+    return mixed_faults(struct_poly, dm, n=42)
+
+
+@pytest.fixture(scope="session")
 def paths_cases(struct_paths, dm):
     """(q_ref, faults): 42 mixed cases for struct_paths."""
     return mixed_faults(struct_paths, dm, n=42)

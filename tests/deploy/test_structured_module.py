@@ -19,11 +19,15 @@ def _run(module, q, faults, seed=0):
     return l_motor.numpy(), f.numpy(), status_array(status.numpy().tolist())
 
 
-@pytest.mark.parametrize("which", ["mlp", "per_muscle"])
+FIXTURES = {"mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", "paths_cases"),
+            "polynomial_torque": ("struct_poly", "poly_cases")}
+
+
+@pytest.mark.parametrize("which", list(FIXTURES))
 def test_structured_module_equals_the_python_adapter(which, request):
-    """The dense body (schema.body under vmap) and the per-muscle body (its frozen BodySnapshot) alike."""
-    schema, (q, faults) = (request.getfixturevalue(name) for name in {
-        "mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", "paths_cases")}[which])
+    """The dense body (schema.body under vmap), the per-muscle body (its frozen BodySnapshot) and a per-muscle body
+    with a polynomial torque (schema.body under vmap) alike."""
+    schema, (q, faults) = (request.getfixturevalue(name) for name in FIXTURES[which])
     ref = schema.adapter(faults, check_physics=False)(q)
     module = StructuredAdapterModule(schema)
     assert (module.snapshot is not None) == (which == "per_muscle")
@@ -62,8 +66,15 @@ def test_structured_module_refuses_bad_rows_and_other_seeds(struct30, struct_cas
 _BODY_ROUNDINGS = 256  # a polynomial's terms or a layer's width summed (a few hundred at most), one rounding each
 
 
+def test_a_polynomial_torque_body_exports(request):
+    """A per-muscle body under vmap with a polynomial torque (configs/myoelbow.yaml's kind) exports at a static batch
+    (the dynamic one: the slow test below): its fitted box's test reaches no ``torch.equal`` (no vmap rule) and its
+    small products are fused where they can be (a vmapped product that carries a real value is left as it is)."""
+    test_the_exported_program_is_the_eager_module("polynomial_torque", 1, request)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("which", ["mlp", "per_muscle"])
+@pytest.mark.parametrize("which", list(FIXTURES))
 @pytest.mark.parametrize("batch", ["dynamic", 1])
 def test_the_exported_program_is_the_eager_module(which, batch, request):
     """The package's program (``deploy.package.exported_program``: torch.export, its small float64 products as
@@ -71,8 +82,7 @@ def test_the_exported_program_is_the_eager_module(which, batch, request):
     with and at 1, a static batch 1's on each of the first cases."""
     from lightning_bodyschema.deploy.package import exported_program
 
-    schema, (q, faults) = (request.getfixturevalue(name) for name in {
-        "mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", "paths_cases")}[which])
+    schema, (q, faults) = (request.getfixturevalue(name) for name in FIXTURES[which])
     module = StructuredAdapterModule(schema).eval()
     program = exported_program(module, batch).module()
     for rows in (np.arange(len(q)), np.arange(1)) if batch == "dynamic" else np.arange(8)[:, None]:
