@@ -637,9 +637,9 @@ class StateCellFit:
 class Adaptive:
     """``--adaptive-rounds``: per budget ``B`` (train samples), (ii-c) and (iv-cm) fitted on ``B`` uniform postures
     and, adaptively, on ``B / 2`` of them, then ``--adaptive-rounds`` rounds that each draw ``--pool`` times as many
-    fresh uniform postures as they add, predict MuJoCo's length there with the current per-state fit (the true state: the data generator knows
-    it), and add the ``B / (2 rounds)`` postures whose worst muscle misses most; every fit scored at the held-out
-    postures (``--seed``)."""
+    fresh uniform postures as they add, predict MuJoCo's length there with the current per-state fit (the true
+    state: the data generator knows it), and add the ``B / (2 rounds)`` postures whose worst muscle misses most;
+    every fit scored at the held-out postures (``--seed``)."""
 
     def __init__(self, args, schema, muscles):
         self.args, self.schema, self.muscles, model = args, schema, muscles, schema.robot_model
@@ -649,7 +649,8 @@ class Adaptive:
         self.q_eval = model.sample_q(np.random.default_rng(args.seed), args.postures)
         l_eval, g_eval, _ = model.kinematics(self.q_eval)
         self.crossed = np.abs(g_eval).max(0) > 1e-12
-        self.truth = (1e3 * l_eval[:, muscles], 1e3 * g_eval[:, muscles], wrap_states(model, self.q_eval)[:, muscles])
+        self.truth = (1e3 * l_eval[:, muscles], 1e3 * g_eval[:, muscles],
+                      wrap_states(model, self.q_eval)[:, muscles])
         self.q_stream = model.sample_q(np.random.default_rng([args.seed, 2]), max(self.budgets))
         self.stream = truth_at(model, self.q_stream, muscles)
         self.layouts = [cell_layout(schema, self.crossed, m, args.cell_degree) for m in muscles]
