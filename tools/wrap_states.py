@@ -4,7 +4,8 @@
     python tools/wrap_states.py --ckpt runs/myoarm/.../last.ckpt [--muscles TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP
                                 | all] [--postures 2000] [--seed 1] [--samples 20000,40000,0] [--flag-share 0.01]
                                 [--gate-degree 8] [--cell-gate-degree 4] [--margin-degree 8] [--json FILE]
-    python tools/wrap_states.py --ckpt CKPT --adaptive-rounds 3 [--pool 3] [--budgets 80000,160000,320000] [...]
+    python tools/wrap_states.py --ckpt CKPT --adaptive-rounds 3 [--pool 3] [--budgets 80000,160000,320000]
+                                [--cell-degree 14] [...]
 
 MuJoCo's length is smooth inside one wrapping state (``sim.wrapping.wrap_states``: which geoms a path wraps and on
 which side). The checkpoint's train postures (its data module, rebuilt from the checkpoint; ``--cache-dir``) are
@@ -44,6 +45,7 @@ uniform postures rather than the checkpoint's train split: per budget of ``--bud
 ``--pool`` times as many fresh uniform postures as it adds, predicting MuJoCo's length there with the current
 (ii-c) fit and adding those whose worst muscle it misses most; each fit scored as above (the worst of ``--muscles``
 per held-out posture, (ii-c) and (iv-cm), and each muscle's p99), with the samples and each round's threshold.
+``--cell-degree`` (either mode): each length polynomial's highest total degree in a cell instead of the checkpoint's.
 """
 import argparse
 import itertools
