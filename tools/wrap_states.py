@@ -4,6 +4,8 @@
     python tools/wrap_states.py --ckpt runs/myoarm/.../last.ckpt [--muscles TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP
                                 | all] [--postures 2000] [--seed 1] [--samples 20000,40000,0] [--flag-share 0.01]
                                 [--gate-degree 8] [--cell-gate-degree 4] [--margin-degree 8] [--json FILE]
+    python tools/wrap_states.py --ckpt CKPT --adaptive-rounds 3 [--pool 3] [--budgets 80000,160000,320000]
+                                [--cell-degree 14] [...]
 
 MuJoCo's length is smooth inside one wrapping state (``sim.wrapping.wrap_states``: which geoms a path wraps and on
 which side). The checkpoint's train postures (its data module, rebuilt from the checkpoint; ``--cache-dir``) are
@@ -36,6 +38,14 @@ crosses); the gates' share of right states, and where the cell gates' and the ma
 ``MISGATE_RADII`` / ``MARGIN_RADII`` of a true switch); the margins' regression residual. Each ``--samples`` count
 (0: every train sample) refits (ii) on the first that many train samples: the samples it needs. ``--json``: the
 figures also to a file (written to a temporary name, then renamed). One torch thread.
+
+``--adaptive-rounds N`` (> 0) runs only an adaptive-sampling experiment (``Adaptive``) instead, on fresh seeded
+uniform postures rather than the checkpoint's train split: per budget of ``--budgets`` train samples, (ii-c) and
+(iv-cm) fitted on that many uniform postures, and adaptively on half of them plus ``N`` rounds, each drawing
+``--pool`` times as many fresh uniform postures as it adds, predicting MuJoCo's length there with the current
+(ii-c) fit and adding those whose worst muscle it misses most; each fit scored as above (the worst of ``--muscles``
+per held-out posture, (ii-c) and (iv-cm), and each muscle's p99), with the samples and each round's threshold.
+``--cell-degree`` (either mode): each length polynomial's highest total degree in a cell instead of the checkpoint's.
 """
 import argparse
 import itertools
@@ -48,7 +58,7 @@ from lightning_bodyschema.apps.common import exits_cleanly
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.networks.basis import product_basis
 from lightning_bodyschema.networks.cells import cell_coordinates
-from lightning_bodyschema.sim.wrapping import states_from_margins, wrap_margins, wrap_states
+from lightning_bodyschema.sim.wrapping import states_from_margins, wrap_geoms, wrap_margins, wrap_states
 
 DEFAULT_MUSCLES = "TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP"
 CHUNK = 4000  # train rows per basis block; --samples counts are rounded up to it
@@ -302,20 +312,34 @@ def main(argv=None):
     parser.add_argument("--cell-gate-degree", type=int, default=4)
     parser.add_argument("--flag-share", type=float, default=0.01)
     parser.add_argument("--margin-degree", type=int, default=8, help="(iv-cm): a margin's highest cell degree")
+    parser.add_argument("--cell-degree", type=int, default=0,
+                        help="a length's highest cell degree (0: the checkpoint's); a fit still keeps at most half "
+                             "as many terms as samples")
     parser.add_argument("--cache-dir", default="runs/cache")
+    parser.add_argument("--adaptive-rounds", type=int, default=0,
+                        help="> 0: only the adaptive-sampling experiment (class Adaptive), in this many rounds")
+    parser.add_argument("--pool", type=int, default=3,
+                        help="an adaptive round draws this many fresh uniform postures per posture it adds")
+    parser.add_argument("--budgets", default="80000,160000,320000", help="train samples per adaptive run")
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
     if not all(part.strip().isdigit() for part in args.samples.split(",")):
         raise BodySchemaInputError(f"--samples {args.samples!r}: expected train-sample counts >= 0, comma-separated")
-    if args.postures < 100 or min(args.gate_degree, args.margin_degree) < 1 or not 0.0 <= args.flag_share < 1.0:
+    if args.postures < 100 or min(args.gate_degree, args.margin_degree) < 1 or not 0.0 <= args.flag_share < 1.0 \
+            or args.cell_degree < 0:
         raise BodySchemaInputError(f"--postures {args.postures} / --gate-degree {args.gate_degree} / --margin-degree "
-                                   f"{args.margin_degree} / --flag-share {args.flag_share}: expected >= 100 / >= 1 / "
-                                   ">= 1 / in [0, 1)")
+                                   f"{args.margin_degree} / --flag-share {args.flag_share} / --cell-degree "
+                                   f"{args.cell_degree}: expected >= 100 / >= 1 / >= 1 / in [0, 1) / >= 0")
+    if args.adaptive_rounds < 0 or args.pool < 1 or not all(b.strip().isdigit() and int(b) >= 2 * args.adaptive_rounds
+                                                            for b in args.budgets.split(",")):
+        raise BodySchemaInputError(f"--adaptive-rounds {args.adaptive_rounds} / --pool {args.pool} / --budgets "
+                                   f"{args.budgets!r}: expected >= 0 / >= 1 / counts >= twice the rounds, "
+                                   "comma-separated")
     torch.set_num_threads(1)
-    result = run(args)
+    result = run_adaptive(args) if args.adaptive_rounds else run(args)
     if args.json is not None:
         write_json(result, args.json)
-    print(table(result))
+    print(adaptive_table(result) if args.adaptive_rounds else table(result))
 
 
 def write_json(result: dict, path: str) -> None:
@@ -360,19 +384,50 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def run(args) -> dict:
-    from lightning_bodyschema.schemas.loading import load_datamodule, load_schema
+def load(args):
+    """The checkpoint's schema, its muscles' names and the indices of ``--muscles``."""
+    from lightning_bodyschema.schemas.loading import load_schema
 
     schema = load_schema(args.ckpt).eval()
-    model, path, norm = schema.robot_model, schema.length_net, schema.normalizer
-    names = [n.removesuffix("_tendon") for n in model.muscle_names]
+    names = [n.removesuffix("_tendon") for n in schema.robot_model.muscle_names]
     wanted = names if args.muscles == "all" else [m.strip().removesuffix("_tendon") for m in args.muscles.split(",")
                                                   if m.strip()]
     unknown = [m for m in wanted if m not in names]
-    if unknown or not hasattr(path, "exponents"):
+    if unknown or not hasattr(schema.length_net, "exponents"):
         raise BodySchemaInputError(f"--muscles {unknown}: not muscles of this body ({names}), or the checkpoint's "
                                    f"path is not per_muscle")
-    muscles = [names.index(m) for m in wanted]
+    return schema, names, [names.index(m) for m in wanted]
+
+
+def run_adaptive(args) -> dict:
+    schema, names, muscles = load(args)
+    return Adaptive(args, schema, muscles).run([names[m] for m in muscles])
+
+
+def adaptive_table(result: dict) -> str:
+    """The adaptive experiment as markdown: one row per budget and round."""
+    fmt = lambda values: " / ".join(f"{v:.3g}" for v in values)  # noqa: E731
+    muscles = result["muscles"]
+    lines = [f"| budget | fit | train samples | (ii-c) true state: worst length p50 / p90 / p99 / max [mm] | worst "
+             f"moment arm p99 [mm/rad] | (iv-cm) regressed margins: worst length p50 / p90 / p99 / max [mm] | "
+             f"(ii-c) per muscle p99 [mm] ({', '.join(muscles)}) | next round: added of pool, threshold [mm] |",
+             "|---|---|---|---|---|---|---|---|"]
+    for budget, runs in result["budgets"].items():
+        for name, row in [("uniform", runs["uniform"])] + [(f"round {r}", row) for r, row in
+                                                            enumerate(runs["adaptive"])]:
+            step = row.get("next")
+            lines.append(f"| {budget} | {name} | {row['samples']} | {fmt(row['ii-c']['length_mm'])} | "
+                         f"{row['ii-c']['arm_mm_per_rad'][2]:.3g} | {fmt(row['iv-cm']['length_mm'])} | "
+                         f"{fmt(row['ii-c']['muscle_p99_mm'])} | "
+                         + (f"{step['added']} of {step['pool']}, {step['threshold_mm']:.3g} |" if step else "|"))
+    return "\n".join(lines)
+
+
+def run(args) -> dict:
+    from lightning_bodyschema.schemas.loading import load_datamodule
+
+    schema, names, muscles = load(args)
+    model, path, norm = schema.robot_model, schema.length_net, schema.normalizer
     q_train = np.asarray(load_datamodule(args.ckpt, cache_dir=args.cache_dir).splits["train"][0], np.float64)
     q_eval = model.sample_q(np.random.default_rng(args.seed), args.postures)
     q_flag = model.sample_q(np.random.default_rng(args.seed + 1), args.postures)
@@ -387,17 +442,14 @@ def run(args) -> dict:
     l_train_mm = torch.as_tensor(1e3 * model.kinematics(q_train)[0][:, muscles])
     l_eval, g_eval, _ = model.kinematics(q_eval)
     crossed = np.abs(g_eval).max(0) > 1e-12
-    blocks = schema.hparams.get("path_blocks")
     preds, counts, states = {}, [], []
     for col, m in enumerate(muscles):
         exponents = path.exponents[path.term_mask[m].cpu()].cpu()
         fit, mark_coefs, n_state = fit_muscle(data["train"][0], l_train_mm[:, col], data["train"][1][:, col],
                                               exponents, crossed[m], args.gate_degree, marks)
-        groups = np.where(crossed[m], 0, -1) if blocks is None else np.asarray(blocks[m])
-        cut = np.asarray(path.cell_cut[m]) if path.pieces > 1 else crossed[m]
-        cap = int(path.cell_degrees[m]) if path.pieces > 1 and int(path.cell_degrees[m]) else CELL_DEGREE
+        groups, cut, pieces, cap = cell_layout(schema, crossed, m, args.cell_degree)
         for mode, value in predict_muscle(fit, mark_coefs, data, col, l_train_mm[:, col], groups, cut,
-                                          max(path.pieces, 2), cap, rad_per_unit, crossed[m],
+                                          pieces, cap, rad_per_unit, crossed[m],
                                           args.cell_gate_degree,
                                           (margins_train[:, col], margin_joints(model, q_train, m), args.margin_degree,
                                            margin_eval_mm[:, col])).items():
@@ -421,6 +473,17 @@ def run(args) -> dict:
                                                  float(np.percentile(e[~near[:, i]], 99))]
                                       for i, (m, e) in enumerate(zip(muscles, result.pop("_ii-c_errors").T))}
     return result
+
+
+def cell_layout(schema, crossed: np.ndarray, m: int, degree: int = 0):
+    """Muscle ``m``'s cells as the checkpoint has them: its joint groups ``(N,)``, cut joints ``(N,)``, pieces per
+    cut joint and highest cell degree (``degree`` where > 0, else the checkpoint's; ``CELL_DEGREE`` where the
+    checkpoint has no cells on it)."""
+    path, blocks = schema.length_net, schema.hparams.get("path_blocks")
+    groups = np.where(crossed[m], 0, -1) if blocks is None else np.asarray(blocks[m])
+    cut = np.asarray(path.cell_cut[m]) if path.pieces > 1 else crossed[m]
+    cap = int(path.cell_degrees[m]) if path.pieces > 1 and int(path.cell_degrees[m]) else CELL_DEGREE
+    return groups, cut, max(path.pieces, 2), degree or cap
 
 
 def near_switch(model, q: np.ndarray, labels: np.ndarray, muscles, crossed, reach: float = None) -> np.ndarray:
@@ -533,6 +596,135 @@ class MarginFit:
             residual = float(np.percentile(error.max((1, 2)), 99))
         return state, reach, residual
 
+TRUTH_CHUNK = 10000  # postures whose MuJoCo truth is computed at once (the Jacobian is (B, tendons, dofs))
+
+
+def truth_at(model, q: np.ndarray, muscles, margins: bool = True):
+    """MuJoCo at postures ``q (B, N)``, in chunks: lengths [mm] ``(B, K)``, wrapping states ``(B, K)`` and (with
+    ``margins``) ``wrap_margins`` [mm] ``(B, K, J, 9)``, else None."""
+    width = max(len(wrap_geoms(model)[m]) for m in muscles)  # the margins' geoms: these muscles' only
+    parts = [(1e3 * model.kinematics(q[s:s + TRUTH_CHUNK])[0][:, muscles],
+              wrap_states(model, q[s:s + TRUTH_CHUNK])[:, muscles],
+              1e3 * wrap_margins(model, q[s:s + TRUTH_CHUNK])[:, muscles, :width] if margins else None)
+             for s in range(0, len(q), TRUTH_CHUNK)]
+    return tuple(None if p[0] is None else np.concatenate(p) for p in zip(*parts))
+
+
+class StateCellFit:
+    """One muscle's (ii-c) (a polynomial per cell and wrapping state, the cell's all-state polynomial where a
+    state has none) and (iv-cm) (the state from its margins regressed per cell) on one train set."""
+
+    def __init__(self, x, l_mm, labels, margins_mm, layout, moving, margin_degree):
+        groups, self.cut, self.pieces, cap = layout
+        cell, z, _ = cell_keys(x, self.cut, self.pieces)
+        y = torch.as_tensor(l_mm)
+        self.cells = CellFit(z, y, cell, groups, cap)
+        self.per_state = CellFit(z, y, cell * STATE_KEYS + labels, groups, cap)
+        self.margins = MarginFit(z, cell, margins_mm, moving, margin_degree)
+
+    def __call__(self, x, labels, fallback, rad_per_unit, margins: bool = True) -> dict:
+        """``{"ii-c": (l_mm, G), "iv-cm": (l_mm, G), "right": (B,) bool}`` at ``x``; ``fallback`` (l, G) where a
+        cell has no fit; without ``margins`` (ii-c) only."""
+        cell, z, dz_dx = cell_keys(x, self.cut, self.pieces)
+        dz_dq = dz_dx / rad_per_unit
+        mixed = self.cells.predict(z, cell, dz_dq, fallback)
+        out = {"ii-c": self.per_state.predict(z, cell * STATE_KEYS + labels, dz_dq, mixed)}
+        if margins:
+            code = self.margins(z, cell, dz_dq)[0]
+            out["iv-cm"] = self.per_state.predict(z, cell * STATE_KEYS + code, dz_dq, mixed)
+            out["right"] = code == labels
+        return out
+
+
+class Adaptive:
+    """``--adaptive-rounds``: per budget ``B`` (train samples), (ii-c) and (iv-cm) fitted on ``B`` uniform postures
+    and, adaptively, on ``B / 2`` of them, then ``--adaptive-rounds`` rounds that each draw ``--pool`` times as many
+    fresh uniform postures as they add, predict MuJoCo's length there with the current per-state fit (the true
+    state: the data generator knows it), and add the ``B / (2 rounds)`` postures whose worst muscle misses most;
+    every fit scored at the held-out postures (``--seed``)."""
+
+    def __init__(self, args, schema, muscles):
+        self.args, self.schema, self.muscles, model = args, schema, muscles, schema.robot_model
+        norm = schema.normalizer
+        self.encode = lambda q: norm.encode_q(torch.as_tensor(q, dtype=torch.float64))  # noqa: E731
+        self.rad_per_unit = 0.5 * (norm.q_hi - norm.q_lo).to(torch.float64)
+        self.q_eval = model.sample_q(np.random.default_rng(args.seed), args.postures)
+        l_eval, g_eval, _ = model.kinematics(self.q_eval)
+        self.crossed = np.abs(g_eval).max(0) > 1e-12
+        self.truth = (1e3 * l_eval[:, muscles], 1e3 * g_eval[:, muscles],
+                      wrap_states(model, self.q_eval)[:, muscles])
+        self.q_stream = model.sample_q(np.random.default_rng([args.seed, 2]), max(self.budgets))
+        self.stream = truth_at(model, self.q_stream, muscles)
+        self.layouts = [cell_layout(schema, self.crossed, m, args.cell_degree) for m in muscles]
+        self.moving = [margin_joints(model, self.q_stream, m) for m in muscles]
+
+    @property
+    def budgets(self) -> list:
+        return [int(b) for b in self.args.budgets.split(",")]
+
+    def checkpoint(self, q: np.ndarray):
+        """The checkpoint's (l [mm], G [mm/rad]) per muscle at ``q``: where a cell has no fit."""
+        l_ck, g_ck, _ = self.schema.body_si(torch.as_tensor(q))
+        return [(torch.as_tensor(1e3 * l_ck[:, m]), torch.as_tensor(1e3 * g_ck[:, m])) for m in self.muscles]
+
+    def fit(self, q, truth) -> list:
+        l_mm, labels, margins_mm = truth
+        x = self.encode(q)
+        return [StateCellFit(x, l_mm[:, k], labels[:, k], margins_mm[:, k], self.layouts[k], self.moving[k],
+                             self.args.margin_degree) for k in range(len(self.muscles))]
+
+    def score(self, fits, samples: int) -> dict:
+        """The worst of these muscles per held-out posture for (ii-c) and (iv-cm), and each muscle's p99 [mm]."""
+        l_mm, g_mm, labels = self.truth
+        x, out = self.encode(self.q_eval), {"samples": samples}
+        preds = [f(x, labels[:, k], fb, self.rad_per_unit) for k, (f, fb) in
+                 enumerate(zip(fits, self.checkpoint(self.q_eval)))]
+        crossed = self.crossed[self.muscles]
+        for key in ("ii-c", "iv-cm"):
+            lengths = np.stack([np.abs(p[key][0].numpy() - l_mm[:, k]) for k, p in enumerate(preds)], 1)
+            arms = np.stack([np.where(crossed[k], np.abs(p[key][1].numpy() - g_mm[:, k]), 0).max(1)
+                             for k, p in enumerate(preds)], 1)
+            out[key] = {"length_mm": percentiles(lengths.max(1)), "arm_mm_per_rad": percentiles(arms.max(1)),
+                        "muscle_p99_mm": [float(np.percentile(e, 99)) for e in lengths.T]}
+        out["state_right"] = [float(p["right"].mean()) for p in preds]
+        return out
+
+    def pick(self, fits, q_pool, count: int):
+        """The ``count`` pool postures whose worst muscle the (ii-c) fits miss most, and that worst muscle."""
+        l_mm, labels, _ = truth_at(self.schema.robot_model, q_pool, self.muscles, margins=False)
+        x = self.encode(q_pool)
+        miss = np.stack([np.abs(f(x, labels[:, k], fb, self.rad_per_unit, margins=False)["ii-c"][0].numpy()
+                                - l_mm[:, k]) for k, (f, fb) in enumerate(zip(fits, self.checkpoint(q_pool)))], 1)
+        top = np.argsort(-miss.max(1))[:count]
+        return top, miss[top].argmax(1), float(miss.max(1)[top[-1]])
+
+    def run(self, names) -> dict:
+        out, uniform, rounds = {"muscles": names, "budgets": {}}, {}, self.args.adaptive_rounds
+
+        def fitted(n: int):  # uniform fits on the stream's first n postures, shared by the budgets
+            if n not in uniform:
+                fits = self.fit(self.q_stream[:n], tuple(t[:n] for t in self.stream))
+                uniform[n] = (fits, self.score(fits, n))
+            return uniform[n]
+
+        for i, budget in enumerate(self.budgets):
+            half = budget // 2
+            (fits, row), add = fitted(half), (budget - half) // rounds
+            rows, q, truth = [dict(row)], self.q_stream[:half], tuple(t[:half] for t in self.stream)
+            for r in range(rounds):
+                if r:
+                    fits = self.fit(q, truth)
+                    rows.append(self.score(fits, len(q)))
+                q_pool = self.schema.robot_model.sample_q(np.random.default_rng([self.args.seed, 3, i, r]),
+                                                          self.args.pool * add)
+                top, worst, threshold = self.pick(fits, q_pool, add)
+                new = truth_at(self.schema.robot_model, q_pool[top], self.muscles)
+                q, truth = np.vstack([q, q_pool[top]]), tuple(np.concatenate(p) for p in zip(truth, new))
+                rows[-1]["next"] = {"added": int(add), "pool": len(q_pool), "threshold_mm": threshold,
+                                    "worst_muscle_share": np.bincount(worst, minlength=len(self.muscles)).tolist()}
+            rows.append(self.score(self.fit(q, truth), len(q)))
+            out["budgets"][budget] = {"uniform": fitted(budget)[1], "adaptive": rows}
+        return out
 
 ROWS = (("checkpoint", "the checkpoint's body"), ("i", "(i) one polynomial over every sample"),
         ("ii", "(ii) one polynomial per wrapping state, perfect gate"),
