@@ -31,7 +31,7 @@ from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAE
 
 
 # ---------------------------------------------------------------------------- the run spread over the cores
-MAX_AUTO_WORKERS = 8  # each worker builds its own session fixtures and imports torch: ~2 GB of memory apiece
+MAX_AUTO_WORKERS = 8  # each worker imports torch and builds its own session fixtures: up to ~2.5 GB apiece
 
 
 def pytest_addoption(parser, pluginmanager):
