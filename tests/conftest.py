@@ -30,6 +30,32 @@ from lightning_bodyschema.data import EquilibriumDataModule  # noqa: E402
 from lightning_bodyschema.schemas import AutoEncoderSchema, DiffusionSchema, VAESchema  # noqa: E402
 
 
+# ---------------------------------------------------------------------------- the run spread over the cores
+MAX_AUTO_WORKERS = 8  # each worker imports torch and builds its own session fixtures: up to ~2.5 GB apiece
+
+
+def pytest_addoption(parser, pluginmanager):
+    """pyproject's addopts run the tests on every core with pytest-xdist (the dev extra). Where xdist is absent
+    (not installed, or ``-p no:xdist``) the same command runs them in this one process: its ``-n`` and ``--dist``
+    are then accepted and ignored (under names of their own, so that no plugin takes the run for a distributed
+    one), and no one's test command breaks for want of a plugin."""
+    if pluginmanager.has_plugin("xdist"):
+        return
+    group = parser.getgroup("xdist", "distributed testing (pytest-xdist absent: the tests run in this process)")
+    group._addoption("-n", "--numprocesses", dest="absent_xdist_numprocesses", help="ignored without pytest-xdist")
+    group.addoption("--dist", dest="absent_xdist_dist", help="ignored without pytest-xdist")
+
+
+@pytest.hookimpl(optionalhook=True)  # an xdist hook: unknown, and never called, where xdist is absent
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto``: one worker per core this process may run on, at most MAX_AUTO_WORKERS; the environment's
+    PYTEST_XDIST_AUTO_NUM_WORKERS, where set, as xdist documents."""
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS", "").isdigit():
+        return int(os.environ["PYTEST_XDIST_AUTO_NUM_WORKERS"])
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return min(cores, MAX_AUTO_WORKERS)
+
+
 @pytest.fixture(scope="session")
 def arm():
     from lightning_bodyschema.sim import MusculoskeletalModel

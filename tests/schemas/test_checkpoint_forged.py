@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -287,7 +288,8 @@ def schema(real):
 
 
 @pytest.mark.parametrize("q_ref", [[["a", "b"]], None, [[object(), 1.0]], "0.1 0.2", [[1 + 2j, 0.0]],
-                                   [[True, False]], [[0.1], [0.2, 0.3]]], ids=str)
+                                   [[True, False]], [[0.1], [0.2, 0.3]]],
+                         ids=lambda q_ref: re.sub(r" at 0x[0-9a-f]+", "", str(q_ref)))  # the same id in every process
 def test_adapt_refuses_q_ref_that_is_not_real_numbers(schema, q_ref):
     with pytest.raises(BodySchemaInputError, match="q_ref .* is not an array of real numbers"):
         schema.adapt(q_ref, Faults.none(1, schema.n_muscles))
