@@ -6,6 +6,7 @@
                                 [--gate-degree 8] [--cell-gate-degree 4] [--margin-degree 8] [--json FILE]
     python tools/wrap_states.py --ckpt CKPT --adaptive-rounds 3 [--pool 3] [--budgets 80000,160000,320000]
                                 [--cell-degree 14] [...]
+    python tools/wrap_states.py --ckpt CKPT --blend-margin 0.1 [--budgets 80000] [--cell-degree 14] [...]
 
 MuJoCo's length is smooth inside one wrapping state (``sim.wrapping.wrap_states``: which geoms a path wraps and on
 which side). The checkpoint's train postures (its data module, rebuilt from the checkpoint; ``--cache-dir``) are
@@ -45,7 +46,13 @@ uniform postures rather than the checkpoint's train split: per budget of ``--bud
 ``--pool`` times as many fresh uniform postures as it adds, predicting MuJoCo's length there with the current
 (ii-c) fit and adding those whose worst muscle it misses most; each fit scored as above (the worst of ``--muscles``
 per held-out posture, (ii-c) and (iv-cm), and each muscle's p99), with the samples and each round's threshold.
-``--cell-degree`` (either mode): each length polynomial's highest total degree in a cell instead of the checkpoint's.
+``--cell-degree`` (every mode): each length polynomial's highest total degree in a cell instead of the checkpoint's.
+
+``--blend-margin W`` (in (0, 0.5]) runs only a blend experiment (``Blend``) instead: per budget of ``--budgets`` fresh
+seeded uniform train postures (as ``--adaptive-rounds``), the true state, (a) one polynomial per (cell, state); (b)
+each fitted on its cell widened by ``W`` of the cell's width beyond every cut, used in its own cell; (c) those pieces
+blended across each cut by a C1 partition of unity over [cut - w, cut + w]; each scored as above (the worst of
+``--muscles`` per held-out posture; length and moment arm), and within ``NEAR_RAD`` of a cut / beyond 0.1 rad.
 """
 import argparse
 import itertools
@@ -321,8 +328,14 @@ def main(argv=None):
     parser.add_argument("--pool", type=int, default=3,
                         help="an adaptive round draws this many fresh uniform postures per posture it adds")
     parser.add_argument("--budgets", default="80000,160000,320000", help="train samples per adaptive run")
+    parser.add_argument("--blend-margin", type=float, default=0.0,
+                        help="> 0: only the blend experiment (class Blend): each piece widened by this share of "
+                             "its cell beyond every cut, blended across the cuts; in (0, 0.5]")
     parser.add_argument("--json", default=None, help="also write the figures to this file")
     args = parser.parse_args(argv)
+    if not 0.0 <= args.blend_margin <= 0.5 or (args.blend_margin and args.adaptive_rounds):
+        raise BodySchemaInputError(f"--blend-margin {args.blend_margin}: expected a share of the cell in (0, 0.5] "
+                                   "(0: off), not with --adaptive-rounds")
     if not all(part.strip().isdigit() for part in args.samples.split(",")):
         raise BodySchemaInputError(f"--samples {args.samples!r}: expected train-sample counts >= 0, comma-separated")
     if args.postures < 100 or min(args.gate_degree, args.margin_degree) < 1 or not 0.0 <= args.flag_share < 1.0 \
@@ -336,10 +349,12 @@ def main(argv=None):
                                    f"{args.budgets!r}: expected >= 0 / >= 1 / counts >= twice the rounds, "
                                    "comma-separated")
     torch.set_num_threads(1)
-    result = run_adaptive(args) if args.adaptive_rounds else run(args)
+    experiment = (run_blend, blend_table) if args.blend_margin else (run_adaptive, adaptive_table) \
+        if args.adaptive_rounds else (run, table)
+    result = experiment[0](args)
     if args.json is not None:
         write_json(result, args.json)
-    print(adaptive_table(result) if args.adaptive_rounds else table(result))
+    print(experiment[1](result))
 
 
 def write_json(result: dict, path: str) -> None:
@@ -725,6 +740,155 @@ class Adaptive:
             rows.append(self.score(self.fit(q, truth), len(q)))
             out["budgets"][budget] = {"uniform": fitted(budget)[1], "adaptive": rows}
         return out
+
+
+def smoothstep(t: torch.Tensor):
+    """``3 t^2 - 2 t^3`` and its slope at ``t`` clamped to [0, 1]: C1, 0 and 1 at the ends with zero slope."""
+    t = t.clamp(0.0, 1.0)
+    return t * t * (3 - 2 * t), 6 * t * (1 - t)
+
+
+class Blend:
+    """``--blend-margin W``: (a) one polynomial per cell and wrapping state (the true state) on its cell's samples;
+    (b) each fitted on its cell widened by ``W`` of the cell's width beyond every cut (a neighbour's samples, in this
+    cell's coordinates rescaled onto [-1, 1]; corners included), used in its own cell; (c) the same pieces blended:
+    along each cut joint a smoothstep over [cut - w, cut + w] mixes the two neighbours' pieces (tensor product over
+    the cut joints: up to ``2^k`` pieces, weights summing to 1); its moment arms include the weights' slope times
+    the pieces' differences. A neighbour (cell, state) without a fit counts as the posture's own piece."""
+
+    def __init__(self, layout, width: float):
+        self.groups, self.cut, self.pieces, self.cap = layout
+        self.joints, self.w = np.flatnonzero(self.cut), 2.0 * width  # the margin in local units (a cell is 2 wide)
+
+    def shifted(self, z: torch.Tensor, cell: np.ndarray, move: tuple):
+        """Each posture seen from the neighbour across its nearest cut along the joints where ``move`` is 1:
+        that cell ``(B,)`` (-1: no neighbour there, or farther than ``w`` from the cut) and its coordinates."""
+        z2, cell2 = z.clone(), cell.copy()
+        for i, (j, m) in enumerate(zip(self.joints, move)):
+            if not m:
+                continue
+            side = np.where(z[:, j].numpy() > 0, 1, -1)
+            piece = (cell // self.pieces ** i) % self.pieces + side
+            ok = (piece >= 0) & (piece < self.pieces) & (1 - np.abs(z[:, j].numpy()) <= self.w)
+            cell2 = np.where(ok & (cell2 >= 0), cell2 + side * self.pieces ** i, -1)
+            z2[:, j] = z[:, j] - 2.0 * torch.as_tensor(side, dtype=z.dtype)
+        return cell2, z2
+
+    def moves(self):
+        return list(itertools.product((0, 1), repeat=len(self.joints)))
+
+    def widened(self, z: torch.Tensor) -> torch.Tensor:
+        """A widened cell's coordinates: [-1 - w, 1 + w] mapped onto [-1, 1] along the cut joints (Legendre terms
+        of degree 11 grow ~1e3-fold at 1.5: the normal equations would lose the cell's interior)."""
+        out = z.clone()
+        out[:, self.joints] = z[:, self.joints] / (1 + self.w)
+        return out
+
+    def fit(self, x, y, labels):
+        """(a) and (b) on train postures ``x`` (normalized), lengths ``y`` [mm] and true states ``labels``."""
+        cell, z, _ = cell_keys(x, self.cut, self.pieces)
+        plain = CellFit(z, y, cell * STATE_KEYS + labels, self.groups, self.cap)
+        parts = [self.shifted(z, cell, move) for move in self.moves()]
+        keep = [c >= 0 for c, _ in parts]
+        keys = np.concatenate([(c * STATE_KEYS + labels)[k] for (c, _), k in zip(parts, keep)])
+        wide = CellFit(self.widened(torch.cat([zz[k] for (_, zz), k in zip(parts, keep)])),
+                       torch.cat([y[k] for k in keep]), keys, self.groups, self.cap)
+        return plain, wide
+
+    def predict(self, fits, x, labels, fallback, rad_per_unit):
+        """``{"a", "b", "c": (l_mm (B,), G (B, N) [mm/rad])}`` at ``x`` with the true states ``labels``."""
+        (plain, wide), (cell, z, dz_dx) = fits, cell_keys(x, self.cut, self.pieces)
+        dz_dq = dz_dx / rad_per_unit
+        dw_dq = self.widened(dz_dq[None])[0]
+        out = {"a": plain.predict(z, cell * STATE_KEYS + labels, dz_dq, fallback),
+               "b": wide.predict(self.widened(z), cell * STATE_KEYS + labels, dw_dq, fallback)}
+        a, slope = [], []  # the neighbour's weight along each cut joint and its slope d a / d q_j
+        for i, j in enumerate(self.joints):
+            piece = (cell // self.pieces ** i) % self.pieces
+            side = np.where(z[:, j].numpy() > 0, 1, -1)
+            inside = torch.as_tensor((piece + side >= 0) & (piece + side < self.pieces), dtype=z.dtype)
+            s, ds = smoothstep((self.w - (1 - z[:, j].abs())) / (2 * self.w))
+            a.append(s * inside)  # 0.5 at the cut: the two pieces weigh the same there
+            slope.append(ds * inside * torch.as_tensor(side, dtype=z.dtype) / (2 * self.w) * dz_dq[j])
+        l_mix, g_mix = torch.zeros_like(out["b"][0]), torch.zeros_like(out["b"][1])
+        for move in self.moves():
+            cell2, z2 = self.shifted(z, cell, move)
+            keys = np.where(cell2 >= 0, cell2 * STATE_KEYS + labels, -1)  # -1: no neighbour, the own piece
+            l_p, g_p = wide.predict(self.widened(z2), keys, dw_dq, out["b"])
+            factors = [a[i] if m else 1 - a[i] for i, m in enumerate(move)]
+            weight = torch.stack(factors).prod(0)
+            l_mix += weight * l_p
+            g_mix += weight[:, None] * g_p
+            for i, (j, m) in enumerate(zip(self.joints, move)):  # the weight's slope along joint j
+                others = torch.stack([f for k, f in enumerate(factors) if k != i] or [torch.ones_like(weight)]).prod(0)
+                g_mix[:, j] += (slope[i] if m else -slope[i]) * others * l_p
+        out["c"] = (l_mix, g_mix)
+        return out
+
+    def cut_distance_rad(self, x, rad_per_unit) -> np.ndarray:
+        """``(B,)`` [rad] to the nearest inner cut along a cut joint (a box edge is not a cut)."""
+        cell, z, _ = cell_keys(x, self.cut, self.pieces)
+        best = np.full(len(x), np.inf)
+        for i, j in enumerate(self.joints):
+            piece = (cell // self.pieces ** i) % self.pieces
+            side = np.where(z[:, j].numpy() > 0, 1, -1)
+            inner = (piece + side >= 0) & (piece + side < self.pieces)
+            d = (1 - np.abs(z[:, j].numpy())) * float(rad_per_unit[j]) / self.pieces
+            best = np.where(inner, np.minimum(best, d), best)
+        return best
+
+
+def run_blend(args) -> dict:
+    """The three fits of ``Blend`` per budget of ``--budgets`` uniform train postures (seed ``[--seed, 2]``, as
+    ``Adaptive``), scored at the ``--postures`` held-out ones (``--seed``): the worst of ``--muscles`` per posture."""
+    schema, names, muscles = load(args)
+    model, norm = schema.robot_model, schema.normalizer
+    encode = lambda q: norm.encode_q(torch.as_tensor(q, dtype=torch.float64))  # noqa: E731
+    rad_per_unit = 0.5 * (norm.q_hi - norm.q_lo).to(torch.float64)
+    q_eval = model.sample_q(np.random.default_rng(args.seed), args.postures)
+    l_eval, g_eval, _ = model.kinematics(q_eval)
+    crossed = np.abs(g_eval).max(0) > 1e-12
+    labels_eval, x_eval = wrap_states(model, q_eval)[:, muscles], encode(q_eval)
+    budgets = [int(b) for b in args.budgets.split(",")]
+    q_train = model.sample_q(np.random.default_rng([args.seed, 2]), max(budgets))
+    l_train, labels_train, _ = truth_at(model, q_train, muscles, margins=False)
+    l_ck, g_ck, _ = schema.body_si(torch.as_tensor(q_eval))
+    blends = [Blend(cell_layout(schema, crossed, m, args.cell_degree), args.blend_margin) for m in muscles]
+    near = np.min([b.cut_distance_rad(x_eval, rad_per_unit) for b in blends], 0)
+    out = {"muscles": [names[m] for m in muscles], "blend_margin": args.blend_margin, "budgets": {}}
+    for n in budgets:
+        x = encode(q_train[:n])
+        preds = [b.predict(b.fit(x, torch.as_tensor(l_train[:n, k]), labels_train[:n, k]), x_eval, labels_eval[:, k],
+                           (torch.as_tensor(1e3 * l_ck[:, m]), torch.as_tensor(1e3 * g_ck[:, m])), rad_per_unit)
+                 for k, (b, m) in enumerate(zip(blends, muscles))]
+        rows = {}
+        for key in ("a", "b", "c"):
+            lengths = np.stack([np.abs(p[key][0].numpy() - 1e3 * l_eval[:, m]) for p, m in zip(preds, muscles)], 1)
+            arms = np.stack([np.where(crossed[m], np.abs(p[key][1].numpy() - 1e3 * g_eval[:, m]), 0).max(1)
+                             for p, m in zip(preds, muscles)], 1)
+            worst = lengths.max(1)
+            rows[key] = {"length_mm": percentiles(worst), "arm_mm_per_rad": percentiles(arms.max(1)),
+                         "near_far_p99_mm": [float(np.percentile(worst[near <= NEAR_RAD], 99)),
+                                             float(np.percentile(worst[near > 0.1], 99))],
+                         "muscle_p99_mm": [float(np.percentile(e, 99)) for e in lengths.T]}
+        out["budgets"][n] = rows
+    out["near_far_postures"] = [int((near <= NEAR_RAD).sum()), int((near > 0.1).sum())]
+    return out
+
+
+def blend_table(result: dict) -> str:
+    """The blend experiment as markdown: one row per budget and fit."""
+    fmt = lambda values: " / ".join(f"{v:.3g}" for v in values)  # noqa: E731
+    labels = {"a": "(a) per (cell, state)", "b": "(b) widened, own cell", "c": "(c) widened + blend"}
+    lines = [f"| train samples | fit (margin {result['blend_margin']:g}) | worst length p50 / p90 / p99 / max [mm] | "
+             f"worst moment arm p99 [mm/rad] | worst p99 within {1e3 * NEAR_RAD:g} mrad of a cut / beyond 0.1 rad "
+             f"({' / '.join(map(str, result['near_far_postures']))} postures) | per muscle p99 "
+             f"({', '.join(result['muscles'])}) |", "|---|---|---|---|---|---|"]
+    for n, rows in result["budgets"].items():
+        lines += [f"| {n} | {labels[k]} | {fmt(r['length_mm'])} | {r['arm_mm_per_rad'][2]:.3g} | "
+                  f"{fmt(r['near_far_p99_mm'])} | {fmt(r['muscle_p99_mm'])} |" for k, r in rows.items()]
+    return "\n".join(lines)
+
 
 ROWS = (("checkpoint", "the checkpoint's body"), ("i", "(i) one polynomial over every sample"),
         ("ii", "(ii) one polynomial per wrapping state, perfect gate"),
