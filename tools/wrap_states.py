@@ -51,7 +51,8 @@ per held-out posture, (ii-c) and (iv-cm), and each muscle's p99), with the sampl
 ``--blend-margin W`` (in (0, 0.5]) runs only a blend experiment (``Blend``) instead: per budget of ``--budgets`` fresh
 seeded uniform train postures (as ``--adaptive-rounds``), the true state, (a) one polynomial per (cell, state); (b)
 each fitted on its cell widened by ``W`` of the cell's width beyond every cut, used in its own cell; (c) those pieces
-blended across each cut by a C1 partition of unity over [cut - w, cut + w]; each scored as above (the worst of
+blended across each cut by a C1 partition of unity over [cut - w, cut + w]; (c) with the state from margins
+regressed per cell (as (iv-cm), ``--margin-degree``); each scored as above (the worst of
 ``--muscles`` per held-out posture; length and moment arm), and within ``NEAR_RAD`` of a cut / beyond 0.1 rad.
 """
 import argparse
@@ -825,6 +826,13 @@ class Blend:
         out["c"] = (l_mix, g_mix)
         return out
 
+    def margin_state(self, x, margins_mm, moving, degree, x_eval, rad_per_unit) -> np.ndarray:
+        """The state ``(B,)`` at ``x_eval`` from margins regressed per (plain) cell on train postures ``x``
+        (``MarginFit``, as (iv-cm))."""
+        cell, z, dz_dx = cell_keys(x, self.cut, self.pieces)
+        cell_eval, z_eval, _ = cell_keys(x_eval, self.cut, self.pieces)
+        return MarginFit(z, cell, margins_mm, moving, degree)(z_eval, cell_eval, dz_dx / rad_per_unit)[0]
+
     def cut_distance_rad(self, x, rad_per_unit) -> np.ndarray:
         """``(B,)`` [rad] to the nearest inner cut along a cut joint (a box edge is not a cut)."""
         cell, z, _ = cell_keys(x, self.cut, self.pieces)
@@ -851,18 +859,23 @@ def run_blend(args) -> dict:
     labels_eval, x_eval = wrap_states(model, q_eval)[:, muscles], encode(q_eval)
     budgets = [int(b) for b in args.budgets.split(",")]
     q_train = model.sample_q(np.random.default_rng([args.seed, 2]), max(budgets))
-    l_train, labels_train, _ = truth_at(model, q_train, muscles, margins=False)
+    l_train, labels_train, margins_train = truth_at(model, q_train, muscles)
+    moving = [margin_joints(model, q_train, m) for m in muscles]
     l_ck, g_ck, _ = schema.body_si(torch.as_tensor(q_eval))
     blends = [Blend(cell_layout(schema, crossed, m, args.cell_degree), args.blend_margin) for m in muscles]
     near = np.min([b.cut_distance_rad(x_eval, rad_per_unit) for b in blends], 0)
     out = {"muscles": [names[m] for m in muscles], "blend_margin": args.blend_margin, "budgets": {}}
     for n in budgets:
         x = encode(q_train[:n])
-        preds = [b.predict(b.fit(x, torch.as_tensor(l_train[:n, k]), labels_train[:n, k]), x_eval, labels_eval[:, k],
-                           (torch.as_tensor(1e3 * l_ck[:, m]), torch.as_tensor(1e3 * g_ck[:, m])), rad_per_unit)
-                 for k, (b, m) in enumerate(zip(blends, muscles))]
+        preds = []
+        for k, (b, m) in enumerate(zip(blends, muscles)):
+            fits, fallback = b.fit(x, torch.as_tensor(l_train[:n, k]), labels_train[:n, k]), (
+                torch.as_tensor(1e3 * l_ck[:, m]), torch.as_tensor(1e3 * g_ck[:, m]))
+            code = b.margin_state(x, margins_train[:n, k], moving[k], args.margin_degree, x_eval, rad_per_unit)
+            preds.append(b.predict(fits, x_eval, labels_eval[:, k], fallback, rad_per_unit))
+            preds[-1]["c-m"] = b.predict(fits, x_eval, code, fallback, rad_per_unit)["c"]
         rows = {}
-        for key in ("a", "b", "c"):
+        for key in ("a", "b", "c", "c-m"):
             lengths = np.stack([np.abs(p[key][0].numpy() - 1e3 * l_eval[:, m]) for p, m in zip(preds, muscles)], 1)
             arms = np.stack([np.where(crossed[m], np.abs(p[key][1].numpy() - 1e3 * g_eval[:, m]), 0).max(1)
                              for p, m in zip(preds, muscles)], 1)
@@ -879,7 +892,8 @@ def run_blend(args) -> dict:
 def blend_table(result: dict) -> str:
     """The blend experiment as markdown: one row per budget and fit."""
     fmt = lambda values: " / ".join(f"{v:.3g}" for v in values)  # noqa: E731
-    labels = {"a": "(a) per (cell, state)", "b": "(b) widened, own cell", "c": "(c) widened + blend"}
+    labels = {"a": "(a) per (cell, state)", "b": "(b) widened, own cell", "c": "(c) widened + blend",
+              "c-m": "(c) with the state from regressed margins"}
     lines = [f"| train samples | fit (margin {result['blend_margin']:g}) | worst length p50 / p90 / p99 / max [mm] | "
              f"worst moment arm p99 [mm/rad] | worst p99 within {1e3 * NEAR_RAD:g} mrad of a cut / beyond 0.1 rad "
              f"({' / '.join(map(str, result['near_far_postures']))} postures) | per muscle p99 "
