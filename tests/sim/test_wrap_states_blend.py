@@ -6,7 +6,7 @@ import numpy as np
 import torch
 
 _SPEC = importlib.util.spec_from_file_location(
-    "wrap_states_tool", os.path.join(os.path.dirname(__file__), "..", "tools", "wrap_states.py"))
+    "wrap_states_tool", os.path.join(os.path.dirname(__file__), "..", "..", "tools", "wrap_states.py"))
 wrap_states_tool = importlib.util.module_from_spec(_SPEC)
 _SPEC.loader.exec_module(wrap_states_tool)
 
