@@ -18,8 +18,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .._numpy import to_numpy
-from .arrays import encode_q
+from .arrays import Frozen, encode_q
 from .basis import ProductTerms, TermsSnapshot
 
 SWITCH_REACH_RAD = 0.005  # a posture this close to a learned switch is flagged [rad] (RESULTS.md "Hold every posture":
@@ -28,31 +27,21 @@ JUMP_FLOOR_M = 1e-4  # a gate's zero counts as a switch where its branches diffe
 # body_errors.BAD_LENGTH_MM: a posture whose worst muscle misses by more is a bad one)
 
 
-class PostureSwitches:
-    """A fitted ``PerMusclePath``'s learned switches frozen in numpy (``muscles``: those a gate switches; the gates
-    and their branches' difference, each on its own terms only), with the schema's normalization (``q_lo``, ``q_hi``
-    (N,) [rad]: ``arrays.encode_q``), the path's box and the lengths' scale ``length_scale_m`` (M,) [m per normalized
-    unit]; rebuilt when the path changes (a schema keeps it in its inference cache). A call ``(q_rad (B, N))`` gives
-    each posture's distance [rad] to the nearest learned switch and its muscle, ``(B,)`` each (``inf``, -1: none)."""
+class PostureSwitches(Frozen):
+    """A fitted ``PerMusclePath``'s learned switches, read from its ``snapshot.PathSnapshot`` (``muscles``: those a
+    gate switches; the gates and their branches' difference, each on its own terms only: ``_on_terms``), with the
+    schema's normalization (``q_lo``, ``q_hi`` (N,) [rad]: ``arrays.encode_q``) and the lengths' scale
+    ``length_scale_m`` (M,) [m per normalized unit]; rebuilt when the path changes (a schema keeps it in its inference
+    cache). A call in numpy (``on_host()``) ``(q_rad (B, N))`` gives each posture's distance [rad] to the nearest
+    learned switch and its muscle, ``(B,)`` each (``inf``, -1: none)."""
 
-    def __init__(self, path, q_lo, q_hi, length_scale_m):
-        self.q_lo, self.q_hi, self.x_lo, self.x_hi, self.length_scale_m = (
-            to_numpy(a, np.float64) for a in (q_lo, q_hi, path.x_lo, path.x_hi, length_scale_m))
-        self.half_range = 0.5 * (self.q_hi - self.q_lo)  # rad per normalized unit
-        self.muscles = to_numpy(torch.nonzero(path.branched).flatten()) if path.branches == 2 else np.zeros(0, np.int64)
-        if not len(self.muscles):
-            return
-        index = torch.as_tensor(self.muscles, device=path.coef.device)
-        diff = (path.coef_alt[index] - path.coef[index]) * path.term_mask[index]
-        self.gate_terms, self.gate = self._columns(path, path.gate[index])
-        self.gap_terms, self.gap = self._columns(path, diff)
-
-    @staticmethod
-    def _columns(path, coef: torch.Tensor):
-        """The terms ``coef (G, P)`` uses, as the path's own basis evaluation in numpy (``basis.TermsSnapshot``:
-        each term and its slopes), and their coefficients ``(P', G)``."""
-        cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
-        return TermsSnapshot(ProductTerms(path.exponents[cols].cpu().numpy())).on_host(), coef[:, cols].T.cpu().numpy()
+    def __init__(self, path, snapshot, q_lo, q_hi, length_scale_m):
+        self.q_lo, self.q_hi, self.length_scale_m = (a.to(torch.float64) for a in (q_lo, q_hi, length_scale_m))
+        self.x_lo, self.x_hi, self.half_range = snapshot.x_lo, snapshot.x_hi, 0.5 * (self.q_hi - self.q_lo)
+        self.muscles = torch.nonzero(snapshot.gated).flatten()
+        rows = lambda col: snapshot.box[col[self.muscles]]  # noqa: E731  (one row per switching muscle)
+        self.gate_terms, self.gate = _on_terms(path.exponents, rows(snapshot.gate_col))
+        self.gap_terms, self.gap = _on_terms(path.exponents, rows(snapshot.alt_col) - rows(snapshot.box_col))
 
     def __call__(self, q_rad):
         if not len(self.muscles):
@@ -71,6 +60,13 @@ class PostureSwitches:
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
         nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)
         return nearest, np.where(nearest < np.inf, self.muscles[distance.argmin(1)], -1)
+
+
+def _on_terms(exponents: torch.Tensor, coef: torch.Tensor):
+    """The terms ``coef (G, P)`` uses, as the path's own basis evaluation (``basis.TermsSnapshot``: each term and its
+    slopes), and their coefficients ``(P', G)``."""
+    cols = torch.nonzero(coef.abs().sum(0) > 0).flatten()
+    return TermsSnapshot(ProductTerms(exponents[cols].cpu().numpy())), coef[:, cols].T
 
 
 def switch_diagnostics(distance_rad: np.ndarray, muscle: np.ndarray) -> dict:

@@ -16,6 +16,7 @@ builds afresh.
 """
 from __future__ import annotations
 
+import copy
 from typing import Callable, Hashable
 
 import torch
@@ -27,6 +28,11 @@ class InferenceCache:
     def __init__(self, owner: torch.nn.Module):
         self._owner = owner
         self._entries: dict = {}
+
+    def __deepcopy__(self, memo) -> "InferenceCache":
+        """An empty cache for the copied owner: the copy builds its own entries (a numpy snapshot holds the numpy
+        module, which does not copy)."""
+        return InferenceCache(copy.deepcopy(self._owner, memo))
 
     def get(self, key: Hashable, build: Callable):
         """The entry for ``key``, built by ``build()`` (outside inference mode, so the tensors are ordinary ones

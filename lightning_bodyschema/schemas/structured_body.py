@@ -70,6 +70,7 @@ class LearnedBody:
         path, norm = self.length_net, self.normalizer
         if not isinstance(path, PerMusclePath):
             return switch_diagnostics(np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64))
-        switches = self.inference_cache.get(
-            "switch_snapshot", lambda: PostureSwitches(path, norm.q_lo, norm.q_hi, norm.x_std[:self.n_muscles]))
+        switches = self.inference_cache.get("switch_snapshot", lambda: PostureSwitches(
+            path, self.inference_cache.get("path_snapshot", path.snapshot), norm.q_lo, norm.q_hi,
+            norm.x_std[:self.n_muscles]).on_host())
         return switch_diagnostics(*switches(q))

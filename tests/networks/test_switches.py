@@ -31,7 +31,8 @@ def _fitted():
 def switch_distance(path, x, length_scale_m):
     """``PostureSwitches``' answer at normalized postures ``x``: radians ``x * HALF_RANGE`` in a range of
     ``+-HALF_RANGE`` (its normalization gives ``x`` back)."""
-    return PostureSwitches(path, -HALF_RANGE, HALF_RANGE, length_scale_m)((x * HALF_RANGE).numpy())
+    return PostureSwitches(path, path.snapshot(), -HALF_RANGE, HALF_RANGE, length_scale_m).on_host()(
+        (x * HALF_RANGE).numpy())
 
 
 def _true_distance_rad(x):
@@ -42,7 +43,7 @@ def _true_distance_rad(x):
 
 def test_the_distance_to_a_learned_switch_is_the_distance_to_the_true_surface_near_it():
     path = _fitted()
-    assert PostureSwitches(path, -HALF_RANGE, HALF_RANGE, torch.ones(3)).muscles.tolist() == [0]
+    assert PostureSwitches(path, path.snapshot(), -HALF_RANGE, HALF_RANGE, torch.ones(3)).muscles.tolist() == [0]
     x = torch.rand(3000, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(5)) * 1.8 - 0.9
     distance, muscle = switch_distance(path, x, torch.ones(3, dtype=torch.float64))
     truth = _true_distance_rad(x.numpy())

@@ -106,6 +106,19 @@ def test_a_refit_in_eval_mode_is_not_answered_from_the_inference_cache(paper_arm
     np.testing.assert_allclose(schema.body_si(probe)[0], before + 1e-3, atol=1e-7)
 
 
+def test_a_copy_starts_with_an_empty_inference_cache_and_answers_the_same(paper_arm):
+    """A deep copy of a schema whose cache holds numpy snapshots (the path switches'; they hold the numpy module,
+    which does not copy) copies, builds its own entries, and answers as the original."""
+    schema = copy.deepcopy(paper_arm[0]).eval()
+    q = schema.robot_model.sample_q(np.random.default_rng(8), 5)
+    switches = schema.path_switches(q)
+    copied = copy.deepcopy(schema)
+    assert len(schema.inference_cache) > 0 and len(copied.inference_cache) == 0
+    for a, b in zip(schema.body_si(torch.as_tensor(q)), copied.body_si(torch.as_tensor(q))):
+        np.testing.assert_array_equal(a, b)
+    assert all(np.array_equal(v, copied.path_switches(q)[k]) for k, v in switches.items())
+
+
 def test_checkpoint_round_trip_answers_the_same(paper_arm, tmp_path):
     schema, trainer = paper_arm
     path = str(tmp_path / "per_muscle.ckpt")
