@@ -163,14 +163,14 @@ def fit_structured(datamodule, epochs=1, **hparams):
 
 
 def _rows(path):
-    """The path one posture at a time under ``torch.vmap``, as ``deploy.structured`` exports a schema's body."""
+    """The path's lengths and moment arms at every posture at once, as ``deploy.structured`` exports a schema's body."""
     class Rows(torch.nn.Module):
         def __init__(self):
             super().__init__()
             self.path = path
 
         def forward(self, x):
-            return torch.vmap(lambda row: tuple(t[0] for t in self.path.with_jacobian(row[None])))(x)
+            return self.path.with_jacobian(x)
     return Rows()
 
 

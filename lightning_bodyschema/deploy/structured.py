@@ -55,13 +55,9 @@ class StructuredAdapterModule(PackageModule):
 
     def body(self, q):
         """The learned body ``(l_geo, G, tau)`` at postures ``q (B, N)`` [rad]: the frozen ``BodySnapshot`` where it
-        covers the body (``body_si``'s arithmetic, every posture at once), else ``schema.body`` at the normalized
-        postures one at a time under ``torch.vmap`` (the batch size stays symbolic when exported: the body's
-        networks size a tensor by ``len(x)``, which would fix it); the same numbers either way."""
-        if self.snapshot is not None:
-            return self.snapshot(q)
-        one = lambda row: tuple(t[0] for t in self.schema.body(row[None]))  # noqa: E731
-        return torch.vmap(one)(self.normalized_q(q, self.dtype))
+        covers the body (``body_si``'s arithmetic), else ``schema.body`` at the normalized postures; the same numbers
+        either way, every posture at once (exported, the batch size stays symbolic)."""
+        return self.schema.body(self.normalized_q(q, self.dtype)) if self.snapshot is None else self.snapshot(q)
 
     def forward(self, q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed):
         bad, q, bounds = self.faults(q_ref, cut, jam, l_fixed_m, f_weak_n, band_lo_m, band_hi_m, seed)

@@ -55,9 +55,9 @@ class ProductTerms(nn.Module):
     The Legendre values come from the powers of x times a fixed matrix (within about 1e-11 of the recurrence at
     degree 16 on [-1, 1]). Up to ``DENSE_ROWS`` postures every term's ``n_slots`` factors on the joints it uses are
     gathered at once (``dense_terms``, padded with exact ones); above, the terms are grouped by the joints they use and
-    only those factors multiplied and differentiated (``grouped``); exported, ``product_basis`` (elementwise work
-    AOTInductor fuses). ``columns``: each variable's slope's output column (None: its own; a joint and its cell
-    coordinate may share one). Buffers only, none persistent (the state dict is unchanged).
+    only those factors multiplied and differentiated (``grouped``). ``columns``: each variable's slope's output
+    column (None: its own; a joint and its cell coordinate may share one). Buffers only, none persistent (the state
+    dict is unchanged).
     """
 
     def __init__(self, exponents, columns=None):
@@ -103,10 +103,6 @@ class ProductTerms(nn.Module):
     def forward(self, x: torch.Tensor, slopes: bool = False, dense: Optional[bool] = None) -> "Basis":
         """Every term at ``x (B, N)`` (float64) and, with ``slopes``, its derivatives; ``dense`` None: up to
         ``DENSE_ROWS`` postures."""
-        if torch.compiler.is_exporting():  # the recurrence and a product per joint: elementwise work that
-            # AOTInductor fuses into a few loops (the cumulative products below compile to slower code)
-            phi, dphi = product_basis(x, self.exponents, self.degree, slopes)
-            return Basis(phi, None if dphi is None else dphi.transpose(1, 2), False)
         if len(x) <= DENSE_ROWS if dense is None else dense:
             phi, parts = dense_terms(self, x)
             dphi = scatter_columns(parts, self.slot_column, self.flat_index, self.n_columns) if slopes else None

@@ -111,16 +111,8 @@ def _fold(path, dz: torch.Tensor) -> torch.Tensor:
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None; both written in place) with every celled muscle's cell polynomial
     where its cell was fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms,
-    the postures sorted by cell, one product per cell; exported, one basis of every cell term for any batch."""
+    the postures sorted by cell, one product per cell (exported: ``snapshot.PathSnapshot``)."""
     k, z = cell_inputs(path, x)
-    if torch.compiler.is_exporting():  # each celled muscle's own columns of the basis times its cell's coefficients,
-        # gathered (a scatter would fix the batch under vmap)
-        cell = cell_index(k, path.cell_stride)  # (B, Mc): each celled muscle's cell
-        basis = path.cell_terms_all(z, dy is not None, dense=True)
-        coef, order = path.cell_coef[path.cell_rows[None, :], cell], path.cell_order
-        y_cell = (basis.phi[:, order] * coef).sum(-1)
-        dy_cell = None if dy is None else _fold(path, torch.einsum("bmkn,bmk->bmn", basis.dphi[:, order], coef))
-        return replace_where(y, dy, path.cell_muscles, path.cell_fitted[path.cell_rows, cell], y_cell, dy_cell)
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
@@ -155,7 +147,6 @@ def set_cell_layout(path, degrees) -> None:
     device = path.coef.device  # (a fit sets the cells on its own device, a GPU's too)
     path.cell_terms = nn.ModuleList(ProductTerms(layout[2][layout[3][perm[start], :width]])
                                     for start, _, width in path.cell_group_bounds).to(device)  # each group's
-    path.cell_terms_all = ProductTerms(layout[2]).to(device)  # every cell term (an exported program's)
     _set_few_terms(path, layout[2], extra)
     derived = zip(("cell_degrees", "cell_muscles", "cell_stride", "cell_exponents", "cell_order", "cell_valid",
                    "cell_perm", "cell_rows", "cell_extra", "cell_unfold"),  # unfold (E, N): the joints kept whole

@@ -8,7 +8,7 @@ joint's mass column is ``-g . a_j`` (its moment columns 0). Coupled joints add t
 ``d q_j / d q_free`` (``tau_free = E^T tau_full``). Per free joint an offset and a linear spring
 (``tau_j += c0_j + c1_j q_j``) represent joint springs.
 
-Forward kinematics is MuJoCo's in closed form, float64, batched, traceable under ``torch.export`` and ``torch.vmap``
+Forward kinematics is MuJoCo's in closed form, float64, batched, traceable under ``torch.export`` with a symbolic batch
 (``networks.snapshot.GravitySnapshot.kinematics``). Plain PyTorch, no Lightning.
 """
 from __future__ import annotations
@@ -68,8 +68,8 @@ class GravityTorque(nn.Module):
         anchor_axis[:, :3, 0], anchor_axis[:, 3, 0] = torch.tensor(tree.jnt_pos[moving], **f64), 1.0
         anchor_axis[:, :3, 1] = torch.tensor(tree.jnt_axis[moving], **f64)
         self.slides = int((tree.jnt_type[chain] != _HINGE).sum())  # slide joints the kinematics visits
-        self.index_lists = lists = dict(dep_follows_index=tree.dep_follows.tolist(), dep_index=tree.dep_joint.tolist(),
-                                        slope_index=tree.slope_of.tolist(), chain_joint_index=chain)
+        lists = dict(dep_follows_index=tree.dep_follows.tolist(), dep_index=tree.dep_joint.tolist(),
+                     slope_index=tree.slope_of.tolist(), chain_joint_index=chain)
         # the couplings' and slopes' polynomials as ``GravitySnapshot.full`` and ``slopes`` take them: each
         # one's gather and ``qpos0`` there, its coefficient columns the highest power first
         horner = lambda coef: torch.tensor(coef, **f64).T.flip(0).contiguous()  # noqa: E731
@@ -101,8 +101,8 @@ class GravityTorque(nn.Module):
         """The node tree of ``GravitySnapshot.kinematics``: per body its offset, then each of its joints in order, each
         node's parent the node before it (a body's offset: its parent body's last node), an identity node last (every
         root's parent): ``node_parent``, ``node_chain`` (a joint node's motion, or -1), each node's constant transform
-        (0 on a joint's node), the one-hot map of the joint motions onto their nodes, and the picks of
-        ``GravitySnapshot._pick``."""
+        (0 on a joint's node), the one-hot map of the joint motions onto their nodes, and the rows each pick of
+        ``GravitySnapshot.kinematics`` takes (``pick_names``)."""
         parent, last, joint_node, self.node_chain, const = [], {}, {}, [], []
         for i, p in enumerate(tree.body_parent.tolist()):
             parent.append(last[p] if p >= 0 else -1)
@@ -126,9 +126,8 @@ class GravityTorque(nn.Module):
         picks.update(frame_node=[last[i] for i in tree.frame_body.tolist()],
                      before_node=[joint_node[j] - 1 for j in tree.moving_joint.tolist()])
         self.pick_names = list(picks)  # the pointer rounds in order, then the frames' and the moving joints' nodes
-        for name, rows in picks.items():  # each a one-hot matrix (an exported program's gather) and its indices
-            self.register_buffer(name, torch.eye(n + 1, dtype=torch.float64)[rows], persistent=False)
-            self.register_buffer(f"{name}_index", torch.as_tensor(rows, dtype=torch.long), persistent=False)
+        for name, rows in picks.items():
+            self.register_buffer(name, torch.as_tensor(rows, dtype=torch.long), persistent=False)
 
     # ------------------------------------------------------------------ the regressor
     def features(self, q: torch.Tensor) -> torch.Tensor:

@@ -38,7 +38,7 @@ def muscle_mlp(path, x: torch.Tensor, slopes: bool):
         if slopes:
             tangent = torch.einsum("bmnk,mkj->bmnj", tangent * silu_slope(h, a).unsqueeze(2), w)
         h = torch.einsum("bmk,mkj->bmj", a, w) + b.transpose(0, 1)
-    return h[..., 0], None if tangent is None else tangent[..., 0].expand(len(x), -1, -1)
+    return h[..., 0], None if tangent is None else tangent[..., 0].expand(x.shape[0], -1, -1)
 
 
 def _uniform(shape, fan_in: int) -> torch.Tensor:

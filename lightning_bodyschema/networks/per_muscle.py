@@ -91,18 +91,16 @@ class PerMusclePath(nn.Module):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
         ``snapshot``: ``snapshot()`` when the caller keeps it. Inside the box of the fitted samples (``x_lo``,
         ``x_hi``) the polynomial itself; outside, its first-order extension from the nearest point ``c`` of the box,
-        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_rows``) the snapshot;
-        above, blocks of rows (a grouped basis), the cells a cell at a time; exported, one path for any batch."""
+        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_rows``) and exported
+        (any batch) the snapshot; above, blocks of rows (a grouped basis), the cells a cell at a time."""
         x64 = x.to(torch.float64)
-        exporting = torch.compiler.is_exporting()
-        if not exporting and len(x) <= few_rows(self):
+        if torch.compiler.is_exporting() or len(x) <= few_rows(self):
             y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
-        derive = slopes or exporting or not torch.equal(inside, x64)  # exported: torch.equal has no vmap rule
-        coefs = self._coefficients(exporting)  # once per call
-        blocks = [inside] if exporting else inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
-        parts = [self._smooth(rows, derive, exporting, coefs) for rows in blocks]
+        derive = slopes or not torch.equal(inside, x64)
+        coefs = self._coefficients()  # once per call
+        parts = [self._smooth(rows, derive, coefs) for rows in inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))]
         y, dy = parts[0] if len(parts) == 1 else (torch.cat([y for y, _ in parts]),
                                                   torch.cat([dy for _, dy in parts]) if derive else None)
         if has_cells(self):
@@ -116,19 +114,18 @@ class PerMusclePath(nn.Module):
         """The fitted polynomials frozen (``networks.snapshot.PathSnapshot``): valid while they do not change."""
         return PathSnapshot(self)
 
-    def _coefficients(self, dense: bool) -> tuple:
+    def _coefficients(self) -> tuple:
         """The whole-box coefficients (masked: exactly zero off each muscle's terms) and the branched muscles'
-        ``(muscles, alt, gate)`` (``branched.branch_parts``; or None), laid out for a dense basis (an exported
-        program's) or a grouped one (``ProductTerms.layout``)."""
-        layout = (lambda coef: coef) if dense else self.terms.layout  # noqa: E731
-        parts = branch_parts(self)
+        ``(muscles, alt, gate)`` (``branched.branch_parts``; or None), laid out for a grouped basis
+        (``ProductTerms.layout``)."""
+        layout, parts = self.terms.layout, branch_parts(self)
         branches = None if parts is None else (parts[0], layout(parts[1]), layout(parts[2]))
         return layout(self.coef * self.term_mask), branches
 
-    def _smooth(self, inside: torch.Tensor, slopes: bool, dense: bool, coefs: tuple):
+    def _smooth(self, inside: torch.Tensor, slopes: bool, coefs: tuple):
         """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
-        (``_coefficients(dense)``): ``(B, M)``, ``(B, M, N)`` or None."""
-        basis = self.terms(inside, slopes, dense=dense)
+        (``_coefficients``): ``(B, M)``, ``(B, M, N)`` or None."""
+        basis = self.terms(inside, slopes, dense=False)
         y, dy = self.terms.contract(basis, coefs[0])
         if coefs[1] is None:
             return y, dy

@@ -29,8 +29,8 @@ def has_cells(path) -> bool:
 
 
 def few_rows(path) -> int:
-    """The most postures ``path`` evaluates by its snapshot (their stacked basis within ``FEW_ELEMENTS``), never in an
-    exported program (one path for any batch there: ``PerMusclePath.polynomial``'s blocks)."""
+    """The most postures ``path`` evaluates by its snapshot (their stacked basis within ``FEW_ELEMENTS``; an exported
+    program, any batch: ``PerMusclePath.polynomial``)."""
     terms = len(path.few_terms.exponents) if has_cells(path) else path.coef.shape[1]
     return FEW_ELEMENTS // (terms * (1 + path.crossing.shape[1]))
 
@@ -56,28 +56,22 @@ class PathSnapshot(Frozen):
             self.spread = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, order, coef)
 
     def _choices(self, path) -> None:
-        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere, the
-        branched muscles' second polynomials, their gates; masked to each muscle's terms), and per muscle ``(M,)``
-        its candidates: ``box_col``, ``alt_col`` and ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of``
-        (where ``celled``)."""
+        """``box (R, P)``: the whole-box rows a posture may use (every muscle's polynomial, the branched muscles'
+        second polynomials, their gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates:
+        ``box_col``, ``alt_col`` and ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
         n, long = len(path.coef), dict(dtype=torch.long, device=path.coef.device)
-        self.celled, everywhere = (torch.zeros(n, dtype=torch.bool, device=path.coef.device) for _ in range(2))
-        self.cell_of = torch.zeros(n, **long)
+        self.celled, self.cell_of = torch.zeros(n, dtype=torch.bool, device=path.coef.device), torch.zeros(n, **long)
         if self.cells:
             self.celled[path.cell_muscles] = True
-            everywhere[path.cell_muscles] = path.cell_fitted.all(1)  # never a whole-box row
             self.cell_of[path.cell_muscles] = torch.arange(len(path.cell_muscles), **long)
-        box_muscles = torch.nonzero(~everywhere).flatten()
-        self.box_col = torch.zeros(n, **long)
-        self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
-        rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
-            torch.zeros(n, **long)
+        self.box_col = torch.arange(n, **long)
+        rows, self.alt_col, self.gate_col = [path.coef * path.term_mask], self.box_col.clone(), torch.zeros(n, **long)
         branches = branch_parts(path)
         if branches is not None:
             branched, count = branches[0], len(branches[0])
             rows += list(branches[1:])
-            self.alt_col[branched] = len(box_muscles) + torch.arange(count, **long)
-            self.gate_col[branched] = len(box_muscles) + count + torch.arange(count, **long)
+            self.alt_col[branched] = n + torch.arange(count, **long)
+            self.gate_col[branched] = n + count + torch.arange(count, **long)
         self.box = torch.cat(rows)
         self.cell_col = torch.where(self.celled, len(self.box) + self.cell_of, self.box_col)
         self.gated = self.alt_col != self.box_col
@@ -109,17 +103,14 @@ class GravitySnapshot(Frozen):
     """A fitted ``GravityTorque``'s torque ``tau (B, N)`` [N m] at float64 postures ``q (B, N)`` [rad or m], from
     the tree's buffers and, from its coefficients, per frame ``(s, m)`` ``(F, 4, 1)``, each moving joint's mass below
     it ``(J,)``, the offsets and spring rates ``(N,)``; and the tree's kinematics (``full``, ``kinematics``,
-    ``slopes``). One built in an exported program (``GravityTorque.forward`` under ``vmap``) reads columns by lists of
-    joints and picks poses by products with one-hot matrices: a gather would fix the batch size under ``vmap``."""
+    ``slopes``)."""
 
     def __init__(self, gravity):
         self.__dict__.update(gravity.named_buffers(recurse=False))
         self.node_parent, self.node_chain = gravity.node_parent, gravity.node_chain
-        self.coupled, self.all_hinges, self.index_lists = gravity.coupled, gravity.all_hinges, gravity.index_lists
-        self.traced = torch.compiler.is_exporting()
-        # the rows each pick takes (``GravityTorque._register_nodes``): one-hot matrices when traced, else indices
-        *self.pointers, self.frame_rows, self.before_rows = (getattr(gravity, name if self.traced else f"{name}_index")
-                                                             for name in gravity.pick_names)
+        self.coupled, self.all_hinges = gravity.coupled, gravity.all_hinges
+        # the rows each pick takes (``GravityTorque._register_nodes``)
+        *self.pointers, self.frame_rows, self.before_rows = (getattr(gravity, name) for name in gravity.pick_names)
         n_frames, n_free, coef = gravity.n_frames, gravity.n_free, gravity.coef
         order = torch.arange(4 * n_frames, device=coef.device).view(-1, 4)[:, [1, 2, 3, 0]].flatten()
         self.moment_mass = coef.index_select(0, order).view(-1, 4, 1)
@@ -141,26 +132,26 @@ class GravitySnapshot(Frozen):
         full = q @ self.free_select + self.full_base
         if not self.coupled:
             return full
-        value = horner(self.dep_horner, self._columns(full, "dep_follows_index") - self.dep_follows_qpos0)
-        return full + (value + self.dep_qpos0 - self._columns(full, "dep_index")) @ self.dep_scatter
+        value = horner(self.dep_horner, take(full, self.dep_follows_index, 1) - self.dep_follows_qpos0)
+        return full + (value + self.dep_qpos0 - take(full, self.dep_index, 1)) @ self.dep_scatter
 
     def slopes(self, full):
         """``(B, J)`` ``d q_full[j] / d q[free_column[j]]`` of each moving joint at every joint's ``full (B, nq)``: 1,
         or its coupling's slope."""
-        return horner(self.slope_horner, self._columns(full, "slope_index") - self.slope_qpos0)
+        return horner(self.slope_horner, take(full, self.slope_index, 1) - self.slope_qpos0)
 
     def kinematics(self, full):
         """The frames' world poses ``(B, F, 4, 4)`` and the moving joints' anchors ``o (B, J, 3)`` and axes
         ``a (B, J, 3)`` at every joint's ``full (B, nq)`` (MuJoCo's mj_kinematics): each body at its parent's pose
         times its offset, then each joint's motion ``I + sin M_sin + versine M_versine + angle M_angle`` (a hinge
         rotates by ``q - qpos0`` about its axis through its anchor, a slide translates; ``_node_poses``)."""
-        angle = (self._columns(full, "chain_joint_index") - self.chain_qpos0)[:, :, None, None]
+        angle = (take(full, self.chain_joint_index, 1) - self.chain_qpos0)[:, :, None, None]
         by_sin, by_versine, by_angle = self.motion_terms
         xp = self.xp
         motion = self.motion_eye + xp.sin(angle) * by_sin + (1.0 - xp.cos(angle)) * by_versine + angle * by_angle
         world = self._node_poses(motion)
-        anchor_axis = self._pick(self.before_rows, world)[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
-        return self._pick(self.frame_rows, world), anchor_axis[..., 0], anchor_axis[..., 1]
+        anchor_axis = take(world, self.before_rows, 1)[..., :3, :] @ self.anchor_axis  # (B, J, 3, 2)
+        return take(world, self.frame_rows, 1), anchor_axis[..., 0], anchor_axis[..., 1]
 
     def _node_poses(self, motion):
         """Every node's world pose ``(B, nodes + 1, 4, 4)`` from the chain joints' motions ``(B, C, 4, 4)``: pointer
@@ -170,23 +161,13 @@ class GravitySnapshot(Frozen):
             moved = self.node_motion @ motion.reshape(*motion.shape[:2], 16)
             world = self.node_const + moved.reshape(*moved.shape[:2], 4, 4)
             for rows in self.pointers:
-                world = self._pick(rows, world) @ world
+                world = take(world, rows, 1) @ world
             return world
         nodes = []
         for i, (parent, chain) in enumerate(zip(self.node_parent, self.node_chain)):
             T = self.node_const[i] if chain < 0 else motion[:, chain]
             nodes.append(xp.broadcast_to(T, (motion.shape[0], 4, 4)) if parent < 0 else nodes[parent] @ T)
         return xp.stack(nodes, 1)
-
-    def _columns(self, full, name: str):
-        """``full``'s columns at the index buffer ``name``."""
-        return full[:, self.index_lists[name]] if self.traced else take(full, getattr(self, name), 1)
-
-    def _pick(self, rows, poses):
-        """``(B, K, 4, 4)``: the ``rows`` of ``poses (B, L, 4, 4)`` (a gather, or traced a one-hot product)."""
-        if self.traced:
-            return (rows @ poses.flatten(2)).unflatten(2, (4, 4))
-        return take(poses, rows, 1)
 
 
 class BodySnapshot(Frozen):

@@ -64,7 +64,7 @@ class JacobianMLP(nn.Module):
     def with_jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(y (B, out), dy/dx (B, out, in)): tangents (B, in, width) pushed through every layer with the values,
         ``JACOBIAN_CHUNK`` postures at a time (each row's numbers do not depend on the others)."""
-        if len(x) <= JACOBIAN_CHUNK:
+        if torch.compiler.is_exporting() or len(x) <= JACOBIAN_CHUNK:  # exported: one pass (a symbolic batch)
             return self._through_layers(x, True)
         values, jacobians = zip(*(self._through_layers(part, True) for part in x.split(JACOBIAN_CHUNK)))
         return torch.cat(values), torch.cat(jacobians)

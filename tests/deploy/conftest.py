@@ -44,7 +44,7 @@ def struct_paths(dm):
 @pytest.fixture(scope="session")
 def struct_poly(dm):
     """A per-muscle StructuredSchema of the paper arm with a polynomial torque (configs/myoelbow.yaml's kind): no
-    BodySnapshot covers it, so its package evaluates ``schema.body`` under vmap."""
+    BodySnapshot covers it, so its package evaluates ``schema.body``."""
     from physics_checks import fit_structured
 
     return fit_structured(dm, length_model="per_muscle", path_degree=8, torque_model="polynomial")[0]

@@ -25,8 +25,8 @@ FIXTURES = {"mlp": ("struct30", "struct_cases"), "per_muscle": ("struct_paths", 
 
 @pytest.mark.parametrize("which", list(FIXTURES))
 def test_structured_module_equals_the_python_adapter(which, request):
-    """The dense body (schema.body under vmap), the per-muscle body (its frozen BodySnapshot) and a per-muscle body
-    with a polynomial torque (schema.body under vmap) alike."""
+    """The dense body (schema.body), the per-muscle body (its frozen BodySnapshot) and a per-muscle body with a
+    polynomial torque (schema.body) alike."""
     schema, (q, faults) = (request.getfixturevalue(name) for name in FIXTURES[which])
     ref = schema.adapter(faults, check_physics=False)(q)
     module = StructuredAdapterModule(schema)
@@ -67,9 +67,9 @@ _BODY_ROUNDINGS = 256  # a polynomial's terms or a layer's width summed (a few h
 
 
 def test_a_polynomial_torque_body_exports(request):
-    """A per-muscle body under vmap with a polynomial torque (configs/myoelbow.yaml's kind) exports at a static batch
-    (the dynamic one: the slow test below): its fitted box's test reaches no ``torch.equal`` (no vmap rule) and its
-    small products are fused where they can be (a vmapped product that carries a real value is left as it is)."""
+    """A per-muscle body with a polynomial torque (configs/myoelbow.yaml's kind: ``schema.body``, its paths by their
+    snapshots built in the trace) exports at a static batch (the dynamic one: the slow test below), its small
+    products fused where they can be."""
     test_the_exported_program_is_the_eager_module("polynomial_torque", 1, request)
 
 

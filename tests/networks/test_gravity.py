@@ -120,15 +120,6 @@ def test_trimmed_fit_recovers_the_exact_coefficients_despite_wild_samples():
     assert _relative(untrimmed.coef, clean.coef) > 1e-3  # without the trim the wild samples pull the fit
 
 
-class _Rows(torch.nn.Module):
-    def __init__(self, gravity):
-        super().__init__()
-        self.gravity = gravity
-
-    def forward(self, q):
-        return torch.vmap(lambda row: self.gravity(row[None])[0])(q)
-
-
 def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_exports():
     robot = MusculoskeletalModel("paper_arm")
     gravity = GravityTorque(gravity_tree(robot))
@@ -144,10 +135,6 @@ def test_state_dict_holds_the_coefficients_only_dtype_casts_keep_float64_and_it_
     # the exported graph may compose the chain's frames in another order: its roundings at the torque's scale
     tol = _CHAIN_ROUNDINGS * torch.finfo(torch.float64).eps * max(1.0, gravity(q).abs().max().item())
     torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=tol)
-    rows = _Rows(gravity)  # one posture at a time under vmap, as deploy.structured exports a schema's body
-    exported = torch.export.export(rows, (q[:2],), dynamic_shapes=({0: torch.export.Dim("batch", min=1, max=4096)},),
-                                   strict=False)
-    torch.testing.assert_close(exported.module()(q), gravity(q), rtol=0, atol=tol)
     with torch.device("meta"):  # a checkpoint's skeleton
         assert GravityTorque(gravity_tree(robot)).coef.shape == gravity.coef.shape
 
@@ -162,21 +149,16 @@ def test_runs_on_cuda():
     torch.testing.assert_close(on_gpu(q.cuda()).cpu(), tau, rtol=0, atol=1e-9)
 
 
-def test_the_torque_exports_under_vmap_with_a_dynamic_batch_and_answers_as_eager():
-    """Exported one posture at a time under ``torch.vmap`` (how ``deploy.structured`` exports a body the snapshot
-    does not cover): the module's own picks keep the batch symbolic, and the program answers as the eager snapshot
-    within the chain's roundings at the torque's scale."""
+def test_the_torque_exports_with_a_dynamic_batch_and_answers_as_eager_down_to_one_posture():
+    """Exported with a dynamic batch (how ``deploy.structured`` exports a body the snapshot does not cover: every
+    posture at once): the snapshot built in the trace keeps the batch symbolic, and the program answers as the eager
+    snapshot within the chain's roundings at the torque's scale, at the traced batch and at one posture."""
     robot = MusculoskeletalModel("paper_arm")
     gravity = GravityTorque(gravity_tree(robot))
     gravity.fit_trimmed(*_postures(robot, 300, 0))
-
-    class Rows(torch.nn.Module):
-        def forward(self, q):
-            return torch.vmap(lambda row: gravity(row[None])[0])(q)
-
     q, _ = _postures(robot, 7, 4)
     batch = torch.export.Dim("batch", min=1, max=1024)
-    program = torch.export.export(Rows(), (q,), dynamic_shapes={"q": {0: batch}}).module()
+    program = torch.export.export(gravity, (q,), dynamic_shapes={"q": {0: batch}}).module()
     for rows in (1, 7):
         want = gravity(q[:rows])
         tol = _CHAIN_ROUNDINGS * np.finfo(float).eps * want.abs().max().item()
