@@ -58,8 +58,6 @@ def _rewrite(graph, node) -> bool:
     a, b = node.args[first], node.args[second]
     if any(user.op == "output" for user in node.users) or not is_small(a.meta["val"], b.meta["val"]):
         return False
-    if detect_fake_mode([node.meta["val"]]) is None:  # a vmapped body's matmul can carry a real value: left as is
-        return False
     beta, alpha = node.kwargs.get("beta", 1), node.kwargs.get("alpha", 1)
     with graph.inserting_before(node):
         emit = _emitter(graph, node)

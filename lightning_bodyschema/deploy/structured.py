@@ -26,15 +26,6 @@ from .module import PackageModule
 PACKAGE_NEWTON_ITER = 12
 
 
-def snapshot_covers(schema) -> bool:
-    """Whether ``schema.body_snapshot()`` is its whole body: a per-muscle path without hidden layers and the
-    gravity torque."""
-    from ..networks.per_muscle import PerMusclePath
-
-    path = schema.length_net
-    return isinstance(path, PerMusclePath) and not path.n_hidden and schema.hparams.torque_model == "gravity"
-
-
 class StructuredAdapterModule(PackageModule):
     """The tensor-only adapter of a trained ``StructuredSchema`` (module docstring); ``max_iter``: the most Newton
     steps a call runs. The ``seed`` input must be 0 (the structured schema draws nothing)."""
@@ -51,7 +42,7 @@ class StructuredAdapterModule(PackageModule):
             raise BodySchemaInputError(f"max_iter={max_iter!r}: Newton steps per case, an int in 1..1000")
         super().__init__(schema, [0])
         self.schema, self.max_iter, self.dtype = schema, max_iter, schema.dtype
-        self.snapshot = schema.body_snapshot() if snapshot_covers(schema) else None
+        self.snapshot = schema.body_snapshot() if schema.snapshot_covers() else None
 
     def body(self, q):
         """The learned body ``(l_geo, G, tau)`` at postures ``q (B, N)`` [rad]: the frozen ``BodySnapshot`` where it

@@ -15,7 +15,6 @@ from typing import Optional
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from .arrays import as_index, clip, namespace, take
 from .basis import ProductTerms
@@ -91,14 +90,11 @@ def cell_layout(crossing: np.ndarray, exponents: np.ndarray, term_mask: np.ndarr
 def cell_inputs(path, x):
     """Each joint's piece ``k (B, N)`` and the cells' coordinates ``z (B, N + E)`` at ``x (B, N)`` (numpy or torch)
     of a ``PerMusclePath`` or its snapshot: every joint's local coordinate (``cell_coordinates``), then the joints
-    ``cell_extra`` as they are (exported: by padding and a one-hot product; a concatenation fixes the batch)."""
+    ``cell_extra`` as they are."""
     k, x_local = cell_coordinates(x, path.pieces)
-    extra = len(path.cell_extra)
-    if not extra:
+    if not len(path.cell_extra):
         return k, x_local
-    if not torch.compiler.is_exporting():  # two operations, not five (at one posture each costs its dispatch)
-        return k, namespace(x).concatenate([x_local, take(x, path.cell_extra, 1)], 1)
-    return k, F.pad(x_local, (0, extra)) + F.pad(x @ path.cell_unfold.T, (x.shape[1], 0))
+    return k, namespace(x).concatenate([x_local, take(x, path.cell_extra, 1)], 1)
 
 
 def _fold(path, dz: torch.Tensor) -> torch.Tensor:

@@ -48,7 +48,6 @@ class PathSnapshot(Frozen):
         self._choices(path)
         if self.cells:
             self.pieces, self.cell_extra, self.scale = path.pieces, path.cell_extra, path.few_scale
-            self.cell_unfold = path.cell_unfold  # (``cells.cell_inputs`` in an exported program)
             self.stride, self.rows, self.fitted = path.cell_stride, path.cell_rows, path.cell_fitted
             coef = path.cell_coef  # spread (Mc, C, T): each celled muscle's coefficients in each of its cells on every
             # cell term, zero off its own terms (the padding's zeros added onto column 0)
@@ -56,22 +55,28 @@ class PathSnapshot(Frozen):
             self.spread = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, order, coef)
 
     def _choices(self, path) -> None:
-        """``box (R, P)``: the whole-box rows a posture may use (every muscle's polynomial, the branched muscles'
-        second polynomials, their gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates:
-        ``box_col``, ``alt_col`` and ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
+        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere, every
+        muscle in an exported program: a size from the data there; the branched muscles' second polynomials, their
+        gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates: ``box_col``, ``alt_col`` and
+        ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
         n, long = len(path.coef), dict(dtype=torch.long, device=path.coef.device)
-        self.celled, self.cell_of = torch.zeros(n, dtype=torch.bool, device=path.coef.device), torch.zeros(n, **long)
+        self.celled, everywhere = (torch.zeros(n, dtype=torch.bool, device=path.coef.device) for _ in range(2))
+        self.cell_of = torch.zeros(n, **long)
         if self.cells:
             self.celled[path.cell_muscles] = True
+            everywhere[path.cell_muscles] = path.cell_fitted.all(1)  # never a whole-box row
             self.cell_of[path.cell_muscles] = torch.arange(len(path.cell_muscles), **long)
-        self.box_col = torch.arange(n, **long)
-        rows, self.alt_col, self.gate_col = [path.coef * path.term_mask], self.box_col.clone(), torch.zeros(n, **long)
+        box_muscles = torch.arange(n, **long) if torch.compiler.is_exporting() else torch.nonzero(~everywhere).flatten()
+        self.box_col = torch.zeros(n, **long)
+        self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
+        rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
+            torch.zeros(n, **long)
         branches = branch_parts(path)
         if branches is not None:
             branched, count = branches[0], len(branches[0])
             rows += list(branches[1:])
-            self.alt_col[branched] = n + torch.arange(count, **long)
-            self.gate_col[branched] = n + count + torch.arange(count, **long)
+            self.alt_col[branched] = len(box_muscles) + torch.arange(count, **long)
+            self.gate_col[branched] = len(box_muscles) + count + torch.arange(count, **long)
         self.box = torch.cat(rows)
         self.cell_col = torch.where(self.celled, len(self.box) + self.cell_of, self.box_col)
         self.gated = self.alt_col != self.box_col

@@ -19,7 +19,7 @@ HOST_ROWS = 16
 
 class LearnedBody:
     """``StructuredSchema``'s learned-body methods (``body_si``, ``learned_body_si``, ``body_snapshot``,
-    ``path_switches``)."""
+    ``snapshot_covers``, ``path_switches``)."""
 
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
@@ -45,11 +45,14 @@ class LearnedBody:
         return host if host is not None and len(q_rad) <= host.path.max_postures else None
 
     def _numpy_body(self) -> Optional[BodySnapshot]:
-        """``body_snapshot().on_host()``, or None for a body it does not cover (an MLP in the path, another torque
-        model) or off the CPU."""
+        """``body_snapshot().on_host()``, or None for a body it does not cover (``snapshot_covers``) or off the CPU."""
+        return self.body_snapshot().on_host() if self.snapshot_covers() and self.device.type == "cpu" else None
+
+    def snapshot_covers(self) -> bool:
+        """Whether ``body_snapshot()`` is the whole body: a per-muscle path without hidden layers and the gravity
+        torque (not an MLP in the path, nor another torque model)."""
         path = self.length_net
-        covered = isinstance(path, PerMusclePath) and not path.n_hidden and self.hparams.torque_model == "gravity"
-        return self.body_snapshot().on_host() if covered and self.device.type == "cpu" else None
+        return isinstance(path, PerMusclePath) and not path.n_hidden and self.hparams.torque_model == "gravity"
 
     def body_snapshot(self) -> BodySnapshot:
         """The fitted body (a per-muscle path without hidden layers and a gravity torque) frozen, in torch
