@@ -100,7 +100,8 @@ class PerMusclePath(nn.Module):
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         derive = slopes or not torch.equal(inside, x64)
         coefs = self._coefficients()  # once per call
-        parts = [self._smooth(rows, derive, coefs) for rows in inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))]
+        blocks = inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
+        parts = [self._smooth(rows, derive, coefs) for rows in blocks]
         y, dy = parts[0] if len(parts) == 1 else (torch.cat([y for y, _ in parts]),
                                                   torch.cat([dy for _, dy in parts]) if derive else None)
         if has_cells(self):
