@@ -50,6 +50,7 @@ import numpy as np
 
 from lightning_bodyschema.apps.common import exits_cleanly, robot_from_config
 from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.evaluation.body_errors import BAD_LENGTH_MM as BAD_MM
 
 TAIL = "TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP"
 FD_STEP_M = 1e-7  # forward-difference step of every number [m]: lengths are exact to ~1e-16 m
@@ -333,7 +334,8 @@ def score(rep: Replicas, model, muscles: list[int], theta: list[np.ndarray], q: 
     arm = np.where(crossed, 1e3 * np.abs(G_fit - G_true), 0.0).reshape(len(q), -1).max(1)
     pct = lambda a: [float(np.percentile(a, p)) for p in (50, 90, 99, 100)]  # noqa: E731
     return {"length": pct(length_mm.max(1)), "arm": pct(arm), "p99": np.percentile(length_mm, 99, axis=0),
-            "wrong_state": (wrap_states(rep.model, q) != states_true).mean(0)}
+            "wrong_state": (wrap_states(rep.model, q) != states_true).mean(0), "bad": (length_mm > BAD_MM).mean(0),
+            "bad_postures": float((length_mm.max(1) > BAD_MM).mean())}
 
 
 def census(model, q: np.ndarray) -> str:
@@ -408,7 +410,7 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, arg
 
 def row(label: str, s: dict) -> str:
     f = lambda v: " / ".join(f"{x:.3g}" for x in v)  # noqa: E731
-    return f"| {label} | {f(s['length'])} | {f(s['arm'][:3])} | {100 * float(s['wrong_state'].max()):.3g} % |"
+    return f"| {label} | {f(s['length'])} | {f(s['arm'][:3])} | {100 * s['bad_postures']:.3g} % |"
 
 
 @exits_cleanly
@@ -457,26 +459,34 @@ def run(model, muscles: list[int], q_test: np.ndarray, args) -> None:
     solvers, start, cpu = fit_restarts(rep, model, full, target, args)
     l_t, G_t, _ = model.kinematics(q_test)
     truth = (l_t[:, muscles], G_t[:, muscles], wrap_states(model, q_test)[:, muscles])
-    names = [model.muscle_names[i].removesuffix("_tendon") for i in muscles]
     print(f"{len(muscles)} muscles, {args.postures} train postures (seed {args.seed}), start: prior {args.prior}, "
-          f"+-{args.perturb_mm} mm, radii {args.perturb_radius if args.prior == 'mjcf' else CENTROID_RADIUS_FACTOR}"
-          f", restarts {args.restarts}, side sites at the {args.side_sites}'s; Cauchy {args.cauchy_mm} mm; side search {args.side_search}; noise {args.noise_mm} mm; the copies at the MJCF's numbers reproduce MuJoCo's"
-          f" lengths to {exact:.2g} m; fit CPU {cpu:.1f} s")
-    print("| muscle | numbers | iterations | train RMS [mm] | error [mm] sites / geom centres / radii / side sites "
-          "| rank deficit | wrap jumps in J | test p99 start -> fit [mm] | wrong state |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          f"+-{args.perturb_mm} mm, radii {args.perturb_radius if args.prior == 'mjcf' else CENTROID_RADIUS_FACTOR}, "
+          f"restarts {args.restarts}, side sites at the {args.side_sites}'s; Cauchy {args.cauchy_mm} mm; side search "
+          f"{args.side_search}; noise {args.noise_mm} mm; the copies at the MJCF's numbers reproduce MuJoCo's lengths "
+          f"to {exact:.2g} m; fit CPU {cpu:.1f} s")
     s0, s1 = (score(rep, model, muscles, th, q_test, truth) for th in (start, [s.theta for s in solvers]))
-    for a, s in enumerate(solvers):
-        err = number_errors_mm(rep.tables[a], s.theta, rep.truth[a])
-        print(f"| {names[a]} | {len(s.theta)} | {s.iterations} | {1e3 * np.sqrt(np.mean(s.r ** 2)):.3g} | "
-              + " / ".join(f"{err[k]:.3g}" for k in KINDS) + f" | {rank_deficit(s.J)} | {s.jumps} | "
-              f"{s0['p99'][a]:.3g} -> {s1['p99'][a]:.3g} | {100 * float(s1['wrong_state'][a]):.3g} % |")
+    print(muscle_table(rep, solvers, (s0, s1), [model.muscle_names[i].removesuffix("_tendon") for i in muscles]))
     print()
     print(f"| worst of the {len(muscles)} per test posture ({args.test_postures}) | length p50 / p90 / p99 / max [mm] "
-          "| moment arm p50 / p90 / p99 [mm/rad] | wrong state (worst muscle) |")
+          f"| moment arm p50 / p90 / p99 [mm/rad] | postures > {BAD_MM} mm |")
     print("|---|---|---|---|")
     print(row("start", s0))
     print(row("fit", s1))
+
+
+def muscle_table(rep: Replicas, solvers: list, scores: tuple[dict, dict], names: list[str]) -> str:
+    """Per muscle: the fit's figures and its test scores (module docstring)."""
+    (s0, s1), lines = scores, [
+        "| muscle | numbers | iterations | train RMS [mm] | error [mm] sites / geom centres / radii / side sites | "
+        f"rank deficit | wrap jumps in J | test p99 start -> fit [mm] | > {BAD_MM} mm | wrong state |",
+        "|---|---|---|---|---|---|---|---|---|---|"]
+    for a, s in enumerate(solvers):
+        err = number_errors_mm(rep.tables[a], s.theta, rep.truth[a])
+        lines.append(f"| {names[a]} | {len(s.theta)} | {s.iterations} | {1e3 * np.sqrt(np.mean(s.r ** 2)):.3g} | "
+                     + " / ".join(f"{err[k]:.3g}" for k in KINDS) + f" | {rank_deficit(s.J)} | {s.jumps} | "
+                     f"{s0['p99'][a]:.3g} -> {s1['p99'][a]:.3g} | {100 * float(s1['bad'][a]):.3g} % | "
+                     f"{100 * float(s1['wrong_state'][a]):.3g} % |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
