@@ -4,7 +4,7 @@
     python tools/fit_path_geometry.py [--config configs/myoarm.yaml] [--muscles TMAJ,BIClong,... | all]
                                       [--postures 2000] [--perturb-mm 5] [--perturb-radius 0.05] [--noise-mm 0]
                                       [--seed 0] [--prior mjcf | centroid] [--restarts 1] [--max-iter 40]
-                                      [--cauchy-mm 0.3] [--side-search 0] [--side-sites start | mjcf]
+                                      [--cauchy-mm 0.3 | 30,3,0.3] [--side-search 0] [--side-sites start | mjcf]
                                       [--test-postures 2000] [--test-seed 1]
     python tools/fit_path_geometry.py --census [--config configs/myolegs-per-muscle.yaml]
 
@@ -19,7 +19,8 @@ forward-difference Jacobian. A Jacobian entry above ``JUMP_SLOPE`` (a length mov
 number: a larger one is a wrap switching between the two evaluations) is set to 0.
 
 Levenberg-Marquardt per muscle on the Cauchy loss of scale ``--cauchy-mm`` (0: least squares; a posture the current
-numbers wrap otherwise than the truth misses by a jump of millimetres and must not pull the fit), the damped step
+numbers wrap otherwise than the truth misses by a jump of millimetres and must not pull the fit; several scales: one
+fit after the other, ``fit_stages``), the damped step
 taken in the column-scaled Jacobian's singular directions above ``RCOND`` (the lengths do not see the others),
 at most ``MAX_STEP_M`` per number, radii kept >= ``MIN_RADIUS_M``. Side sites are never moved by it (``held``: they
 act only through which way a path wraps); ``--side-search N``: N rounds of a pattern search over them
@@ -377,12 +378,20 @@ def pick_muscles(model, spec: str) -> list[int]:
     return out
 
 
+def scales(text: str) -> list[float]:
+    """``--cauchy-mm``: comma-separated numbers."""
+    try:
+        return [float(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected numbers [mm], comma separated (e.g. 30,3,0.3)") from None
+
+
 def check_args(args) -> None:
     if args.postures < 1 or args.test_postures < 1 or args.restarts < 1 or args.max_iter < 1 or args.side_search < 0:
         raise BodySchemaInputError(f"--postures {args.postures}, --test-postures {args.test_postures}, --restarts "
                                    f"{args.restarts}, --max-iter {args.max_iter}: each must be an integer >= 1 (--side-search "
                                    f"{args.side_search}: >= 0)")
-    if args.perturb_mm < 0 or args.noise_mm < 0 or args.cauchy_mm < 0 or not 0 <= args.perturb_radius < 1:
+    if args.perturb_mm < 0 or args.noise_mm < 0 or min(args.cauchy_mm) < 0 or not 0 <= args.perturb_radius < 1:
         raise BodySchemaInputError(f"--perturb-mm {args.perturb_mm}, --noise-mm {args.noise_mm}, --cauchy-mm "
                                    f"{args.cauchy_mm} must be >= 0 and "
                                    f"--perturb-radius {args.perturb_radius} in [0, 1)")
@@ -395,17 +404,26 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, arg
     best, first, cpu = None, None, time.process_time()
     for restart in range(args.restarts):
         start = starts(rep, model.mj_model, args, np.random.default_rng([args.seed, 7, restart]))
-        solvers = fit(rep, full, target, start, args.max_iter, 1e-3 * args.cauchy_mm)
-        for _ in range(args.side_search):
-            passes = side_search(rep, full, target, solvers)
-            again = fit(rep, full, target, [s.theta for s in solvers], args.max_iter, 1e-3 * args.cauchy_mm)
-            for new, old in zip(again, solvers):
-                new.iterations += old.iterations + passes
-            solvers = again
+        solvers = fit_stages(rep, full, target, start, args)
         if best is None:
             best, first = solvers, start
         best = [s if s.cost < b.cost else b for s, b in zip(solvers, best)]
     return best, first, time.process_time() - cpu
+
+
+def fit_stages(rep: Replicas, full: np.ndarray, target: np.ndarray, start: list[np.ndarray], args) -> list:
+    """The fit at each scale of ``--cauchy-mm`` in turn (a graduated loss: a wide scale pulls from afar, where a
+    narrow one is flat; the last ignores the postures wrapped otherwise), then ``--side-search`` rounds of the side
+    sites' search, each followed by the fit at the last scale; iterations summed."""
+    solvers, stages = None, [("fit", c) for c in args.cauchy_mm] + [("side", args.cauchy_mm[-1])] * args.side_search
+    for kind, scale_mm in stages:
+        passes = side_search(rep, full, target, solvers) if kind == "side" else 0
+        again = fit(rep, full, target, start if solvers is None else [s.theta for s in solvers], args.max_iter,
+                    1e-3 * scale_mm)
+        for new, old in zip(again, solvers or []):
+            new.iterations += old.iterations + passes
+        solvers = again
+    return solvers
 
 
 def row(label: str, s: dict) -> str:
@@ -427,7 +445,8 @@ def main(argv=None):
     parser.add_argument("--restarts", type=int, default=1)
     parser.add_argument("--side-sites", choices=("start", "mjcf"), default="start",
                         help="side sites (never fitted) at the start's numbers or the MJCF's")
-    parser.add_argument("--cauchy-mm", type=float, default=0.3, help="Cauchy loss scale (0: least squares)")
+    parser.add_argument("--cauchy-mm", type=scales, default=[0.3],
+                        help="Cauchy loss scales, comma separated, fitted in turn (0: least squares)")
     parser.add_argument("--side-search", type=int, default=0,
                         help="rounds of a pattern search over the side sites, each followed by the fit again")
     parser.add_argument("--max-iter", type=int, default=40)
