@@ -126,8 +126,8 @@ class Replicas:
     @staticmethod
     def _add_path(spec, m, parts, prefix) -> None:
         """One copy of a path: its sites, geoms and side sites on the original bodies, and its tendon."""
-        body = lambda b: spec.worldbody if b == 0 else spec.body(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY,  # noqa: E731
-                                                                                    int(b)))
+        def body(b):
+            return spec.worldbody if b == 0 else spec.body(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(b)))
         tendon = spec.add_tendon(name=prefix)
         for i, part in enumerate(parts):
             if part[0] == "site":
@@ -196,7 +196,8 @@ class LevenbergMarquardt:
     jump of millimetres, weighs little), by reweighted Gauss-Newton steps."""
 
     def __init__(self, theta: np.ndarray, radius: np.ndarray, held: np.ndarray, cauchy_m: float = 0.0):
-        self.held, self.theta, self.radius, self.lam, self.cost, self.J, self.r = held, theta, radius, 1e-6, np.inf, None, None
+        self.held, self.theta, self.radius, self.lam = held, theta, radius, 1e-6
+        self.cost, self.J, self.r = np.inf, None, None
         self.iterations, self.done, self.jumps, self.c = 0, False, 0, cauchy_m
 
     def loss(self, r: np.ndarray) -> float:
@@ -271,7 +272,8 @@ def side_search(rep: Replicas, full: np.ndarray, target: np.ndarray, solvers: li
             moves = [np.zeros((len(s.theta), len(s.theta))) for s in solvers]
             for move, s in zip(moves, solvers):
                 held = np.flatnonzero(s.held)
-                move[2 * np.arange(len(held)), held], move[2 * np.arange(len(held)) + 1, held] = 1e-3 * step, -1e-3 * step
+                rows = 2 * np.arange(len(held))
+                move[rows, held], move[rows + 1, held] = 1e-3 * step, -1e-3 * step
             rep.write([s.theta for s in solvers], moves)
             lengths, passes, moved = rep.lengths(full), passes + 1, False
             for a, s in enumerate(solvers):
@@ -344,8 +346,10 @@ def census(model, q: np.ndarray) -> str:
     from lightning_bodyschema.sim.wrapping import wrap_margins
 
     inside = wrap_margins(model, q)[..., -1] > 0  # (B, M, J): the side site inside its geom
-    m, lines, cases = model.mj_model, ["| muscle | numbers | sites | spheres | cylinders | side sites | "
-                                       "side site inside its geom [% of postures] |", "|---|---|---|---|---|---|---|"], {}
+    m, cases = model.mj_model, {}
+    lines = ["| muscle | numbers | sites | spheres | cylinders | side sites | side site inside its geom "
+             "[% of postures] |",
+             "|---|---|---|---|---|---|---|"]
     for a, tendon in enumerate(model.muscle_ids):
         parts = path_parts(m, tendon)
         geoms = [p for p in parts if p[0] == "geom"]
@@ -389,8 +393,8 @@ def scales(text: str) -> list[float]:
 def check_args(args) -> None:
     if args.postures < 1 or args.test_postures < 1 or args.restarts < 1 or args.max_iter < 1 or args.side_search < 0:
         raise BodySchemaInputError(f"--postures {args.postures}, --test-postures {args.test_postures}, --restarts "
-                                   f"{args.restarts}, --max-iter {args.max_iter}: each must be an integer >= 1 (--side-search "
-                                   f"{args.side_search}: >= 0)")
+                                   f"{args.restarts}, --max-iter {args.max_iter}: each must be an integer >= 1 "
+                                   f"(--side-search {args.side_search}: >= 0)")
     if args.perturb_mm < 0 or args.noise_mm < 0 or min(args.cauchy_mm) < 0 or not 0 <= args.perturb_radius < 1:
         raise BodySchemaInputError(f"--perturb-mm {args.perturb_mm}, --noise-mm {args.noise_mm}, --cauchy-mm "
                                    f"{args.cauchy_mm} must be >= 0 and "
