@@ -22,22 +22,3 @@ def refresh_branches(path) -> None:
     """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
     if not path.branched.is_meta:
         path.branched_index = torch.nonzero(path.branched).flatten()
-
-
-def branch_parts(path):
-    """``(muscles (M',), alt (M', P), gate (M', P))``: the branched muscles, their second polynomials (zero off each
-    muscle's terms) and their gates, terms in their original order; None when no muscle is branched."""
-    if path.branches != 2 or not len(path.branched_index):
-        return None
-    muscles = path.branched_index
-    return muscles, path.coef_alt[muscles] * path.term_mask[muscles], path.gate[muscles]
-
-
-def replace_where(y, dy, muscles, where, y_new, dy_new):
-    """``y (B, M)`` and ``dy (B, M, N)`` (or None), written in place, with the columns ``muscles`` taken from
-    ``y_new (B, M')``, ``dy_new (B, M', N)`` where ``where (B, M')``: a branched muscle's second polynomial where its
-    gate is positive, a celled muscle's cell polynomial where its cell was fitted."""
-    y[:, muscles] = torch.where(where, y_new, y[:, muscles])
-    if dy is not None:
-        dy[:, muscles] = torch.where(where[:, :, None], dy_new, dy[:, muscles])
-    return y, dy

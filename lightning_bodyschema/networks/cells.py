@@ -16,9 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .arrays import as_index, clip, namespace, take
+from .arrays import as_dtype, namespace, take
 from .basis import ProductTerms
-from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .polynomial import check_degrees, term_count
 
@@ -27,9 +26,10 @@ def cell_coordinates(x, pieces: int):
     """Each joint's piece ``k (B, N)`` (int64, 0..pieces-1, of [-1, 1] cut evenly) and the local coordinate
     ``x_local (B, N)`` in [-1, 1] within it, ``d x_local / d x = pieces``, at ``x`` (numpy or torch); a NaN
     coordinate gets piece 0 (a NaN answer at a valid index)."""
-    scaled = pieces * (x + 1)
-    k = clip(namespace(x).floor(scaled / 2), 0, pieces - 1)
-    return as_index(k), scaled - 2 * k - 1
+    xp, scaled = namespace(x), pieces * (x + 1)
+    k = xp.floor(scaled / 2).clip(0, pieces - 1)
+    k = xp.where(k == k, k, 0)  # a NaN (the one value unequal to itself): piece 0
+    return as_dtype(k, xp.int64), scaled - 2 * k - 1
 
 
 def cell_index(piece: torch.Tensor, stride: torch.Tensor) -> torch.Tensor:
@@ -113,8 +113,10 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
         y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
-        y, dy = replace_where(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
-                            None if dy_cell is None else _fold(path, dy_cell))
+        muscles, fitted = path.cell_muscles[members], path.cell_fitted[members][:, cell].T  # (B, Mg)
+        y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
+        if dy is not None:
+            dy[:, muscles] = torch.where(fitted[:, :, None], _fold(path, dy_cell), dy[:, muscles])
     return y, dy
 
 

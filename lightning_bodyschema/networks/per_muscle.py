@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from .arrays import apply_keeping_dtype
+from .arrays import apply_keeping_dtype, pick
 from .basis import ProductTerms, product_basis
-from .branched import add_branches, branch_parts, refresh_branches, replace_where
+from .branched import add_branches, refresh_branches
 from .branches import fit_branches, one_thread
 from .cell_fit import fit_cells
 from .cells import cell_cuts, evaluate_cells, set_cell_layout
@@ -92,18 +92,21 @@ class PerMusclePath(nn.Module):
         ``snapshot``: ``snapshot()`` when the caller keeps it. Inside the box of the fitted samples (``x_lo``,
         ``x_hi``) the polynomial itself; outside, its first-order extension from the nearest point ``c`` of the box,
         ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_rows``) and exported
-        (any batch) the snapshot; above, blocks of rows (a grouped basis), the cells a cell at a time."""
-        x64 = x.to(torch.float64)
+        (any batch) the snapshot; above, blocks of rows (a grouped basis) of the snapshot's candidate rows, each muscle's
+        chosen as the snapshot chooses, the cells a cell at a time."""
+        x64, snapshot = x.to(torch.float64), self.snapshot() if snapshot is None else snapshot
         if torch.compiler.is_exporting() or len(x) <= few_rows(self):
-            y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
+            y, dy = snapshot(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         derive = slopes or not torch.equal(inside, x64)
-        coefs = self._coefficients()  # once per call
+        rows = self.terms.layout(snapshot.box)  # its candidate rows (whole-box, branches, gates), once per call
         blocks = inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
-        parts = [self._smooth(rows, derive, coefs) for rows in blocks]
+        parts = [self.terms.contract(self.terms(block, derive, dense=False), rows) for block in blocks]
         y, dy = parts[0] if len(parts) == 1 else (torch.cat([y for y, _ in parts]),
                                                   torch.cat([dy for _, dy in parts]) if derive else None)
+        choice = snapshot.branch_choice(y)
+        y, dy = y.gather(1, choice), None if dy is None else pick(dy, choice)
         if has_cells(self):
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
@@ -114,25 +117,6 @@ class PerMusclePath(nn.Module):
     def snapshot(self) -> PathSnapshot:
         """The fitted polynomials frozen (``networks.snapshot.PathSnapshot``): valid while they do not change."""
         return PathSnapshot(self)
-
-    def _coefficients(self) -> tuple:
-        """The whole-box coefficients (masked: exactly zero off each muscle's terms) and the branched muscles'
-        ``(muscles, alt, gate)`` (``branched.branch_parts``; or None), laid out for a grouped basis
-        (``ProductTerms.layout``)."""
-        layout, parts = self.terms.layout, branch_parts(self)
-        branches = None if parts is None else (parts[0], layout(parts[1]), layout(parts[2]))
-        return layout(self.coef * self.term_mask), branches
-
-    def _smooth(self, inside: torch.Tensor, slopes: bool, coefs: tuple):
-        """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
-        (``_coefficients``): ``(B, M)``, ``(B, M, N)`` or None."""
-        basis = self.terms(inside, slopes, dense=False)
-        y, dy = self.terms.contract(basis, coefs[0])
-        if coefs[1] is None:
-            return y, dy
-        muscles, alt, gate = coefs[1]  # the active branch per muscle and sample
-        gate_value = self.terms.contract(basis, gate, slopes=False)[0]
-        return replace_where(y, dy, muscles, gate_value > 0, *self.terms.contract(basis, alt))
 
     def _apply(self, fn, *args, **kwargs):
         return apply_keeping_dtype(self, ("coef", "coef_alt", "gate", "cell_coef"), super()._apply, fn, *args, **kwargs)

@@ -13,7 +13,6 @@ import torch
 
 from .arrays import Frozen, as_dtype, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
 from .basis import TermsSnapshot
-from .branched import branch_parts
 from .cells import cell_index, cell_inputs
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
@@ -71,15 +70,19 @@ class PathSnapshot(Frozen):
         self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
         rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
             torch.zeros(n, **long)
-        branches = branch_parts(path)
-        if branches is not None:
-            branched, count = branches[0], len(branches[0])
-            rows += list(branches[1:])
+        if path.branches == 2 and len(path.branched_index):  # second polynomials zero off each muscle's terms
+            branched, count = path.branched_index, len(path.branched_index)
+            rows += [path.coef_alt[branched] * path.term_mask[branched], path.gate[branched]]
             self.alt_col[branched] = len(box_muscles) + torch.arange(count, **long)
             self.gate_col[branched] = len(box_muscles) + count + torch.arange(count, **long)
         self.box = torch.cat(rows)
         self.cell_col = torch.where(self.celled, len(self.box) + self.cell_of, self.box_col)
         self.gated = self.alt_col != self.box_col
+
+    def branch_choice(self, values):
+        """Each posture's whole-box or branch row ``(B, M)`` per muscle from the candidate rows' values ``(B, R)``: a
+        gated muscle's second polynomial where its gate is positive."""
+        return self.xp.where((values[:, self.gate_col] > 0) & self.gated, self.alt_col, self.box_col)
 
     def __call__(self, x64):
         xp = self.xp
@@ -91,8 +94,7 @@ class PathSnapshot(Frozen):
             basis = self.terms(inside)  # (B, P, 1 + N)
         flat = xp.swapaxes(basis[:, :self.n_terms], 0, 1).reshape(self.n_terms, -1)  # one (R, P) x (P, B (1 + N))
         candidates = xp.swapaxes(product(self.box, flat).reshape(len(self.box), basis.shape[0], -1), 0, 1)
-        gate = candidates[:, :, 0][:, self.gate_col]  # candidates (B, R, 1 + N): each row's value and slopes
-        choice = xp.where((gate > 0) & self.gated, self.alt_col, self.box_col)
+        choice = self.branch_choice(candidates[:, :, 0])  # candidates (B, R, 1 + N): each row's value and slopes
         if self.cells:
             cell = cell_index(piece, self.stride)  # (B, Mc): each celled muscle's cell
             at_cell = self.spread[self.rows[None, :], cell]  # (B, Mc, T)
