@@ -97,13 +97,6 @@ def cell_inputs(path, x):
     return k, namespace(x).concatenate([x_local, take(x, path.cell_extra, 1)], 1)
 
 
-def _fold(path, dz: torch.Tensor) -> torch.Tensor:
-    """Slopes ``d/dz (..., N + E)`` in the cells' coordinates as ``d/dx (..., N)``: ``d x_local / d x = pieces``."""
-    n = path.cell_stride.shape[1]
-    dx = dz[..., :n] * path.pieces
-    return dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
-
-
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None; both written in place) with every celled muscle's cell polynomial
     where its cell was fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms,
@@ -115,8 +108,11 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
         muscles, fitted = path.cell_muscles[members], path.cell_fitted[members][:, cell].T  # (B, Mg)
         y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
-        if dy is not None:
-            dy[:, muscles] = torch.where(fitted[:, :, None], _fold(path, dy_cell), dy[:, muscles])
+        if dy is not None:  # d/dz as d/dx: d x_local / d x = pieces; a joint kept whole its own column
+            n = path.cell_stride.shape[1]
+            dx = dy_cell[..., :n] * path.pieces
+            dx = dx + dy_cell[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
+            dy[:, muscles] = torch.where(fitted[:, :, None], dx, dy[:, muscles])
     return y, dy
 
 

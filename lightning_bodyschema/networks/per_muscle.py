@@ -25,7 +25,7 @@ from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
 from .polynomial import (block_sizes, check_blocks, check_crossing, check_degrees, muscle_degrees,
                          solve_normal_equations, term_exponents, term_mask)
-from .snapshot import PathSnapshot, few_rows, has_cells
+from .snapshot import PathSnapshot
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -91,11 +91,11 @@ class PerMusclePath(nn.Module):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
         ``snapshot``: ``snapshot()`` when the caller keeps it. Inside the box of the fitted samples (``x_lo``,
         ``x_hi``) the polynomial itself; outside, its first-order extension from the nearest point ``c`` of the box,
-        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_rows``) and exported
-        (any batch) the snapshot; above, blocks of rows (a grouped basis) of the snapshot's candidate rows, each muscle's
-        chosen as the snapshot chooses, the cells a cell at a time."""
+        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``PathSnapshot.max_postures``) and
+        exported (any batch) the snapshot; above, the snapshot's candidate rows in blocks of rows (a grouped basis),
+        each muscle's row chosen as the snapshot chooses, the cells a cell at a time."""
         x64, snapshot = x.to(torch.float64), self.snapshot() if snapshot is None else snapshot
-        if torch.compiler.is_exporting() or len(x) <= few_rows(self):
+        if torch.compiler.is_exporting() or len(x) <= snapshot.max_postures:
             y, dy = snapshot(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
@@ -107,7 +107,7 @@ class PerMusclePath(nn.Module):
                                                   torch.cat([dy for _, dy in parts]) if derive else None)
         choice = snapshot.branch_choice(y)
         y, dy = y.gather(1, choice), None if dy is None else pick(dy, choice)
-        if has_cells(self):
+        if snapshot.cells:
             y, dy = evaluate_cells(self, inside, y, dy)
         if dy is None:
             return y.to(x.dtype), None

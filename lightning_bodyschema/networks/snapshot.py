@@ -22,27 +22,18 @@ JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest o
 FEW_ELEMENTS = 1_400_000
 
 
-def has_cells(path) -> bool:
-    """Whether ``path`` (a ``PerMusclePath``) has celled muscles (their layout set)."""
-    return path.pieces > 1 and len(path.cell_muscles) > 0
-
-
-def few_rows(path) -> int:
-    """The most postures ``path`` evaluates by its snapshot (their stacked basis within ``FEW_ELEMENTS``; an exported
-    program, any batch: ``PerMusclePath.polynomial``)."""
-    terms = len(path.few_terms.exponents) if has_cells(path) else path.coef.shape[1]
-    return FEW_ELEMENTS // (terms * (1 + path.crossing.shape[1]))
-
-
 class PathSnapshot(Frozen):
     """A fitted ``PerMusclePath``'s polynomials ``(y (B, M), dy (B, M, N))`` at float64 postures ``x64 (B, N)``,
     clamped to the fitted box and extended to first order outside it (``PerMusclePath.polynomial``): a muscle takes
     its cell's polynomial where that cell was fitted, else its gate's branch, else its whole-box polynomial (the
-    candidate rows: ``_choices``). ``max_postures``: the most postures it is built for (``few_rows``)."""
+    candidate rows: ``_choices``). ``max_postures``: the most postures it evaluates (its stacked basis within
+    ``FEW_ELEMENTS``; exported, any batch: ``PerMusclePath.polynomial``); ``cells``: whether the path has celled
+    muscles."""
 
     def __init__(self, path):
-        self.x_lo, self.x_hi, self.cells, self.max_postures = path.x_lo, path.x_hi, has_cells(path), few_rows(path)
+        self.x_lo, self.x_hi, self.cells = path.x_lo, path.x_hi, path.pieces > 1 and len(path.cell_muscles) > 0
         self.terms = TermsSnapshot(path.few_terms if self.cells else path.terms)
+        self.max_postures = FEW_ELEMENTS // (self.terms.n_terms * (1 + path.crossing.shape[1]))
         self.n_terms = path.coef.shape[1]
         self._choices(path)
         if self.cells:

@@ -118,7 +118,7 @@ def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
     monkeypatch.setattr(snapshot, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
     y, dy = fitted.with_jacobian(x)
     monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.snapshot)
-    assert DENSE_ROWS <= snapshot.few_rows(fitted)
+    assert DENSE_ROWS <= fitted.snapshot().max_postures
     parts = [fitted.with_jacobian(x[i:i + DENSE_ROWS]) for i in range(0, 600, DENSE_ROWS)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=term_sum_tol(fitted, y))
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=term_sum_tol(fitted, dy))
