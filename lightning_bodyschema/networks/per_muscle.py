@@ -2,7 +2,7 @@
 
 ``PerMusclePath`` is a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles, terms
 only over the joints the muscle crosses (``networks.polynomial``), fitted by least squares (``fit_polynomial``), plus
-optionally a small MLP per muscle (``networks.muscle_mlp``), two branches and a gate (``networks.branched``) and cells
+optionally a small MLP per muscle (``networks.muscle_mlp``), two branches and a gate (``networks.branches``) and cells
 (``networks.cells``) where one polynomial rings. ``with_jacobian(x)`` gives the lengths and their exact derivative,
 exactly 0 on a joint a muscle does not cross. Plain PyTorch, no Lightning.
 """
@@ -17,8 +17,7 @@ from torch import nn
 
 from .arrays import apply_keeping_dtype, pick
 from .basis import ProductTerms, product_basis
-from .branched import add_branches, refresh_branches
-from .branches import fit_branches, one_thread
+from .branches import add_branches, fit_branches, one_thread, refresh_branches
 from .cell_fit import fit_cells
 from .cells import cell_cuts, evaluate_cells, set_cell_layout
 from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
@@ -71,7 +70,7 @@ class PerMusclePath(nn.Module):
         mask = term_mask(blocks, exponents, degrees)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
-        if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
+        if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branches)
             add_branches(self)
         if self.pieces > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values

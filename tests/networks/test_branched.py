@@ -1,4 +1,4 @@
-"""networks.branched: the branched part of a per-muscle path on its own (gate and second polynomial set by hand, no
+"""The branched part of a per-muscle path on its own (gate and second polynomial set by hand, no
 fit): the length is the active branch's polynomial, the moment arm its exact derivative, the jump where the gate
 changes sign, alike in every evaluation (blocks of rows, the snapshot in torch and in numpy)."""
 import numpy as np
