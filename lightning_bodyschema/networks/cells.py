@@ -100,31 +100,25 @@ def cell_inputs(path, x):
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None; both written in place) with every celled muscle's cell polynomial
     where its cell was fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms,
-    the postures sorted by cell, one product per cell (exported: ``snapshot.PathSnapshot``)."""
+    the postures sorted by cell, one basis and product per cell (exported: ``snapshot.PathSnapshot``)."""
     k, z = cell_inputs(path, x)
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
-        y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
+        order = torch.argsort(cell)  # the postures sorted by cell
+        coef = path.cell_coef[members, :, :width]  # (Mg, C, K)
+        parts = [terms.contract(terms(rows, dy is not None), coef[:, c])
+                 for c, rows in enumerate(z[order].split(torch.bincount(cell).tolist())) if len(rows)]
+        inverse = torch.argsort(order)
         muscles, fitted = path.cell_muscles[members], path.cell_fitted[members][:, cell].T  # (B, Mg)
-        y[:, muscles] = torch.where(fitted, y_cell, y[:, muscles])
-        if dy is not None:  # d/dz as d/dx: d x_local / d x = pieces; a joint kept whole its own column
+        y[:, muscles] = torch.where(fitted, torch.cat([part[0] for part in parts])[inverse], y[:, muscles])
+        if dy is not None:  # d/dz (B, Mg, N + E) as d/dx: d x_local / d x = pieces; a joint kept whole its own column
             n = path.cell_stride.shape[1]
-            dx = dy_cell[..., :n] * path.pieces
-            dx = dx + dy_cell[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
+            dz = torch.cat([part[1] for part in parts])[inverse]
+            dx = dz[..., :n] * path.pieces
+            dx = dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
             dy[:, muscles] = torch.where(fitted[:, :, None], dx, dy[:, muscles])
     return y, dy
-
-
-def _by_cell(terms, coef, z, cell, slopes):
-    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N + E)`` (d/dz; or None) at ``z (B, N + E)`` from its
-    cells' coefficients ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, one basis and contraction per
-    cell."""
-    order = torch.argsort(cell)
-    parts = [terms.contract(terms(rows, slopes), coef[:, c])
-             for c, rows in enumerate(z[order].split(torch.bincount(cell).tolist())) if len(rows)]
-    inverse = torch.argsort(order)
-    return torch.cat([y for y, _ in parts])[inverse], torch.cat([dy for _, dy in parts])[inverse] if slopes else None
 
 
 def set_cell_layout(path, degrees) -> None:
