@@ -60,6 +60,13 @@ def rows_product(m, w):
     return torch.einsum("jf,bfc->bjc", m, w.contiguous())
 
 
+def clip(a, lo: float, hi: float):
+    """``a`` within ``[lo, hi]``, a NaN at ``lo`` (numpy's fmax and fmin; torch's clamp of ``nan_to_num``)."""
+    if isinstance(a, np.ndarray):
+        return np.fmin(np.fmax(a, lo), hi)
+    return torch.nan_to_num(a, nan=lo).clamp(lo, hi)
+
+
 def as_dtype(a, dtype):
     """``a`` in ``dtype`` (the snapshot's: numpy's or torch's spelling of it)."""
     return a.astype(dtype) if isinstance(a, np.ndarray) else a.to(dtype)

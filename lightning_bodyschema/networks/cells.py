@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .arrays import as_dtype, namespace, take
+from .arrays import as_dtype, clip, namespace, take
 from .basis import ProductTerms
 from .branches import SAMPLES_PER_TERM
 from .polynomial import check_degrees, term_count
@@ -27,8 +27,7 @@ def cell_coordinates(x, pieces: int):
     ``x_local (B, N)`` in [-1, 1] within it, ``d x_local / d x = pieces``, at ``x`` (numpy or torch); a NaN
     coordinate gets piece 0 (a NaN answer at a valid index)."""
     xp, scaled = namespace(x), pieces * (x + 1)
-    k = xp.floor(scaled / 2).clip(0, pieces - 1)
-    k = xp.where(k == k, k, 0)  # a NaN (the one value unequal to itself): piece 0
+    k = clip(xp.floor(scaled / 2), 0, pieces - 1)
     return as_dtype(k, xp.int64), scaled - 2 * k - 1
 
 
