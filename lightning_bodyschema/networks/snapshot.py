@@ -45,10 +45,10 @@ class PathSnapshot(Frozen):
             self.spread = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, order, coef)
 
     def _choices(self, path) -> None:
-        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere, every
-        muscle in an exported program: a size from the data there; the branched muscles' second polynomials, their
-        gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates: ``box_col``, ``alt_col`` and
-        ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
+        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere; every
+        muscle in an exported program, a size from the data there, or when every muscle's are; the branched muscles'
+        second polynomials, their gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates:
+        ``box_col``, ``alt_col`` and ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
         n, long = len(path.coef), dict(dtype=torch.long, device=path.coef.device)
         self.celled, everywhere = (torch.zeros(n, dtype=torch.bool, device=path.coef.device) for _ in range(2))
         self.cell_of = torch.zeros(n, **long)
@@ -56,7 +56,8 @@ class PathSnapshot(Frozen):
             self.celled[path.cell_muscles] = True
             everywhere[path.cell_muscles] = path.cell_fitted.all(1)  # never a whole-box row
             self.cell_of[path.cell_muscles] = torch.arange(len(path.cell_muscles), **long)
-        box_muscles = torch.arange(n, **long) if torch.compiler.is_exporting() else torch.nonzero(~everywhere).flatten()
+        every = torch.compiler.is_exporting() or bool(everywhere.all())  # (blocks of rows gather a row)
+        box_muscles = torch.arange(n, **long) if every else torch.nonzero(~everywhere).flatten()
         self.box_col = torch.zeros(n, **long)
         self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
         rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
