@@ -108,9 +108,8 @@ class PerMusclePath(nn.Module):
         y, dy = y.gather(1, choice), None if dy is None else pick(dy, choice)
         if snapshot.cells:
             y, dy = evaluate_cells(self, inside, y, dy)
-        if dy is None:
-            return y.to(x.dtype), None
-        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product: fewer operations than einsum's reshapes
+        if dy is not None:  # (None: no slopes asked, every posture inside the box)
+            y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product: fewer operations than einsum's reshapes
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def snapshot(self) -> PathSnapshot:
