@@ -26,7 +26,8 @@ def cell_coordinates(x, pieces: int):
     """Each joint's piece ``k (B, N)`` (int64, 0..pieces-1, of [-1, 1] cut evenly) and the local coordinate
     ``x_local (B, N)`` in [-1, 1] within it, ``d x_local / d x = pieces``, at ``x`` (numpy or torch); a NaN
     coordinate gets piece 0 (a NaN answer at a valid index)."""
-    xp, scaled = namespace(x), pieces * (x + 1)
+    xp = namespace(x)
+    scaled = pieces * (x + 1)
     k = clip(xp.floor(scaled / 2), 0, pieces - 1)
     return as_dtype(k, xp.int64), scaled - 2 * k - 1
 
@@ -109,7 +110,8 @@ def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
         parts = [terms.contract(terms(rows, dy is not None), coef[:, c])
                  for c, rows in enumerate(z[order].split(torch.bincount(cell).tolist())) if len(rows)]
         inverse = torch.argsort(order)
-        muscles, fitted = path.cell_muscles[members], path.cell_fitted[members][:, cell].T  # (B, Mg)
+        muscles = path.cell_muscles[members]
+        fitted = path.cell_fitted[members][:, cell].T  # (B, Mg)
         y[:, muscles] = torch.where(fitted, torch.cat([part[0] for part in parts])[inverse], y[:, muscles])
         if dy is not None:  # d/dz (B, Mg, N + E) as d/dx: d x_local / d x = pieces; a joint kept whole its own column
             n = path.cell_stride.shape[1]

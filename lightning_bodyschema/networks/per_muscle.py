@@ -93,7 +93,8 @@ class PerMusclePath(nn.Module):
         ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``PathSnapshot.max_postures``) and
         exported (any batch) the snapshot; above, the snapshot's candidate rows in blocks of rows (a grouped basis),
         each muscle's row chosen as the snapshot chooses, the cells a cell at a time."""
-        x64, snapshot = x.to(torch.float64), self.snapshot() if snapshot is None else snapshot
+        x64 = x.to(torch.float64)
+        snapshot = self.snapshot() if snapshot is None else snapshot
         if torch.compiler.is_exporting() or len(x) <= snapshot.max_postures:
             y, dy = snapshot(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
