@@ -67,11 +67,6 @@ def clip(a, lo: float, hi: float):
     return torch.nan_to_num(a, nan=lo).clamp(lo, hi)
 
 
-def as_index(a):
-    """Whole numbers as int64 indices."""
-    return a.astype(np.int64) if isinstance(a, np.ndarray) else a.long()
-
-
 def as_dtype(a, dtype):
     """``a`` in ``dtype`` (the snapshot's: numpy's or torch's spelling of it)."""
     return a.astype(dtype) if isinstance(a, np.ndarray) else a.to(dtype)

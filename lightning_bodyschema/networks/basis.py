@@ -142,10 +142,10 @@ class ProductTerms(nn.Module):
         return coef.index_select(1, self.perm).T, [coef.index_select(1, getattr(self, f"joint_terms{j}")).T
                                                    for j in range(self.n_joints)]
 
-    def contract(self, basis: "Basis", coef, slopes: bool = True):
+    def contract(self, basis: "Basis", coef):
         """``y (B, M)`` of coefficients ``coef`` (``(M, P)`` in the terms' original order, or ``layout``'s for a
-        grouped basis) and, when the basis has slopes and ``slopes``, ``dy (B, M, N)`` (else None)."""
-        slopes = slopes and basis.dphi is not None
+        grouped basis) and, when the basis has slopes, ``dy (B, M, N)`` (else None)."""
+        slopes = basis.dphi is not None
         if not basis.grouped:
             return basis.phi @ coef.T, torch.einsum("bpn,mp->bmn", basis.dphi, coef) if slopes else None
         by_term, by_joint = self.layout(coef) if torch.is_tensor(coef) else coef

@@ -1,10 +1,12 @@
-"""Two-branch muscle paths, the fit: where a wrap switches sides the length jumps; two polynomials and a gate follow it.
+"""Two-branch muscle paths, their state and fit: where a wrap switches sides the length jumps; two polynomials and a
+gate follow it.
 
 ``fit_branches`` gives every muscle whose one-polynomial residual has a heavy tail a second polynomial (same terms)
 and a gate (a polynomial over the same joints, the highest total degree ``<= gate_degree`` with at most
 ``GATE_TERMS`` terms) whose sign picks the branch, from the samples alone, batched over muscles: labels two ways
 (``_labels_by_residual``, ``_labels_by_gate``), both branches refitted, the gate a logistic regression of the labels,
-the better labelling kept where it pays (``_fit_group``). The state and evaluation: ``networks.branched``.
+the better labelling kept where it pays (``_fit_group``). A path's branch state: ``add_branches``; its evaluation:
+``networks.snapshot.PathSnapshot`` (the second polynomials and gates are candidate rows).
 """
 from __future__ import annotations
 
@@ -26,6 +28,23 @@ HEAVY_TAIL = 10.0  # a residual beyond this many medians is a miss (_labels_by_g
 SWING = 4.0  # a kept gated model's largest residual is at most this many times the one polynomial's
 SAMPLES_PER_TERM = 3  # a kept branch's samples per term of its polynomial (fewer: it interpolates, and swings)
 NEAR_FRACTION = 0.02  # the largest residuals of the one polynomial, next to a jump: the first gate's samples
+
+
+def add_branches(path) -> None:
+    """``path``'s branch state, none branched: ``coef_alt``, ``gate`` like its ``coef`` and ``branched (M,)``, and
+    ``branched_index`` (not in the state dict: a shape known before a call, for torch.export), kept in step with
+    ``branched`` by the fit and every state-dict load (``refresh_branches``)."""
+    path.register_buffer("coef_alt", torch.zeros_like(path.coef))
+    path.register_buffer("gate", torch.zeros_like(path.coef))
+    path.register_buffer("branched", torch.zeros(len(path.coef), dtype=torch.bool))
+    path.register_buffer("branched_index", torch.zeros(0, dtype=torch.long), persistent=False)
+    path.register_load_state_dict_post_hook(lambda module, _: refresh_branches(module))
+
+
+def refresh_branches(path) -> None:
+    """``branched_index`` from ``branched`` (not on the meta device, where a skeleton holds no values)."""
+    if not path.branched.is_meta:
+        path.branched_index = torch.nonzero(path.branched).flatten()
 
 
 @contextlib.contextmanager

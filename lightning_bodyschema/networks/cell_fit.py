@@ -7,8 +7,7 @@ from __future__ import annotations
 import torch
 
 from .basis import product_basis
-from .branched import refresh_branches
-from .branches import SAMPLES_PER_TERM
+from .branches import SAMPLES_PER_TERM, refresh_branches
 from .cells import cell_degree, cell_index, cell_inputs, set_cell_layout
 from .polynomial import solve_systems
 from .trim import trimmed_refits

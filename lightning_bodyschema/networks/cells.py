@@ -16,9 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .arrays import as_index, clip, namespace, take
+from .arrays import as_dtype, clip, namespace, take
 from .basis import ProductTerms
-from .branched import replace_where
 from .branches import SAMPLES_PER_TERM
 from .polynomial import check_degrees, term_count
 
@@ -27,9 +26,10 @@ def cell_coordinates(x, pieces: int):
     """Each joint's piece ``k (B, N)`` (int64, 0..pieces-1, of [-1, 1] cut evenly) and the local coordinate
     ``x_local (B, N)`` in [-1, 1] within it, ``d x_local / d x = pieces``, at ``x`` (numpy or torch); a NaN
     coordinate gets piece 0 (a NaN answer at a valid index)."""
+    xp = namespace(x)
     scaled = pieces * (x + 1)
-    k = clip(namespace(x).floor(scaled / 2), 0, pieces - 1)
-    return as_index(k), scaled - 2 * k - 1
+    k = clip(xp.floor(scaled / 2), 0, pieces - 1)
+    return as_dtype(k, xp.int64), scaled - 2 * k - 1
 
 
 def cell_index(piece: torch.Tensor, stride: torch.Tensor) -> torch.Tensor:
@@ -97,36 +97,29 @@ def cell_inputs(path, x):
     return k, namespace(x).concatenate([x_local, take(x, path.cell_extra, 1)], 1)
 
 
-def _fold(path, dz: torch.Tensor) -> torch.Tensor:
-    """Slopes ``d/dz (..., N + E)`` in the cells' coordinates as ``d/dx (..., N)``: ``d x_local / d x = pieces``."""
-    n = path.cell_stride.shape[1]
-    dx = dz[..., :n] * path.pieces
-    return dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
-
-
 def evaluate_cells(path, x: torch.Tensor, y: torch.Tensor, dy):
     """``y (B, M)`` and ``dy (B, M, N)`` (or None; both written in place) with every celled muscle's cell polynomial
     where its cell was fitted, at ``x`` inside the box (float64): per group of muscles sharing joints and cell terms,
-    the postures sorted by cell, one product per cell (exported: ``snapshot.PathSnapshot``)."""
+    the postures sorted by cell, one basis and product per cell (exported: ``snapshot.PathSnapshot``)."""
     k, z = cell_inputs(path, x)
     for (start, end, width), terms in zip(path.cell_group_bounds, path.cell_terms):
         members = path.cell_perm[start:end]
         cell = cell_index(k, path.cell_stride[members[0]])  # (B,): shared by the group
-        y_cell, dy_cell = _by_cell(terms, path.cell_coef[members, :, :width], z, cell, dy is not None)
-        y, dy = replace_where(y, dy, path.cell_muscles[members], path.cell_fitted[members][:, cell].T, y_cell,
-                            None if dy_cell is None else _fold(path, dy_cell))
+        order = torch.argsort(cell)  # the postures sorted by cell
+        coef = path.cell_coef[members, :, :width]  # (Mg, C, K)
+        parts = [terms.contract(terms(rows, dy is not None), coef[:, c])
+                 for c, rows in enumerate(z[order].split(torch.bincount(cell).tolist())) if len(rows)]
+        inverse = torch.argsort(order)
+        muscles = path.cell_muscles[members]
+        fitted = path.cell_fitted[members][:, cell].T  # (B, Mg)
+        y[:, muscles] = torch.where(fitted, torch.cat([part[0] for part in parts])[inverse], y[:, muscles])
+        if dy is not None:  # d/dz (B, Mg, N + E) as d/dx: d x_local / d x = pieces; a joint kept whole its own column
+            n = path.cell_stride.shape[1]
+            dz = torch.cat([part[1] for part in parts])[inverse]
+            dx = dz[..., :n] * path.pieces
+            dx = dx + dz[..., n:] @ path.cell_unfold if len(path.cell_extra) else dx
+            dy[:, muscles] = torch.where(fitted[:, :, None], dx, dy[:, muscles])
     return y, dy
-
-
-def _by_cell(terms, coef, z, cell, slopes):
-    """A group's cell polynomials ``(B, Mg)``, ``(B, Mg, N + E)`` (d/dz; or None) at ``z (B, N + E)`` from its
-    cells' coefficients ``coef (Mg, C, K)``: the postures sorted by ``cell (B,)``, one basis and contraction per
-    cell."""
-    order = torch.argsort(cell)
-    parts = [terms.contract(terms(rows, slopes), coef[:, c])
-             for c, rows in enumerate(z[order].split(torch.bincount(cell).tolist())) if len(rows)]
-    inverse = torch.argsort(order)
-    return torch.cat([y for y, _ in parts])[inverse], torch.cat([dy for _, dy in parts])[inverse] if slopes else None
 
 
 def set_cell_layout(path, degrees) -> None:

@@ -2,7 +2,7 @@
 
 ``PerMusclePath`` is a polynomial per muscle in a tensor-product Legendre basis of the normalized joint angles, terms
 only over the joints the muscle crosses (``networks.polynomial``), fitted by least squares (``fit_polynomial``), plus
-optionally a small MLP per muscle (``networks.muscle_mlp``), two branches and a gate (``networks.branched``) and cells
+optionally a small MLP per muscle (``networks.muscle_mlp``), two branches and a gate (``networks.branches``) and cells
 (``networks.cells``) where one polynomial rings. ``with_jacobian(x)`` gives the lengths and their exact derivative,
 exactly 0 on a joint a muscle does not cross. Plain PyTorch, no Lightning.
 """
@@ -15,17 +15,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from .arrays import apply_keeping_dtype
+from .arrays import apply_keeping_dtype, pick
 from .basis import ProductTerms, product_basis
-from .branched import add_branches, branch_parts, refresh_branches, replace_where
-from .branches import fit_branches, one_thread
+from .branches import add_branches, fit_branches, one_thread, refresh_branches
 from .cell_fit import fit_cells
 from .cells import cell_cuts, evaluate_cells, set_cell_layout
 from .muscle_mlp import muscle_mlp, muscle_mlp_parameters
 from .path_config import PathConfig
 from .polynomial import (block_sizes, check_blocks, check_crossing, check_degrees, muscle_degrees,
                          solve_normal_equations, term_exponents, term_mask)
-from .snapshot import PathSnapshot, few_rows, has_cells
+from .snapshot import PathSnapshot
 from .trim import trimmed_refits
 
 BASIS_ELEMENTS = 2 ** 19  # rows x terms of one block of ``PerMusclePath.polynomial`` (BENCHMARKS.md)
@@ -71,7 +70,7 @@ class PerMusclePath(nn.Module):
         mask = term_mask(blocks, exponents, degrees)
         self.register_buffer("term_mask", torch.tensor(mask))  # (M, P)
         self.register_buffer("coef", torch.zeros(n_muscles, len(exponents), dtype=torch.float64))
-        if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branched)
+        if self.branches == 2:  # a second polynomial per muscle and a gate whose sign picks it (networks.branches)
             add_branches(self)
         if self.pieces > 1:  # cells per muscle (networks.cells); which muscles, and their layout, follow the fit
             self._cell_sources = (crossing, exponents, mask)  # numpy: a skeleton's buffers hold no values
@@ -91,48 +90,32 @@ class PerMusclePath(nn.Module):
         """The polynomial part, evaluated in float64: ``(B, M)`` and, with ``slopes``, ``(B, M, N)``, in x's dtype;
         ``snapshot``: ``snapshot()`` when the caller keeps it. Inside the box of the fitted samples (``x_lo``,
         ``x_hi``) the polynomial itself; outside, its first-order extension from the nearest point ``c`` of the box,
-        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``snapshot.few_rows``) and exported
-        (any batch) the snapshot; above, blocks of rows (a grouped basis), the cells a cell at a time."""
+        ``p(c) + p'(c) (x - c)``, with moment arms ``p'(c)``. At few postures (``PathSnapshot.max_postures``) and
+        exported (any batch) the snapshot; above, the snapshot's candidate rows in blocks of rows (a grouped basis),
+        each muscle's row chosen as the snapshot chooses, the cells a cell at a time."""
         x64 = x.to(torch.float64)
-        if torch.compiler.is_exporting() or len(x) <= few_rows(self):
-            y, dy = (self.snapshot() if snapshot is None else snapshot)(x64)
+        snapshot = self.snapshot() if snapshot is None else snapshot
+        if torch.compiler.is_exporting() or len(x) <= snapshot.max_postures:
+            y, dy = snapshot(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         derive = slopes or not torch.equal(inside, x64)
-        coefs = self._coefficients()  # once per call
+        rows = self.terms.layout(snapshot.box)  # its candidate rows (whole-box, branches, gates), once per call
         blocks = inside.split(max(1, BASIS_ELEMENTS // self.coef.shape[1]))
-        parts = [self._smooth(rows, derive, coefs) for rows in blocks]
+        parts = [self.terms.contract(self.terms(block, derive, dense=False), rows) for block in blocks]
         y, dy = parts[0] if len(parts) == 1 else (torch.cat([y for y, _ in parts]),
                                                   torch.cat([dy for _, dy in parts]) if derive else None)
-        if has_cells(self):
+        choice = snapshot.branch_choice(y)
+        y, dy = y.gather(1, choice), None if dy is None else pick(dy, choice)
+        if snapshot.cells:
             y, dy = evaluate_cells(self, inside, y, dy)
-        if dy is None:
-            return y.to(x.dtype), None
-        y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product: fewer operations than einsum's reshapes
+        if dy is not None:  # (None: no slopes asked, every posture inside the box)
+            y = y + (dy @ (x64 - inside)[:, :, None])[..., 0]  # a product: fewer operations than einsum's reshapes
         return y.to(x.dtype), dy.to(x.dtype) if slopes else None
 
     def snapshot(self) -> PathSnapshot:
         """The fitted polynomials frozen (``networks.snapshot.PathSnapshot``): valid while they do not change."""
         return PathSnapshot(self)
-
-    def _coefficients(self) -> tuple:
-        """The whole-box coefficients (masked: exactly zero off each muscle's terms) and the branched muscles'
-        ``(muscles, alt, gate)`` (``branched.branch_parts``; or None), laid out for a grouped basis
-        (``ProductTerms.layout``)."""
-        layout, parts = self.terms.layout, branch_parts(self)
-        branches = None if parts is None else (parts[0], layout(parts[1]), layout(parts[2]))
-        return layout(self.coef * self.term_mask), branches
-
-    def _smooth(self, inside: torch.Tensor, slopes: bool, coefs: tuple):
-        """The whole-box polynomials (and the active branches) at ``inside (B, N)`` float64 with ``coefs``
-        (``_coefficients``): ``(B, M)``, ``(B, M, N)`` or None."""
-        basis = self.terms(inside, slopes, dense=False)
-        y, dy = self.terms.contract(basis, coefs[0])
-        if coefs[1] is None:
-            return y, dy
-        muscles, alt, gate = coefs[1]  # the active branch per muscle and sample
-        gate_value = self.terms.contract(basis, gate, slopes=False)[0]
-        return replace_where(y, dy, muscles, gate_value > 0, *self.terms.contract(basis, alt))
 
     def _apply(self, fn, *args, **kwargs):
         return apply_keeping_dtype(self, ("coef", "coef_alt", "gate", "cell_coef"), super()._apply, fn, *args, **kwargs)

@@ -13,7 +13,6 @@ import torch
 
 from .arrays import Frozen, as_dtype, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
 from .basis import TermsSnapshot
-from .branched import branch_parts
 from .cells import cell_index, cell_inputs
 
 JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest operations); above, a product per node
@@ -23,27 +22,18 @@ JUMP_ROWS = 4  # up to this many postures the kinematics jump pointers (fewest o
 FEW_ELEMENTS = 1_400_000
 
 
-def has_cells(path) -> bool:
-    """Whether ``path`` (a ``PerMusclePath``) has celled muscles (their layout set)."""
-    return path.pieces > 1 and len(path.cell_muscles) > 0
-
-
-def few_rows(path) -> int:
-    """The most postures ``path`` evaluates by its snapshot (their stacked basis within ``FEW_ELEMENTS``; an exported
-    program, any batch: ``PerMusclePath.polynomial``)."""
-    terms = len(path.few_terms.exponents) if has_cells(path) else path.coef.shape[1]
-    return FEW_ELEMENTS // (terms * (1 + path.crossing.shape[1]))
-
-
 class PathSnapshot(Frozen):
     """A fitted ``PerMusclePath``'s polynomials ``(y (B, M), dy (B, M, N))`` at float64 postures ``x64 (B, N)``,
     clamped to the fitted box and extended to first order outside it (``PerMusclePath.polynomial``): a muscle takes
     its cell's polynomial where that cell was fitted, else its gate's branch, else its whole-box polynomial (the
-    candidate rows: ``_choices``). ``max_postures``: the most postures it is built for (``few_rows``)."""
+    candidate rows: ``_choices``). ``max_postures``: the most postures it evaluates (its stacked basis within
+    ``FEW_ELEMENTS``; exported, any batch: ``PerMusclePath.polynomial``); ``cells``: whether the path has celled
+    muscles."""
 
     def __init__(self, path):
-        self.x_lo, self.x_hi, self.cells, self.max_postures = path.x_lo, path.x_hi, has_cells(path), few_rows(path)
+        self.x_lo, self.x_hi, self.cells = path.x_lo, path.x_hi, path.pieces > 1 and len(path.cell_muscles) > 0
         self.terms = TermsSnapshot(path.few_terms if self.cells else path.terms)
+        self.max_postures = FEW_ELEMENTS // (self.terms.n_terms * (1 + path.crossing.shape[1]))
         self.n_terms = path.coef.shape[1]
         self._choices(path)
         if self.cells:
@@ -55,10 +45,10 @@ class PathSnapshot(Frozen):
             self.spread = coef.new_zeros(*coef.shape[:2], len(path.cell_exponents)).scatter_add_(2, order, coef)
 
     def _choices(self, path) -> None:
-        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere, every
-        muscle in an exported program: a size from the data there; the branched muscles' second polynomials, their
-        gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates: ``box_col``, ``alt_col`` and
-        ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
+        """``box (R, P)``: the whole-box rows a posture may use (the muscles without cells fitted everywhere; every
+        muscle in an exported program, a size from the data there, or when every muscle's are; the branched muscles'
+        second polynomials, their gates; masked to each muscle's terms), and per muscle ``(M,)`` its candidates:
+        ``box_col``, ``alt_col`` and ``gate_col`` (where ``gated``), ``cell_col``, ``cell_of`` (where ``celled``)."""
         n, long = len(path.coef), dict(dtype=torch.long, device=path.coef.device)
         self.celled, everywhere = (torch.zeros(n, dtype=torch.bool, device=path.coef.device) for _ in range(2))
         self.cell_of = torch.zeros(n, **long)
@@ -66,20 +56,25 @@ class PathSnapshot(Frozen):
             self.celled[path.cell_muscles] = True
             everywhere[path.cell_muscles] = path.cell_fitted.all(1)  # never a whole-box row
             self.cell_of[path.cell_muscles] = torch.arange(len(path.cell_muscles), **long)
-        box_muscles = torch.arange(n, **long) if torch.compiler.is_exporting() else torch.nonzero(~everywhere).flatten()
+        every = torch.compiler.is_exporting() or bool(everywhere.all())  # (blocks of rows gather a row)
+        box_muscles = torch.arange(n, **long) if every else torch.nonzero(~everywhere).flatten()
         self.box_col = torch.zeros(n, **long)
         self.box_col[box_muscles] = torch.arange(len(box_muscles), **long)
         rows, self.alt_col, self.gate_col = [(path.coef * path.term_mask)[box_muscles]], self.box_col.clone(), \
             torch.zeros(n, **long)
-        branches = branch_parts(path)
-        if branches is not None:
-            branched, count = branches[0], len(branches[0])
-            rows += list(branches[1:])
+        if path.branches == 2 and len(path.branched_index):  # second polynomials zero off each muscle's terms
+            branched, count = path.branched_index, len(path.branched_index)
+            rows += [path.coef_alt[branched] * path.term_mask[branched], path.gate[branched]]
             self.alt_col[branched] = len(box_muscles) + torch.arange(count, **long)
             self.gate_col[branched] = len(box_muscles) + count + torch.arange(count, **long)
         self.box = torch.cat(rows)
         self.cell_col = torch.where(self.celled, len(self.box) + self.cell_of, self.box_col)
         self.gated = self.alt_col != self.box_col
+
+    def branch_choice(self, values):
+        """Each posture's whole-box or branch row ``(B, M)`` per muscle from the candidate rows' values ``(B, R)``: a
+        gated muscle's second polynomial where its gate is positive."""
+        return self.xp.where((values[:, self.gate_col] > 0) & self.gated, self.alt_col, self.box_col)
 
     def __call__(self, x64):
         xp = self.xp
@@ -91,8 +86,7 @@ class PathSnapshot(Frozen):
             basis = self.terms(inside)  # (B, P, 1 + N)
         flat = xp.swapaxes(basis[:, :self.n_terms], 0, 1).reshape(self.n_terms, -1)  # one (R, P) x (P, B (1 + N))
         candidates = xp.swapaxes(product(self.box, flat).reshape(len(self.box), basis.shape[0], -1), 0, 1)
-        gate = candidates[:, :, 0][:, self.gate_col]  # candidates (B, R, 1 + N): each row's value and slopes
-        choice = xp.where((gate > 0) & self.gated, self.alt_col, self.box_col)
+        choice = self.branch_choice(candidates[:, :, 0])  # candidates (B, R, 1 + N): each row's value and slopes
         if self.cells:
             cell = cell_index(piece, self.stride)  # (B, Mc): each celled muscle's cell
             at_cell = self.spread[self.rows[None, :], cell]  # (B, Mc, T)

@@ -12,8 +12,9 @@ from ..networks.per_muscle import PerMusclePath
 from ..networks.snapshot import BodySnapshot, GravitySnapshot
 from ..networks.switches import PostureSwitches, switch_diagnostics
 
-# ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``snapshot.few_rows``): on myoArm
-# numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation, myoArm")
+# ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``PathSnapshot.max_postures``): on
+# myoArm numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation,
+# myoArm")
 HOST_ROWS = 16
 
 

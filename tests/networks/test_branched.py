@@ -1,4 +1,4 @@
-"""networks.branched: the branched part of a per-muscle path on its own (gate and second polynomial set by hand, no
+"""The branched part of a per-muscle path on its own (gate and second polynomial set by hand, no
 fit): the length is the active branch's polynomial, the moment arm its exact derivative, the jump where the gate
 changes sign, alike in every evaluation (blocks of rows, the snapshot in torch and in numpy)."""
 import numpy as np
@@ -7,7 +7,6 @@ import torch
 from physics_checks import rounding_tol
 
 from lightning_bodyschema.networks import snapshot
-from lightning_bodyschema.networks.branched import branch_parts, replace_where
 from lightning_bodyschema.networks.per_muscle import PerMusclePath
 
 EDGE = 0.25  # the gate is x - EDGE: the second branch above
@@ -38,12 +37,15 @@ def _expected(x):
     return torch.stack([y0, -x[:, 0]], 1), torch.stack([dy0, -torch.ones_like(dy0)], 1)[..., None]
 
 
-def test_the_parts_are_the_branched_muscles_masked_second_polynomials_and_gates():
-    muscles, alt, gate = branch_parts(_path())
-    assert muscles.tolist() == [0]
-    assert alt.tolist() == [[0.5, 0.0, 0.3]] and gate.tolist() == [[-EDGE, 1.0, 0.0]]
-    assert branch_parts(PerMusclePath(np.array([[True]]), degree=2, n_hidden=0, branches=2)) is None  # none branched
-    assert branch_parts(PerMusclePath(np.array([[True]]), degree=2, n_hidden=0)) is None  # no branches
+def test_the_snapshot_rows_are_the_branched_muscles_masked_second_polynomials_and_gates():
+    frozen = snapshot.PathSnapshot(_path())
+    assert frozen.gated.tolist() == [True, False]  # muscle 1 is never branched: its whole-box row only
+    assert frozen.box[frozen.alt_col[0]].tolist() == [0.5, 0.0, 0.3]
+    assert frozen.box[frozen.gate_col[0]].tolist() == [-EDGE, 1.0, 0.0]
+    for path in (PerMusclePath(np.array([[True]]), degree=2, n_hidden=0, branches=2),  # none branched
+                 PerMusclePath(np.array([[True]]), degree=2, n_hidden=0)):  # no branches
+        frozen = snapshot.PathSnapshot(path)
+        assert len(frozen.box) == 1 and not frozen.gated.any()
 
 
 @pytest.mark.parametrize("evaluation", ["blocks", "snapshot", "numpy"])
@@ -65,13 +67,3 @@ def test_the_length_jumps_where_the_gate_changes_sign_and_the_moment_arm_is_the_
     jump = (path.with_jacobian(above)[0] - path.with_jacobian(below)[0])[0, 0]
     torch.testing.assert_close(jump, torch.tensor(0.35 + 0.45 * EDGE ** 2 - 0.1 - 0.2 * EDGE, dtype=torch.float64),
                                atol=1e-8, rtol=0)  # the branches' gap, up to their slopes over 2e-9
-
-
-def test_replace_where_writes_in_place_and_leaves_other_muscles():
-    y, dy = torch.zeros(2, 3), torch.zeros(2, 3, 1)
-    where = torch.tensor([[True], [False]])
-    out, dout = replace_where(y, dy, torch.tensor([1]), where, torch.ones(2, 1), torch.ones(2, 1, 1))
-    assert out is y and dout is dy  # in place: the caller's fresh polynomials, no copy
-    assert y.tolist() == [[0, 1, 0], [0, 0, 0]] and dy[..., 0].tolist() == [[0, 1, 0], [0, 0, 0]]
-    replace_where(y, None, torch.tensor([2]), where, torch.full((2, 1), 2.0), None)
-    assert y.tolist() == [[0, 1, 2], [0, 0, 0]]  # muscle 1 kept, muscle 2 where told

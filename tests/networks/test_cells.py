@@ -110,6 +110,21 @@ def test_cell_numbering_and_degrees(fitted):
             PerMusclePath(CROSSING, degree=4, hidden=1, n_hidden=0, cells=2, cell_trim=bad)
 
 
+def test_a_path_celled_everywhere_answers_its_cells_at_few_and_many_postures(monkeypatch):
+    """Every muscle's every cell fitted (set by hand: no whole-box row is ever chosen): each cell's constant."""
+    from lightning_bodyschema.networks import snapshot
+
+    path = PerMusclePath(np.array([[True, True]]), degree=2, hidden=1, n_hidden=0, cells=2, cell_degrees=[1])
+    path.cell_fitted[:] = True
+    path.cell_coef[0, :, 0] = torch.arange(1.0, 5.0, dtype=torch.float64)  # the constant term: 1, 2, 3, 4
+    x = _inside(300, 6)[:, :2]
+    cell = (path.cell_stride[0] * (x > 0)).sum(1)
+    for elements in (snapshot.FEW_ELEMENTS, 0):  # the snapshot, then blocks of rows and a cell at a time
+        monkeypatch.setattr(snapshot, "FEW_ELEMENTS", elements)
+        y, dy = path.with_jacobian(x)
+        assert y[:, 0].tolist() == (cell + 1.0).tolist() and (dy == 0).all()
+
+
 def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
     from lightning_bodyschema.networks import snapshot
     from lightning_bodyschema.networks.basis import DENSE_ROWS
@@ -118,7 +133,7 @@ def test_many_postures_by_cell_equal_few_postures_gathered(fitted, monkeypatch):
     monkeypatch.setattr(snapshot, "FEW_ELEMENTS", 0)  # a group of muscles and a cell at a time
     y, dy = fitted.with_jacobian(x)
     monkeypatch.undo()  # in pieces of DENSE_ROWS: every part from one basis (networks.snapshot)
-    assert DENSE_ROWS <= snapshot.few_rows(fitted)
+    assert DENSE_ROWS <= fitted.snapshot().max_postures
     parts = [fitted.with_jacobian(x[i:i + DENSE_ROWS]) for i in range(0, 600, DENSE_ROWS)]
     torch.testing.assert_close(y, torch.cat([p[0] for p in parts]), rtol=0, atol=term_sum_tol(fitted, y))
     torch.testing.assert_close(dy, torch.cat([p[1] for p in parts]), rtol=0, atol=term_sum_tol(fitted, dy))

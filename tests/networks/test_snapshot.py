@@ -66,14 +66,14 @@ def test_the_few_postures_path_is_taken_within_its_work_budget(path, monkeypatch
     x = _postures(11, 3)
     path.with_jacobian(x[:10])
     path.with_jacobian(x)  # one posture above the budget: blocks of rows
-    assert few_postures.few_rows(path) == 10 and calls == [10]
+    assert path.snapshot().max_postures == 10 and calls == [10]
 
 
 def test_few_postures_moment_arms_are_their_lengths_derivative(path):
     x = _postures(40, 2).clamp(-0.89, 0.89)  # inside the box: the polynomials themselves
     x = x[((x[:, 0] + 0.3 * x[:, 1] - 0.2).abs() > 1e-3) & (x[:, 2].abs() > 1e-3) & (x[:, 0].abs() > 1e-3)]
     y, dy = path.with_jacobian(x)  # away from the gate's switch and the cells' edges (finite differences)
-    assert 30 < len(x) <= few_postures.few_rows(path)
+    assert 30 < len(x) <= path.snapshot().max_postures
     np.testing.assert_allclose(dy.numpy(), central_differences(path, x), rtol=0, atol=1e-7)
 
 

@@ -10,7 +10,7 @@ from physics_checks import fit_structured
 
 from lightning_bodyschema.data import EquilibriumDataModule
 from lightning_bodyschema.faults import Faults
-from lightning_bodyschema.networks.branched import refresh_branches
+from lightning_bodyschema.networks.branches import refresh_branches
 from lightning_bodyschema.networks.switches import JUMP_FLOOR_M, SWITCH_REACH_RAD
 
 
