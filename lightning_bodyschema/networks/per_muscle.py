@@ -96,7 +96,7 @@ class PerMusclePath(nn.Module):
         x64 = x.to(torch.float64)
         snapshot = self.snapshot() if snapshot is None else snapshot
         if torch.compiler.is_exporting() or len(x) <= snapshot.max_postures:
-            y, dy = snapshot(x64)
+            y, dy, _ = snapshot(x64)
             return y.to(x.dtype), dy.to(x.dtype) if slopes else None
         inside = torch.clamp(x64, self.x_lo, self.x_hi)
         derive = slopes or not torch.equal(inside, x64)

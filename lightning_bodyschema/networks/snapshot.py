@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .arrays import Frozen, as_dtype, decode_q, encode_q, horner, namespace, pick, product, rows_product, take
+from .arrays import Frozen, as_dtype, decode_q, encode_q, horner, pick, product, rows_product, take
 from .basis import TermsSnapshot
 from .cells import cell_index, cell_inputs
 
@@ -95,7 +95,7 @@ class PathSnapshot(Frozen):
             choice = xp.where(fitted & self.celled, self.cell_col, choice)
         picked = pick(candidates, choice)  # (B, M, 1 + N)
         y, dy = picked[..., 0], picked[..., 1:]
-        return y + (dy @ (x64 - inside)[:, :, None])[..., 0], dy
+        return y + (dy @ (x64 - inside)[:, :, None])[..., 0], dy, candidates[:, :len(self.box)]
 
 
 class GravitySnapshot(Frozen):
@@ -183,7 +183,9 @@ class BodySnapshot(Frozen):
     def __call__(self, q_rad):
         f64 = self.float64
         q_n = as_dtype(encode_q(q_rad, self.q_lo, self.q_hi), self.dtype)
-        y, dy = self.path(as_dtype(q_n, f64))
+        y, dy, box_rows = self.path(as_dtype(q_n, f64))
+        if self.xp is np:  # the path-switch flag reads the rows at the same postures (one assignment: a whole pair)
+            self.recent = (q_rad.copy(), box_rows)
         l_geo = self.l_mean + self.l_std * as_dtype(y, self.dtype)
         tau = as_dtype(self.gravity(decode_q(as_dtype(q_n, f64), self.q_lo, self.q_hi)), self.dtype)
         return as_dtype(l_geo, f64), as_dtype(as_dtype(dy, self.dtype) * self.arm, f64), as_dtype(tau, f64)

@@ -39,23 +39,30 @@ class PostureSwitches(Frozen):
         self.q_lo, self.q_hi, self.length_scale_m = (a.to(torch.float64) for a in (q_lo, q_hi, length_scale_m))
         self.x_lo, self.x_hi, self.half_range = snapshot.x_lo, snapshot.x_hi, 0.5 * (self.q_hi - self.q_lo)
         self.muscles = torch.nonzero(snapshot.gated).flatten()
-        rows = lambda col: snapshot.box[col[self.muscles]]  # noqa: E731  (one row per switching muscle)
-        self.gate_terms, self.gate = _on_terms(path.exponents, rows(snapshot.gate_col))
-        self.gap_terms, self.gap = _on_terms(path.exponents, rows(snapshot.alt_col) - rows(snapshot.box_col))
+        self.gate_row, self.alt_row, self.box_row = (col[self.muscles] for col in (snapshot.gate_col, snapshot.alt_col,
+                                                                                   snapshot.box_col))
+        self.gate_terms, self.gate = _on_terms(path.exponents, snapshot.box[self.gate_row])
+        self.gap_terms, self.gap = _on_terms(path.exponents, snapshot.box[self.alt_row] - snapshot.box[self.box_row])
 
-    def __call__(self, q_rad):
+    def __call__(self, q_rad, box_rows=None):
+        """``box_rows``: the snapshot's whole-box rows at these postures (``PathSnapshot``'s third output), read
+        instead of evaluating the gates on their own terms (the same polynomials: equal to rounding)."""
         if not len(self.muscles):
             return np.full(len(q_rad), np.inf), np.full(len(q_rad), -1, dtype=np.int64)
-        x = np.minimum(np.maximum(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo), self.x_hi)
-        basis = self.gate_terms(x)  # (B, P', 1 + N): each term, then its slopes
-        gate = np.swapaxes(basis, 1, 2) @ self.gate  # (B, 1 + N, G)
+        if box_rows is None:  # (B, 1 + N, G): each gate's value, then its slopes
+            x = np.minimum(np.maximum(encode_q(np.asarray(q_rad, np.float64), self.q_lo, self.q_hi), self.x_lo),
+                           self.x_hi)
+            gate = np.swapaxes(self.gate_terms(x), 1, 2) @ self.gate
+        else:
+            gate = np.swapaxes(box_rows[:, self.gate_row], 1, 2)
         grad = gate[:, 1:] / self.half_range[:, None]  # d g / d q [1/rad]
         norm = np.sqrt(np.add.reduce(grad * grad, axis=1))  # np.linalg.norm's arithmetic, without its checks
         distance = np.abs(gate[:, 0]) / np.maximum(norm, 1e-300)  # (B, G)
         within = distance <= SWITCH_REACH_RAD
         if within.any():  # within reach: is there a jump? (few rows)
             rows, cols = np.nonzero(within)
-            jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols])
+            jump_m = np.abs((self.gap_terms(x[rows])[:, :, 0] @ self.gap)[np.arange(len(rows)), cols] if box_rows is
+                            None else box_rows[rows, self.alt_row[cols], 0] - box_rows[rows, self.box_row[cols], 0])
             jump_m *= self.length_scale_m[self.muscles[cols]]
             distance[rows[jump_m < JUMP_FLOOR_M], cols[jump_m < JUMP_FLOOR_M]] = np.inf
         nearest = distance.min(1)  # the entry argmin picks (a NaN row: NaN either way)

@@ -58,7 +58,7 @@ def test_the_length_jumps_where_the_gate_changes_sign_and_the_moment_arm_is_the_
         y, dy = path.with_jacobian(x)
     else:
         frozen = path.snapshot() if evaluation == "snapshot" else path.snapshot().on_host()
-        y, dy = (torch.as_tensor(a) for a in frozen(x if evaluation == "snapshot" else x.numpy()))
+        y, dy = (torch.as_tensor(a) for a in frozen(x if evaluation == "snapshot" else x.numpy())[:2])
     y_true, dy_true = _expected(x)
     torch.testing.assert_close(y, y_true, atol=rounding_tol(_POLY_ROUNDINGS, y_true), rtol=0)
     torch.testing.assert_close(dy, dy_true, atol=rounding_tol(_POLY_ROUNDINGS, dy_true), rtol=0)

@@ -56,3 +56,25 @@ def test_postures_within_reach_of_a_learned_jump_are_flagged_with_their_distance
     assert (d["near_path_switch"] == (truth <= SWITCH_REACH_RAD)).all() and d["near_path_switch"].sum() > 50
     assert (d["path_switch_muscle"] == 0).all()
     assert (result.status == "ok").all()  # flagged, not withheld: the status is the command's own
+
+
+def test_few_postures_flag_from_the_body_rows_the_adapter_just_evaluated():
+    """A body the snapshot covers (gravity torque): at few postures the adapter's flag reads the whole-box rows its
+    body evaluation left (no second evaluation of the gates) and answers as the gates' own terms do, to rounding;
+    both within rounding of the true distance to the switch."""
+    schema = fit_structured(EquilibriumDataModule(n_samples=1000, seed=0, cache_dir=None), length_model="per_muscle",
+                            path_degree=8, path_branches=2, torque_model="gravity")[0]
+    lo, hi = schema.robot_model.q_range[0]
+    at = 0.5 * (lo + hi)
+    _switch_at_shoulder(schema, at, 10 * JUMP_FLOOR_M)
+    q = schema.robot_model.sample_q(np.random.default_rng(5), 8)
+    q[:, 0] = at + np.linspace(-2, 2, 8) * SWITCH_REACH_RAD  # four within reach
+    own = schema.path_switches(q)  # the body not evaluated there yet: the gates on their own terms
+    switches = schema.inference_cache.get("switch_snapshot", None)
+    switches.gate_terms = None  # a second evaluation of the gates would fail from here on
+    d = schema.adapt(q, Faults.none(8, schema.n_muscles), check_physics=False).diagnostics
+    np.testing.assert_allclose(d["path_switch_distance_rad"], np.abs(q[:, 0] - at), rtol=0, atol=1e-9 * (hi - lo))
+    # to rounding of the posture the body evaluates (normalized in the schema's dtype: float32 here)
+    np.testing.assert_allclose(d["path_switch_distance_rad"], own["path_switch_distance_rad"], rtol=0,
+                               atol=1e-9 * (hi - lo))
+    assert (d["near_path_switch"] == own["near_path_switch"]).all() and d["near_path_switch"].sum() == 4
