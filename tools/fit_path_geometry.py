@@ -27,9 +27,9 @@ at most ``MAX_STEP_M`` per number, radii kept >= ``MIN_RADIUS_M``. Side sites ar
 act only through which way a path wraps); ``--side-search N``: N rounds of a pattern search over them
 (``side_search``, steps ``--side-steps-mm``), each followed by the fit again. Starts: the MJCF's numbers each
 moved by +-``--perturb-mm`` (a seeded sign per coordinate; radii by a factor 1 +- ``--perturb-radius``;
-``--side-sites mjcf`` leaves the side sites at the MJCF's), or with ``--prior centroid`` a weak prior (each site and geom at the centroid of the MJCF's
-sites of its body, plus +-``--perturb-mm`` per coordinate, radii x ``CENTROID_RADIUS_FACTOR``); ``--side-sites
-geom``: a side site riding its geom's body starts at the geom's start centre plus the MJCF's offset between them
+``--side-sites mjcf`` leaves the side sites at the MJCF's), or with ``--prior centroid`` a weak prior (each site
+and geom at the centroid of the MJCF's sites of its body, plus +-``--perturb-mm`` per coordinate, radii x
+``CENTROID_RADIUS_FACTOR``); ``--side-sites geom``: a side site riding its geom's body starts at the geom's start centre plus the MJCF's offset between them
 (``with_geom_offsets``); ``--restarts`` seeded starts, per muscle the lowest train cost kept (``--retry-mm``: a
 restart refits only the muscles still above that train RMS). Targets: MuJoCo's lengths at ``--postures`` seeded
 uniform postures (``--seed``), or with ``--equilibrium`` the data module's: ``generate_equilibrium_samples`` and
