@@ -21,19 +21,19 @@ number: a larger one is a wrap switching between the two evaluations) is set to 
 
 Levenberg-Marquardt per muscle on the Cauchy loss of scale ``--cauchy-mm`` (0: least squares; a posture the current
 numbers wrap otherwise than the truth misses by a jump of millimetres and must not pull the fit; several scales: one
-fit after the other, ``fit_stages``), the damped step
-taken in the column-scaled Jacobian's singular directions above ``RCOND`` (the lengths do not see the others),
-at most ``MAX_STEP_M`` per number, radii kept >= ``MIN_RADIUS_M``. Side sites are never moved by it (``held``: they
-act only through which way a path wraps); ``--side-search N``: N rounds of a pattern search over them
-(``side_search``, steps ``--side-steps-mm``), each followed by the fit again. Starts: the MJCF's numbers each
-moved by +-``--perturb-mm`` (a seeded sign per coordinate; radii by a factor 1 +- ``--perturb-radius``;
-``--side-sites mjcf`` leaves the side sites at the MJCF's), or with ``--prior centroid`` a weak prior (each site
-and geom at the centroid of the MJCF's sites of its body, plus +-``--perturb-mm`` per coordinate, radii x
-``CENTROID_RADIUS_FACTOR``); ``--side-sites geom``: a side site riding its geom's body starts at the geom's start centre plus the MJCF's offset between them
-(``with_geom_offsets``); ``--restarts`` seeded starts, per muscle the lowest train cost kept (``--retry-mm``: a
-restart refits only the muscles still above that train RMS). Targets: MuJoCo's lengths at ``--postures`` seeded
-uniform postures (``--seed``), or with ``--equilibrium`` the data module's: ``generate_equilibrium_samples`` and
-``l_motor + elongation_from_tension(f)`` with the config's spring; plus Gaussian noise of ``--noise-mm``.
+fit after the other, ``fit_stages``), the damped step taken in the column-scaled Jacobian's singular directions
+above ``RCOND`` (the lengths do not see the others), at most ``MAX_STEP_M`` per number, radii kept >=
+``MIN_RADIUS_M``. Side sites are never moved by it (``held``: they act only through which way a path wraps);
+``--side-search N``: N rounds of a pattern search over them (``side_search``, steps ``--side-steps-mm``), each
+followed by the fit again. Starts: the MJCF's numbers each moved by +-``--perturb-mm`` (a seeded sign per
+coordinate; radii by a factor 1 +- ``--perturb-radius``; ``--side-sites mjcf`` leaves the side sites at the MJCF's),
+or with ``--prior centroid`` a weak prior (each site and geom at the centroid of the MJCF's sites of its body, plus
++-``--perturb-mm`` per coordinate, radii x ``CENTROID_RADIUS_FACTOR``); ``--side-sites geom``: a side site riding
+its geom's body starts at the geom's start centre plus the MJCF's offset between them (``with_geom_offsets``);
+``--restarts`` seeded starts, per muscle the lowest train cost kept (``--retry-mm``: a restart refits only the
+muscles still above that train RMS). Targets: MuJoCo's lengths at ``--postures`` seeded uniform postures
+(``--seed``), or with ``--equilibrium`` the data module's: ``generate_equilibrium_samples`` and ``l_motor +
+elongation_from_tension(f)`` with the config's spring; plus Gaussian noise of ``--noise-mm``.
 
 Printed per muscle: its numbers, iterations (MuJoCo passes), the train RMS, the numbers' largest error [mm] per kind
 (sites, geom centres, radii, side sites; a number the lengths do not see keeps its start's error, so read it with
