@@ -4,8 +4,9 @@
     python tools/fit_path_geometry.py [--config configs/myoarm.yaml] [--muscles TMAJ,BIClong,... | all]
                                       [--postures 2000] [--perturb-mm 5] [--perturb-radius 0.05] [--noise-mm 0]
                                       [--seed 0] [--prior mjcf | centroid] [--restarts 1] [--max-iter 40]
-                                      [--cauchy-mm 0.3 | 30,3,0.3] [--side-search 0] [--side-sites start | mjcf]
-                                      [--test-postures 2000] [--test-seed 1]
+                                      [--cauchy-mm 0.3 | 30,3,0.3] [--side-search 0] [--side-sites start | mjcf | geom]
+                                      [--side-steps-mm 8,4,2,1,0.5] [--retry-mm 0] [--equilibrium]
+                                      [--flag-mm 0.1,0.5] [--flag-share 0.01] [--test-postures 2000] [--test-seed 1]
     python tools/fit_path_geometry.py --census [--config configs/myolegs-per-muscle.yaml]
 
 The path's topology is known (MuJoCo's spatial tendon: which bodies its sites ride on, which wrapping geoms, sphere
@@ -20,16 +21,19 @@ number: a larger one is a wrap switching between the two evaluations) is set to 
 
 Levenberg-Marquardt per muscle on the Cauchy loss of scale ``--cauchy-mm`` (0: least squares; a posture the current
 numbers wrap otherwise than the truth misses by a jump of millimetres and must not pull the fit; several scales: one
-fit after the other, ``fit_stages``), the damped step
-taken in the column-scaled Jacobian's singular directions above ``RCOND`` (the lengths do not see the others),
-at most ``MAX_STEP_M`` per number, radii kept >= ``MIN_RADIUS_M``. Side sites are never moved by it (``held``: they
-act only through which way a path wraps); ``--side-search N``: N rounds of a pattern search over them
-(``side_search``), each followed by the fit again. Starts: the MJCF's numbers each moved by +-``--perturb-mm`` (a
-seeded sign per coordinate; radii by a factor 1 +- ``--perturb-radius``; ``--side-sites mjcf`` leaves the side
-sites at the MJCF's), or with ``--prior centroid`` a weak prior (each site and geom at the centroid of the MJCF's
-sites of its body, plus +-``--perturb-mm`` per coordinate, radii x ``CENTROID_RADIUS_FACTOR``); ``--restarts``
-seeded starts, per muscle the lowest train cost kept. Targets: MuJoCo's lengths at ``--postures`` seeded uniform
-postures (``--seed``) plus Gaussian noise of ``--noise-mm``.
+fit after the other, ``fit_stages``), the damped step taken in the column-scaled Jacobian's singular directions
+above ``RCOND`` (the lengths do not see the others), at most ``MAX_STEP_M`` per number, radii kept >=
+``MIN_RADIUS_M``. Side sites are never moved by it (``held``: they act only through which way a path wraps);
+``--side-search N``: N rounds of a pattern search over them (``side_search``, steps ``--side-steps-mm``), each
+followed by the fit again. Starts: the MJCF's numbers each moved by +-``--perturb-mm`` (a seeded sign per
+coordinate; radii by a factor 1 +- ``--perturb-radius``; ``--side-sites mjcf`` leaves the side sites at the MJCF's),
+or with ``--prior centroid`` a weak prior (each site and geom at the centroid of the MJCF's sites of its body, plus
++-``--perturb-mm`` per coordinate, radii x ``CENTROID_RADIUS_FACTOR``); ``--side-sites geom``: a side site riding
+its geom's body starts at the geom's start centre plus the MJCF's offset between them (``with_geom_offsets``);
+``--restarts`` seeded starts, per muscle the lowest train cost kept (``--retry-mm``: a restart refits only the
+muscles still above that train RMS). Targets: MuJoCo's lengths at ``--postures`` seeded uniform postures
+(``--seed``), or with ``--equilibrium`` the data module's: ``generate_equilibrium_samples`` and ``l_motor +
+elongation_from_tension(f)`` with the config's spring; plus Gaussian noise of ``--noise-mm``.
 
 Printed per muscle: its numbers, iterations (MuJoCo passes), the train RMS, the numbers' largest error [mm] per kind
 (sites, geom centres, radii, side sites; a number the lengths do not see keeps its start's error, so read it with
@@ -39,7 +43,10 @@ same draw), its length p99 [mm] at the start and fitted and the share of posture
 than the true one (``sim.wrapping.wrap_states``' codes: a mirrored geometry of the same lengths counts as wrong);
 then the worst of the fitted muscles per posture: length p50 / p90 / p99 / max [mm] and moment arm (MuJoCo's tendon
 Jacobian of the fitted paths: the length's exact derivative) p50 / p90 / p99 [mm/rad], start and fit; the fit's CPU
-time (every muscle together: one pass serves all). ``--census``: per muscle of the config's body its numbers and
+time (every muscle together: one pass serves all). ``--flag-mm``: the path-switch flag on the fitted paths' exact
+margins (``switch_distance_mm``: a posture is flagged where a margin that decides a jump lies within the band of
+zero), per band and for the band that flags ``--flag-share`` of the test postures: the share flagged, the bad
+postures it catches, the worst muscle over the others. ``--census``: per muscle of the config's body its numbers and
 wrap cases (sphere / cylinder, with or without a side site, the side site inside the geom at some of the test
 postures). One thread.
 """
@@ -61,6 +68,10 @@ RCOND = 1e-6  # singular values of the column-scaled Jacobian below this (relati
 MAX_STEP_M = 0.01  # a step moves no number by more than this (a number seen only inside a wrap can run away)
 CENTROID_RADIUS_FACTOR = 1.5
 KINDS = ("site", "geom", "radius", "side")
+# the margins whose zero is a jump of the length: the side site behind the geom (the long way round) and inside it
+# (the inside wrap); a wrap's onset where the line turns tangent (upper, lower) or a site meets the geom only bends it,
+# so a state wrong there costs a length error of second order in the margin (sim/wrapping.py's docstring)
+JUMP_MARGINS = ("before", "after", "inside")
 _SITE, _SPHERE, _CYLINDER = (int(mujoco.mjtWrap.mjWRAP_SITE), int(mujoco.mjtWrap.mjWRAP_SPHERE),
                              int(mujoco.mjtWrap.mjWRAP_CYLINDER))
 
@@ -106,7 +117,7 @@ class Replicas:
     """Every fitted muscle's ``P + 1`` private path copies in one expanded MjModel (module docstring)."""
 
     def __init__(self, model, muscles: list[int]):
-        m = model.mj_model
+        m, self.muscles = model.mj_model, list(muscles)
         self.parts = [path_parts(m, model.muscle_ids[i]) for i in muscles]
         self.tables = [numbers(m, parts) for parts in self.parts]
         self.truth = [true_values(m, parts, table) for parts, table in zip(self.parts, self.tables)]
@@ -296,7 +307,23 @@ def starts(rep: Replicas, m: mujoco.MjModel, args, rng: np.random.Generator) -> 
         radius = kind == "radius"
         factor = 1 + args.perturb_radius * sign if args.prior == "mjcf" else CENTROID_RADIUS_FACTOR
         start = np.where(radius, base * factor, base + 1e-3 * args.perturb_mm * sign)
+        if args.side_sites == "geom":
+            start = with_geom_offsets(m, parts, table, truth, start)
         out.append(np.where((kind == "side") & (args.side_sites == "mjcf"), truth, start))
+    return out
+
+
+def with_geom_offsets(m: mujoco.MjModel, parts, table, truth: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """``--side-sites geom``: each side site that rides its geom's body started at the geom's start centre plus the
+    prior's offset between them (which side of the geom it lies on, inside it or not: what decides the wrap, kept as
+    the prior has it; a side site at its small geom's centre moved apart from it by +-1 mm lands outside a 1.5 mm
+    sphere and turns MuJoCo's inside wrap into another mode)."""
+    out, index = start.copy(), {row: n for n, row in enumerate(table)}
+    for i, part in enumerate(parts):
+        if part[0] == "geom" and part[2] >= 0 and m.site_bodyid[part[2]] == m.geom_bodyid[part[1]]:
+            for c in range(3):
+                side, centre = index[("side", i, c)], index[("geom", i, c)]
+                out[side] = start[centre] + truth[side] - truth[centre]
     return out
 
 
@@ -335,10 +362,35 @@ def score(rep: Replicas, model, muscles: list[int], theta: list[np.ndarray], q: 
     crossed = np.abs(G_true).max(0) > 1e-12
     length_mm = 1e3 * np.abs(l_fit - l_true)
     arm = np.where(crossed, 1e3 * np.abs(G_fit - G_true), 0.0).reshape(len(q), -1).max(1)
-    pct = lambda a: [float(np.percentile(a, p)) for p in (50, 90, 99, 100)]  # noqa: E731
-    return {"length": pct(length_mm.max(1)), "arm": pct(arm), "p99": np.percentile(length_mm, 99, axis=0),
+    return {**worst_figures(length_mm.max(1), arm), "p99": np.percentile(length_mm, 99, axis=0),
             "wrong_state": (wrap_states(rep.model, q) != states_true).mean(0), "bad": (length_mm > BAD_MM).mean(0),
-            "bad_postures": float((length_mm.max(1) > BAD_MM).mean())}
+            "worst_mm": length_mm.max(1), "worst_arm": arm}
+
+
+def worst_figures(worst_mm: np.ndarray, worst_arm: np.ndarray) -> dict:
+    """p50 / p90 / p99 / max of the worst muscle's length [mm] and moment arm [mm/rad] per posture, the bad share."""
+    pct = lambda a: [float(np.percentile(a, p)) if len(a) else float("nan") for p in (50, 90, 99, 100)]  # noqa: E731
+    return {"length": pct(worst_mm), "arm": pct(worst_arm),
+            "bad_postures": float((worst_mm > BAD_MM).mean()) if len(worst_mm) else float("nan")}
+
+
+def switch_distance_mm(rep: Replicas, q: np.ndarray) -> np.ndarray:
+    """``(B,)`` per posture the smallest |margin| [mm] of the fitted paths (``sim.wrapping.wrap_margins`` of copy 0:
+    exact) whose sign decides its muscle's state: a margin counts where flipping its sign alone changes the state code
+    (``states_from_margins``: MuJoCo's rule), among ``JUMP_MARGINS`` only, and a margin constant over ``q`` (its points
+    ride one body) never switches; inf where nothing can switch."""
+    from lightning_bodyschema.sim.wrapping import MARGINS, states_from_margins, wrap_margins
+
+    margins = wrap_margins(rep.model, q)  # (B, M, J, 9) [m]
+    moving = np.ptp(np.nan_to_num(margins), axis=0) > 1e-9  # (M, J, 9): a constant margin never crosses zero
+    codes, out = states_from_margins(margins), np.full(margins.shape[:2], np.inf)
+    for j in range(margins.shape[2]):
+        for k in [MARGINS.index(name) for name in JUMP_MARGINS]:
+            flipped = margins.copy()
+            flipped[:, :, j, k] *= -1
+            decides = (states_from_margins(flipped) != codes) & moving[None, :, j, k]
+            out = np.where(decides, np.minimum(out, 1e3 * np.abs(margins[:, :, j, k])), out)
+    return out.min(1)
 
 
 def census(model, q: np.ndarray) -> str:
@@ -399,19 +451,29 @@ def check_args(args) -> None:
         raise BodySchemaInputError(f"--perturb-mm {args.perturb_mm}, --noise-mm {args.noise_mm}, --cauchy-mm "
                                    f"{args.cauchy_mm} must be >= 0 and "
                                    f"--perturb-radius {args.perturb_radius} in [0, 1)")
-    if args.seed == args.test_seed:
+    if (args.flag_mm is not None and min(args.flag_mm) < 0) or not 0 <= args.flag_share < 1:
+        raise BodySchemaInputError(f"--flag-mm {args.flag_mm} must be >= 0 [mm] and --flag-share {args.flag_share} "
+                                   "in [0, 1)")
+    if args.seed == args.test_seed and not args.equilibrium:
         raise BodySchemaInputError(f"--seed {args.seed} is --test-seed: the train postures would be the test ones")
 
 
 def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, args) -> tuple[list, list, float]:
-    """``--restarts`` seeded fits; per muscle the one with the lowest train cost; its start; CPU seconds."""
+    """``--restarts`` seeded fits; per muscle the one with the lowest train cost; its start; CPU seconds. With
+    ``--retry-mm`` > 0 a restart refits only the muscles whose best train RMS is still above it (their own copies)."""
     best, first, cpu = None, None, time.process_time()
     for restart in range(args.restarts):
-        start = starts(rep, model.mj_model, args, np.random.default_rng([args.seed, 7, restart]))
-        solvers = fit_stages(rep, full, target, start, args)
+        again = list(range(len(rep.tables))) if best is None or args.retry_mm <= 0 else [
+            a for a, b in enumerate(best) if 1e3 * np.sqrt(np.mean(b.r ** 2)) > args.retry_mm]
+        if not again:
+            break
+        sub = rep if len(again) == len(rep.tables) else Replicas(model, [rep.muscles[a] for a in again])
+        start = starts(sub, model.mj_model, args, np.random.default_rng([args.seed, 7, restart]))
+        solvers = fit_stages(sub, full, target[:, again], start, args)
         if best is None:
             best, first = solvers, start
-        best = [s if s.cost < b.cost else b for s, b in zip(solvers, best)]
+        for a, s in zip(again, solvers):
+            best[a] = s if s.cost < best[a].cost else best[a]
     return best, first, time.process_time() - cpu
 
 
@@ -421,7 +483,7 @@ def fit_stages(rep: Replicas, full: np.ndarray, target: np.ndarray, start: list[
     sites' search, each followed by the fit at the last scale; iterations summed."""
     solvers, stages = None, [("fit", c) for c in args.cauchy_mm] + [("side", args.cauchy_mm[-1])] * args.side_search
     for kind, scale_mm in stages:
-        passes = side_search(rep, full, target, solvers) if kind == "side" else 0
+        passes = side_search(rep, full, target, solvers, args.side_steps_mm) if kind == "side" else 0
         again = fit(rep, full, target, start if solvers is None else [s.theta for s in solvers], args.max_iter,
                     1e-3 * scale_mm)
         for new, old in zip(again, solvers or []):
@@ -447,34 +509,43 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--prior", choices=("mjcf", "centroid"), default="mjcf")
     parser.add_argument("--restarts", type=int, default=1)
-    parser.add_argument("--side-sites", choices=("start", "mjcf"), default="start",
-                        help="side sites (never fitted) at the start's numbers or the MJCF's")
+    parser.add_argument("--retry-mm", type=float, default=0.0,
+                        help="> 0: restarts refit only the muscles whose train RMS is above this [mm]")
+    parser.add_argument("--side-sites", choices=("start", "mjcf", "geom"), default="start",
+                        help="side sites (never fitted) at the start's numbers, the MJCF's, or their geom's start "
+                             "centre plus the MJCF's offset")
     parser.add_argument("--cauchy-mm", type=scales, default=[0.3],
                         help="Cauchy loss scales, comma separated, fitted in turn (0: least squares)")
     parser.add_argument("--side-search", type=int, default=0,
                         help="rounds of a pattern search over the side sites, each followed by the fit again")
+    parser.add_argument("--side-steps-mm", type=scales, default=[8, 4, 2, 1, 0.5],
+                        help="the side search's steps [mm], comma separated, in turn")
     parser.add_argument("--max-iter", type=int, default=40)
     parser.add_argument("--test-postures", type=int, default=2000)
     parser.add_argument("--test-seed", type=int, default=1)
     parser.add_argument("--census", action="store_true")
+    parser.add_argument("--equilibrium", action="store_true",
+                        help="train on generate_equilibrium_samples' postures and l_motor + elongation(f)")
+    parser.add_argument("--flag-mm", type=scales, default=None,
+                        help="flag bands [mm], comma separated: postures with a deciding margin within one")
+    parser.add_argument("--flag-share", type=float, default=0.01, help="also the band that flags this share")
     args = parser.parse_args(argv)
     check_args(args)
-    model, _, _ = robot_from_config(args.config)
+    model, spring, _ = robot_from_config(args.config)
     q_test = model.sample_q(np.random.default_rng(args.test_seed), args.test_postures)  # tools/body_errors.py's draw
     if args.census:
         print(census(model, q_test))
         return
-    run(model, pick_muscles(model, args.muscles), q_test, args)
+    run(model, spring, pick_muscles(model, args.muscles), q_test, args)
 
 
-def run(model, muscles: list[int], q_test: np.ndarray, args) -> None:
+def run(model, spring, muscles: list[int], q_test: np.ndarray, args) -> None:
     """Fit, score and print (module docstring)."""
     from lightning_bodyschema.sim.wrapping import wrap_states
 
     rep = Replicas(model, muscles)
     rng = np.random.default_rng(args.seed)
-    q = model.sample_q(rng, args.postures)
-    l_true = model.kinematics(q)[0][:, muscles]
+    q, l_true = train_targets(model, spring, muscles, rng, args)
     target = l_true + 1e-3 * args.noise_mm * rng.standard_normal(l_true.shape)
     full = model.joint_map.full_q(q)
     rep.write(rep.truth)
@@ -495,6 +566,47 @@ def run(model, muscles: list[int], q_test: np.ndarray, args) -> None:
     print("|---|---|---|---|")
     print(row("start", s0))
     print(row("fit", s1))
+    if args.flag_mm is not None:
+        rep.write([s.theta for s in solvers])
+        print()
+        print(flag_table(switch_distance_mm(rep, q_test), s1, args))
+
+
+def train_targets(model, spring, muscles: list[int], rng: np.random.Generator, args) -> tuple[np.ndarray, np.ndarray]:
+    """Train postures ``(N, n)`` and their lengths ``(N, A)`` [m]: MuJoCo's at seeded uniform postures, or with
+    ``--equilibrium`` what the schema learns from: ``generate_equilibrium_samples`` (postures the muscles hold, seed
+    ``--seed``) and its ``l_motor + elongation_from_tension(f)`` (the spring law of the config)."""
+    if not args.equilibrium:
+        q = model.sample_q(rng, args.postures)
+        return q, model.kinematics(q)[0][:, muscles]
+    from lightning_bodyschema.sim.equilibrium import generate_equilibrium_samples
+    from lightning_bodyschema.sim.spring import elongation_from_tension
+
+    data = generate_equilibrium_samples(model, args.postures, args.seed, spring)
+    l_geo = (data.l_motor + elongation_from_tension(data.f, spring))[:, muscles]
+    off_m = np.abs(l_geo - model.kinematics(data.q)[0][:, muscles]).max()
+    print(f"train: {args.postures} equilibrium postures ({data.n_redrawn} unholdable draws re-drawn), l_motor + "
+          f"elongation(f) off MuJoCo's lengths by {off_m:.2g} m")
+    return data.q, l_geo
+
+
+def flag_table(distance_mm: np.ndarray, s: dict, args) -> str:
+    """Per band of ``--flag-mm`` (and the band that flags ``--flag-share`` of the postures): postures whose fitted
+    paths have a deciding margin within the band of zero (``switch_distance_mm``), flagged share, the bad postures
+    caught, and the worst muscle over the others."""
+    order = np.sort(distance_mm)
+    share_band = float(order[int(np.floor(args.flag_share * len(order)))])  # distance < band: at most the share
+    bad = s["worst_mm"] > BAD_MM
+    lines = [f"| flag band [mm] | flagged | bad (> {BAD_MM} mm) caught | the others: worst length p50 / p90 / p99 / "
+             "max [mm] | worst moment arm p50 / p90 / p99 / max [mm/rad] |", "|---|---|---|---|---|"]
+    for band in sorted(args.flag_mm) + [share_band]:
+        flagged, keep = distance_mm < band, distance_mm >= band
+        other = worst_figures(s["worst_mm"][keep], s["worst_arm"][keep])
+        label = f"{band:.3g}" + (f" (the {100 * args.flag_share:.3g} % band)" if band == share_band else "")
+        lines.append(f"| {label} | {flagged.sum()} ({100 * flagged.mean():.3g} %) | {(flagged & bad).sum()} of "
+                     f"{bad.sum()} | " + " / ".join(f"{x:.3g}" for x in other["length"]) + " | "
+                     + " / ".join(f"{x:.3g}" for x in other["arm"]) + " |")
+    return "\n".join(lines)
 
 
 def muscle_table(rep: Replicas, solvers: list, scores: tuple[dict, dict], names: list[str]) -> str:
