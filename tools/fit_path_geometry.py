@@ -59,6 +59,7 @@ import numpy as np
 from lightning_bodyschema.apps.common import exits_cleanly, robot_from_config
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.evaluation.body_errors import BAD_LENGTH_MM as BAD_MM
+from lightning_bodyschema.paths.parts import KINDS, numbers, path_parts, true_values
 
 TAIL = "TMAJ,BIClong,DELT1,TRIlong,PECM3,LAT3,SUP"
 FD_STEP_M = 1e-7  # forward-difference step of every number [m]: lengths are exact to ~1e-16 m
@@ -67,50 +68,10 @@ MIN_RADIUS_M = 1e-4
 RCOND = 1e-6  # singular values of the column-scaled Jacobian below this (relative) are directions the data do not see
 MAX_STEP_M = 0.01  # a step moves no number by more than this (a number seen only inside a wrap can run away)
 CENTROID_RADIUS_FACTOR = 1.5
-KINDS = ("site", "geom", "radius", "side")
 # the margins whose zero is a jump of the length: the side site behind the geom (the long way round) and inside it
 # (the inside wrap); a wrap's onset where the line turns tangent (upper, lower) or a site meets the geom only bends it,
 # so a state wrong there costs a length error of second order in the margin (sim/wrapping.py's docstring)
 JUMP_MARGINS = ("before", "after", "inside")
-_SITE, _SPHERE, _CYLINDER = (int(mujoco.mjtWrap.mjWRAP_SITE), int(mujoco.mjtWrap.mjWRAP_SPHERE),
-                             int(mujoco.mjtWrap.mjWRAP_CYLINDER))
-
-
-def path_parts(m: mujoco.MjModel, tendon: int) -> list[tuple]:
-    """The tendon's path in order: ``("site", id)`` or ``("geom", id, side site id or -1)``."""
-    parts = []
-    for k in range(m.tendon_adr[tendon], m.tendon_adr[tendon] + m.tendon_num[tendon]):
-        kind, obj = int(m.wrap_type[k]), int(m.wrap_objid[k])
-        if kind == _SITE:
-            parts.append(("site", obj))
-        elif kind in (_SPHERE, _CYLINDER):
-            parts.append(("geom", obj, int(round(m.wrap_prm[k]))))
-        else:
-            raise BodySchemaInputError(f"tendon {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_TENDON, tendon)!r} has a "
-                                       f"wrap of type {kind}: only sites, spheres and cylinders are modelled")
-    return parts
-
-
-def numbers(m: mujoco.MjModel, parts: list[tuple]) -> list[tuple[str, int, int]]:
-    """The path's numbers ``(kind, object, component)``: each site's 3, each geom's 3 and radius, each side site's 3
-    (object: the index of the part in ``parts``; a side site's is its geom's)."""
-    out = []
-    for i, part in enumerate(parts):
-        if part[0] == "site":
-            out += [("site", i, c) for c in range(3)]
-        else:
-            out += [("geom", i, c) for c in range(3)] + [("radius", i, 0)]
-            out += [("side", i, c) for c in range(3)] if part[2] >= 0 else []
-    return out
-
-
-def true_values(m: mujoco.MjModel, parts, table) -> np.ndarray:
-    """The MJCF's value of each number of ``table`` [m]."""
-    def value(kind, i, c):
-        part = parts[i]
-        return {"site": lambda: m.site_pos[part[1], c], "geom": lambda: m.geom_pos[part[1], c],
-                "radius": lambda: m.geom_size[part[1], 0], "side": lambda: m.site_pos[part[2], c]}[kind]()
-    return np.array([value(*row) for row in table], float)
 
 
 class Replicas:
