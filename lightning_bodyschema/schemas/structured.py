@@ -7,7 +7,8 @@ Trained from (q, l_motor, f) samples and the spring law alone (no MJCF: recorded
   (``length_model="mlp"``, ``networks.structured.JacobianMLP``), or each muscle's path over only the joints it
   crosses (``"per_muscle"``, ``networks.per_muscle.PerMusclePath``: a least-squares polynomial per muscle, two and
   a gate where the path jumps with ``path_branches=2``, plus a small per-muscle network), its moment arm exactly 0
-  on every other joint;
+  on every other joint, or each muscle's MuJoCo path (``"geometric"``, ``paths.module.GeometricPath``: the MJCF's
+  path topology, its sites, wrapping geoms and side sites placed by a fit to the lengths; needs the MJCF);
 * the joint torque the muscles must balance ``tau(q)`` (static equilibrium ``-G^T f = tau``), regressed on
   ``-G(q)^T f`` of the samples: the gradient of a learned potential ``V(q)`` (gravity and joint springs are
   conservative; ``torque_model="potential"``), a plain regression (``"direct"``), or a polynomial per joint fitted
@@ -44,6 +45,7 @@ from ..sim.separable import separable_blocks
 from .base import BodySchema
 from .structured_body import LearnedBody
 from .crossing import crossing_from_data, resolve_crossing
+from .geometric import check_geometric_options, fit_geometric_numbers, geometric_path
 
 BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s on myoArm
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
@@ -51,7 +53,8 @@ FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned momen
 TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
 TORQUE_TRIM = 3.0  # its refits drop postures missed by more than this many medians (RESULTS.md "Per-muscle paths")
 TORQUE_TRIM_ROUNDS = 8
-LENGTH_MODELS = ("mlp", "per_muscle")
+LENGTH_MODELS = ("mlp", "per_muscle", "geometric")
+FITTED_LENGTHS = ("per_muscle", "geometric")  # fitted by least squares when the fit starts, not by the optimizer
 
 
 class StructuredSchema(LearnedBody, BodySchema):
@@ -71,8 +74,9 @@ class StructuredSchema(LearnedBody, BodySchema):
             ``alpha (f + k)`` [N/m] (a length error then counts as the tension error it causes); False: unit weights.
         torque_weight: weight of the torque regression next to the length regression (both in normalized units).
         qp_reg: weight of ``||f - f_ref||^2`` in the least-squares answer of an unholdable posture (dimensionless).
-        length_model: ``"mlp"`` (the default: one dense network, ``hidden`` x ``n_hidden``) or ``"per_muscle"``
-            (each muscle's path over the joints it crosses; ``path_degree``, ``path_hidden``, ``path_layers``).
+        length_model: ``"mlp"`` (the default: one dense network, ``hidden`` x ``n_hidden``), ``"per_muscle"``
+            (each muscle's path over the joints it crosses; ``path_degree``, ``path_hidden``, ``path_layers``) or
+            ``"geometric"`` (each muscle's MuJoCo path, its numbers fitted; needs the robot's MJCF).
         path_degree, path_terms: each muscle's polynomial has the highest total degree ``<= path_degree`` with at
             most ``path_terms`` terms over the joints it crosses (``"per_muscle"``).
         path_term_budget: None, or the most polynomial terms over all muscles together: what ``path_terms`` leaves
@@ -108,6 +112,11 @@ class StructuredSchema(LearnedBody, BodySchema):
             (halve its median residual without a larger p99) or ``"median"`` (halve its median: myoArm's LAT1 and
             LAT2, two branches each, then keep cells whose moment arms are far better on all but their jumps' smaller
             sides; ``networks.cell_fit._kept``).
+        path_prior_error_mm, path_fit_postures, path_fit_seed: with ``length_model="geometric"`` (MuJoCo's path
+            topology from the robot's MJCF, each muscle's numbers fitted to the train split's lengths: ``paths``), the
+            fit starts from the MJCF's numbers each moved by +-``path_prior_error_mm`` [mm] (a seeded sign per
+            number: a simulated CAD error for data the MJCF itself generated; 0 for a real robot, whose MJCF is its
+            CAD), on ``path_fit_postures`` train postures drawn with ``path_fit_seed``.
         muscle_joints: ``{muscle: [joints]}``, the joints each muscle crosses (``"per_muscle"``). Default: the
             robot's MJCF (MuJoCo's tendon Jacobian), else the recorded data's ``muscle_joints``, else detected from
             the training data when the fit starts; the fit stores the answer here, so a checkpoint knows it.
@@ -129,7 +138,8 @@ class StructuredSchema(LearnedBody, BodySchema):
                  path_tolerance_mm: Optional[float] = None, path_degrees: Optional[list] = None,
                  path_cells: int = 1, path_cell_degrees: Optional[list] = None, path_separable: bool = False,
                  path_blocks: Optional[list] = None, path_cell_trim: Optional[float] = None,
-                 path_cell_joints: str = "crossed", path_cell_keep: str = "median_and_p99"):
+                 path_cell_joints: str = "crossed", path_cell_keep: str = "median_and_p99",
+                 path_prior_error_mm: float = 0.0, path_fit_postures: int = 4000, path_fit_seed: int = 0):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
@@ -141,8 +151,11 @@ class StructuredSchema(LearnedBody, BodySchema):
         if torque_model == "gravity" and not self.robot_model.has_physics:
             raise BodySchemaInputError("torque_model='gravity' needs the robot's MJCF (recorded data has none); "
                                        "use 'polynomial', 'direct' or 'potential'")
-        if torque_model in FITTED_TORQUES and length_model != "per_muscle":
-            raise BodySchemaInputError(f"torque_model={torque_model!r} needs length_model='per_muscle'")
+        if torque_model in FITTED_TORQUES and length_model not in FITTED_LENGTHS:
+            raise BodySchemaInputError(f"torque_model={torque_model!r} needs length_model='per_muscle' or "
+                                       f"'geometric'")
+        if length_model == "geometric":
+            check_geometric_options(self.robot_model, path_prior_error_mm, path_fit_postures, path_fit_seed)
         if path_separable and length_model != "per_muscle":
             raise BodySchemaInputError("path_separable=True needs length_model='per_muscle'")
         check_architecture(block, norm)
@@ -152,7 +165,9 @@ class StructuredSchema(LearnedBody, BodySchema):
                                        f"with a path_term_budget to share")
         self.save_hyperparameters()
         PathConfig.from_schema(self.hparams)  # every path option checked, whichever length model
-        if length_model == "per_muscle":
+        if length_model == "geometric":  # rebuilt from the robot's XML: a checkpoint carries only the numbers
+            self.length_net = geometric_path(self.robot_model)
+        elif length_model == "per_muscle":
             self.hparams.muscle_joints = resolve_crossing(self.robot_model, robot, muscle_joints)
             if path_separable and path_blocks is None:
                 self.hparams.path_blocks = self._separable_blocks()
@@ -212,6 +227,8 @@ class StructuredSchema(LearnedBody, BodySchema):
             self.tau_scale_nm.copy_(self.torque_scale())
             if self.hparams.get("length_model", "mlp") == "per_muscle":
                 self._fit_paths(*datamodule.splits["train"])
+            elif self.hparams.length_model == "geometric":
+                self._fit_geometry(*datamodule.splits["train"])
 
     def _fit_paths(self, q: torch.Tensor, x: torch.Tensor) -> None:
         """Detect the crossings from the data when nothing gave them (said in the log), then fit every muscle's
@@ -234,6 +251,20 @@ class StructuredSchema(LearnedBody, BodySchema):
         if self.hparams.torque_model in FITTED_TORQUES:
             self._fit_torque(q_n.to(self.device), x[:, self.n_muscles:].to(self.device, torch.float64))
 
+    def _fit_geometry(self, q: torch.Tensor, x: torch.Tensor) -> None:
+        """Fit every muscle's path numbers to the train split's exact lengths ``l_motor + delta(f)``
+        (``paths.fit``, from the MJCF's numbers moved by ``path_prior_error_mm``), then the gravity torque to the
+        fitted moment arms."""
+        q, x = q.to(torch.float64), x.to(torch.float64)
+        self.length_net.to(self.device)
+        self.torque_net.to(self.device)
+        target_m = self._length_target_n(x) * self.normalizer.x_std[:self.n_muscles] + \
+            self.normalizer.x_mean[:self.n_muscles]
+        fit_geometric_numbers(self.length_net, self.robot_model, q, target_m, self.hparams)
+        self.clear_caches()
+        if self.hparams.torque_model in FITTED_TORQUES:
+            self._fit_torque(self.normalizer.encode_q(q).to(self.device), x[:, self.n_muscles:].to(self.device))
+
     def _choose_degrees(self, q_n: torch.Tensor, target_n: torch.Tensor) -> None:
         """``hparams.path_degrees`` from a first fit (``path_tolerance_mm``), and the path model rebuilt with them."""
         hp, l_std_mm = self.hparams, 1e3 * self.normalizer.x_std[:self.n_muscles]
@@ -251,14 +282,19 @@ class StructuredSchema(LearnedBody, BodySchema):
         fit_trimmed``: where a learned moment arm swings, at a jump or a cell's edge, its torque is no smooth
         function's, and the least squares would spread that over every posture)."""
         q_n, f = q_n[:TORQUE_FIT_POSTURES].to(torch.float64), f[:TORQUE_FIT_POSTURES].to(torch.float64)
-        arm_scale = self._arm_scale().to(q_n)
-        target = torch.cat([-torch.einsum("bmn,bm->bn", self.length_net.with_jacobian(q_n[i:i + chunk].to(
-            self.dtype))[1].to(torch.float64) * arm_scale, f[i:i + chunk]) for i in range(0, len(q_n), chunk)])
+        target = torch.cat([-torch.einsum("bmn,bm->bn", self._fitted_arms(q_n[i:i + chunk]), f[i:i + chunk])
+                            for i in range(0, len(q_n), chunk)])
         if self.hparams.torque_model == "gravity":  # in SI: radians and N m, as the tree's kinematics
             self.torque_net.fit_trimmed(self.normalizer.decode_q(q_n), target, TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
         else:
             self.torque_net.fit_trimmed(q_n, target / self.tau_scale_nm.to(q_n), TORQUE_TRIM, TORQUE_TRIM_ROUNDS)
         self.clear_caches()  # the cache holds terms of the gravity torque's coefficients (torque)
+
+    def _fitted_arms(self, q_n: torch.Tensor) -> torch.Tensor:
+        """The fitted paths' moment arms ``(B, M, N)`` [m/rad], float64, at normalized postures (float64)."""
+        if self.hparams.length_model == "geometric":
+            return self.length_net(self.normalizer.decode_q(q_n))[1]
+        return self.length_net.with_jacobian(q_n.to(self.dtype))[1].to(torch.float64) * self._arm_scale().to(q_n)
 
     def refresh_from_train_split(self, q_n, x_n) -> None:
         """The fitted torque refitted to the current moment arms (when the lengths have trained weights)."""
@@ -280,6 +316,9 @@ class StructuredSchema(LearnedBody, BodySchema):
     def body(self, q_n: torch.Tensor, lengths_only: bool = False):
         """At normalized postures ``q_n (B, N)``: ``l_geo (B, M)`` [m], ``G (B, M, N)`` [m/rad], ``tau (B, N)`` [N m]
         in the networks' dtype (``tau`` None with ``lengths_only``). Differentiable in the weights."""
+        if self.hparams.get("length_model") == "geometric":  # in SI, float64: the paths' own units
+            l_geo, G = self.length_net(self.normalizer.decode_q(q_n.to(torch.float64)))
+            return l_geo.to(q_n.dtype), G.to(q_n.dtype), None if lengths_only else self.torque(q_n)
         l_mean, l_std, arm = self._length_scales(q_n.dtype)
         if isinstance(self.length_net, PerMusclePath) and not torch.compiler.is_exporting():  # fitted coefficients
             snapshot = self.inference_cache.get("path_snapshot", self.length_net.snapshot)
@@ -337,7 +376,9 @@ class StructuredSchema(LearnedBody, BodySchema):
         l_mean, l_std = self.normalizer.x_mean[:m], self.normalizer.x_std[:m]
         target_n = self._length_target_n(x).to(x_n.dtype)
         if self.hparams.torque_model in FITTED_TORQUES:  # least squares (refresh_from_train_split): lengths only
-            error_n, torque_loss = self.length_net(q_n) - target_n, torch.zeros((), dtype=x_n.dtype)
+            l_geo_n = self.length_net(q_n) if self.hparams.length_model == "per_muscle" else \
+                (self.body(q_n, lengths_only=True)[0] - l_mean.to(x_n.dtype)) / l_std.to(x_n.dtype)
+            error_n, torque_loss = l_geo_n - target_n, torch.zeros((), dtype=x_n.dtype)
         else:
             l_geo, G, tau = self.body(q_n)
             error_n = (l_geo - l_mean.to(x_n.dtype)) / l_std.to(x_n.dtype) - target_n

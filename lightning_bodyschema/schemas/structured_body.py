@@ -11,6 +11,8 @@ import torch
 from ..networks.per_muscle import PerMusclePath
 from ..networks.snapshot import BodySnapshot, GravitySnapshot
 from ..networks.switches import PostureSwitches, switch_diagnostics
+from ..paths.module import GeometricPath
+from .geometric import geometric_switches
 
 # ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``PathSnapshot.max_postures``): on
 # myoArm numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation,
@@ -68,10 +70,13 @@ class LearnedBody:
         """Where the learned paths switch branch, at postures ``q_rad (B, N)`` [rad]: ``near_path_switch (B,)`` bool
         (within ``networks.switches.SWITCH_REACH_RAD`` of a two-branch muscle's gate where its branches differ by
         ``JUMP_FLOOR_M`` or more: the learned length may sit on the wrong side of the true jump, so a command there is
-        not exact; its status is unchanged), ``path_switch_distance_rad`` and ``path_switch_muscle`` (``inf``, -1: no
-        such switch; an MLP path has none). The adapter's diagnostics."""
+        not exact; its status is unchanged; geometric paths: within that reach of a switch of a fitted path's wrapping,
+        ``schemas.geometric.geometric_switches``), ``path_switch_distance_rad`` and ``path_switch_muscle`` (``inf``,
+        -1: no such switch; an MLP path has none). The adapter's diagnostics."""
         q = np.asarray(q_rad.detach().cpu() if torch.is_tensor(q_rad) else q_rad, np.float64)
         path, norm = self.length_net, self.normalizer
+        if isinstance(path, GeometricPath):  # the fitted paths' own wrap margins
+            return switch_diagnostics(*geometric_switches(path, q))
         if not isinstance(path, PerMusclePath):
             return switch_diagnostics(np.full(len(q), np.inf), np.full(len(q), -1, dtype=np.int64))
         switches = self.inference_cache.get("switch_snapshot", lambda: PostureSwitches(

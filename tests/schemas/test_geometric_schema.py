@@ -1,0 +1,129 @@
+"""StructuredSchema(length_model="geometric"): MuJoCo's path topology with numbers fitted to the lengths, on the
+packaged OpenSim-style arm (spheres and cylinders with side sites): from a prior 1 mm off, the fitted body answers
+as MuJoCo's at held-out postures, holds its commands in MuJoCo, round-trips a checkpoint, flags postures at a
+switch of its wrapping, and exports."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from physics_checks import fit_structured as _fit
+
+from lightning_bodyschema.data import EquilibriumDataModule
+from lightning_bodyschema.errors import BodySchemaInputError
+from lightning_bodyschema.schemas import StructuredSchema, load_schema
+from lightning_bodyschema.sim.robot import ModelFreeRobot
+
+GEOMETRIC = dict(length_model="geometric", torque_model="gravity", path_prior_error_mm=1.0, path_fit_postures=400)
+F_MAX_N = [200.0, 200.0, 150.0, 150.0, 120.0, 120.0]  # configs/opensim_like-diff.yaml
+
+
+@pytest.fixture(scope="module")
+def opensim_arm():
+    data = EquilibriumDataModule(model="opensim_like_arm", n_samples=1000, seed=0, cache_dir=None, f_max_n=F_MAX_N)
+    return _fit(data, **GEOMETRIC)
+
+
+def test_the_fitted_paths_answer_as_mujoco_from_a_prior_a_millimetre_off(opensim_arm):
+    schema, _ = opensim_arm
+    assert not any(True for _ in schema.parameters())  # fitted, nothing to train
+    start = StructuredSchema(robot=schema.hparams.robot, **GEOMETRIC).length_net
+    assert torch.equal(start.numbers, torch.as_tensor(start.numbers))  # the MJCF's numbers
+    moved = (schema.length_net.numbers - start.numbers).abs().max()
+    assert moved > 1e-4  # the fit started 1 mm away and moved the numbers
+    q = schema.robot_model.sample_q(np.random.default_rng(11), 500)  # held out: uniform, not the data's
+    l_true, G_true, tau_true = schema.robot_model.kinematics(q)
+    l_geo, G, tau = schema.body_si(torch.as_tensor(q))
+    worst_mm = 1e3 * np.abs(l_geo - l_true).max(axis=1)
+    assert np.percentile(worst_mm, 99) < 0.05  # issue 51's length target, every posture's worst muscle
+    worst_arm = 1e3 * np.abs(G - G_true).max(axis=(1, 2))
+    assert np.percentile(worst_arm, 99) < 1.0  # [mm/rad]
+    scale = np.median(np.linalg.norm(tau_true, axis=1))
+    assert np.median(np.linalg.norm(tau - tau_true, axis=1)) < 1e-3 * scale
+
+
+def test_healthy_commands_hold_their_posture_in_mujoco(opensim_arm):
+    from lightning_bodyschema.sim.equilibrium import generate_equilibrium_samples
+    from lightning_bodyschema.sim.settle import settle
+
+    schema, _ = opensim_arm
+    q = generate_equilibrium_samples(schema.robot_model, 12, 7, schema.spring).q
+    l_motor, f, status = schema.solve_si(torch.as_tensor(q))
+    ok = np.array([s == "ok" for s in status])
+    assert ok.sum() >= 10
+    rest = settle(schema.robot_model, l_motor[ok], f[ok], q[ok], spring=schema.spring).E_q_rest
+    assert np.isfinite(rest).all() and np.percentile(rest, 90) < 1e-3  # issue 51: healthy p90 <= 1 mrad
+
+
+def test_checkpoint_round_trip_answers_the_same(opensim_arm, tmp_path):
+    schema, trainer = opensim_arm
+    path = str(tmp_path / "geometric.ckpt")
+    trainer.save_checkpoint(path, weights_only=False)
+    loaded = load_schema(path)
+    q = torch.as_tensor(schema.robot_model.sample_q(np.random.default_rng(6), 20))
+    for a, b in zip(schema.body_si(q), loaded.body_si(q)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_flag_marks_postures_next_to_a_switch_of_the_fitted_wrapping(opensim_arm):
+    """Along a line through joint space a fitted path's length jumps where its wrapping switches; postures a few
+    millirad either side of the jump are flagged, postures far from any switch are not."""
+    schema, _ = opensim_arm
+    lo, hi = schema.robot_model.q_range.T
+    line = np.linspace(0, 1, 2001)[:, None]
+    for seed in range(20):
+        a, b = (lo + (hi - lo) * np.random.default_rng(seed).random((2, len(lo))))
+        q = a + line * (b - a)
+        l_geo = schema.body_si(torch.as_tensor(q))[0]
+        step = np.abs(np.diff(l_geo, axis=0)).max(axis=1)
+        jumps = np.flatnonzero(step > 1e-3)  # > 1 mm between neighbours 1/2000 of the line apart: a switch
+        if len(jumps):
+            break
+    assert len(jumps), "no switch of the fitted wrapping on 20 lines"
+    flags = schema.path_switches(q)
+    assert flags["near_path_switch"][jumps[0]] and flags["near_path_switch"][jumps[0] + 1]
+    assert not flags["near_path_switch"].all()
+    distance = flags["path_switch_distance_rad"]
+    assert np.isfinite(distance[jumps[0]]) and distance.max() > distance[jumps[0]]
+
+
+def test_geometric_needs_the_mjcf_and_sane_options(opensim_arm):
+    spring = opensim_arm[0].hparams.robot["spring"]
+    robot = dict(ModelFreeRobot(["shoulder", "elbow"], [[-1, 1], [0, 2]], ["a", "b"]).as_dict(), spring=spring)
+    with pytest.raises(BodySchemaInputError, match="needs the robot's MJCF"):
+        StructuredSchema(robot=robot, length_model="geometric")
+    for bad in (dict(path_prior_error_mm=-1.0), dict(path_fit_postures=0), dict(path_fit_seed=True)):
+        with pytest.raises(BodySchemaInputError, match=list(bad)[0]):
+            StructuredSchema(robot=opensim_arm[0].hparams.robot, length_model="geometric", **bad)
+
+
+@pytest.mark.parametrize("batch", ["dynamic", 1])
+def test_the_adapter_exports_and_answers_as_in_python(opensim_arm, batch):
+    """The package's program (``deploy.package.exported_program``: the geometric paths traced, every wrap case
+    selected branch-free) answers as the Python adapter: the same statuses, ok rows to the solver's tolerance."""
+    from physics_checks import mixed_faults
+
+    from lightning_bodyschema.deploy.package import exported_program
+    from lightning_bodyschema.deploy.structured import StructuredAdapterModule
+    from lightning_bodyschema.status import status_array
+
+    schema, trainer = opensim_arm
+    q, faults = mixed_faults(schema, trainer.datamodule, n=12)
+    ref = schema.adapter(faults, check_physics=False)(q)
+    module = StructuredAdapterModule(schema).eval()
+    program = exported_program(module, batch).module()
+    rows = [np.arange(len(q))] if batch == "dynamic" else [np.array([i]) for i in range(4)]
+    for at in rows:
+        nan = np.full(faults.cut[at].shape, np.nan)
+        band = faults.l_band_m[at] if faults.l_band_m is not None else np.stack([nan, nan], -1)
+        arrays = (q[at], faults.cut[at], faults.fix[at], faults.l_fixed_m[at],
+                  nan if faults.f_max_n is None else faults.f_max_n[at], band[..., 0], band[..., 1])
+        inputs = tuple(torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64)) for a in arrays)
+        with torch.no_grad():
+            l_motor, f, status = program(*inputs, torch.tensor(0))
+        status = status_array(status.numpy().tolist())
+        assert (status == ref.status[at]).all()
+        ok = status == "ok"
+        np.testing.assert_allclose(l_motor.numpy()[ok], ref.l_motor_m[at][ok], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(f.numpy()[ok], ref.f_n[at][ok], rtol=0, atol=1e-2)
