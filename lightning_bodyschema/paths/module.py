@@ -51,12 +51,6 @@ except ImportError:  # paths/wrap.py not merged yet
     _wrap = _no_wrap
 
 
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    """``v / |v|``, 0 for a zero vector (a padded segment, an unwrapped segment's second piece)."""
-    norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-    return v / torch.where(norm > 0, norm, torch.ones_like(norm))
-
-
 class GeometricPath(nn.Module):
     """Lengths ``l_m (B, M)`` [m] and moment arms ``G (B, M, N)`` [m per rad or m] of a ``PathLayout``'s muscles at
     free-joint postures ``q (B, N)`` [rad or m] (module docstring), float64 whatever the input's dtype.
@@ -64,7 +58,8 @@ class GeometricPath(nn.Module):
     ``numbers`` (Q,) float64 is the only state-dict entry: every muscle's path numbers in ``paths.parts.numbers``
     order (sites', geom centres' and side sites' positions in their bodies [m], radii [m]), starting at the MJCF's.
     The layout's arrays are non-persistent buffers (a schema rebuilds them from its robot's XML); device moves apply
-    to every buffer, dtype casts to none."""
+    to every buffer, dtype casts to none. Vectors are held as ``(B, 3, K)`` (coordinates first: each coordinate's
+    row contiguous over the K points)."""
 
     def __init__(self, layout: PathLayout):
         super().__init__()
@@ -73,30 +68,15 @@ class GeometricPath(nn.Module):
         self.kinematics = GravityTorque(layout.tree)
         self.kinematics.register_buffer("coef", self.kinematics.coef, persistent=False)  # masses: not a path's
         self.register_buffer("numbers", torch.tensor(layout.numbers, **_F64))
-        n_muscles, n_frames = len(layout.muscle_names), layout.n_frames + 1  # the world last
-        long = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.long)  # noqa: E731
-        point_frame = np.append(layout.point_frame, layout.n_frames)  # the pad point rides the world
-        seg_frames = np.stack([point_frame[layout.seg_start], point_frame[layout.seg_end]], -1)
-        geom_frame = np.append(layout.point_frame[layout.geom_centre], layout.n_frames)[layout.seg_wrap]
-        endpoint_frame = np.concatenate([seg_frames, geom_frame[..., None]], -1)  # (M, S, 3): start, end, geom
-        buffers = dict(
-            point_frame=long(layout.point_frame), point_rot=torch.tensor(layout.point_rot, **_F64),
-            point_shift=torch.tensor(layout.point_shift, **_F64), point_number=long(layout.point_number),
-            seg_start=long(layout.seg_start.ravel()), seg_end=long(layout.seg_end.ravel()),
-            seg_wrap=long(layout.seg_wrap.ravel()), wrap_slot=long(layout.wrap_slot.ravel()),
-            geom_centre=long(layout.geom_centre), geom_side=long(layout.geom_side),
-            geom_radius=long(layout.geom_radius), geom_sphere=torch.as_tensor(layout.geom_sphere),
-            geom_has_side=torch.as_tensor(layout.geom_side < layout.n_points),
-            geom_rot=torch.tensor(layout.geom_rot, **_F64), geom_frame=long(layout.point_frame[layout.geom_centre]),
-            geom_start=long(layout.geom_start), geom_end=long(layout.geom_end),
-            endpoint_bin=long((np.arange(n_muscles)[:, None, None] * n_frames + endpoint_frame).ravel()),
-            moves=torch.cat([torch.tensor(layout.tree.moves_frame, **_F64),
-                             torch.zeros(len(layout.tree.moving_joint), 1, **_F64)], 1),
-            world=torch.eye(4, **_F64)[None, None, :3])
-        for name, value in buffers.items():
-            self.register_buffer(name, value, persistent=False)
-        self.n_muscles, self.n_frames, self.n_slots = n_muscles, n_frames, layout.seg_start.shape[1]
-        self.n_wrap_slots = layout.wrap_slot.shape[1]
+        for name, value in _tables(layout).items():
+            self.register_buffer(name, torch.as_tensor(value, dtype=torch.long if value.dtype == np.int64 else
+                                                       torch.bool if value.dtype == bool else torch.float64),
+                                 persistent=False)
+        self.register_buffer("world", torch.eye(4, **_F64)[None, None, :3], persistent=False)
+        self.n_muscles, self.n_wrap_slots = len(self.muscle_names), layout.wrap_slot.shape[1]
+        frame_of_live = np.append(layout.point_frame, layout.n_frames)[self.live.numpy()]
+        self.live_frames = sorted(set(frame_of_live.tolist()))  # the frames the live points ride, in order
+        self.live_counts = [int((frame_of_live == f).sum()) for f in self.live_frames]
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to every buffer; dtype casts do not (the geometry stays float64)."""
@@ -142,60 +122,136 @@ class GeometricPath(nn.Module):
         full = tree.full(q)
         frames, o, a = tree.kinematics(full)
         frames = torch.cat([frames[..., :3, :], self.world.expand(q.shape[0], 1, 3, 4)], 1)  # (B, F + 1, 3, 4)
-        points = self._points(frames)
+        local = torch.einsum("pij,pj->ip", self.point_rot, self.numbers[self.point_number]) + self.point_shift.T
+        points = self._points(frames, local.index_select(1, self.live))
+        take = lambda rows: points.index_select(2, rows)  # noqa: E731
+        p0, p1 = take(self.straight_start), take(self.straight_end)
+        straight = _norm(p1 - p0)
         wraps = self._wraps(points, frames)
-        p0, p1 = points.index_select(1, self.seg_start), points.index_select(1, self.seg_end)  # (B, M S, 3)
-        wrapped, t0, t1, arc = (w.index_select(1, self.seg_wrap) for w in wraps[:4])
-        norm = lambda v: torch.linalg.vector_norm(v, dim=-1)  # noqa: E731
-        segment = torch.where(wrapped, norm(t0 - p0) + arc + norm(p1 - t1), norm(p1 - p0))
-        length = segment.view(q.shape[0], self.n_muscles, self.n_slots).sum(-1)
-        joint_arm = self._joint_arms(self._piece_vectors(p0, p1, wrapped, t0, t1), o, a)  # (B, M, J)
-        arm = (joint_arm * tree.slopes(full)[:, None]) @ tree.free_scatter
-        margins = tuple(w.index_select(1, self.wrap_slot).view(q.shape[0], self.n_muscles, self.n_wrap_slots)
-                        for w in wraps[4:])
+        q0, q1, (wrapped, t0, t1, arc) = take(self.geom_start), take(self.geom_end), wraps[:4]
+        wrapped_m = torch.where(wrapped, _norm(t0 - q0) + arc + _norm(q1 - t1), _norm(q1 - q0))
+        fixed = torch.linalg.vector_norm(local.index_select(1, self.fixed_end) - local.index_select(1, self.fixed_start),
+                                         dim=0)  # (3, K): one frame's coordinates
+        length = q.new_zeros(q.shape[0], self.n_muscles).index_add(
+            1, self.segment_muscle, torch.cat([straight, wrapped_m], 1)) + q.new_zeros(self.n_muscles).index_add(
+            0, self.fixed_muscle, fixed)
+        entries = torch.cat([_straight_vectors(p0, p1, straight), _wrap_vectors(q0, q1, wrapped, t0, t1)], 2)
+        arm = self._arms(entries, o, a, tree.slopes(full))
+        margins = tuple(torch.cat([w, torch.full_like(w[:, :1], float("inf"))], 1).index_select(1, self.wrap_slot)
+                        .view(q.shape[0], self.n_muscles, self.n_wrap_slots) for w in wraps[4:])
         return length, arm, margins
 
-    def _points(self, frames: torch.Tensor) -> torch.Tensor:
-        """Every point's world position ``(B, P + 1, 3)`` [m], the pad point (0) last."""
-        local = torch.einsum("pij,pj->pi", self.point_rot, self.numbers[self.point_number]) + self.point_shift
-        pose = frames.index_select(1, self.point_frame)  # (B, P, 3, 4)
-        world = torch.einsum("bpij,pj->bpi", pose[..., :3], local) + pose[..., 3]
-        return torch.cat([world, world.new_zeros(world.shape[0], 1, 3)], 1)
+    def _points(self, frames: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
+        """The world positions ``(B, 3, L)`` [m] of the points ``live`` (sorted by frame: one product per frame) at
+        their frame coordinates ``local (3, L)``."""
+        pieces = local.split(self.live_counts, 1)
+        return torch.cat([frames[:, f, :, :3] @ part + frames[:, f, :, 3:] for f, part in
+                          zip(self.live_frames, pieces) if part.shape[1]], 2)
 
     def _wraps(self, points: torch.Tensor, frames: torch.Tensor) -> tuple:
-        """Every wrapping geom's ``paths.wrap.Wrap`` fields ``(B, W + 1, ...)``, a geom-less slot's (nothing wrapped,
-        margins +inf) last."""
-        batch, take = points.shape[0], lambda rows: points.index_select(1, rows)  # noqa: E731
-        none = (torch.zeros(batch, 1, dtype=torch.bool, device=points.device), points.new_zeros(batch, 1, 3),
-                points.new_zeros(batch, 1, 3), points.new_zeros(batch, 1),
-                points.new_full((batch, 1), float("inf")), points.new_full((batch, 1), float("inf")))
-        if not len(self.geom_centre):
-            return none
+        """Every wrapping geom's ``paths.wrap.Wrap``: ``wrapped (B, W)``, ``t0``, ``t1`` ``(B, 3, W)``, the arc and
+        the two margins ``(B, W)`` [m]."""
+        batch, take = points.shape[0], lambda rows: points.index_select(2, rows).transpose(1, 2)  # noqa: E731
+        if not len(self.geom_start):
+            empty = points.new_zeros(batch, 0)
+            return empty.bool(), points[..., :0], points[..., :0], empty, empty, empty
         rot = frames.index_select(1, self.geom_frame)[..., :3] @ self.geom_rot
         out = _wrap(take(self.geom_start), take(self.geom_end), take(self.geom_centre), rot,
                     self.numbers[self.geom_radius].expand(batch, -1), self.geom_sphere.expand(batch, -1),
                     take(self.geom_side), self.geom_has_side.expand(batch, -1))
-        return tuple(torch.cat([field, pad], 1) for field, pad in zip(out, none))
+        return out[0], out[1].transpose(1, 2), out[2].transpose(1, 2), *out[3:]
 
-    def _piece_vectors(self, p0, p1, wrapped, t0, t1) -> torch.Tensor:
-        """``(B, M S, 3, 6)``: per segment the signed ``(p x d, d)`` of its start (on the first site's frame), its end
-        (the last site's) and its tangent points (the geom's; zero unwrapped): ``p0 -> t0``, ``t1 -> p1`` wrapped, else
-        ``p0 -> p1``."""
-        around = wrapped[..., None]
-        d0, d1 = _unit(torch.where(around, t0, p1) - p0), _unit(p1 - torch.where(around, t1, p0))
-        g0, g1 = torch.where(around, t0, 0.0), torch.where(around, t1, 0.0)
-        cross = torch.linalg.cross
-        return torch.stack([torch.cat([-cross(p0, d0), -d0], -1), torch.cat([cross(p1, d1), d1], -1),
-                            torch.cat([cross(g0, d0) - cross(g1, d1), d0 - d1], -1)], 2)
-
-    def _joint_arms(self, vectors: torch.Tensor, o: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-        """``(B, M, J)`` each muscle's moment arm on each moving joint: the piece vectors summed per muscle and frame,
-        carried to the joints moving each frame, dotted with the joint's ``(a, -(a x o))`` (hinge) or ``(0, a)``
-        (slide)."""
-        batch = vectors.shape[0]
-        per_frame = vectors.new_zeros(batch, self.n_muscles * self.n_frames, 6).index_add(
-            1, self.endpoint_bin, vectors.flatten(1, 2))
-        per_joint = self.moves @ per_frame.view(batch, self.n_muscles, self.n_frames, 6)  # (B, M, J, 6)
+    def _arms(self, entries: torch.Tensor, o: torch.Tensor, a: torch.Tensor, slopes: torch.Tensor) -> torch.Tensor:
+        """``G (B, M, N)`` from the pieces' signed vectors ``(p x d, d)`` ``entries (B, 6, E)``: summed per muscle and
+        frame, dotted with each joint's ``(a, -(a x o))`` (hinge) or ``(0, a)`` (slide) where the joint moves the
+        frame, summed per muscle, times the couplings' slopes ``(B, J)`` onto the free joints."""
+        batch = entries.shape[0]
+        per_bin = entries.new_zeros(batch, 6, len(self.bin_muscle)).index_add(2, self.entry_bin, entries)
         hinge = self.kinematics.hinge[:, None]
         weights = torch.cat([hinge * a, (1.0 - hinge) * a - hinge * torch.linalg.cross(a, o)], -1)  # (B, J, 6)
-        return (per_joint * weights[:, None]).sum(-1)
+        per_joint = (weights @ per_bin) * self.bin_moves  # (B, J, bins)
+        joint_arm = per_joint.new_zeros(batch, per_joint.shape[1], self.n_muscles).index_add(
+            2, self.bin_muscle, per_joint) * slopes[:, :, None]
+        return (self.kinematics.free_scatter.T @ joint_arm).transpose(1, 2)
+
+
+def _norm(v: torch.Tensor) -> torch.Tensor:
+    """``|v|`` ``(B, K)`` of ``(B, 3, K)`` vectors (by rows: a norm over the strided axis is several times slower)."""
+    x, y, z = v.unbind(1)
+    return torch.sqrt(x * x + y * y + z * z)
+
+
+def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``u x v`` of ``(B, 3, K)`` vectors."""
+    ux, uy, uz = u.unbind(1)
+    vx, vy, vz = v.unbind(1)
+    return torch.stack([uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx], 1)
+
+
+def _unit(v: torch.Tensor, norm: torch.Tensor | None = None) -> torch.Tensor:
+    """``v / |v|`` of ``(B, 3, K)`` vectors, 0 for a zero vector (an unwrapped segment's second piece)."""
+    norm = _norm(v) if norm is None else norm
+    return v / torch.where(norm > 0, norm, torch.ones_like(norm))[:, None]
+
+
+def _piece(start: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """``(start x d, d)`` ``(B, 6, K)``: a straight piece from ``start`` along ``d`` (any point of it gives the same
+    ``p x d``)."""
+    return torch.cat([_cross(start, d), d], 1)
+
+
+def _straight_vectors(p0, p1, length) -> torch.Tensor:
+    """The entries of the straight segments between two frames ``(B, 6, 2 S)``: - at the start, + at the end."""
+    v = _piece(p0, _unit(p1 - p0, length))
+    return torch.cat([-v, v], 2)
+
+
+def _wrap_vectors(p0, p1, wrapped, t0, t1) -> torch.Tensor:
+    """The entries of the segments through a geom ``(B, 6, 3 W)``: at the first site's frame, the last site's and the
+    geom's. Wrapped: pieces ``p0 -> t0`` (A) and ``t1 -> p1`` (B), so - A, + B and A - B; else one piece
+    ``p0 -> p1``: - A, + A and 0."""
+    around = wrapped[:, None]
+    a = _piece(p0, _unit(torch.where(around, t0, p1) - p0))
+    b = _piece(p1, _unit(p1 - torch.where(around, t1, p1)))
+    return torch.cat([-a, torch.where(around, b, a), torch.where(around, a - b, 0.0)], 2)
+
+
+def _tables(layout: PathLayout) -> dict:
+    """The module's index tables (numpy) from the layout's padded segments: segments within one frame (a constant
+    length: ``fixed_*``, in point ids), straight segments between frames (``straight_*``) and through a geom
+    (``geom_*``), both in ``live`` positions (the points placed at every posture); the pieces' entries' bins, one per
+    muscle and frame that a piece ends on (bin 0: the world's, moved by no joint), each bin's muscle and moving
+    joints."""
+    n_points, n_geoms, n_frames = layout.n_points, layout.n_wraps, layout.n_frames
+    frame = np.append(layout.point_frame, n_frames)  # the pad point rides the world
+    muscle = np.broadcast_to(np.arange(len(layout.muscle_names))[:, None], layout.seg_start.shape)
+    start, end, through = layout.seg_start, layout.seg_end, layout.seg_wrap
+    geomless = (start < n_points) & (through == n_geoms)
+    same = geomless & (frame[start] == frame[end])
+    between = geomless & ~same
+    side = np.where(layout.geom_side < n_points, layout.geom_side, layout.geom_centre)  # no side site: ignored
+    live = np.unique(np.concatenate([start[between], end[between], layout.geom_start, layout.geom_end,
+                                     layout.geom_centre, side]))
+    live = live[np.argsort(frame[live], kind="stable")]  # by frame: ``GeometricPath._points``
+    at = np.zeros(n_points + 1, np.int64)
+    at[live] = np.arange(len(live))  # a live point's position in ``live``
+    geom_muscle = np.repeat(np.arange(len(layout.muscle_names)), (layout.wrap_slot < n_geoms).sum(1))
+    geom_frame = frame[layout.geom_centre]
+    ends = [(muscle[between], frame[start[between]]), (muscle[between], frame[end[between]])] + \
+        [(geom_muscle, frame[layout.geom_start]), (geom_muscle, frame[layout.geom_end]), (geom_muscle, geom_frame)]
+    pairs = sorted({(m, f) for ms, fs in ends for m, f in zip(ms.tolist(), fs.tolist()) if f < n_frames})
+    bin_of = {pair: b + 1 for b, pair in enumerate(pairs)}
+    moves = np.hstack([np.zeros((len(layout.tree.moving_joint), 1)), layout.tree.moves_frame[:, [f for _, f in pairs]]])
+    return dict(
+        point_rot=layout.point_rot, point_shift=layout.point_shift, point_number=layout.point_number,
+        live=live,
+        fixed_start=start[same], fixed_end=end[same], fixed_muscle=muscle[same],
+        straight_start=at[start[between]], straight_end=at[end[between]],
+        segment_muscle=np.concatenate([muscle[between], geom_muscle]),
+        geom_start=at[layout.geom_start], geom_end=at[layout.geom_end], geom_centre=at[layout.geom_centre],
+        geom_side=at[side], geom_has_side=layout.geom_side < n_points, geom_frame=geom_frame,
+        geom_rot=layout.geom_rot, geom_radius=layout.geom_radius, geom_sphere=layout.geom_sphere,
+        wrap_slot=layout.wrap_slot.ravel(),
+        entry_bin=np.array([bin_of.get((m, f), 0) for ms, fs in ends for m, f in zip(ms.tolist(), fs.tolist())],
+                           np.int64),
+        bin_muscle=np.array([0] + [m for m, _ in pairs], np.int64), bin_moves=moves)
