@@ -3,6 +3,5 @@ wrapping spheres and cylinders it may wrap, with which side sites) with fitted n
 geoms' centres and radii, side sites), evaluated in torch. Never imports Lightning.
 
 ``parts``: a path's topology and its numbers as MuJoCo's model holds them.
-``layout``, ``module``: ``path_layout(model)`` (every muscle's segments and points on the moving frames) and
-``GeometricPath`` (lengths and MuJoCo's moment arms at postures, batched, exportable).
+``layout``, ``module``: ``path_layout(model)``, the paths on the moving frames; ``GeometricPath``, lengths and arms.
 """
