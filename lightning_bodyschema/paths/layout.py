@@ -145,9 +145,8 @@ class _Builder:
         n_segs, n_slots = max(len(s) for s in self.segs), max((len(s) for s in self.slots), default=0)
         pad = lambda rows, width, fill: np.array([r + [fill] * (width - len(r)) for r in rows], np.int64) \
             .reshape(len(rows), width)  # noqa: E731
-        segs = [[list(s) for s in muscle] for muscle in self.segs]
-        seg = [pad([[s[k] for s in muscle] for muscle in segs], n_segs, n_points) for k in (0, 1)]
-        wraps = pad([[s[2] if s[2] >= 0 else n_geoms for s in muscle] for muscle in segs], n_segs, n_geoms)
+        seg = [pad([[s[k] for s in muscle] for muscle in self.segs], n_segs, n_points) for k in (0, 1)]
+        wraps = pad([[s[2] if s[2] >= 0 else n_geoms for s in muscle] for muscle in self.segs], n_segs, n_geoms)
         value = np.concatenate(self.values)
         return PathLayout(
             tree=tree, muscle_names=names, tables=self.tables, numbers=value,

@@ -130,8 +130,8 @@ class GeometricPath(nn.Module):
         wraps = self._wraps(points, frames)
         q0, q1, (wrapped, t0, t1, arc) = take(self.geom_start), take(self.geom_end), wraps[:4]
         wrapped_m = torch.where(wrapped, _norm(t0 - q0) + arc + _norm(q1 - t1), _norm(q1 - q0))
-        fixed = torch.linalg.vector_norm(local.index_select(1, self.fixed_end) - local.index_select(1, self.fixed_start),
-                                         dim=0)  # (3, K): one frame's coordinates
+        within = local.index_select(1, self.fixed_end) - local.index_select(1, self.fixed_start)  # one frame's
+        fixed = torch.linalg.vector_norm(within, dim=0)
         length = q.new_zeros(q.shape[0], self.n_muscles).index_add(
             1, self.segment_muscle, torch.cat([straight, wrapped_m], 1)) + q.new_zeros(self.n_muscles).index_add(
             0, self.fixed_muscle, fixed)

@@ -14,7 +14,7 @@ import yaml
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.paths import module as path_module
-from lightning_bodyschema.paths.layout import path_layout
+from lightning_bodyschema.paths.layout import path_layout, segments
 from lightning_bodyschema.paths.module import GeometricPath
 from lightning_bodyschema.paths.parts import numbers, path_parts, true_values
 from lightning_bodyschema.sim import MusculoskeletalModel
@@ -180,3 +180,11 @@ _PULLEY = """<mujoco><option gravity="0 -9.81 0"/><worldbody><site name="a" pos=
 def test_a_pulley_is_refused_by_name():
     with pytest.raises(BodySchemaInputError, match="tendon 't'.*only sites, spheres and cylinders"):
         path_layout(MusculoskeletalModel(_PULLEY))
+
+
+def test_segments_cut_a_path_site_to_site_and_refuse_a_geom_not_between_sites():
+    site, geom = ("site", 0), ("geom", 0, -1)
+    assert segments([site, site, geom, site], "t") == [(0, -1, 1), (1, 2, 3)]
+    for parts in ([site, geom], [geom, site], [site, geom, geom, site], [site]):
+        with pytest.raises(BodySchemaInputError, match="tendon 't' has path"):
+            segments(parts, "t")
