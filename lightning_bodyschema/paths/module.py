@@ -68,13 +68,13 @@ class GeometricPath(nn.Module):
         self.kinematics = GravityTorque(layout.tree)
         self.kinematics.register_buffer("coef", self.kinematics.coef, persistent=False)  # masses: not a path's
         self.register_buffer("numbers", torch.tensor(layout.numbers, **_F64))
-        for name, value in _tables(layout).items():
-            self.register_buffer(name, torch.as_tensor(value, dtype=torch.long if value.dtype == np.int64 else
-                                                       torch.bool if value.dtype == bool else torch.float64),
-                                 persistent=False)
+        tables = _tables(layout)
+        for name, value in tables.items():
+            kind = torch.long if value.dtype == np.int64 else torch.bool if value.dtype == bool else torch.float64
+            self.register_buffer(name, torch.as_tensor(value, dtype=kind), persistent=False)
         self.register_buffer("world", torch.eye(4, **_F64)[None, None, :3], persistent=False)
         self.n_muscles, self.n_wrap_slots = len(self.muscle_names), layout.wrap_slot.shape[1]
-        frame_of_live = np.append(layout.point_frame, layout.n_frames)[self.live.numpy()]
+        frame_of_live = np.append(layout.point_frame, layout.n_frames)[tables["live"]]  # (numpy: a meta skeleton)
         self.live_frames = sorted(set(frame_of_live.tolist()))  # the frames the live points ride, in order
         self.live_counts = [int((frame_of_live == f).sum()) for f in self.live_frames]
 

@@ -145,6 +145,8 @@ def test_only_the_numbers_are_state_and_stay_float64_on_a_cast():
         assert got.dtype == torch.float64
         torch.testing.assert_close(got, want, rtol=0, atol=0)
     np.testing.assert_array_equal(other.muscle_numbers(1), numbers_a[1])
+    with torch.device("meta"):  # a checkpoint's skeleton
+        assert GeometricPath(path_layout(model)).numbers.shape == path.numbers.shape
 
 
 def test_margins_have_a_slot_per_wrapping_geom_and_inf_elsewhere():
