@@ -47,7 +47,9 @@ def _no_wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> _Wrap:
 
 try:
     from .wrap import wrap as _wrap
-except ImportError:  # paths/wrap.py not merged yet
+except ModuleNotFoundError as missing:  # paths/wrap.py not merged yet; any other failure of it is raised
+    if missing.name != f"{__package__}.wrap":
+        raise
     _wrap = _no_wrap
 
 
