@@ -132,16 +132,19 @@ class GeometricPath(nn.Module):
         wraps = self._wraps(points, frames)
         q0, q1, (wrapped, t0, t1, arc) = take(self.geom_start), take(self.geom_end), wraps[:4]
         wrapped_m = torch.where(wrapped, _norm(t0 - q0) + arc + _norm(q1 - t1), _norm(q1 - q0))
-        within = local.index_select(1, self.fixed_end) - local.index_select(1, self.fixed_start)  # one frame's
-        fixed = torch.linalg.vector_norm(within, dim=0)
-        length = q.new_zeros(q.shape[0], self.n_muscles).index_add(
-            1, self.segment_muscle, torch.cat([straight, wrapped_m], 1)) + q.new_zeros(self.n_muscles).index_add(
-            0, self.fixed_muscle, fixed)
+        length = self._lengths(local, torch.cat([straight, wrapped_m], 1))
         entries = torch.cat([_straight_vectors(p0, p1, straight), _wrap_vectors(q0, q1, wrapped, t0, t1)], 2)
         arm = self._arms(entries, o, a, tree.slopes(full))
         margins = tuple(torch.cat([w, torch.full_like(w[:, :1], float("inf"))], 1).index_select(1, self.wrap_slot)
                         .view(q.shape[0], self.n_muscles, self.n_wrap_slots) for w in wraps[4:])
         return length, arm, margins
+
+    def _lengths(self, local: torch.Tensor, moving: torch.Tensor) -> torch.Tensor:
+        """``(B, M)`` [m]: each muscle's segments between frames ``moving (B, S)`` plus those within one frame (a
+        constant, from the points' frame coordinates ``local (3, P)``)."""
+        within = local.index_select(1, self.fixed_end) - local.index_select(1, self.fixed_start)
+        fixed = local.new_zeros(self.n_muscles).index_add(0, self.fixed_muscle, torch.linalg.vector_norm(within, dim=0))
+        return moving.new_zeros(moving.shape[0], self.n_muscles).index_add(1, self.segment_muscle, moving) + fixed
 
     def _points(self, frames: torch.Tensor, local: torch.Tensor) -> torch.Tensor:
         """The world positions ``(B, 3, L)`` [m] of the points ``live`` (sorted by frame: one product per frame) at
