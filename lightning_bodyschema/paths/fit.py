@@ -43,6 +43,7 @@ MIN_RADIUS_M = 1e-4
 RCOND = 1e-6  # singular values of the column-scaled Jacobian below this (relative) are directions the data do not see
 MAX_STEP_M = 0.01  # a step moves no number by more than this (a number seen only inside a wrap can run away)
 CENTROID_RADIUS_FACTOR = 1.5
+EXACT_M = 1e-12  # a path whose RMS residual is below this is exact (MuJoCo's lengths: ~1e-16 m)
 PRIORS, SIDE_SITES = ("mjcf", "centroid"), ("start", "mjcf", "geom")
 
 
@@ -222,7 +223,7 @@ class LevenbergMarquardt:
             step, improved = np.abs(theta - self.theta).max(), (self.cost - cost) / max(cost, 1e-300)
             settled = np.isfinite(self.cost) and (improved < 1e-10 or step < 1e-12)
             self.theta, self.cost, self.r, self.J, self.lam = theta, cost, r, J, max(self.lam / 3, 1e-15)
-            self.done = settled or float(r @ r) < len(r) * 1e-24  # exact to 1e-12 m: nothing left to fit
+            self.done = settled or float(r @ r) < len(r) * EXACT_M ** 2  # nothing left to fit
         else:
             self.lam *= 4
             self.done = self.lam > 1e12
@@ -291,8 +292,8 @@ def side_search(rep: Replicas, full: np.ndarray, target: np.ndarray, solvers: li
             lengths, passes, moved = rep.lengths(full, threads), passes + 1, False
             for a, s in enumerate(solvers):
                 cost = [s.loss(lengths[:, c] - target[:, a]) for c in rep.copies[a][: 2 * s.held.sum() + 1]]
-                best = int(np.argmin(cost))
-                if best and cost[best] < cost[0] * (1 - 1e-9):
+                best = int(np.argmin(cost))  # a gain below 1e-12 m per posture is rounding: the site stays
+                if best and cost[best] < cost[0] * (1 - 1e-9) - len(target) * EXACT_M ** 2:
                     s.theta, s.cost, moved = s.theta + moves[a][best - 1], cost[best], True
             if not moved:
                 break
@@ -372,7 +373,7 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, opt
     """``restarts`` seeded fits of ``rep``'s muscles (``model``'s indices ``rep.muscles``) at full postures ``(N,
     nq)`` to ``target (N, A)`` [m]; per muscle the one with the lowest train cost. With ``retry_mm`` > 0 a restart
     refits only the muscles whose best train RMS is still above it (their own copies). ``progress(passes,
-    passes_at_most)`` after each restart."""
+    passes_at_most)`` after each restart and at the end (``passes == passes_at_most``)."""
     best, first, passes = None, None, 0
     for restart in range(options.restarts):
         again = list(range(len(rep.tables))) if best is None or options.retry_mm <= 0 else [
@@ -390,6 +391,8 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, opt
             best[a] = s if s.cost < best[a].cost else best[a]
         if progress is not None:
             progress(passes, passes + _passes_at_most(options) * (options.restarts - restart - 1))
+    if progress is not None:  # done: the bar full, whether or not every restart ran
+        progress(passes, passes)
     return PathFit([s.theta for s in best], np.array([1e3 * np.sqrt(np.mean(s.r ** 2)) for s in best]), passes,
                    np.array([s.iterations for s in best]), np.array([s.jumps for s in best]),
                    np.array([rank_deficit(s.J) for s in best]), first)
@@ -407,7 +410,8 @@ def fit_path_numbers(model, q_rad: np.ndarray, target_m: np.ndarray, options: Pa
     """Fit the path numbers of ``model``'s muscles (a ``sim.MusculoskeletalModel``; ``muscles``: indices into its
     muscles, default all) to their geometric lengths ``target_m (S, M)`` [m] at postures ``q_rad (S, N)`` (free
     joints, or ``(S, nq)``). Returns ``PathFit`` (per muscle its numbers in ``parts.numbers``' order); prints
-    nothing. ``progress(passes, passes_at_most)``: called after each restart (MuJoCo passes over the postures)."""
+    nothing. ``progress(passes, passes_at_most)``: called after each restart and at the end (MuJoCo passes over the
+    postures so far, and at most in all)."""
     muscles = list(range(model.n_muscles)) if muscles is None else [int(i) for i in muscles]
     if not muscles or min(muscles) < 0 or max(muscles) >= model.n_muscles:
         raise BodySchemaInputError(f"muscles={muscles}; give indices of the model's {model.n_muscles} muscles")
