@@ -4,7 +4,8 @@
     python tools/fit_path_geometry.py [--config configs/myoarm.yaml] [--muscles TMAJ,BIClong,... | all]
                                       [--postures 2000] [--perturb-mm 5] [--perturb-radius 0.05] [--noise-mm 0]
                                       [--seed 0] [--prior mjcf | centroid] [--restarts 1] [--max-iter 40]
-                                      [--cauchy-mm 0.3 | 30,3,0.3] [--side-search 0] [--side-sites start | mjcf | geom]
+                                      [--cauchy-mm 0.3 | 30,3,0.3] [--side-search 0]
+                                      [--side-sites start | mjcf | geom | scaled]
                                       [--side-steps-mm 8,4,2,1,0.5] [--retry-mm 0] [--equilibrium]
                                       [--flag-mm 0.1,0.5] [--flag-share 0.01] [--test-postures 2000] [--test-seed 1]
                                       [--threads 1]
@@ -30,7 +31,8 @@ followed by the fit again. Starts: the MJCF's numbers each moved by +-``--pertur
 coordinate; radii by a factor 1 +- ``--perturb-radius``; ``--side-sites mjcf`` leaves the side sites at the MJCF's),
 or with ``--prior centroid`` a weak prior (each site and geom at the centroid of the MJCF's sites of its body, plus
 +-``--perturb-mm`` per coordinate, radii x ``CENTROID_RADIUS_FACTOR``); ``--side-sites geom``: a side site riding
-its geom's body starts at the geom's start centre plus the MJCF's offset between them (``with_geom_offsets``);
+its geom's body starts at the geom's start centre plus the MJCF's offset between them (``with_geom_offsets``;
+``scaled``: the offset times the start's radius over the MJCF's, the side site's place in units of the radius kept);
 ``--restarts`` seeded starts, per muscle the lowest train cost kept (``--retry-mm``: a restart refits only the
 muscles still above that train RMS). Targets: MuJoCo's lengths at ``--postures`` seeded uniform postures
 (``--seed``), or with ``--equilibrium`` the data module's: ``generate_equilibrium_samples`` and ``l_motor +
@@ -211,9 +213,9 @@ def main(argv=None):
     parser.add_argument("--restarts", type=int, default=1)
     parser.add_argument("--retry-mm", type=float, default=0.0,
                         help="> 0: restarts refit only the muscles whose train RMS is above this [mm]")
-    parser.add_argument("--side-sites", choices=("start", "mjcf", "geom"), default="start",
+    parser.add_argument("--side-sites", choices=("start", "mjcf", "geom", "scaled"), default="start",
                         help="side sites (never fitted) at the start's numbers, the MJCF's, or their geom's start "
-                             "centre plus the MJCF's offset")
+                             "centre plus the MJCF's offset (scaled: times the start's radius over the MJCF's)")
     parser.add_argument("--cauchy-mm", type=scales, default=[0.3],
                         help="Cauchy loss scales, comma separated, fitted in turn (0: least squares)")
     parser.add_argument("--side-search", type=int, default=0,

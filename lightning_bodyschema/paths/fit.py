@@ -44,7 +44,7 @@ RCOND = 1e-6  # singular values of the column-scaled Jacobian below this (relati
 MAX_STEP_M = 0.01  # a step moves no number by more than this (a number seen only inside a wrap can run away)
 CENTROID_RADIUS_FACTOR = 1.5
 EXACT_M = 1e-12  # a path whose RMS residual is below this is exact (MuJoCo's lengths: ~1e-16 m)
-PRIORS, SIDE_SITES = ("mjcf", "centroid"), ("start", "mjcf", "geom")
+PRIORS, SIDE_SITES = ("mjcf", "centroid"), ("start", "mjcf", "geom", "scaled")
 
 
 @dataclass(frozen=True)
@@ -311,23 +311,28 @@ def starts(rep: Replicas, m: mujoco.MjModel, options: PathFitOptions, rng: np.ra
         radius = kind == "radius"
         factor = 1 + options.radius_error * sign if options.prior == "mjcf" else CENTROID_RADIUS_FACTOR
         start = np.where(radius, base * factor, base + 1e-3 * options.prior_error_mm * sign)
-        if options.side_sites == "geom":
-            start = with_geom_offsets(m, parts, table, truth, start)
+        if options.side_sites in ("geom", "scaled"):
+            start = with_geom_offsets(m, parts, table, truth, start, options.side_sites == "scaled")
         out.append(np.where((kind == "side") & (options.side_sites == "mjcf"), truth, start))
     return out
 
 
-def with_geom_offsets(m: mujoco.MjModel, parts, table, truth: np.ndarray, start: np.ndarray) -> np.ndarray:
+def with_geom_offsets(m: mujoco.MjModel, parts, table, truth: np.ndarray, start: np.ndarray,
+                      scaled: bool = False) -> np.ndarray:
     """``side_sites="geom"``: each side site that rides its geom's body started at the geom's start centre plus the
     prior's offset between them (which side of the geom it lies on, inside it or not: what decides the wrap, kept as
     the prior has it; a side site at its small geom's centre moved apart from it by +-1 mm lands outside a 1.5 mm
-    sphere and turns MuJoCo's inside wrap into another mode)."""
+    sphere and turns MuJoCo's inside wrap into another mode). ``scaled`` (``"scaled"``): the offset times the start's
+    radius over the prior's, so the side site keeps its place in units of the radius (myoArm's PECM1 has its side
+    site 0.58 mm inside a 22 mm sphere: a radius 5 % smaller leaves it outside, in the other mode)."""
     out, index = start.copy(), {row: n for n, row in enumerate(table)}
     for i, part in enumerate(parts):
         if part[0] == "geom" and part[2] >= 0 and m.site_bodyid[part[2]] == m.geom_bodyid[part[1]]:
+            radius = index[("radius", i, 0)]
+            factor = start[radius] / truth[radius] if scaled else 1.0
             for c in range(3):
                 side, centre = index[("side", i, c)], index[("geom", i, c)]
-                out[side] = start[centre] + truth[side] - truth[centre]
+                out[side] = start[centre] + factor * (truth[side] - truth[centre])
     return out
 
 
