@@ -121,6 +121,10 @@ class Replicas:
                 writes += [(kind, f"fit{a}_{copy}_{i}", c, a, n, copy) for n, (kind, i, c) in enumerate(table)]
         self.model = MusculoskeletalModel(spec.to_xml(), muscles=first,
                                           allow_unloaded=True, lock_uncrossed=False)
+        # MuJoCo places a geom or site that sits at its body's origin from the body alone ("same frame"), ignoring a
+        # position written later: every copy must follow its numbers
+        self.model.mj_model.geom_sameframe[:] = 0
+        self.model.mj_model.site_sameframe[:] = 0
         self._index(writes)
         self.passes, self._datas = 0, [self.model._data]
 

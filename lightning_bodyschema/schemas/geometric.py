@@ -14,6 +14,8 @@ from ..paths.fit import PathFitOptions, fit_path_numbers
 from ..paths.layout import path_layout
 from ..paths.module import GeometricPath
 
+PRIOR_RADIUS_ERROR = 0.05  # with a simulated CAD error, each wrapping radius also off by 5 % (about 1 mm on myoArm)
+
 
 def check_geometric_options(robot_model, prior_error_mm, fit_postures, fit_seed) -> None:
     """One ``BodySchemaInputError`` naming a bad ``path_prior_error_mm``, ``path_fit_postures`` or
@@ -39,8 +41,9 @@ def fit_geometric_numbers(path: GeometricPath, robot_model, q: torch.Tensor, tar
     lengths ``target_m (S, M)`` (from the MJCF moved by ``hparams.path_prior_error_mm``); one log line."""
     rng = np.random.default_rng(hparams.path_fit_seed)
     rows = np.sort(rng.choice(len(q), min(len(q), hparams.path_fit_postures), replace=False))
-    options = PathFitOptions(prior_error_mm=float(hparams.path_prior_error_mm), seed=hparams.path_fit_seed,
-                             threads=max(1, min(2, os.cpu_count() or 1)))
+    error_mm = float(hparams.path_prior_error_mm)
+    options = PathFitOptions(prior_error_mm=error_mm, radius_error=PRIOR_RADIUS_ERROR if error_mm > 0 else 0.0,
+                             seed=hparams.path_fit_seed, threads=max(1, min(2, os.cpu_count() or 1)))
     fit = fit_path_numbers(robot_model, q[rows].cpu().numpy(), target_m[rows].cpu().numpy(), options)
     path.set_numbers(fit.numbers)
     worst = int(np.argmax(fit.train_rms_mm))
