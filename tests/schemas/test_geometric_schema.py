@@ -15,7 +15,7 @@ from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.schemas import StructuredSchema, load_schema
 from lightning_bodyschema.sim.robot import ModelFreeRobot
 
-GEOMETRIC = dict(length_model="geometric", torque_model="gravity", path_prior_error_mm=1.0, path_fit_postures=400)
+GEOMETRIC = dict(length_model="geometric", torque_model="gravity", path_prior_error_mm=1.0, path_fit_postures=800)
 F_MAX_N = [200.0, 200.0, 150.0, 150.0, 120.0, 120.0]  # configs/opensim_like-diff.yaml
 
 
