@@ -44,7 +44,9 @@ def fit_geometric_numbers(path: GeometricPath, robot_model, q: torch.Tensor, tar
     error_mm = float(hparams.path_prior_error_mm)
     options = PathFitOptions(prior_error_mm=error_mm, radius_error=PRIOR_RADIUS_ERROR if error_mm > 0 else 0.0,
                              seed=hparams.path_fit_seed, threads=max(1, min(2, os.cpu_count() or 1)))
-    fit = fit_path_numbers(robot_model, q[rows].cpu().numpy(), target_m[rows].cpu().numpy(), options)
+    progress = lambda done, most: rank_zero_info(f"geometric paths: {done} of at most {most} MuJoCo passes over "
+                                                 f"{len(rows)} postures")  # noqa: E731
+    fit = fit_path_numbers(robot_model, q[rows].cpu().numpy(), target_m[rows].cpu().numpy(), options, progress)
     path.set_numbers(fit.numbers)
     worst = int(np.argmax(fit.train_rms_mm))
     rank_zero_info(f"geometric paths fitted on {len(rows)} postures: train RMS median "
