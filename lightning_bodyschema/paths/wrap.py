@@ -48,8 +48,9 @@ class Wrap(NamedTuple):
     t0: torch.Tensor        # (..., 3) world tangent point after p0 (where not wrapped: p0)
     t1: torch.Tensor        # (..., 3) world tangent point before p1 (where not wrapped: p1)
     arc_m: torch.Tensor     # (...) MuJoCo's wrap length between t0 and t1 (incl. a cylinder's height); 0 where not
-    side_margin_m: torch.Tensor    # (...) signed quantity whose sign flip switches a sided wrap on/off
-    inside_margin_m: torch.Tensor  # (...) |s| - radius for the side site s in the geom frame (inf: no side site)
+    side_margin_m: torch.Tensor    # (...) [m] an end crossing the ray opposite the side site (see ``wrap``)
+    inside_margin_m: torch.Tensor  # (...) [m] the side site crossing the geom's surface
+    end_margin_m: torch.Tensor     # (...) [m] an end crossing the circle while the wrap is on
 
 
 def wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> Wrap:
@@ -61,17 +62,25 @@ def wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> Wrap:
     False, ``side`` is ignored). All broadcast together; float64 tensors, bool masks.
 
     The path's length through the geom is ``where(wrapped, |t0-p0| + arc_m + |p1-t1|, |p1-p0|)``, MuJoCo's to
-    rounding. The margins (metres; for a "near a path switch" flag) are the quantities whose zero crossing makes the
-    path jump; a wrap that starts or ends where the segment touches the circle or an end crosses it is not a jump
-    (length and its slope continue) and has no margin here:
+    rounding. The margins (metres; for a "near a path switch" flag): every jump of that length is where one of them
+    changes sign between finite values (checked along lines through myoArm's and myoLegs' joint boxes,
+    tests/paths/test_switches.py). +inf means "does not apply here" (a change to or from +inf is no switch). A wrap
+    that starts or ends where the segment touches the circle is not a jump (length and slope continue): no margin.
 
-    * ``side_margin_m``: with a side site outside the geom, the signed distance, in the 2D wrapping plane, of the end
-      nearest the ray from the centre opposite the side site (among the ends on that ray's side: ``dot(end, -sd) >
-      0``) from that ray's line, ``cross(-sd_unit, end)``. Its sign flips where that end crosses the ray, and exactly
-      there the sided path jumps (on/off the geom, or round the other side). +inf without a side site, where the
-      inside wrap applies, or where neither end is on the ray's side.
-    * ``inside_margin_m``: ``|s| - radius``, ``s`` the side site in the geom's frame (3D): < 0 selects the inside
-      wrap instead of the sided circle wrap (the path jumps where it changes sign). +inf without a side site.
+    * ``side_margin_m``: with a side site outside the geom and both ends outside the circle, the ends' signed
+      distances ``c = cross(-sd_unit, end)`` (2D wrapping plane) from the line of the ray opposite the side site, for
+      the ends on that ray's side (``dot(end, -sd) > 0``), combined as ``c0 c1 / (|c0| + |c1|)`` (one end: its ``c``).
+      It crosses zero where an end crosses the ray: the side rule's winding jumps by 2 pi there and the path jumps
+      (on/off the geom, or round the other side). It flips sign without a zero where an end leaves the ray's side on
+      the negative side while the other end is on it (a discontinuity, far from zero: no flag). +inf otherwise.
+    * ``inside_margin_m``: ``|s| - radius``, ``s`` the side site in the geom's frame (3D), where both ends are
+      outside the circle: < 0 selects the inside wrap instead of the sided circle wrap (the path jumps where it
+      changes sign). +inf without a side site or with an end inside (nothing wraps either way).
+    * ``end_margin_m``: ``min(|end0|, |end1|) - radius`` in the wrapping plane, where the circle wrap would be on
+      but for the ends (the segment cuts the circle with its centre's foot between the ends, or the side site sends
+      it the long way round): an end entering the circle turns that wrap off (MuJoCo wraps only with both ends
+      outside) and the straight path is shorter, so the length jumps (myoArm's DELT1: 1.85 mm). +inf elsewhere and
+      where the inside wrap applies (there the touching point follows the end onto the circle: no jump).
     """
     return wrap_branches(p0, p1, centre, rot, radius, sphere, side, has_side)[0]
 
@@ -101,7 +110,8 @@ def wrap_branches(p0, p1, centre, rot, radius, sphere, side, has_side) -> tuple[
     out = Wrap(ok, torch.where(ok[..., None], _to_world(res0, centre, rot), p0),
                torch.where(ok[..., None], _to_world(res1, centre, rot), p1), torch.where(ok, arc, 0.0),
                torch.where(has_side & ~inside, circ.ray_margin, math.inf),
-               torch.where(has_side, _norm(s) - radius, math.inf))
+               torch.where(has_side & circ.outside, _norm(s) - radius, math.inf),
+               torch.where(inside, math.inf, circ.end_margin))
     return out, _branch_codes(ok, inside, has_side, circ.cuts, ins.solved)
 
 
@@ -232,7 +242,9 @@ class _Circle(NamedTuple):
     pnt0: torch.Tensor      # (..., 2)
     pnt1: torch.Tensor      # (..., 2)
     arc: torch.Tensor       # (...) arc length [m]
-    ray_margin: torch.Tensor  # _ray_margin [m]
+    ray_margin: torch.Tensor  # _ray_margin [m] (+inf where an end is inside the circle)
+    end_margin: torch.Tensor  # _end_margin [m]
+    outside: torch.Tensor   # both ends outside (or on) the circle
     cuts: torch.Tensor      # the segment cuts (or touches) the circle
 
 
@@ -247,14 +259,16 @@ def _wrap_circle(end0, end1, sd_unit, has_side, radius) -> _Circle:
     dif = end1 - end0
     dd = _dot(dif, dif)
     apart = dd >= MINVAL
-    along = torch.clamp(_div(-_dot(dif, end0), dd, apart), 0.0, 1.0)
+    foot = _div(-_dot(dif, end0), dd, apart)  # the centre's foot on the line, in units of the segment
+    line_foot = end0 + foot[..., None] * dif
+    along = torch.clamp(foot, 0.0, 1.0)
     closest = end0 + along[..., None] * dif
     cuts = _dot(closest, closest) <= sqrad
     winding = _angle(end0, sd_unit) + _angle(sd_unit, end1)  # the polyline's winding about the centre [rad]
     straight = _angle(end0, end1)
     other_class = (winding - straight).abs() > math.pi  # the polyline goes round the other side: 2 pi apart
-    candidate = (sqlen0 >= sqrad) & (sqlen1 >= sqrad) & (radius >= MINVAL) & apart
-    candidate = candidate & (cuts | (has_side & other_class))
+    outside = (sqlen0 >= sqrad) & (sqlen1 >= sqrad)
+    candidate = outside & (radius >= MINVAL) & apart & (cuts | (has_side & other_class))
     pairs = [_tangents(end0, end1, sqlen0, sqlen1, radius, sgn) for sgn in (1.0, -1.0)]
     good = [_goodness(end0, end1, t0, t1) for t0, t1 in pairs]
     first = torch.where(has_side, winding < 0, good[0] > good[1])  # pair 0 turns clockwise, pair 1 counter-
@@ -262,16 +276,33 @@ def _wrap_circle(end0, end1, sd_unit, has_side, radius) -> _Circle:
     pnt1 = torch.where(first[..., None], pairs[0][1], pairs[1][1])
     ok = candidate & ~_intersect(end0, pnt0, end1, pnt1)
     arc = _arc(pnt0, pnt1, first, radius)
-    return _Circle(ok, pnt0, pnt1, arc, _ray_margin(end0, end1, sd_unit), cuts)
+    interior = apart & (foot > 0) & (foot < 1) & (_dot(line_foot, line_foot) < sqrad)  # cuts, an end inside or not
+    end_margin = _end_margin(sqlen0, sqlen1, radius, interior | (has_side & other_class))
+    ray_margin = torch.where(outside, _ray_margin(end0, end1, sd_unit), math.inf)
+    return _Circle(ok, pnt0, pnt1, arc, ray_margin, end_margin, outside, cuts)
 
 
 def _ray_margin(end0, end1, sd_unit):
-    """The signed distance [m] from the ray opposite the side point (from the centre, direction -sd) of the end
-    nearest it among the ends on that ray's side (+inf where neither is): the polyline's winding jumps by 2 pi, and
-    the sided path with it, exactly where an end crosses that ray."""
+    """The polyline's winding jumps by 2 pi, and the sided path with it, exactly where an end crosses the ray from the
+    centre opposite the side point (direction -sd). Per end on that ray's side (``dot(end, -sd) > 0``; the other
+    ends: +inf, the margin does not apply) its signed distance from the ray's line ``c = cross(-sd, end)``; the two
+    combined as ``c0 c1 / (|c0| + |c1|)`` [m]: zero where either is (the sign flips as either end crosses), within a
+    factor 2 of the nearer one's distance, and smooth through its zero (no switch of which end is nearer)."""
     away = -sd_unit
-    margins = [torch.where(_dot(away, end) > 0, _cross2(away, end), math.inf) for end in (end0, end1)]
-    return torch.where(margins[0].abs() <= margins[1].abs(), margins[0], margins[1])
+    c0, c1 = (torch.where(_dot(away, end) > 0, _cross2(away, end), math.inf) for end in (end0, end1))
+    finite = torch.isfinite(c0) & torch.isfinite(c1)
+    a, b = torch.where(finite, c0, 0.0), torch.where(finite, c1, 0.0)
+    both = _div(a * b, a.abs() + b.abs(), (a != 0) | (b != 0))
+    return torch.where(finite, both, torch.where(torch.isfinite(c0), c0, c1))
+
+
+def _end_margin(sqlen0, sqlen1, radius, applies):
+    """``min(|end0|, |end1|) - radius`` [m] where ``applies`` (the segment cuts the circle between the ends, or the
+    side site sends the path the long way round), else +inf: there an end entering the circle turns the wrap off, and
+    the wrapped path (round the circle to the end) is longer than the straight one, so the length jumps (MuJoCo
+    4.0 wraps only with both ends outside). Where the segment misses the circle, or meets it only at the end (heading
+    in), the path is straight on both sides of the crossing: no jump, no margin."""
+    return torch.where(applies, _sqrt(torch.minimum(sqlen0, sqlen1)) - radius, math.inf)
 
 
 def _angle(u, v):
