@@ -14,8 +14,9 @@ STEPS = 10_000  # 1e-4 of the line per step
 # a jump: a step of a length above 0.1 mm between neighbours; the smooth change per step is at most ~0.025 mm here
 # (moment arms <= ~50 mm/rad over <= ~5e-4 rad per step on these lines)
 JUMP_M = 1e-4
-# (config, line seeds): myoArm's seed 4 crosses DELT1's jump where its end site enters the sphere (1.85 mm)
-LINES = [("configs/myoarm.yaml", (4, 0, 1)), ("configs/myolegs-per-muscle.yaml", (0, 1))]
+# (config, line seeds): myoArm's cross 11 jumps (seed 4: DELT1's 1.85 mm where its end site enters the sphere;
+# 8 of them at a side margin, 3 at an end margin); myoLegs' lines (no jump on 200 lines at 1/2000) keep it honest
+LINES = [("configs/myoarm.yaml", (4, 11, 12)), ("configs/myolegs-per-muscle.yaml", (0, 1))]
 
 
 def _line_changes(body, path, seed):
@@ -47,5 +48,5 @@ def test_every_jump_is_at_a_margin_sign_change(config, seeds):
         counts["sign_changes"] += int(sign.sum())
         counts["sign_changes_without_jump"] += int((sign & ~jump).sum())
     if "myoarm" in config:  # the lines cross real jumps (DELT1's at least), else the test could not fail
-        assert counts["jumps"] >= 1, counts
+        assert counts["jumps"] >= 5, counts
     print(config, counts)
