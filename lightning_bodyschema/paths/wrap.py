@@ -380,8 +380,8 @@ def _inside_where(inside, end0, end1, radius, straight) -> _Inside:
     rows = inside.reshape(-1).nonzero().squeeze(1)
     take = lambda x: x.reshape(-1, *x.shape[inside.ndim:]).index_select(0, rows)  # noqa: E731
     part = _wrap_inside(take(end0), take(end1), take(radius), take(straight).abs(), until_done=True)
-    put = lambda x: x.new_zeros((inside.numel(), *x.shape[1:])).index_copy(0, rows, x).view(  # noqa: E731
-        *inside.shape, *x.shape[1:])
+    put = lambda x: x.new_zeros((inside.numel(), *x.shape[1:])).index_copy(0, rows, x).reshape(  # noqa: E731
+        inside.shape + x.shape[1:])
     return _Inside(*(put(x) for x in part))
 
 

@@ -353,6 +353,18 @@ def test_finite_values_and_gradients_at_degenerate_inputs():
             assert all(torch.isfinite(g).all() for g in grads)
 
 
+def test_one_unbatched_wrap_is_the_batched_ones(against_mujoco):
+    """Inputs without a batch axis (every branch, the inside wrap's included) answer as the same rows batched."""
+    cfg, w, branch = against_mujoco[True, True]
+    rows = [int(np.flatnonzero(branch == code)[0]) for code in range(len(BRANCHES)) if (branch == code).any()]
+    assert {int(branch[r]) for r in rows} >= {INSIDE, CIRCLE_SIDED}
+    for r in rows:
+        args = [torch.as_tensor(cfg[k][r]) for k in ("p0", "p1", "centre", "rot", "radius")]
+        one = wrap(*args, torch.tensor(True), torch.as_tensor(cfg["side"][r]), torch.tensor(True))
+        for got, want in zip(one, w):
+            torch.testing.assert_close(got, want[r], rtol=0, atol=0)
+
+
 def test_bad_input_is_named():
     x = torch.zeros(3, dtype=torch.float64)
     with pytest.raises(BodySchemaInputError, match="p0 must be a float64"):
