@@ -15,7 +15,7 @@ STEPS = 10_000  # 1e-4 of the line per step
 # (moment arms <= ~50 mm/rad over <= ~5e-4 rad per step on these lines)
 JUMP_M = 1e-4
 # (config, line seeds): myoArm's cross 11 jumps (seed 4: DELT1's 1.85 mm where its end site enters the sphere;
-# 8 of them at a side margin, 3 at an end margin); myoLegs' lines (no jump on 200 lines at 1/2000) keep it honest
+# 7 of them at a side margin, 4 at an end margin); myoLegs' lines (no jump on 200 lines at 1/2000) keep it honest
 LINES = [("configs/myoarm.yaml", (4, 11, 12)), ("configs/myolegs-per-muscle.yaml", (0, 1))]
 
 
