@@ -37,12 +37,13 @@ class _Wrap(NamedTuple):
     arc_m: torch.Tensor
     side_margin_m: torch.Tensor
     inside_margin_m: torch.Tensor
+    end_margin_m: torch.Tensor
 
 
 def _no_wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> _Wrap:
     """Nothing wraps (``paths.wrap.wrap``'s interface, until it lands): straight paths only."""
     inf = torch.full_like(radius, float("inf"))
-    return _Wrap(torch.zeros_like(sphere), p0, p1, torch.zeros_like(radius), inf, inf)
+    return _Wrap(torch.zeros_like(sphere), p0, p1, torch.zeros_like(radius), inf, inf, inf)
 
 
 try:
@@ -112,9 +113,10 @@ class GeometricPath(nn.Module):
         length, arm, _ = self._evaluate(q)
         return length, arm
 
-    def margins(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(side_margin (B, M, K), inside_margin (B, M, K))`` [m] of each muscle's wrapping geoms in path order
-        (``paths.wrap.wrap``'s margins; +inf in slots without a geom)."""
+    def margins(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(side_margin, inside_margin, end_margin)``, each ``(B, M, K)`` [m], of each muscle's wrapping geoms in path
+        order (``paths.wrap.wrap``'s margins: every jump of a path is where one of them changes sign; +inf where a
+        margin does not apply and in slots without a geom)."""
         return self._evaluate(q)[2]
 
     def _evaluate(self, q: torch.Tensor):
@@ -155,11 +157,11 @@ class GeometricPath(nn.Module):
 
     def _wraps(self, points: torch.Tensor, frames: torch.Tensor) -> tuple:
         """Every wrapping geom's ``paths.wrap.Wrap``: ``wrapped (B, W)``, ``t0``, ``t1`` ``(B, 3, W)``, the arc and
-        the two margins ``(B, W)`` [m]."""
+        the three margins ``(B, W)`` [m]."""
         batch, take = points.shape[0], lambda rows: points.index_select(2, rows).transpose(1, 2)  # noqa: E731
         if not len(self.geom_start):
             empty = points.new_zeros(batch, 0)
-            return empty.bool(), points[..., :0], points[..., :0], empty, empty, empty
+            return empty.bool(), points[..., :0], points[..., :0], empty, empty, empty, empty
         rot = frames.index_select(1, self.geom_frame)[..., :3] @ self.geom_rot
         out = _wrap(take(self.geom_start), take(self.geom_end), take(self.geom_centre), rot,
                     self.numbers[self.geom_radius].expand(batch, -1), self.geom_sphere.expand(batch, -1),

@@ -18,8 +18,9 @@ the geom's frame, picks a 2D plane (a cylinder: the plane normal to its axis; a 
 Checked against MuJoCo 4.0.0 itself (tests/paths/test_wrap.py): lengths and tangent points to rounding. The sources
 of earlier MuJoCo versions differ (side rule, inside solve, an arc's ``acos``); this follows 4.0's results.
 
-Every case is computed for every element and selected with ``torch.where`` (no data-dependent control flow: it
-traces under ``torch.export`` with a symbolic batch). Guards keep every output finite for finite inputs below 1e150 m
+Every case is computed for every element and selected with ``torch.where``; compiled or exported, with no
+data-dependent control flow (it traces under ``torch.export`` with a symbolic batch); eager, the inside wrap runs on
+its elements only and its Newton steps stop once all have converged (the same numbers). Guards keep every output finite for finite inputs below 1e150 m
 (and autograd free of NaN); where MuJoCo divides unguarded (a cylinder's height over a zero-length path) this returns
 the unwrapped segment's values. Never imports Lightning.
 """
@@ -48,8 +49,9 @@ class Wrap(NamedTuple):
     t0: torch.Tensor        # (..., 3) world tangent point after p0 (where not wrapped: p0)
     t1: torch.Tensor        # (..., 3) world tangent point before p1 (where not wrapped: p1)
     arc_m: torch.Tensor     # (...) MuJoCo's wrap length between t0 and t1 (incl. a cylinder's height); 0 where not
-    side_margin_m: torch.Tensor    # (...) signed quantity whose sign flip switches a sided wrap on/off
-    inside_margin_m: torch.Tensor  # (...) |s| - radius for the side site s in the geom frame (inf: no side site)
+    side_margin_m: torch.Tensor    # (...) [m] an end crossing the ray opposite the side site (see ``wrap``)
+    inside_margin_m: torch.Tensor  # (...) [m] the side site crossing the geom's surface
+    end_margin_m: torch.Tensor     # (...) [m] an end crossing the circle while the wrap is on
 
 
 def wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> Wrap:
@@ -61,17 +63,25 @@ def wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> Wrap:
     False, ``side`` is ignored). All broadcast together; float64 tensors, bool masks.
 
     The path's length through the geom is ``where(wrapped, |t0-p0| + arc_m + |p1-t1|, |p1-p0|)``, MuJoCo's to
-    rounding. The margins (metres; for a "near a path switch" flag) are the quantities whose zero crossing makes the
-    path jump; a wrap that starts or ends where the segment touches the circle or an end crosses it is not a jump
-    (length and its slope continue) and has no margin here:
+    rounding. The margins (metres; for a "near a path switch" flag): every jump of that length is where one of them
+    changes sign between finite values (checked along lines through myoArm's and myoLegs' joint boxes,
+    tests/paths/test_switches.py). +inf means "does not apply here" (a change to or from +inf is no switch). A wrap
+    that starts or ends where the segment touches the circle is not a jump (length and slope continue): no margin.
 
-    * ``side_margin_m``: with a side site outside the geom, the signed distance, in the 2D wrapping plane, of the end
-      nearest the ray from the centre opposite the side site (among the ends on that ray's side: ``dot(end, -sd) >
-      0``) from that ray's line, ``cross(-sd_unit, end)``. Its sign flips where that end crosses the ray, and exactly
-      there the sided path jumps (on/off the geom, or round the other side). +inf without a side site, where the
-      inside wrap applies, or where neither end is on the ray's side.
-    * ``inside_margin_m``: ``|s| - radius``, ``s`` the side site in the geom's frame (3D): < 0 selects the inside
-      wrap instead of the sided circle wrap (the path jumps where it changes sign). +inf without a side site.
+    * ``side_margin_m``: with a side site outside the geom and both ends outside the circle, the ends' signed
+      distances ``c = cross(-sd_unit, end)`` (2D wrapping plane) from the line of the ray opposite the side site, for
+      the ends on that ray's side (``dot(end, -sd) > 0``), combined as ``c0 c1 / (|c0| + |c1|)`` (one end: its ``c``).
+      It crosses zero where an end crosses the ray: the side rule's winding jumps by 2 pi there and the path jumps
+      (on/off the geom, or round the other side). It flips sign without a zero where an end leaves the ray's side on
+      the negative side while the other end is on it (a discontinuity, far from zero: no flag). +inf otherwise.
+    * ``inside_margin_m``: ``|s| - radius``, ``s`` the side site in the geom's frame (3D), where both ends are
+      outside the circle: < 0 selects the inside wrap instead of the sided circle wrap (the path jumps where it
+      changes sign). +inf without a side site or with an end inside (nothing wraps either way).
+    * ``end_margin_m``: ``min(|end0|, |end1|) - radius`` in the wrapping plane, where the circle wrap would be on
+      but for the ends (the segment cuts the circle with its centre's foot between the ends, or the side site sends
+      it the long way round): an end entering the circle turns that wrap off (MuJoCo wraps only with both ends
+      outside) and the straight path is shorter, so the length jumps (myoArm's DELT1: 1.85 mm). +inf elsewhere and
+      where the inside wrap applies (there the touching point follows the end onto the circle: no jump).
     """
     return wrap_branches(p0, p1, centre, rot, radius, sphere, side, has_side)[0]
 
@@ -83,14 +93,15 @@ def wrap_branches(p0, p1, centre, rot, radius, sphere, side, has_side) -> tuple[
     INSIDE (inside wrap, the reflection point); INSIDE_AVERAGE (inside wrap, MuJoCo's fallback for ends on one ray
     from the centre: the average point, arc 0)."""
     p0, p1, centre, rot, radius, sphere, side, has_side = _checked(p0, p1, centre, rot, radius, sphere, side, has_side)
-    local0, local1, s = (_to_local(x, centre, rot) for x in (p0, p1, side))
+    local0, local1, s = _to_local(torch.stack((p0, p1, side), -2), centre, rot).unbind(-2)
     far = (_norm(local0) >= MINVAL) & (_norm(local1) >= MINVAL)  # too close to the centre: no wrap
     axis0, axis1 = _plane(local0, local1, sphere)
     end0, end1 = _project(local0, axis0, axis1), _project(local1, axis0, axis1)
     sd_unit = _unit(_project(s, axis0, axis1))
-    inside = has_side & (_norm(s) < radius)
+    s_out = _norm(s) - radius
+    inside = has_side & (s_out < 0)
     circ = _wrap_circle(end0, end1, sd_unit, has_side, radius)
-    ins = _wrap_inside(end0, end1, radius)
+    ins = _inside_where(inside, end0, end1, radius, circ.straight)
     ok = far & torch.where(inside, ins.ok, circ.ok)
     pnt0 = torch.where(inside[..., None], ins.pnt, circ.pnt0)
     pnt1 = torch.where(inside[..., None], ins.pnt, circ.pnt1)
@@ -98,10 +109,11 @@ def wrap_branches(p0, p1, centre, rot, radius, sphere, side, has_side) -> tuple[
     res0 = axis0 * pnt0[..., :1] + axis1 * pnt0[..., 1:]
     res1 = axis0 * pnt1[..., :1] + axis1 * pnt1[..., 1:]
     res0, res1, arc = _helix(local0, local1, res0, res1, arc, sphere)
-    out = Wrap(ok, torch.where(ok[..., None], _to_world(res0, centre, rot), p0),
-               torch.where(ok[..., None], _to_world(res1, centre, rot), p1), torch.where(ok, arc, 0.0),
-               torch.where(has_side & ~inside, circ.ray_margin, math.inf),
-               torch.where(has_side, _norm(s) - radius, math.inf))
+    world0, world1 = _to_world(torch.stack((res0, res1), -2), centre, rot).unbind(-2)
+    out = Wrap(ok, torch.where(ok[..., None], world0, p0), torch.where(ok[..., None], world1, p1),
+               torch.where(ok, arc, 0.0), torch.where(has_side & ~inside, circ.ray_margin, math.inf),
+               torch.where(has_side & circ.outside, s_out, math.inf),
+               torch.where(inside, math.inf, circ.end_margin))
     return out, _branch_codes(ok, inside, has_side, circ.cuts, ins.solved)
 
 
@@ -141,7 +153,7 @@ def _sqrt(x: torch.Tensor) -> torch.Tensor:
 
 
 def _norm(v: torch.Tensor) -> torch.Tensor:
-    return _sqrt((v * v).sum(-1))
+    return _sqrt(_dot(v, v))
 
 
 def _div(a: torch.Tensor, b: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
@@ -168,18 +180,29 @@ def _cross2(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def _dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    return (u * v).sum(-1)
+    """The dot product over the last axis (2 or 3) by components: a sum over so short an axis is many times slower."""
+    prod = u * v
+    out = prod[..., 0] + prod[..., 1]
+    return out + prod[..., 2] if prod.shape[-1] == 3 else out
+
+
+def _cross3(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """u x v of (..., 3) vectors by components (linalg.cross is several times slower on short rows)."""
+    ux, uy, uz = u.unbind(-1)
+    vx, vy, vz = v.unbind(-1)
+    return torch.stack((uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx), -1)
 
 
 # ---------------------------------------------------------------- frames
 
 def _to_local(x, centre, rot):
-    """xmat^T (x - centre): the point in the geom's frame."""
-    return torch.einsum("...ji,...j->...i", rot, x - centre)
+    """xmat^T (x - centre) for points ``x (..., P, 3)``: in the geom's frame (rows times xmat: one product)."""
+    return (x - centre[..., None, :]) @ rot
 
 
 def _to_world(x, centre, rot):
-    return torch.einsum("...ij,...j->...i", rot, x) + centre
+    """xmat x + centre for points ``x (..., P, 3)`` in the geom's frame."""
+    return x @ rot.transpose(-1, -2) + centre[..., None, :]
 
 
 def _project(v, axis0, axis1):
@@ -190,10 +213,10 @@ def _plane(local0, local1, sphere):
     """The 2D wrapping frame's axes in the geom's frame: a cylinder's x, y; a sphere's p0 direction and the direction
     normal to it in the plane of p0, the centre and p1 (p0, p1 parallel: MuJoCo's fixed choice of a normal)."""
     axis0 = _unit(local0)
-    normal = torch.linalg.cross(local0, local1)
+    normal = _cross3(local0, local1)
     parallel = _norm(normal) < MINVAL
-    normal = torch.where(parallel[..., None], _unit(torch.linalg.cross(axis0, _off_axis(axis0))), _unit(normal))
-    axis1 = _unit(torch.linalg.cross(normal, axis0))
+    normal = torch.where(parallel[..., None], _unit(_cross3(axis0, _off_axis(axis0))), _unit(normal))
+    axis1 = _unit(_cross3(normal, axis0))
     ex, ey = torch.eye(3, dtype=local0.dtype, device=local0.device)[:2]
     return (torch.where(sphere[..., None], axis0, ex), torch.where(sphere[..., None], axis1, ey))
 
@@ -232,8 +255,11 @@ class _Circle(NamedTuple):
     pnt0: torch.Tensor      # (..., 2)
     pnt1: torch.Tensor      # (..., 2)
     arc: torch.Tensor       # (...) arc length [m]
-    ray_margin: torch.Tensor  # _ray_margin [m]
+    ray_margin: torch.Tensor  # _ray_margin [m] (+inf where an end is inside the circle)
+    end_margin: torch.Tensor  # _end_margin [m]
+    outside: torch.Tensor   # both ends outside (or on) the circle
     cuts: torch.Tensor      # the segment cuts (or touches) the circle
+    straight: torch.Tensor  # the signed angle from end0 to end1 [rad]
 
 
 def _wrap_circle(end0, end1, sd_unit, has_side, radius) -> _Circle:
@@ -247,31 +273,51 @@ def _wrap_circle(end0, end1, sd_unit, has_side, radius) -> _Circle:
     dif = end1 - end0
     dd = _dot(dif, dif)
     apart = dd >= MINVAL
-    along = torch.clamp(_div(-_dot(dif, end0), dd, apart), 0.0, 1.0)
+    foot = _div(-_dot(dif, end0), dd, apart)  # the centre's foot on the line, in units of the segment
+    line_foot = end0 + foot[..., None] * dif
+    along = torch.clamp(foot, 0.0, 1.0)
     closest = end0 + along[..., None] * dif
     cuts = _dot(closest, closest) <= sqrad
     winding = _angle(end0, sd_unit) + _angle(sd_unit, end1)  # the polyline's winding about the centre [rad]
     straight = _angle(end0, end1)
     other_class = (winding - straight).abs() > math.pi  # the polyline goes round the other side: 2 pi apart
-    candidate = (sqlen0 >= sqrad) & (sqlen1 >= sqrad) & (radius >= MINVAL) & apart
-    candidate = candidate & (cuts | (has_side & other_class))
+    outside = (sqlen0 >= sqrad) & (sqlen1 >= sqrad)
+    candidate = outside & (radius >= MINVAL) & apart & (cuts | (has_side & other_class))
     pairs = [_tangents(end0, end1, sqlen0, sqlen1, radius, sgn) for sgn in (1.0, -1.0)]
-    good = [_goodness(end0, end1, t0, t1) for t0, t1 in pairs]
+    crossed = [_intersect(end0, t0, end1, t1) for t0, t1 in pairs]
+    good = [_goodness(t0, t1, x) for (t0, t1), x in zip(pairs, crossed)]
     first = torch.where(has_side, winding < 0, good[0] > good[1])  # pair 0 turns clockwise, pair 1 counter-
     pnt0 = torch.where(first[..., None], pairs[0][0], pairs[1][0])
     pnt1 = torch.where(first[..., None], pairs[0][1], pairs[1][1])
-    ok = candidate & ~_intersect(end0, pnt0, end1, pnt1)
+    ok = candidate & ~torch.where(first, crossed[0], crossed[1])
     arc = _arc(pnt0, pnt1, first, radius)
-    return _Circle(ok, pnt0, pnt1, arc, _ray_margin(end0, end1, sd_unit), cuts)
+    interior = apart & (foot > 0) & (foot < 1) & (_dot(line_foot, line_foot) < sqrad)  # cuts, an end inside or not
+    end_margin = _end_margin(sqlen0, sqlen1, radius, interior | (has_side & other_class))
+    ray_margin = torch.where(outside, _ray_margin(end0, end1, sd_unit), math.inf)
+    return _Circle(ok, pnt0, pnt1, arc, ray_margin, end_margin, outside, cuts, straight)
 
 
 def _ray_margin(end0, end1, sd_unit):
-    """The signed distance [m] from the ray opposite the side point (from the centre, direction -sd) of the end
-    nearest it among the ends on that ray's side (+inf where neither is): the polyline's winding jumps by 2 pi, and
-    the sided path with it, exactly where an end crosses that ray."""
+    """The polyline's winding jumps by 2 pi, and the sided path with it, exactly where an end crosses the ray from the
+    centre opposite the side point (direction -sd). Per end on that ray's side (``dot(end, -sd) > 0``; the other
+    ends: +inf, the margin does not apply) its signed distance from the ray's line ``c = cross(-sd, end)``; the two
+    combined as ``c0 c1 / (|c0| + |c1|)`` [m]: zero where either is (the sign flips as either end crosses), within a
+    factor 2 of the nearer one's distance, and smooth through its zero (no switch of which end is nearer)."""
     away = -sd_unit
-    margins = [torch.where(_dot(away, end) > 0, _cross2(away, end), math.inf) for end in (end0, end1)]
-    return torch.where(margins[0].abs() <= margins[1].abs(), margins[0], margins[1])
+    c0, c1 = (torch.where(_dot(away, end) > 0, _cross2(away, end), math.inf) for end in (end0, end1))
+    finite = torch.isfinite(c0) & torch.isfinite(c1)
+    a, b = torch.where(finite, c0, 0.0), torch.where(finite, c1, 0.0)
+    both = _div(a * b, a.abs() + b.abs(), (a != 0) | (b != 0))
+    return torch.where(finite, both, torch.where(torch.isfinite(c0), c0, c1))
+
+
+def _end_margin(sqlen0, sqlen1, radius, applies):
+    """``min(|end0|, |end1|) - radius`` [m] where ``applies`` (the segment cuts the circle between the ends, or the
+    side site sends the path the long way round), else +inf: there an end entering the circle turns the wrap off, and
+    the wrapped path (round the circle to the end) is longer than the straight one, so the length jumps (MuJoCo
+    4.0 wraps only with both ends outside). Where the segment misses the circle, or meets it only at the end (heading
+    in), the path is straight on both sides of the crossing: no jump, no margin."""
+    return torch.where(applies, _sqrt(torch.minimum(sqlen0, sqlen1)) - radius, math.inf)
 
 
 def _angle(u, v):
@@ -292,11 +338,10 @@ def _tangents(end0, end1, sqlen0, sqlen1, radius, sgn):
     return (_div(t0, sqlen0[..., None], (sqlen0 > 0)[..., None]), _div(t1, sqlen1[..., None], (sqlen1 > 0)[..., None]))
 
 
-def _goodness(end0, end1, t0, t1):
+def _goodness(t0, t1, crossed):
     """Minus the chord's square (the shorter arc is better); a pair whose tangent segments cross: PENALTY."""
     chord = t0 - t1
-    good = -_dot(chord, chord)
-    return torch.where(_intersect(end0, t0, end1, t1), PENALTY, good)
+    return torch.where(crossed, PENALTY, -_dot(chord, chord))
 
 
 def _intersect(p1, p2, p3, p4):
@@ -326,12 +371,27 @@ class _Inside(NamedTuple):
     solved: torch.Tensor   # the reflection point solved for, not the collinear fallback (the normalised average)
 
 
-def _wrap_inside(end0, end1, radius) -> _Inside:
+def _inside_where(inside, end0, end1, radius, straight) -> _Inside:
+    """``_wrap_inside`` where ``inside`` (elsewhere not ok). Compiled or exported, on every element with the fixed
+    Newton steps (no data-dependent shape or loop); eager, on the inside elements only and Newton's steps stopping
+    once every lane has (the same numbers: a stopped lane keeps its angle)."""
+    if torch.compiler.is_compiling() or torch.compiler.is_exporting():
+        return _wrap_inside(end0, end1, radius, straight.abs(), until_done=False)
+    rows = inside.reshape(-1).nonzero().squeeze(1)
+    take = lambda x: x.reshape(-1, *x.shape[inside.ndim:]).index_select(0, rows)  # noqa: E731
+    part = _wrap_inside(take(end0), take(end1), take(radius), take(straight).abs(), until_done=True)
+    put = lambda x: x.new_zeros((inside.numel(), *x.shape[1:])).index_copy(0, rows, x).reshape(  # noqa: E731
+        inside.shape + x.shape[1:])
+    return _Inside(*(put(x) for x in part))
+
+
+def _wrap_inside(end0, end1, radius, g, until_done: bool) -> _Inside:
     """The inside wrap on 2D end points: the path touches the circle at the one point where it reflects.
 
     MuJoCo's refusals (an end inside or on the circle, the segment cutting it, the ends opposite about the centre)
     and its fallback for ends on one ray from the centre (the normalised average of the two ends); elsewhere the
-    reflection condition ``asin(A sin t) + asin(B sin t) - 2 t + G = 0`` solved to rounding (``_reflection``)."""
+    reflection condition ``asin(A sin t) + asin(B sin t) - 2 t + G = 0`` solved to rounding (``_reflection``); ``g``
+    the angle between the ends, ``|_angle(end0, end1)|`` [rad]."""
     len0, len1 = _norm(end0), _norm(end1)
     dif = end1 - end0
     dd = _dot(dif, dif)
@@ -346,7 +406,7 @@ def _wrap_inside(end0, end1, radius) -> _Inside:
     cos_g = _div(len0 * len0 + len1 * len1 - dd, 2 * len0 * len1, (len0 > 0) & (len1 > 0))
     ok = ok & (cos_g >= -1 + MINVAL)
     solved = cos_g <= 1 - MINVAL
-    theta = _reflection(a_ratio, b_ratio, _angle(end0, end1).abs())
+    theta = _reflection(a_ratio, b_ratio, g, ok & solved if until_done else None)
     turn_left = _cross2(end0, end1) > 0
     vec = _unit(torch.where(turn_left[..., None], end0, end1))
     ang = theta - _asin(torch.where(turn_left, a_ratio, b_ratio) * torch.sin(theta))
@@ -355,12 +415,14 @@ def _wrap_inside(end0, end1, radius) -> _Inside:
     return _Inside(ok, torch.where(solved[..., None], touch, average), solved)
 
 
-def _reflection(a_ratio, b_ratio, g):
+def _reflection(a_ratio, b_ratio, g, used: torch.Tensor | None):
     """MuJoCo 4.0's reflection angle ``t`` in [0, pi/2]: Newton's method on ``asin(A sin t) + asin(B sin t) - 2 t + G``
     (A, B = radius / |end| < 1, G the angle between the ends) from pi/2, each step clamped to pi/2, a lane stopping
     once |value| <= REFLECTION_TOL (then within ~1e-8 rad of the root: MuJoCo's own point, not the exact root). The
     function falls from G at 0 with slope in [-2, A + B - 2] and is concave, so the steps approach the root from the
-    right without overshooting; REFLECTION_STEPS fixed steps (lanes that stopped keep their angle)."""
+    right without overshooting; REFLECTION_STEPS steps (lanes that stopped keep their angle); given ``used`` (the
+    lanes whose angle is used), fewer once all of those have stopped (a data-dependent exit: eager only; the others'
+    angles are then not MuJoCo's, and unused)."""
     theta = torch.full_like(g, math.pi / 2)
     for _ in range(REFLECTION_STEPS):
         sin, cos = torch.sin(theta), torch.cos(theta)
@@ -369,5 +431,8 @@ def _reflection(a_ratio, b_ratio, g):
         slope = (a_ratio * cos / _sqrt(1 - a_sin * a_sin).clamp(min=MINVAL)
                  + b_ratio * cos / _sqrt(1 - b_sin * b_sin).clamp(min=MINVAL) - 2)  # <= A + B - 2 < 0
         step = torch.clamp(theta - _div(value, slope, slope != 0), max=math.pi / 2)
-        theta = torch.where(value.abs() > REFLECTION_TOL, step, theta)
+        going = value.abs() > REFLECTION_TOL
+        if used is not None and not bool((going & used).any()):
+            break
+        theta = torch.where(going, step, theta)
     return theta

@@ -60,15 +60,15 @@ SWITCH_STEP_RAD = 1e-6  # the forward difference of the wrap margins' slopes (th
 @torch.no_grad()
 def geometric_switches(path: GeometricPath, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How far each posture ``q_rad (B, N)`` is from a switch of the fitted paths' wrapping, to first order: over every
-    muscle's wrap margins whose zero switches its path (``GeometricPath.margins``: a side site turning a wrap on, the
-    side site crossing into its geom), the least ``|m| / |grad m|`` [rad], and the muscle it belongs to (``inf``, -1:
+    muscle's wrap margins whose zero switches its path (``GeometricPath.margins``: an end crossing the ray opposite a
+    side site, the side site crossing into its geom, an end entering its geom while wrapped), the least ``|m| / |grad m|`` [rad], and the muscle it belongs to (``inf``, -1:
     none). The exact margins of the fitted model: no learned gate."""
     q = torch.as_tensor(q_rad, dtype=torch.float64, device=path.numbers.device)
     batch, n = q.shape
     steps = torch.cat([torch.zeros(1, n, dtype=q.dtype, device=q.device),
                        SWITCH_STEP_RAD * torch.eye(n, dtype=q.dtype, device=q.device)])
-    margins = torch.stack(path.margins((q[:, None, :] + steps).reshape(-1, n)))  # (2, B (N+1), M, K)
-    margins = margins.reshape(2, batch, n + 1, *margins.shape[2:])
+    margins = torch.stack(path.margins((q[:, None, :] + steps).reshape(-1, n)))  # (kinds, B (N+1), M, K)
+    margins = margins.reshape(len(margins), batch, n + 1, *margins.shape[2:])
     value, slope = margins[:, :, 0], (margins[:, :, 1:] - margins[:, :, :1]) / SWITCH_STEP_RAD
     distance = value.abs() / torch.linalg.vector_norm(slope, dim=2).clamp_min(1e-12)
     distance = torch.where(torch.isfinite(value), distance, torch.inf).amin(dim=(0, 3))  # (B, M)

@@ -152,10 +152,10 @@ def test_only_the_numbers_are_state_and_stay_float64_on_a_cast():
 def test_margins_have_a_slot_per_wrapping_geom_and_inf_elsewhere():
     model = _body("arm3_8")
     layout = path_layout(model)
-    side, inside = GeometricPath(layout).margins(torch.as_tensor(model.sample_q(np.random.default_rng(6), 3)))
-    assert side.shape == inside.shape == (3, model.n_muscles, layout.wrap_slot.shape[1])
-    empty = torch.as_tensor(np.broadcast_to(layout.wrap_slot == layout.n_wraps, side.shape).copy())
-    assert torch.isinf(side[empty]).all() and torch.isinf(inside[empty]).all()
+    margins = GeometricPath(layout).margins(torch.as_tensor(model.sample_q(np.random.default_rng(6), 3)))
+    assert len(margins) == 3 and all(m.shape == (3, model.n_muscles, layout.wrap_slot.shape[1]) for m in margins)
+    empty = torch.as_tensor(np.broadcast_to(layout.wrap_slot == layout.n_wraps, margins[0].shape).copy())
+    assert all(torch.isinf(m[empty]).all() for m in margins)
     assert empty.any() and (~empty).any()
 
 

@@ -165,7 +165,8 @@ def test_every_branch_is_exercised(against_mujoco):
 
 def test_inside_margin_selects_the_inside_wrap(against_mujoco):
     """inside_margin_m < 0 exactly where MuJoCo took the inside branches; without a side site both margins are inf;
-    where the inside wrap applies the side margin is inf."""
+    where the inside wrap applies the side margin is inf; with an end inside the circle (nothing wraps either way) the
+    inside margin is inf."""
     for (sphere, sided), (cfg, w, branch) in against_mujoco.items():
         inside_margin, side_margin = w.inside_margin_m.numpy(), w.side_margin_m.numpy()
         if not sided:
@@ -174,29 +175,24 @@ def test_inside_margin_selects_the_inside_wrap(against_mujoco):
         inside = np.isin(branch, [INSIDE, INSIDE_AVERAGE])
         assert (inside_margin[inside] < 0).all() and np.isinf(side_margin[inside_margin < 0]).all()
         assert not (w.wrapped.numpy() & ~inside & (inside_margin < 0)).any()
-        np.testing.assert_allclose(inside_margin + cfg["radius"],
-                                   np.linalg.norm(cfg["side"] - cfg["centre"], axis=1), rtol=0, atol=1e-15)
+        # it applies where both ends are outside the circle (in the wrapping plane: a cylinder's xy), else +inf
+        ends = [np.einsum("bji,bj->bi", cfg["rot"], cfg[p] - cfg["centre"])[:, :3 if sphere else 2] for p in ("p0", "p1")]
+        applies = np.minimum(*(np.linalg.norm(e, axis=1) for e in ends)) >= cfg["radius"]
+        assert np.isinf(inside_margin[~applies]).all() and applies.sum() >= 100
+        np.testing.assert_allclose(inside_margin[applies] + cfg["radius"][applies],
+                                   np.linalg.norm(cfg["side"] - cfg["centre"], axis=1)[applies], rtol=0, atol=1e-15)
 
 
 @pytest.mark.parametrize("sphere", [True, False], ids=["sphere", "cylinder"])
 def test_side_margin_zero_is_mujocos_jump(sphere):
     """p0 slides across the ray from the centre opposite the side site (side site below the geom, the ray straight
-    up, p1 to the right): side_margin_m is p0's signed distance from that ray, and MuJoCo's length jumps by more
-    than 1 cm between +-1 um of its zero (the path lets go of the geom) while 2 mm on either side it moves less."""
+    up, p1 to the right, on the ray's side too): side_margin_m combines p0's and p1's signed distances from the ray's
+    line, ``c0 c1 / (|c0| + |c1|)``, zero where p0's is, and MuJoCo's length jumps by more than 1 cm between +-1 um of
+    its zero (the path lets go of the geom) while 2 mm on either side it moves less."""
     radius, x = 0.05, np.array([-2e-3, -1e-6, 1e-6, 2e-3])
     p0 = np.stack([x, np.full(4, 0.1), np.zeros(4)], 1)
     p1, side = np.array([0.15, 0.03, 0.0]), np.array([0.0, -0.08, 0.0])
-    m = mujoco.MjModel.from_xml_string(tendon_xml(sphere, True))
-    d = mujoco.MjData(m)
-    m.geom_size[m.geom("g").id, 0] = radius
-    lengths = []
-    for start in p0:
-        for body, point in zip("abgs", (start, p1, np.zeros(3), side)):
-            adr = m.jnt_qposadr[m.body(body).jntadr[0]]
-            d.qpos[adr:adr + 7] = np.r_[point, 1.0, 0, 0, 0]
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_tendon(m, d)
-        lengths.append(d.ten_length[0])
+    lengths = _mujoco_lengths(sphere, True, radius, p0, np.broadcast_to(p1, p0.shape), side)
     t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
     w = wrap(t(p0), t(p1), t(np.zeros(3)), torch.eye(3, dtype=torch.float64), t(radius), torch.tensor(sphere),
              t(side), torch.tensor(True))
@@ -204,12 +200,49 @@ def test_side_margin_zero_is_mujocos_jump(sphere):
     if sphere:  # the sphere's plane holds p0, p1 and the centre: the ray's line is met where p0's x is 0 as well
         assert (np.sign(margin) == -np.sign(margin[::-1])).all() and (np.abs(margin[1:3]) < 2e-6).all()
     else:
-        np.testing.assert_allclose(np.abs(margin), np.abs(x), rtol=1e-12)
+        c0, c1 = -x, -p1[0]  # cross(ray direction +y, end)
+        np.testing.assert_allclose(margin, c0 * c1 / (np.abs(c0) + np.abs(c1)), rtol=1e-12)
         assert np.sign(margin[1]) == -np.sign(margin[2])
     jump = abs(lengths[2] - lengths[1])
     assert jump > 0.01 and abs(lengths[1] - lengths[0]) < 0.01 and abs(lengths[3] - lengths[2]) < 0.01
     ours = path_length(w, t(p0), t(p1)).numpy()
     np.testing.assert_allclose(ours, lengths, rtol=0, atol=rounding_tol(LENGTH_ROUNDINGS, 0.2))
+
+
+def _mujoco_lengths(sphere: bool, sided: bool, radius: float, p0, p1, side) -> np.ndarray:
+    """MuJoCo's tendon length per row of ``p0``, ``p1`` (geom at the origin, unturned)."""
+    m = mujoco.MjModel.from_xml_string(tendon_xml(sphere, sided))
+    d = mujoco.MjData(m)
+    m.geom_size[m.geom("g").id, 0] = radius
+    lengths = []
+    for start, end in zip(p0, p1):
+        for body, point in zip("abgs", (start, end, np.zeros(3), side)):
+            adr = m.jnt_qposadr[m.body(body).jntadr[0]]
+            d.qpos[adr:adr + 7] = np.r_[point, 1.0, 0, 0, 0]
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_tendon(m, d)
+        lengths.append(d.ten_length[0])
+    return np.array(lengths)
+
+
+@pytest.mark.parametrize("sphere", [True, False], ids=["sphere", "cylinder"])
+@pytest.mark.parametrize("sided", [False, True], ids=["plain", "sided"])
+def test_end_margin_zero_is_mujocos_jump(sphere, sided):
+    """p1 moves radially into the circle while the segment from p0 cuts it (myoArm's DELT1 at its 1.85 mm jump):
+    end_margin_m is p1's distance outside the circle, and MuJoCo's length jumps by more than 5 mm between +-1 nm
+    of its zero (the wrap round the circle to p1 turns off), while 1 mm on either side it moves about 1 mm."""
+    radius, scale = 0.05, 1 + np.array([2e-2, 2e-8, -2e-8, -2e-2])
+    p1 = radius * scale[:, None] * np.array([np.cos(np.pi / 6), np.sin(np.pi / 6), 0.0])
+    p0, side = np.broadcast_to([-0.15, 0.0, 0.0], p1.shape), np.array([0.0, 0.2, 0.0])
+    lengths = _mujoco_lengths(sphere, sided, radius, p0, p1, side)
+    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
+    w = wrap(t(p0), t(p1), t(np.zeros(3)), torch.eye(3, dtype=torch.float64), t(radius), torch.tensor(sphere),
+             t(side), torch.tensor(sided))
+    np.testing.assert_allclose(w.end_margin_m.numpy(), radius * (scale - 1), rtol=0, atol=rounding_tol(8, radius))
+    assert abs(lengths[2] - lengths[1]) > 5e-3
+    assert abs(lengths[1] - lengths[0]) < 2e-3 and abs(lengths[3] - lengths[2]) < 2e-3
+    np.testing.assert_allclose(path_length(w, t(p0), t(p1)).numpy(), lengths, rtol=0,
+                               atol=rounding_tol(LENGTH_ROUNDINGS, 0.2))
 
 
 def test_inside_average_is_mujocos_fallback(against_mujoco):
@@ -318,6 +351,18 @@ def test_finite_values_and_gradients_at_degenerate_inputs():
             assert not torch.isnan(w.side_margin_m).any() and not torch.isnan(w.inside_margin_m).any()
             grads = torch.autograd.grad(path_length(w, p0, p1).sum(), (p0, p1, radius))
             assert all(torch.isfinite(g).all() for g in grads)
+
+
+def test_one_unbatched_wrap_is_the_batched_ones(against_mujoco):
+    """Inputs without a batch axis (every branch, the inside wrap's included) answer as the same rows batched."""
+    cfg, w, branch = against_mujoco[True, True]
+    rows = [int(np.flatnonzero(branch == code)[0]) for code in range(len(BRANCHES)) if (branch == code).any()]
+    assert {int(branch[r]) for r in rows} >= {INSIDE, CIRCLE_SIDED}
+    for r in rows:
+        args = [torch.as_tensor(cfg[k][r]) for k in ("p0", "p1", "centre", "rot", "radius")]
+        one = wrap(*args, torch.tensor(True), torch.as_tensor(cfg["side"][r]), torch.tensor(True))
+        for got, want in zip(one, w):
+            torch.testing.assert_close(got, want[r], rtol=0, atol=0)
 
 
 def test_bad_input_is_named():
