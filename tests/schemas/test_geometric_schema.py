@@ -66,26 +66,43 @@ def test_checkpoint_round_trip_answers_the_same(opensim_arm, tmp_path):
         np.testing.assert_array_equal(a, b)
 
 
-def test_the_flag_marks_postures_next_to_a_switch_of_the_fitted_wrapping(opensim_arm):
-    """Along a line through joint space a fitted path's length jumps where its wrapping switches; postures a few
-    millirad either side of the jump are flagged, postures far from any switch are not."""
-    schema, _ = opensim_arm
-    lo, hi = schema.robot_model.q_range.T
-    line = np.linspace(0, 1, 2001)[:, None]
-    for seed in range(20):
-        a, b = (lo + (hi - lo) * np.random.default_rng(seed).random((2, len(lo))))
-        q = a + line * (b - a)
-        l_geo = schema.body_si(torch.as_tensor(q))[0]
-        step = np.abs(np.diff(l_geo, axis=0)).max(axis=1)
-        jumps = np.flatnonzero(step > 1e-3)  # > 1 mm between neighbours 1/2000 of the line apart: a switch
-        if len(jumps):
-            break
-    assert len(jumps), "no switch of the fitted wrapping on 20 lines"
-    flags = schema.path_switches(q)
-    assert flags["near_path_switch"][jumps[0]] and flags["near_path_switch"][jumps[0] + 1]
-    assert not flags["near_path_switch"].all()
-    distance = flags["path_switch_distance_rad"]
-    assert np.isfinite(distance[jumps[0]]) and distance.max() > distance[jumps[0]]
+@pytest.fixture(scope="module")
+def myoarm_path():
+    """myoArm's paths at the MJCF's numbers (a fitted body's numbers differ from these by micrometres)."""
+    from lightning_bodyschema.apps.common import robot_from_config
+    from lightning_bodyschema.schemas.geometric import geometric_path
+
+    model = robot_from_config("configs/myoarm.yaml")[0]
+    return model, geometric_path(model)
+
+
+def test_the_flag_marks_postures_next_to_a_jump_of_the_paths_and_says_how_far(myoarm_path):
+    """On a line through myoArm's joint box DELT1's length (MuJoCo's) jumps by 1.85 mm where the site after its
+    sphere enters the sphere; the flag's distance (the margins' first-order distance) is the distance along the line
+    to within its curvature, postures within 5 mrad are flagged, postures 0.1 rad away are not."""
+    from lightning_bodyschema.schemas.geometric import geometric_switches
+
+    model, path = myoarm_path
+    lo, hi = model.q_range.T
+    a, b = lo + (hi - lo) * np.random.default_rng(4).random((2, len(lo)))
+    q = a + np.linspace(0, 1, 4001)[:, None] * (b - a)
+    step = np.abs(np.diff(model.kinematics(q[3700:3901])[0], axis=0)).max(axis=1)
+    jump = 3700 + int(np.argmax(step))
+    assert step.max() > 1e-3  # the 1.85 mm jump between neighbours 1 mrad apart
+    at = np.array([jump - 100, jump - 3, jump, jump + 1, jump + 4])
+    distance, muscle = geometric_switches(path, q[at])
+    along = np.linalg.norm(q[at] - 0.5 * (q[jump] + q[jump + 1]), axis=1)  # [rad] to the jump, along the line
+    assert (muscle[1:] == model.muscle_names.index("DELT1_tendon")).all()
+    np.testing.assert_allclose(distance[1:], along[1:], rtol=0.5)  # first order: the line is not the gradient
+    assert (distance[1:] <= along[1:] * 1.05).all()  # the shortest way to the switch is at most the line's
+    flags = path_switch_flags(distance)
+    assert flags[1:].all() and not flags[0]
+
+
+def path_switch_flags(distance_rad):
+    from lightning_bodyschema.networks.switches import switch_diagnostics
+
+    return switch_diagnostics(distance_rad, np.zeros(len(distance_rad), int))["near_path_switch"]
 
 
 def test_geometric_needs_the_mjcf_and_sane_options(opensim_arm):
