@@ -50,15 +50,16 @@ PRIORS, SIDE_SITES = ("mjcf", "centroid"), ("start", "mjcf", "geom", "scaled")
 
 @dataclass(frozen=True)
 class PathFitOptions:
-    """How ``fit_path_numbers`` fits (module docstring). Defaults: the recipe that fitted all 50 myoArm muscles
-    from a 1 mm prior (``prior_error_mm=1, radius_error=0.05``) to the data module's targets at 2000 postures, with
-    the prior exact (``prior_error_mm`` 0: a robot whose MJCF is its CAD)."""
+    """How ``fit_path_numbers`` fits (module docstring). Defaults: the recipe that fitted all 50 myoArm and all 80
+    myoLegs muscles from a 1 mm prior (``prior_error_mm=1, radius_error=0.05``) to the data module's targets at 2000
+    postures, with the prior exact (``prior_error_mm`` 0: a robot whose MJCF is its CAD)."""
 
     prior_error_mm: float = 0.0  # each prior number moved by +-this [mm] (seeded sign): a simulated CAD error
     radius_error: float = 0.0  # each radius scaled by 1 +- this (relative, seeded sign)
     prior: str = "mjcf"  # or "centroid": each point at the centroid of its body's MJCF sites
     seed: int = 0
-    restarts: int = 4
+    restarts: int = 16  # seeded starts at most: with retry_mm a restart refits only the muscles still off, and
+    # none runs once every muscle is within it (myoLegs' bfsh_l: 2 of 8 sign draws fit it)
     max_iter: int = 150  # Levenberg-Marquardt passes per stage
     cauchy_mm: tuple = (0.3,)  # the Cauchy loss' scales [mm], fitted in turn (0: least squares)
     side_search: int = 1  # rounds of the side sites' pattern search, each followed by the fit again
