@@ -19,7 +19,8 @@ of a pattern search over them, each followed by the fit again. Starts (``starts`
 or with ``prior="centroid"`` each site and geom at the centroid of the MJCF's sites of its body, radii x
 ``CENTROID_RADIUS_FACTOR``) each moved by +-``prior_error_mm`` (a seeded sign per coordinate; radii by a factor 1 +-
 ``radius_error``); ``side_sites="geom"``: a side site riding its geom's body starts at the geom's start centre plus
-the prior's offset between them (``with_geom_offsets``), ``"mjcf"``: at the MJCF's. ``restarts`` seeded starts
+the prior's offset between them (``with_geom_offsets``), ``"scaled"`` (the default): that offset times the start's
+radius over the prior's (inside the geom stays inside), ``"mjcf"``: at the MJCF's. ``restarts`` seeded starts
 (``fit_restarts``), per muscle the lowest train cost kept; ``retry_mm`` > 0: a restart refits only the muscles still
 above that train RMS.
 
@@ -49,18 +50,21 @@ PRIORS, SIDE_SITES = ("mjcf", "centroid"), ("start", "mjcf", "geom", "scaled")
 
 @dataclass(frozen=True)
 class PathFitOptions:
-    """How ``fit_path_numbers`` fits (module docstring). Defaults: the recipe that fitted myoArm's muscles from a
-    1 mm prior, with the prior exact (``prior_error_mm`` 0: a robot whose MJCF is its CAD)."""
+    """How ``fit_path_numbers`` fits (module docstring). Defaults: the recipe that fitted all 50 myoArm and all 80
+    myoLegs muscles from a 1 mm prior (``prior_error_mm=1, radius_error=0.05``) to the data module's targets at 2000
+    postures, with the prior exact (``prior_error_mm`` 0: a robot whose MJCF is its CAD)."""
 
     prior_error_mm: float = 0.0  # each prior number moved by +-this [mm] (seeded sign): a simulated CAD error
     radius_error: float = 0.0  # each radius scaled by 1 +- this (relative, seeded sign)
     prior: str = "mjcf"  # or "centroid": each point at the centroid of its body's MJCF sites
     seed: int = 0
-    restarts: int = 4
+    restarts: int = 16  # seeded starts at most: with retry_mm a restart refits only the muscles still off, and
+    # none runs once every muscle is within it (myoLegs' bfsh_l: 2 of 8 sign draws fit it)
     max_iter: int = 150  # Levenberg-Marquardt passes per stage
     cauchy_mm: tuple = (0.3,)  # the Cauchy loss' scales [mm], fitted in turn (0: least squares)
     side_search: int = 1  # rounds of the side sites' pattern search, each followed by the fit again
-    side_sites: str = "geom"  # side sites start at the "start"'s numbers, the "mjcf"'s, or by their "geom"
+    side_sites: str = "scaled"  # side sites start at the "start"'s numbers, the "mjcf"'s, or by their "geom"
+    # ("scaled": by their geom in units of its radius, with_geom_offsets)
     side_steps_mm: tuple = (8.0, 4.0, 2.0, 1.0, 0.5)  # the side search's steps [mm], in turn
     retry_mm: float = 0.01  # > 0: a restart refits only the muscles whose train RMS is above this [mm]
     threads: int = 1  # MuJoCo passes over postures on this many threads (MuJoCo releases the GIL)

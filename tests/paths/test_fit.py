@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lightning_bodyschema.errors import BodySchemaInputError
-from lightning_bodyschema.paths.fit import EXACT_M, PathFitOptions, Replicas, fit_path_numbers
+from lightning_bodyschema.paths.fit import EXACT_M, PathFitOptions, Replicas, fit_path_numbers, starts
 from lightning_bodyschema.paths.parts import path_parts
 
 TARGET_MM = 0.05  # issue 51: the worst muscle per posture, p99
@@ -62,6 +62,29 @@ def test_threads_give_the_same_numbers(arm, data):
     two = fit_path_numbers(arm, q, l_train, PathFitOptions(threads=2, **options))
     assert all(np.array_equal(a, b) for a, b in zip(one.numbers, two.numbers))
     assert one.passes == two.passes and calls and calls[-1][0] == one.passes == calls[-1][1]
+
+
+def side_offsets_in_radii(rep: Replicas, numbers: list) -> np.ndarray:
+    """Each wrapping geom's side site's distance from its centre over its radius."""
+    out = []
+    for parts, table, theta in zip(rep.parts, rep.tables, numbers):
+        at = {row: n for n, row in enumerate(table)}
+        for i in (i for i, p in enumerate(parts) if p[0] == "geom" and p[2] >= 0):
+            side, centre = (theta[[at[(kind, i, c)] for c in range(3)]] for kind in ("side", "geom"))
+            out.append(np.linalg.norm(side - centre) / theta[at[("radius", i, 0)]])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("side_sites, keeps", [("scaled", True), ("geom", False)])
+def test_scaled_side_sites_keep_their_place_in_radii(arm, side_sites, keeps):
+    """``side_sites="scaled"``: a side site starts where the prior has it in units of its geom's radius (inside stays
+    inside), whatever the radius' error; ``"geom"`` keeps the offset in metres, so a radius 5 % off moves it."""
+    rep = Replicas(arm, list(range(arm.n_muscles)))
+    options = PathFitOptions(prior_error_mm=1.0, radius_error=0.05, side_sites=side_sites)
+    start = starts(rep, arm.mj_model, options, np.random.default_rng(0))
+    prior, moved = side_offsets_in_radii(rep, rep.truth), side_offsets_in_radii(rep, start)
+    assert len(prior) == 8 and (np.abs(moved / prior - 1).max() < 1e-12) == keeps
+    assert keeps or np.abs(moved / prior - 1).min() > 0.04  # 1 / (1 +- 0.05) - 1
 
 
 @pytest.mark.parametrize("bad, named", [
