@@ -139,7 +139,7 @@ class StructuredSchema(LearnedBody, BodySchema):
                  path_cells: int = 1, path_cell_degrees: Optional[list] = None, path_separable: bool = False,
                  path_blocks: Optional[list] = None, path_cell_trim: Optional[float] = None,
                  path_cell_joints: str = "crossed", path_cell_keep: str = "median_and_p99",
-                 path_prior_error_mm: float = 0.0, path_fit_postures: int = 4000, path_fit_seed: int = 0):
+                 path_prior_error_mm: float = 0.0, path_fit_postures: int = 2000, path_fit_seed: int = 0):
         super().__init__(robot=robot, lr=lr, lr_final=lr_final, batch_size=batch_size)
         if torque_model not in TORQUE_MODELS:
             raise BodySchemaInputError(f"torque_model={torque_model!r}; allowed: {list(TORQUE_MODELS)}")
