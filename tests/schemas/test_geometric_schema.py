@@ -89,14 +89,18 @@ def test_the_flag_marks_postures_next_to_a_jump_of_the_paths_and_says_how_far(my
     step = np.abs(np.diff(model.kinematics(q[3700:3901])[0], axis=0)).max(axis=1)
     jump = 3700 + int(np.argmax(step))
     assert step.max() > 1e-3  # the 1.85 mm jump between neighbours 1 mrad apart
-    at = np.array([jump - 100, jump - 3, jump, jump + 1, jump + 4])
+    at = np.array([jump - 100, jump - 3, jump + 4])
     distance, muscle = geometric_switches(path, q[at])
+    half_step = 0.5 * np.linalg.norm(q[1] - q[0])  # the jump lies somewhere between its two neighbours
     along = np.linalg.norm(q[at] - 0.5 * (q[jump] + q[jump + 1]), axis=1)  # [rad] to the jump, along the line
     assert (muscle[1:] == model.muscle_names.index("DELT1_tendon")).all()
-    np.testing.assert_allclose(distance[1:], along[1:], rtol=0.5)  # first order: the line is not the gradient
-    assert (distance[1:] <= along[1:] * 1.05).all()  # the shortest way to the switch is at most the line's
+    # the shortest way to the switch is at most the line's; on both sides the same fraction of it (one smooth
+    # margin crossing zero, the line at one angle to its gradient)
+    assert (distance[1:] <= 1.05 * (along[1:] + half_step)).all() and (distance[1:] > 0).all()
+    ratio = distance[1:] / along[1:]
+    assert abs(ratio[0] - ratio[1]) < 0.25 * ratio.max() + half_step / along[1:].min()
     flags = path_switch_flags(distance)
-    assert flags[1:].all() and not flags[0]
+    assert flags[1:].all() and not flags[0]  # 3-4 mrad from the jump; 0.1 rad along the line
 
 
 def path_switch_flags(distance_rad):
