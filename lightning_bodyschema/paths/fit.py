@@ -67,6 +67,8 @@ class PathFitOptions:
     # ("scaled": by their geom in units of its radius, with_geom_offsets)
     side_steps_mm: tuple = (8.0, 4.0, 2.0, 1.0, 0.5)  # the side search's steps [mm], in turn
     retry_mm: float = 0.01  # > 0: a restart refits only the muscles whose train RMS is above this [mm]
+    retry_medians: float = 0.0  # > 0: ... and above this many times the median muscle's (noisy targets leave every
+    # muscle at the noise: only the ones far above it are refitted)
     threads: int = 1  # MuJoCo passes over postures on this many threads (MuJoCo releases the GIL)
 
     def __post_init__(self):
@@ -76,7 +78,7 @@ class PathFitOptions:
             low = 0 if name in ("seed", "side_search") else 1
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
                 raise BodySchemaInputError(f"PathFitOptions.{name}={value!r}; give an integer >= {low}")
-        for name in ("prior_error_mm", "retry_mm", "radius_error"):
+        for name in ("prior_error_mm", "retry_mm", "retry_medians", "radius_error"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value >= 0) or (name == "radius_error" and value >= 1):
                 allowed = "in [0, 1)" if name == "radius_error" else "a finite number >= 0"
@@ -389,8 +391,7 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, opt
     passes_at_most)`` after each restart and at the end (``passes == passes_at_most``)."""
     best, first, passes = None, None, 0
     for restart in range(options.restarts):
-        again = list(range(len(rep.tables))) if best is None or options.retry_mm <= 0 else [
-            a for a, b in enumerate(best) if 1e3 * np.sqrt(np.mean(b.r ** 2)) > options.retry_mm]
+        again = list(range(len(rep.tables))) if best is None or options.retry_mm <= 0 else _still_off(best, options)
         if not again:
             break
         sub = rep if len(again) == len(rep.tables) else Replicas(model, [rep.muscles[a] for a in again])
@@ -409,6 +410,13 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, opt
     return PathFit([s.theta for s in best], np.array([1e3 * np.sqrt(np.mean(s.r ** 2)) for s in best]), passes,
                    np.array([s.iterations for s in best]), np.array([s.jumps for s in best]),
                    np.array([rank_deficit(s.J) for s in best]), first)
+
+
+def _still_off(solvers: list, options: PathFitOptions) -> list[int]:
+    """The muscles whose train RMS is above ``retry_mm`` and ``retry_medians`` times the median muscle's."""
+    rms_mm = np.array([1e3 * np.sqrt(np.mean(s.r ** 2)) for s in solvers])
+    limit = max(options.retry_mm, options.retry_medians * float(np.median(rms_mm)))
+    return [int(a) for a in np.flatnonzero(rms_mm > limit)]
 
 
 def _passes_at_most(options: PathFitOptions) -> int:

@@ -14,6 +14,10 @@ from ..paths.fit import PathFitOptions, fit_path_numbers
 from ..paths.layout import path_layout
 from ..paths.module import GeometricPath
 
+# restarts refit the muscles whose train RMS exceeds 1e-4 mm and 3 medians: exact targets leave every muscle fitted
+# at ~1e-11 mm but a few at a local minimum of a few micrometres (myoLegs' tibant_r: 0.006 mm, whose moment-arm error
+# times tensions of ~1 kN is a torque error of 0.04 N m; refitted: 1e-11 mm); noisy targets leave all at the noise
+RETRY_MM, RETRY_MEDIANS = 1e-4, 3.0
 PRIOR_RADIUS_ERROR = 0.05  # with a simulated CAD error, each wrapping radius also off by 5 % (about 1 mm on myoArm)
 
 
@@ -43,7 +47,8 @@ def fit_geometric_numbers(path: GeometricPath, robot_model, q: torch.Tensor, tar
     rows = np.sort(rng.choice(len(q), min(len(q), hparams.path_fit_postures), replace=False))
     error_mm = float(hparams.path_prior_error_mm)
     options = PathFitOptions(prior_error_mm=error_mm, radius_error=PRIOR_RADIUS_ERROR if error_mm > 0 else 0.0,
-                             seed=hparams.path_fit_seed, threads=max(1, min(2, os.cpu_count() or 1)))
+                             seed=hparams.path_fit_seed, retry_mm=RETRY_MM, retry_medians=RETRY_MEDIANS,
+                             threads=max(1, min(2, os.cpu_count() or 1)))
     progress = lambda done, most: rank_zero_info(f"geometric paths: {done} of at most {most} MuJoCo passes over "
                                                  f"{len(rows)} postures")  # noqa: E731
     fit = fit_path_numbers(robot_model, q[rows].cpu().numpy(), target_m[rows].cpu().numpy(), options, progress)

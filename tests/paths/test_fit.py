@@ -106,3 +106,22 @@ def test_bad_targets_are_refused(arm, data):
         fit_path_numbers(arm, q, np.where(l_train > 0, np.nan, l_train))
     with pytest.raises(BodySchemaInputError, match=r"muscles=\[6\]"):
         fit_path_numbers(arm, q, l_train[:, :1], muscles=[6])
+
+
+def test_restarts_refit_only_the_muscles_far_above_the_others():
+    """``retry_medians``: with exact targets a muscle at a local minimum of micrometres is refitted; with noisy ones
+    every muscle sits at the noise and only one far above it is."""
+    from types import SimpleNamespace
+
+    from lightning_bodyschema.paths.fit import _still_off
+
+    def solvers(rms_mm):
+        return [SimpleNamespace(r=np.full(4, 1e-3 * v)) for v in rms_mm]
+
+    exact = PathFitOptions(retry_mm=1e-4, retry_medians=3.0)
+    assert _still_off(solvers([1e-11, 6e-3, 2e-11, 1e-11]), exact) == [1]
+    noisy = [0.05, 0.048, 0.052, 0.3, 0.051]
+    assert _still_off(solvers(noisy), exact) == [3]
+    assert _still_off(solvers(noisy), PathFitOptions(retry_mm=1e-4)) == [0, 1, 2, 3, 4]
+    with pytest.raises(BodySchemaInputError, match="retry_medians"):
+        PathFitOptions(retry_medians=-1.0)
