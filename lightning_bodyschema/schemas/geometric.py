@@ -60,6 +60,10 @@ def fit_geometric_numbers(path: GeometricPath, robot_model, q: torch.Tensor, tar
 
 
 SWITCH_STEP_RAD = 1e-6  # the forward difference of the wrap margins' slopes (they are smooth where they cross zero)
+# a margin moving less than this with the posture [m/rad] never crosses zero: its points ride one body (a side site
+# on its geom's body: myoArm's FCR, whose fitted side site sits on its geom's surface, 3e-13 m inside), and its
+# forward difference is rounding
+SWITCH_SLOPE_FLOOR = 1e-6
 
 
 @torch.no_grad()
@@ -75,7 +79,8 @@ def geometric_switches(path: GeometricPath, q_rad: np.ndarray) -> tuple[np.ndarr
     margins = torch.stack(path.margins((q[:, None, :] + steps).reshape(-1, n)))  # (kinds, B (N+1), M, K)
     margins = margins.reshape(len(margins), batch, n + 1, *margins.shape[2:])
     value, slope = margins[:, :, 0], (margins[:, :, 1:] - margins[:, :, :1]) / SWITCH_STEP_RAD
-    distance = value.abs() / torch.linalg.vector_norm(slope, dim=2).clamp_min(1e-12)
-    distance = torch.where(torch.isfinite(value), distance, torch.inf).amin(dim=(0, 3))  # (B, M)
+    rate = torch.linalg.vector_norm(slope, dim=2)
+    moves = torch.isfinite(value) & (rate > SWITCH_SLOPE_FLOOR)
+    distance = torch.where(moves, value.abs() / rate.clamp_min(SWITCH_SLOPE_FLOOR), torch.inf).amin(dim=(0, 3))
     best, muscle = distance.min(dim=1)
     return best.cpu().numpy(), torch.where(torch.isfinite(best), muscle, -1).cpu().numpy()
