@@ -4,7 +4,7 @@
 # (on this project's lent GPU machines: bash .gpu/on_device.sh bash tools/bench_gpu.sh "$OUT" 540).
 # Steps, most wanted first; a step that would not fit in what is left of the budget is skipped and says so:
 #   dataset   myoArm's 100 000 equilibrium samples on every core (the cache both myoArm fits read)
-#   fit_pm    `bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu` (the per-muscle body; issue: the
+#   fit_pm    `bodyschema fit --config configs/myoarm-polynomial.yaml --trainer.accelerator gpu` (the per-muscle body; the
 #             same fit on a GPU)
 #   fit_dense the same with configs/myoarm-dense.yaml (the dense body, configs/myoarm.yaml until 2026-11-27)
 #   adapter   the prepared structured adapter of each fit on CUDA and on this machine's CPU (one thread), batch 1
@@ -46,7 +46,7 @@ dataset='import yaml; from lightning_bodyschema.data.datamodule import Equilibri
 D(**yaml.safe_load(open("configs/myoarm.yaml"))["data"]).prepare_data()'
 [[ "${TESTS_FIRST:-0}" == 1 ]] && step tests 60 "${TESTS_CAP:-600}" python3 -m pytest -m gpu -q -p no:cacheprovider
 step dataset 60 120 python3 -c "$dataset"
-step fit_pm 60 300 bodyschema fit --config configs/myoarm.yaml --trainer.accelerator gpu \
+step fit_pm 60 300 bodyschema fit --config configs/myoarm-polynomial.yaml --trainer.accelerator gpu \
   --trainer.default_root_dir "$runs/pm"
 step fit_dense 120 330 bodyschema fit --config configs/myoarm-dense.yaml --trainer.accelerator gpu \
   --trainer.default_root_dir "$runs/dense"
