@@ -148,8 +148,8 @@ def test_a_schema_moved_with_to_cuda_adapts(trained):
 PER_MUSCLE_SMALL = ["--model.path_degree=6", "--model.path_terms=200", "--model.path_term_budget=null"]
 
 
-@pytest.mark.parametrize("config,extra", [("myoarm-polynomial.yaml", PER_MUSCLE_SMALL), ("myoarm-dense.yaml", []),
-                                          ("myoarm-diff.yaml", [])])
+@pytest.mark.parametrize("config,extra", [("myoarm-polynomial.yaml", PER_MUSCLE_SMALL),
+                                          ("myoarm-dense.yaml", []), ("myoarm-diff.yaml", [])])
 def test_myo_configs_fit_on_cuda(tmp_path, config, extra):
     pytest.importorskip("myo_sim")
     from lightning_bodyschema.cli import main as cli_main
