@@ -11,7 +11,8 @@ cases, those that came to rest (a run still moving is counted apart, never score
 [mrad] over those. ``--healthy N``: first a HEALTHY row, N fresh equilibrium postures (``generate_equilibrium_samples``
 with ``--healthy-seed``, postures none of the data holds), the healthy command (``solve_si``; its rows whose status
 is not ``ok`` counted apart) dropped into MuJoCo, with the postures the adapter flags at a path switch
-(``path_switches``) counted and scored apart. ``tools/bench_body_table.py --settle`` prints the medians beside the rest of a checkpoint's row.
+(``path_switches``) counted and scored apart. ``tools/bench_body_table.py --settle`` prints the medians beside the
+rest of a checkpoint's row.
 One torch thread.
 """
 import argparse

@@ -21,8 +21,8 @@ or with ``prior="centroid"`` each site and geom at the centroid of the MJCF's si
 ``radius_error``); ``side_sites="geom"``: a side site riding its geom's body starts at the geom's start centre plus
 the prior's offset between them (``with_geom_offsets``), ``"scaled"`` (the default): that offset times the start's
 radius over the prior's (inside the geom stays inside), ``"mjcf"``: at the MJCF's. ``restarts`` seeded starts
-(``fit_restarts``), per muscle the lowest train cost kept; ``retry_mm`` > 0: a restart refits only the muscles whose train
-residual's p90 is still above it (and ``retry_medians`` times the median muscle's).
+(``fit_restarts``), per muscle the lowest train cost kept; ``retry_mm`` > 0: a restart refits only the muscles whose
+train residual's p90 is still above it (and ``retry_medians`` times the median muscle's).
 
 Only numpy and MuJoCo: never Lightning, never torch.
 """

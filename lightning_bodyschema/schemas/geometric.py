@@ -70,7 +70,8 @@ SWITCH_SLOPE_FLOOR = 1e-6
 def geometric_switches(path: GeometricPath, q_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """How far each posture ``q_rad (B, N)`` is from a switch of the fitted paths' wrapping, to first order: over every
     muscle's wrap margins whose zero switches its path (``GeometricPath.margins``: an end crossing the ray opposite a
-    side site, the side site crossing into its geom, an end entering its geom while wrapped), the least ``|m| / |grad m|`` [rad], and the muscle it belongs to (``inf``, -1:
+    side site, the side site crossing into its geom, an end entering its geom while wrapped) that move with the
+    posture (``SWITCH_SLOPE_FLOOR``), the least ``|m| / |grad m|`` [rad], and the muscle it belongs to (``inf``, -1:
     none). The exact margins of the fitted model: no learned gate."""
     q = torch.as_tensor(q_rad, dtype=torch.float64, device=path.numbers.device)
     batch, n = q.shape

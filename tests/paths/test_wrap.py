@@ -176,7 +176,8 @@ def test_inside_margin_selects_the_inside_wrap(against_mujoco):
         assert (inside_margin[inside] < 0).all() and np.isinf(side_margin[inside_margin < 0]).all()
         assert not (w.wrapped.numpy() & ~inside & (inside_margin < 0)).any()
         # it applies where both ends are outside the circle (in the wrapping plane: a cylinder's xy), else +inf
-        ends = [np.einsum("bji,bj->bi", cfg["rot"], cfg[p] - cfg["centre"])[:, :3 if sphere else 2] for p in ("p0", "p1")]
+        ends = [np.einsum("bji,bj->bi", cfg["rot"], cfg[p] - cfg["centre"])[:, :3 if sphere else 2]
+                for p in ("p0", "p1")]
         applies = np.minimum(*(np.linalg.norm(e, axis=1) for e in ends)) >= cfg["radius"]
         assert np.isinf(inside_margin[~applies]).all() and applies.sum() >= 100
         np.testing.assert_allclose(inside_margin[applies] + cfg["radius"][applies],
@@ -299,7 +300,8 @@ def test_myoarm_lengths_are_mujocos(myoarm):
     tendon, s0, geom, side, s1 = (torch.as_tensor(c) for c in slots.T)
     g = geom.clamp(min=0)
     w = wrap(site_xpos[:, s0], site_xpos[:, s1], geom_xpos[:, g], geom_xmat[:, g],
-             torch.as_tensor(m.geom_size[g.numpy(), 0]), torch.as_tensor(m.geom_type[g.numpy()] == mujoco.mjtGeom.mjGEOM_SPHERE),
+             torch.as_tensor(m.geom_size[g.numpy(), 0]),
+             torch.as_tensor(m.geom_type[g.numpy()] == mujoco.mjtGeom.mjGEOM_SPHERE),
              site_xpos[:, side.clamp(min=0)], side >= 0)
     wrapped = w.wrapped & (geom >= 0)
     seg = torch.where(wrapped, path_length(w, site_xpos[:, s0], site_xpos[:, s1]),
