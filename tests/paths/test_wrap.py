@@ -2,7 +2,6 @@
 geom turned arbitrarily), read back through mj_kinematics + mj_tendon (ten_length, the tangent points in wrap_xpos),
 over seeded configurations chosen to reach every branch of mju_wrap; then every wrap of every myoArm muscle; then
 torch.export with a symbolic batch, and autograd free of NaN at degenerate inputs."""
-import math
 
 import mujoco
 import numpy as np
@@ -13,7 +12,7 @@ from physics_checks import rounding_tol
 
 from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.paths.wrap import (BRANCHES, CIRCLE, CIRCLE_SIDED, INSIDE, INSIDE_AVERAGE, NO_WRAP,
-                                             SIDED_LONG, wrap, wrap_branches)
+                                             wrap, wrap_branches)
 
 # a path length is a dozen roundings at the configuration's scale (frames, tangent points' sqrt, an atan2, an arc;
 # measured: 3e-15 m at 0.5 m); the tangent points agree to 3e-16 m, the inside wrap's reflection point included
