@@ -15,7 +15,7 @@ from lightning_bodyschema.errors import BodySchemaInputError
 from lightning_bodyschema.schemas import StructuredSchema, load_schema
 from lightning_bodyschema.sim.robot import ModelFreeRobot
 
-GEOMETRIC = dict(length_model="geometric", torque_model="gravity", path_prior_error_mm=1.0, path_fit_postures=800)
+GEOMETRIC = dict(length_model="geometric", torque_model="gravity", path_prior_error_mm=1.0, path_fit_postures=500)
 F_MAX_N = [200.0, 200.0, 150.0, 150.0, 120.0, 120.0]  # configs/opensim_like-diff.yaml
 
 
@@ -129,7 +129,7 @@ def test_geometric_needs_the_mjcf_and_sane_options(opensim_arm):
             StructuredSchema(robot=opensim_arm[0].hparams.robot, length_model="geometric", **bad)
 
 
-@pytest.mark.parametrize("batch", ["dynamic", 1])
+@pytest.mark.parametrize("batch", [pytest.param("dynamic", marks=pytest.mark.slow), 1])
 def test_the_adapter_exports_and_answers_as_in_python(opensim_arm, batch):
     """The package's program (``deploy.package.exported_program``: the geometric paths traced, every wrap case
     selected branch-free) answers as the Python adapter: the same statuses, ok rows to the solver's tolerance."""
