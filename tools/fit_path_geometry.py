@@ -212,7 +212,7 @@ def main(argv=None):
     parser.add_argument("--prior", choices=("mjcf", "centroid"), default="mjcf")
     parser.add_argument("--restarts", type=int, default=1)
     parser.add_argument("--retry-mm", type=float, default=0.0,
-                        help="> 0: restarts refit only the muscles whose train residual p90 is above this [mm]")
+                        help="> 0: restarts refit only the muscles whose train RMS is above this [mm]")
     parser.add_argument("--side-sites", choices=("start", "mjcf", "geom", "scaled"), default="start",
                         help="side sites (never fitted) at the start's numbers, the MJCF's, or their geom's start "
                              "centre plus the MJCF's offset (scaled: times the start's radius over the MJCF's)")

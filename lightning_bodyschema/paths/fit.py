@@ -22,7 +22,7 @@ or with ``prior="centroid"`` each site and geom at the centroid of the MJCF's si
 the prior's offset between them (``with_geom_offsets``), ``"scaled"`` (the default): that offset times the start's
 radius over the prior's (inside the geom stays inside), ``"mjcf"``: at the MJCF's. ``restarts`` seeded starts
 (``fit_restarts``), per muscle the lowest train cost kept; ``retry_mm`` > 0: a restart refits only the muscles whose
-train residual's p90 is still above it (and ``retry_medians`` times the median muscle's).
+train RMS is still above it (and ``retry_medians`` times the median muscle's).
 
 Only numpy and MuJoCo: never Lightning, never torch.
 """
@@ -66,7 +66,7 @@ class PathFitOptions:
     side_sites: str = "scaled"  # side sites start at the "start"'s numbers, the "mjcf"'s, or by their "geom"
     # ("scaled": by their geom in units of its radius, with_geom_offsets)
     side_steps_mm: tuple = (8.0, 4.0, 2.0, 1.0, 0.5)  # the side search's steps [mm], in turn
-    retry_mm: float = 0.01  # > 0: a restart refits only the muscles whose train residual's p90 is above this [mm]
+    retry_mm: float = 0.01  # > 0: a restart refits only the muscles whose train RMS is above this [mm]
     retry_medians: float = 0.0  # > 0: ... and above this many times the median muscle's (noisy targets leave every
     # muscle at the noise: only the ones far above it are refitted)
     threads: int = 1  # MuJoCo passes over postures on this many threads (MuJoCo releases the GIL)
@@ -413,10 +413,8 @@ def fit_restarts(rep: Replicas, model, full: np.ndarray, target: np.ndarray, opt
 
 
 def _still_off(solvers: list, options: PathFitOptions) -> list[int]:
-    """The muscles whose train residual's p90 is above ``retry_mm`` and ``retry_medians`` times the median muscle's:
-    a fit stuck in a local minimum misses most postures; a few postures in another wrapping state (myoArm's BIClong:
-    RMS 0.22 mm, p90 1e-10 mm) are no reason to start again."""
-    rms_mm = np.array([1e3 * np.percentile(np.abs(s.r), 90) for s in solvers])
+    """The muscles whose train RMS is above ``retry_mm`` and ``retry_medians`` times the median muscle's."""
+    rms_mm = np.array([1e3 * np.sqrt(np.mean(s.r ** 2)) for s in solvers])
     limit = max(options.retry_mm, options.retry_medians * float(np.median(rms_mm)))
     return [int(a) for a in np.flatnonzero(rms_mm > limit)]
 
