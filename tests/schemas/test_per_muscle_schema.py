@@ -55,14 +55,18 @@ def test_myoarm_crossing_has_199_uncrossed_pairs():
     assert sorted(crossing.sum(1).tolist()) == sorted([1] * 6 + [2] * 5 + [3] * 23 + [4] * 14 + [5] * 2)
 
 
-def test_configs_myoarm_is_the_per_muscle_body_under_both_names_and_the_dense_one_the_same_robot():
+def test_configs_myoarm_is_the_geometric_body_its_polynomial_one_under_both_names_and_one_robot():
     import yaml
 
-    arm, per_muscle, dense = (yaml.safe_load(open(f"configs/{name}.yaml"))
-                              for name in ("myoarm", "myoarm-per-muscle", "myoarm-dense"))
-    assert arm["model"]["init_args"]["length_model"] == "per_muscle"  # the recommended myoArm body
-    assert {k: v for k, v in arm.items() if k != "trainer"} == {k: v for k, v in per_muscle.items() if k != "trainer"}
-    assert dense["data"] == arm["data"] and "length_model" not in dense["model"]["init_args"]  # the dense MLP body
+    arm, polynomial, per_muscle, dense = (yaml.safe_load(open(f"configs/{name}.yaml")) for name in
+                                          ("myoarm", "myoarm-polynomial", "myoarm-per-muscle", "myoarm-dense"))
+    assert arm["model"]["init_args"]["length_model"] == "geometric"  # the recommended myoArm body (issue 51)
+    assert polynomial["model"]["init_args"]["length_model"] == "per_muscle"  # what configs/myoarm.yaml was
+    assert {k: v for k, v in polynomial.items() if k != "trainer"} == {
+        k: v for k, v in per_muscle.items() if k != "trainer"}
+    for other in (polynomial, per_muscle, dense):  # one robot and one dataset
+        assert other["data"] == arm["data"]
+    assert "length_model" not in dense["model"]["init_args"]  # the dense MLP body
 
 
 def test_the_learned_body_matches_mujoco_and_moment_arms_vanish_off_the_crossed_joints(paper_arm):
@@ -236,7 +240,8 @@ def test_bad_muscle_joints_are_refused_in_one_line(recorded_csv, mapping, match)
 
 def test_bad_length_and_torque_models_are_refused():
     robot = EquilibriumDataModule(n_samples=20, cache_dir=None).robot
-    with pytest.raises(BodySchemaInputError, match=r"length_model='spline'; allowed: \['mlp', 'per_muscle'\]"):
+    with pytest.raises(BodySchemaInputError,
+                       match=r"length_model='spline'; allowed: \['mlp', 'per_muscle', 'geometric'\]"):
         StructuredSchema(robot=robot, length_model="spline")
     with pytest.raises(BodySchemaInputError, match="needs length_model='per_muscle'"):
         StructuredSchema(robot=robot, torque_model="polynomial")
