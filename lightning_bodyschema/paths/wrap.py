@@ -65,7 +65,7 @@ def wrap(p0, p1, centre, rot, radius, sphere, side, has_side) -> Wrap:
     The path's length through the geom is ``where(wrapped, |t0-p0| + arc_m + |p1-t1|, |p1-p0|)``, MuJoCo's to
     rounding. The margins (metres; for a "near a path switch" flag): every jump of that length is where one of them
     changes sign between finite values (checked along lines through myoArm's and myoLegs' joint boxes,
-    tests/paths/test_switches.py). +inf means "does not apply here" (a change to or from +inf is no switch). A wrap
+    tests/paths/test_wrap_switches.py). +inf means "does not apply here" (a change to or from +inf is no switch). A wrap
     that starts or ends where the segment touches the circle is not a jump (length and slope continue): no margin.
 
     * ``side_margin_m``: with a side site outside the geom and both ends outside the circle, the ends' signed
