@@ -21,8 +21,8 @@ of earlier MuJoCo versions differ (side rule, inside solve, an arc's ``acos``); 
 Every case is computed for every element and selected with ``torch.where``; compiled or exported, with no
 data-dependent control flow (it traces under ``torch.export`` with a symbolic batch); eager, the inside wrap runs on
 its elements only and its Newton steps stop once all have converged (the same numbers). Guards keep every output
-finite for finite inputs below 1e150 m (and autograd free of NaN); where MuJoCo divides unguarded (a cylinder's height over a zero-length path) this returns
-the unwrapped segment's values. Never imports Lightning.
+finite for finite inputs below 1e150 m (and autograd free of NaN); where MuJoCo divides unguarded (a cylinder's
+height over a zero-length path) this returns the unwrapped segment's values. Never imports Lightning.
 """
 from __future__ import annotations
 
