@@ -39,6 +39,20 @@ def geometric_path(robot_model) -> GeometricPath:
     return GeometricPath(path_layout(robot_model))
 
 
+def fit_geometry(schema, q: torch.Tensor, x: torch.Tensor, fit_torque: bool) -> None:
+    """``schema``'s paths fitted to the train split's exact lengths ``l_motor + delta(f)`` (``q (S, N)`` [rad],
+    ``x (S, 2M)`` in SI), then (``fit_torque``) its least-squares torque to the fitted moment arms."""
+    q, x, m = q.to(torch.float64), x.to(torch.float64), schema.n_muscles
+    schema.length_net.to(schema.device)
+    schema.torque_net.to(schema.device)
+    norm = schema.normalizer
+    target_m = schema._length_target_n(x) * norm.x_std[:m] + norm.x_mean[:m]
+    fit_geometric_numbers(schema.length_net, schema.robot_model, q, target_m, schema.hparams)
+    schema.clear_caches()
+    if fit_torque:
+        schema._fit_torque(norm.encode_q(q).to(schema.device), x[:, m:].to(schema.device))
+
+
 def fit_geometric_numbers(path: GeometricPath, robot_model, q: torch.Tensor, target_m: torch.Tensor,
                           hparams) -> None:
     """``path``'s numbers fitted on ``hparams.path_fit_postures`` seeded train postures ``q (S, N)`` [rad] to their

@@ -26,12 +26,9 @@ from typing import Optional
 
 import numpy as np
 import torch
-from lightning.pytorch.utilities import rank_zero_info
 
-from .._numpy import to_numpy
 from ..adaptation.pipeline import Adapter
 from ..errors import BodySchemaInputError
-from ..evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
 from ..faults import Faults
 from ..faults.bounds import FaultBounds
 from ..faults.qp import bounds_command
@@ -45,9 +42,8 @@ from ..sim.separable import separable_blocks
 from .base import BodySchema
 from .structured_body import LearnedBody
 from .crossing import crossing_from_data, resolve_crossing
-from .geometric import check_geometric_options, fit_geometric_numbers, geometric_path
+from .geometric import check_geometric_options, fit_geometry, geometric_path
 
-BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s on myoArm
 TORQUE_MODELS = ("potential", "direct", "polynomial", "gravity")
 FITTED_TORQUES = ("polynomial", "gravity")  # least squares on the learned moment arms, not the optimizer
 TORQUE_FIT_POSTURES = 40000  # the polynomial torque's least squares uses at most this many train postures
@@ -228,7 +224,7 @@ class StructuredSchema(LearnedBody, BodySchema):
             if self.hparams.get("length_model", "mlp") == "per_muscle":
                 self._fit_paths(*datamodule.splits["train"])
             elif self.hparams.length_model == "geometric":
-                self._fit_geometry(*datamodule.splits["train"])
+                fit_geometry(self, *datamodule.splits["train"], self.hparams.torque_model in FITTED_TORQUES)
 
     def _fit_paths(self, q: torch.Tensor, x: torch.Tensor) -> None:
         """Detect the crossings from the data when nothing gave them (said in the log), then fit every muscle's
@@ -250,20 +246,6 @@ class StructuredSchema(LearnedBody, BodySchema):
             self.hparams.path_cell_degrees = self.length_net.cell_degrees.tolist()
         if self.hparams.torque_model in FITTED_TORQUES:
             self._fit_torque(q_n.to(self.device), x[:, self.n_muscles:].to(self.device, torch.float64))
-
-    def _fit_geometry(self, q: torch.Tensor, x: torch.Tensor) -> None:
-        """Fit every muscle's path numbers to the train split's exact lengths ``l_motor + delta(f)``
-        (``paths.fit``, from the MJCF's numbers moved by ``path_prior_error_mm``), then the gravity torque to the
-        fitted moment arms."""
-        q, x = q.to(torch.float64), x.to(torch.float64)
-        self.length_net.to(self.device)
-        self.torque_net.to(self.device)
-        target_m = self._length_target_n(x) * self.normalizer.x_std[:self.n_muscles] + \
-            self.normalizer.x_mean[:self.n_muscles]
-        fit_geometric_numbers(self.length_net, self.robot_model, q, target_m, self.hparams)
-        self.clear_caches()
-        if self.hparams.torque_model in FITTED_TORQUES:
-            self._fit_torque(self.normalizer.encode_q(q).to(self.device), x[:, self.n_muscles:].to(self.device))
 
     def _choose_degrees(self, q_n: torch.Tensor, target_n: torch.Tensor) -> None:
         """``hparams.path_degrees`` from a first fit (``path_tolerance_mm``), and the path model rebuilt with them."""
@@ -406,26 +388,6 @@ class StructuredSchema(LearnedBody, BodySchema):
         """k [N] and alpha [1/m] as tensors like ``like`` (scalars or (M,): the spring may be per muscle)."""
         return tuple(torch.as_tensor(v, dtype=like.dtype, device=like.device)
                      for v in (self.spring.k_n, self.spring.alpha_per_m))
-
-    # ------------------------------------------------------------------ validation
-    def physical_errors(self, q: torch.Tensor, x_true: torch.Tensor) -> dict[str, float]:
-        """``BodySchema.physical_errors`` and the learned body's worst muscle per posture against MuJoCo
-        (``evaluation.body_errors.summary``: length, moment arm, torque), on the first ``BODY_ERROR_ROWS`` postures
-        (cheap: validation runs it; their MuJoCo kinematics is the cached one). ``last_bad_regions`` keeps where
-        the bad postures are (``evaluation.body_errors.bad_regions``) for the log line and for callers."""
-        errors = super().physical_errors(q, x_true)
-        if not self.has_physics:
-            return errors
-        q_np = to_numpy(q)
-        l_geo, G, tau = (a[:BODY_ERROR_ROWS] for a in self._physics(q_np))
-        q_np = q_np[:BODY_ERROR_ROWS]
-        crossed = np.abs(G).max(axis=0) > 1e-12  # MuJoCo's nonzero moment arms: tools/body_errors.py's pairs
-        worst = worst_per_posture(self.body_si(torch.as_tensor(q_np)), (l_geo, G, tau), crossed)
-        self.last_bad_regions = bad_regions(worst, q_np, self.robot_model.q_range, crossed, k=3)
-        if self.last_bad_regions:
-            rank_zero_info("learned body, worst muscle per posture:\n" + bad_regions_table(
-                self.last_bad_regions, self.robot_model.muscle_names, self.robot_model.joint_names))
-        return {**errors, **summary(worst)}
 
     # ------------------------------------------------------------------ commands
     def solve_si(self, q_rad: torch.Tensor, bounds=None, reg: Optional[float] = None):

@@ -7,6 +7,10 @@ from typing import Optional
 
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_info
+
+from .._numpy import to_numpy
+from ..evaluation.body_errors import bad_regions, bad_regions_table, summary, worst_per_posture
 
 from ..networks.per_muscle import PerMusclePath
 from ..networks.snapshot import BodySnapshot, GravitySnapshot
@@ -14,6 +18,7 @@ from ..networks.switches import PostureSwitches, switch_diagnostics
 from ..paths.module import GeometricPath
 from .geometric import geometric_switches
 
+BODY_ERROR_ROWS = 1024  # validation postures of the worst-muscle-per-posture figures (physical_errors): ~0.4 s
 # ``body_si`` in numpy up to this many postures (and the path's few-postures budget, ``PathSnapshot.max_postures``): on
 # myoArm numpy is the faster up to about 100 postures, myoLegs about 16 (BENCHMARKS.md "Per-muscle body evaluation,
 # myoArm")
@@ -22,7 +27,7 @@ HOST_ROWS = 16
 
 class LearnedBody:
     """``StructuredSchema``'s learned-body methods (``body_si``, ``learned_body_si``, ``body_snapshot``,
-    ``snapshot_covers``, ``path_switches``)."""
+    ``snapshot_covers``, ``path_switches``, ``physical_errors``)."""
 
     def body_si(self, q_rad: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The learned body at postures ``q_rad (B, N)`` [rad] as float64 arrays: l_geo [m], G [m/rad], tau [N m]
@@ -86,3 +91,22 @@ class LearnedBody:
         # adapter's call): the flag reads its rows instead of evaluating the gates again
         same = recent is not None and recent[0].shape == q.shape and np.array_equal(recent[0], q)
         return switch_diagnostics(*switches(q, recent[1] if same else None))
+
+    def physical_errors(self, q: torch.Tensor, x_true: torch.Tensor) -> dict[str, float]:
+        """``BodySchema.physical_errors`` and the learned body's worst muscle per posture against MuJoCo
+        (``evaluation.body_errors.summary``: length, moment arm, torque), on the first ``BODY_ERROR_ROWS`` postures
+        (cheap: validation runs it; their MuJoCo kinematics is the cached one). ``last_bad_regions`` keeps where
+        the bad postures are (``evaluation.body_errors.bad_regions``) for the log line and for callers."""
+        errors = super().physical_errors(q, x_true)
+        if not self.has_physics:
+            return errors
+        q_np = to_numpy(q)
+        l_geo, G, tau = (a[:BODY_ERROR_ROWS] for a in self._physics(q_np))
+        q_np = q_np[:BODY_ERROR_ROWS]
+        crossed = np.abs(G).max(axis=0) > 1e-12  # MuJoCo's nonzero moment arms: tools/body_errors.py's pairs
+        worst = worst_per_posture(self.body_si(torch.as_tensor(q_np)), (l_geo, G, tau), crossed)
+        self.last_bad_regions = bad_regions(worst, q_np, self.robot_model.q_range, crossed, k=3)
+        if self.last_bad_regions:
+            rank_zero_info("learned body, worst muscle per posture:\n" + bad_regions_table(
+                self.last_bad_regions, self.robot_model.muscle_names, self.robot_model.joint_names))
+        return {**errors, **summary(worst)}

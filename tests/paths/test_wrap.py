@@ -179,8 +179,9 @@ def test_inside_margin_selects_the_inside_wrap(against_mujoco):
                 for p in ("p0", "p1")]
         applies = np.minimum(*(np.linalg.norm(e, axis=1) for e in ends)) >= cfg["radius"]
         assert np.isinf(inside_margin[~applies]).all() and applies.sum() >= 100
-        np.testing.assert_allclose(inside_margin[applies] + cfg["radius"][applies],
-                                   np.linalg.norm(cfg["side"] - cfg["centre"], axis=1)[applies], rtol=0, atol=1e-15)
+        side_m = np.linalg.norm(cfg["side"] - cfg["centre"], axis=1)[applies]  # |s|: a norm and a subtraction
+        np.testing.assert_allclose(inside_margin[applies] + cfg["radius"][applies], side_m, rtol=0,
+                                   atol=rounding_tol(8, side_m, cfg["centre"]))
 
 
 @pytest.mark.parametrize("sphere", [True, False], ids=["sphere", "cylinder"])
